@@ -1,0 +1,88 @@
+"""What every command shares: the context object, --json, and output for people or machines."""
+
+from __future__ import annotations
+
+import json
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import click
+import numpy as np
+
+
+@dataclass
+class Ctx:
+    lab_path: Path | None = None  # None: resolve with find_lab()
+    json: bool = False
+    verbose: int = 0
+    _lab: Any = field(default=None, repr=False)
+
+    @property
+    def lab_root(self) -> Path:
+        from ..workspace import find_lab
+
+        return Path(self.lab_path) if self.lab_path else find_lab()
+
+    def lab(self):
+        """The resolved, validated :class:`labctl.config.Lab` (raises ConfigError)."""
+        if self._lab is None:
+            from ..config import load_lab
+
+            self._lab = load_lab(self.lab_root)
+        return self._lab
+
+    @property
+    def console(self):
+        from rich.console import Console
+
+        return Console(stderr=self.json)
+
+
+def get_ctx() -> Ctx:
+    ctx = click.get_current_context()
+    obj = ctx.find_object(Ctx)
+    if obj is None:
+        obj = ctx.ensure_object(Ctx)
+    return obj
+
+
+def _set_json(ctx: click.Context, _param, value):
+    if value:
+        get_ctx().json = True
+    return value
+
+
+json_option = click.option(
+    "--json", "json_", is_flag=True, expose_value=False, callback=_set_json, is_eager=True,
+    help="Machine-readable JSON on stdout.",
+)
+
+
+def _default(o):
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def to_json(data: Any) -> str:
+    return json.dumps(data, default=_default, indent=2, allow_nan=False)
+
+
+def emit(data: Any, human=None) -> None:
+    """Print ``data`` as JSON with --json, else call ``human(console)`` (or pretty-print)."""
+    c = get_ctx()
+    if c.json:
+        sys.stdout.write(to_json(data) + "\n")
+        sys.stdout.flush()
+    elif human is not None:
+        human(c.console)
+    else:
+        from rich.pretty import pprint
+
+        pprint(data, console=c.console)

@@ -1,0 +1,72 @@
+"""``labctl init`` and ``labctl lab show``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from ._common import emit, get_ctx, json_option
+
+
+@click.command("init")
+@click.argument("directory", type=click.Path(file_okay=False, path_type=Path))
+@click.option("--force", is_flag=True, help="Overwrite a workspace that already exists there.")
+@json_option
+def init_cmd(directory: Path, force: bool) -> None:
+    """Write a fresh lab workspace (the sample simulated lab) into DIRECTORY."""
+    from ..workspace import init_workspace
+
+    dest = init_workspace(directory, force=force)
+    emit({"lab": str(dest)}, lambda c: c.print(f"[green]lab workspace written:[/] {dest}"))
+
+
+@click.group("lab")
+def lab_group() -> None:
+    """Inspect the lab workspace."""
+
+
+def describe_lab(lab) -> dict:
+    """The resolved lab as plain data: driver file per role, calibration and library entries."""
+    from ..config import to_plain
+    from ..workspace import calibration_entries, library_entries
+
+    roles = {}
+    for role, path in lab.driver_paths.items():
+        dev = getattr(lab, role)
+        roles[role] = {
+            "file": str(path),
+            "kind": getattr(dev, "kind", None) or getattr(dev, "transport", None),
+            "port": getattr(dev, "port", None),
+            "config": to_plain(dev),
+        }
+    return {
+        "lab": str(lab.root),
+        "name": lab.config.name,
+        "simulated": lab.is_simulated,
+        "drivers": roles,
+        "calibration": calibration_entries(lab.root),
+        "object_library": library_entries(lab.root),
+        "config": to_plain(lab.config),
+    }
+
+
+@lab_group.command("show")
+@json_option
+def lab_show() -> None:
+    """Print the resolved lab: driver per role, calibration and library entries found."""
+    info = describe_lab(get_ctx().lab())
+
+    def human(console):
+        from rich.table import Table
+
+        console.print(f"[bold]{info['name']}[/]  {info['lab']}  "
+                      f"({'simulated' if info['simulated'] else 'hardware'})")
+        t = Table("role", "kind", "port", "driver file")
+        for role, d in info["drivers"].items():
+            t.add_row(role, str(d["kind"]), str(d["port"] or "-"), d["file"])
+        console.print(t)
+        console.print("calibration: " + (", ".join(info["calibration"]) or "[yellow]none[/]"))
+        console.print("object library: " + (", ".join(info["object_library"]) or "[yellow]empty[/]"))
+
+    emit(info, human)

@@ -1,0 +1,131 @@
+"""Driver files (``drivers/*.yaml``): *where* each device is and how to reach it.
+
+One dataclass per role. ``kind: sim`` selects the simulated device; other kinds name a real
+driver. Fields marked *sim* describe the simulator's ground truth and are ignored by real
+drivers. Units: mm, s, degrees only where the name says ``_deg``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+
+@dataclass(frozen=True)
+class TableConfig:
+    """NC X-Y table behind a GRBL 1.1 controller (the paper's object-motion simulator)."""
+
+    kind: Literal["sim", "grbl"] = "sim"
+    port: str | None = None  # device path or pyserial URL (socket://, rfc2217://, spy://)
+    baud: int = 9600
+    timeout_s: float = 5.0
+    reset_on_open: bool = True  # does opening the port reset the board (DTR)?
+    travel_mm: tuple[float, float] = (600.0, 400.0)
+    max_feed_mm_min: float = 6000.0
+    accel_mm_s2: float = 200.0
+    status_hz: float = 5.0
+    # sim: T_w_table of the table's machine zero (the table plane is z = 0 in W)
+    origin_w_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    def validate(self):
+        if self.kind == "grbl" and not self.port:
+            return "port", "a grbl table needs a port (device path or pyserial URL)"
+        if self.baud <= 0:
+            return "baud", f"expected a positive baud rate, got {self.baud}"
+        return None
+
+
+@dataclass(frozen=True)
+class RobotConfig:
+    """Robot controller speaking the dialect of docs/protocols/robot.md, carrying camera C2."""
+
+    kind: Literal["sim", "serial"] = "sim"
+    port: str | None = None
+    baud: int = 9600
+    timeout_s: float = 2.0
+    heartbeat_s: float = 0.2  # controller stops if no heartbeat for watchdog_s
+    watchdog_s: float = 0.5
+    workspace_min_mm: tuple[float, float, float] = (-300.0, -700.0, 80.0)
+    workspace_max_mm: tuple[float, float, float] = (900.0, 700.0, 1200.0)
+    v_max_mm_s: float = 500.0
+    a_max_mm_s2: float = 1500.0
+    w_max_deg_s: float = 120.0
+    home_mm: tuple[float, float, float] = (300.0, -450.0, 900.0)
+
+    def validate(self):
+        if self.kind == "serial" and not self.port:
+            return "port", "a serial robot needs a port (device path or pyserial URL)"
+        if any(lo >= hi for lo, hi in zip(self.workspace_min_mm, self.workspace_max_mm)):
+            return "workspace_min_mm", "each minimum must be below its maximum"
+        return None
+
+
+@dataclass(frozen=True)
+class LensConfig:
+    """Nominal sensor and lens (Tsai's parameters); the sim uses them as the true camera."""
+
+    f_mm: float = 25.0
+    dx_mm: float = 0.013
+    dy_mm: float = 0.013
+    ncx: float = 640.0
+    nfx: float = 640.0
+    kappa1: float = 0.0
+    sx: float = 1.0
+    cx: float | None = None  # default: image centre
+    cy: float | None = None
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    kind: Literal["sim", "v4l2", "replay"] = "sim"
+    device: str | int | None = None  # v4l2: index or /dev/videoN
+    folder: str | None = None  # replay: folder of stamped frames
+    width: int = 640
+    height: int = 480
+    fps: float = 30.0
+    exposure: float | None = None
+    marker_hue_deg: tuple[float, float] = (-15.0, 15.0)  # red straddles 0°
+    marker_min_saturation: float = 0.45
+    lens: LensConfig = field(default_factory=LensConfig)
+    # sim: the fixed camera's true pose (eye and look-at target, W frame)
+    eye_w_mm: tuple[float, float, float] | None = None
+    target_w_mm: tuple[float, float, float] | None = None
+    noise_sigma: float = 2.0  # sim: grey levels
+    hand_eye_mm: tuple[float, float, float] = (0.0, 60.0, 80.0)  # sim: C2 origin in flange F
+    hand_eye_rpy_deg: tuple[float, float, float] = (1.5, -1.0, 90.0)  # sim: C2 axes in F
+
+    def validate(self):
+        if self.kind == "v4l2" and self.device is None:
+            return "device", "a v4l2 camera needs a device (index or /dev/videoN)"
+        if self.kind == "replay" and not self.folder:
+            return "folder", "a replay camera needs a folder of stamped frames"
+        if self.width <= 0 or self.height <= 0:
+            return "width", "image size must be positive"
+        return None
+
+
+@dataclass(frozen=True)
+class HostLinkConfig:
+    """How the two workers talk: one PC (local), two PCs (tcp) or RS-232 as in 1996 (serial)."""
+
+    transport: Literal["local", "tcp", "serial"] = "local"
+    host: str = "127.0.0.1"
+    tcp_port: int = 5757
+    port: str | None = None  # serial device or pyserial URL
+    baud: int = 9600
+    heartbeat_s: float = 0.2
+    dead_after_s: float = 0.5
+
+    def validate(self):
+        if self.transport == "serial" and not self.port:
+            return "port", "a serial host link needs a port"
+        return None
+
+
+ROLE_TYPES = {
+    "table": TableConfig,
+    "robot": RobotConfig,
+    "fixed_camera": CameraConfig,
+    "mobile_camera": CameraConfig,
+    "host_link": HostLinkConfig,
+}

@@ -1,0 +1,120 @@
+"""The lab workspace: ``lab.yaml`` plus the driver files it names.
+
+A workspace is a folder holding ``lab.yaml``, ``drivers/``, ``calibration/``,
+``object_library/`` and ``runs/`` (DESIGN §2). :func:`load_lab` resolves and validates it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+from .devices import ROLE_TYPES, CameraConfig, HostLinkConfig, RobotConfig, TableConfig
+from .schema import ConfigError, from_mapping, read_yaml
+
+LAB_FILE = "lab.yaml"
+
+
+@dataclass(frozen=True)
+class DriverFiles:
+    table: str = "drivers/table.yaml"
+    robot: str = "drivers/robot.yaml"
+    fixed_camera: str = "drivers/fixed_camera.yaml"
+    mobile_camera: str = "drivers/mobile_camera.yaml"
+    host_link: str = "drivers/host_link.yaml"
+
+
+@dataclass(frozen=True)
+class MarkerConfig:
+    radius_mm: float = 8.0
+
+    def validate(self):
+        if self.radius_mm <= 0:
+            return "radius_mm", f"expected a positive radius, got {self.radius_mm}"
+        return None
+
+
+@dataclass(frozen=True)
+class ViewingConfig:
+    """Paper §4.1, §5.3: initial view ~1 m from the marker at 63°; standard view along the normal."""
+
+    initial_distance_mm: float = 1000.0
+    initial_angle_deg: float = 63.0
+    standoff_mm: float = 600.0
+
+
+@dataclass(frozen=True)
+class TrackingConfig:
+    model: Literal["cv", "ca", "imm"] = "cv"
+    process_noise: float = 5.0  # mm/s² (white-acceleration spectral density, sqrt)
+    measurement_noise_mm: float = 0.7
+    gate_sigma: float = 4.0
+    window_px: int = 48
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    trajectory: str = "line"
+    speed_mm_s: float = 8.0
+    timeout_s: float = 90.0
+    ambiguity_threshold: float = 0.15
+    max_views: int = 3
+
+
+@dataclass(frozen=True)
+class LabConfig:
+    name: str = "lab"
+    drivers: DriverFiles = field(default_factory=DriverFiles)
+    marker: MarkerConfig = field(default_factory=MarkerConfig)
+    viewing: ViewingConfig = field(default_factory=ViewingConfig)
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    run: RunConfig = field(default_factory=RunConfig)
+
+
+@dataclass(frozen=True)
+class Lab:
+    """A resolved workspace: its root, its config and every driver file, loaded and checked."""
+
+    root: Path
+    config: LabConfig
+    table: TableConfig
+    robot: RobotConfig
+    fixed_camera: CameraConfig
+    mobile_camera: CameraConfig
+    host_link: HostLinkConfig
+    driver_paths: dict[str, Path]
+
+    @property
+    def calibration_dir(self) -> Path:
+        return self.root / "calibration"
+
+    @property
+    def library_dir(self) -> Path:
+        return self.root / "object_library"
+
+    @property
+    def runs_dir(self) -> Path:
+        return self.root / "runs"
+
+    @property
+    def is_simulated(self) -> bool:
+        return all(
+            c.kind == "sim" for c in (self.table, self.robot, self.fixed_camera, self.mobile_camera)
+        )
+
+
+def load_lab(root: Path | str) -> Lab:
+    """Load and validate the workspace at ``root``; raise :class:`ConfigError` on any problem."""
+    root = Path(root).resolve()
+    lab_file = root / LAB_FILE
+    config = from_mapping(LabConfig, read_yaml(lab_file), lab_file)
+    devices, paths = {}, {}
+    for role, cls in ROLE_TYPES.items():
+        rel = getattr(config.drivers, role)
+        path = (root / rel).resolve()
+        if not path.is_file():
+            raise ConfigError(lab_file, f"drivers.{role}", f"driver file not found: {rel}")
+        devices[role] = from_mapping(cls, read_yaml(path), path)
+        paths[role] = path
+    return Lab(root=root, config=config, driver_paths=paths, **devices)

@@ -1,0 +1,159 @@
+"""Typed loading of YAML configuration into frozen dataclasses.
+
+Safe YAML only. Every problem raises :class:`ConfigError` naming the file, the key path and
+what was expected; unknown keys are errors, never silently ignored.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import types
+import typing
+from pathlib import Path
+from typing import Any, Literal, Union, get_args, get_origin
+
+import yaml
+
+
+class ConfigError(Exception):
+    """A configuration file is missing, unparsable or invalid. ``str()`` is one line."""
+
+    def __init__(self, file: Path | str, key: str | None, message: str):
+        self.file, self.key, self.message = str(file), key, message
+        where = f"{self.file}: {key}: " if key else f"{self.file}: "
+        super().__init__(where + message)
+
+
+def read_yaml(path: Path) -> Any:
+    """Read a YAML file with ``yaml.safe_load``; errors become one-line ConfigErrors."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(path, None, "file not found")
+    try:
+        with path.open(encoding="utf-8") as fh:
+            return yaml.safe_load(fh)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark else ""
+        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        raise ConfigError(path, None, f"YAML does not parse: {where}{problem}") from None
+
+
+def _type_name(tp) -> str:
+    origin = get_origin(tp)
+    if origin is Literal:
+        return "one of " + ", ".join(repr(a) for a in get_args(tp))
+    if origin in (Union, types.UnionType):
+        return " or ".join(_type_name(a) for a in get_args(tp))
+    if origin in (list, tuple):
+        args = get_args(tp)
+        inner = _type_name(args[0]) if args else "value"
+        if origin is tuple and args and args[-1] is not Ellipsis:
+            return f"a list of {len(args)} {inner}s"
+        return f"a list of {inner}s"
+    if origin is dict:
+        return "a mapping"
+    if dataclasses.is_dataclass(tp):
+        return "a mapping"
+    return {float: "a number", int: "an integer", str: "a string", bool: "true or false",
+            type(None): "null"}.get(tp, getattr(tp, "__name__", str(tp)))
+
+
+def convert(tp, value, file, key: str):
+    """Convert ``value`` to type ``tp`` or raise ConfigError at ``file``/``key``."""
+    origin = get_origin(tp)
+    fail = lambda: ConfigError(file, key, f"expected {_type_name(tp)}, got {value!r}")  # noqa: E731
+    if tp is Any:
+        return value
+    if origin in (Union, types.UnionType):
+        args = get_args(tp)
+        if value is None and type(None) in args:
+            return None
+        for a in args:
+            if a is type(None):
+                continue
+            try:
+                return convert(a, value, file, key)
+            except ConfigError:
+                continue
+        raise fail()
+    if origin is Literal:
+        if value in get_args(tp):
+            return value
+        raise fail()
+    if tp is bool:
+        if isinstance(value, bool):
+            return value
+        raise fail()
+    if tp is int:
+        if isinstance(value, int) and not isinstance(value, bool):
+            return value
+        raise fail()
+    if tp is float:
+        if isinstance(value, int | float) and not isinstance(value, bool):
+            return float(value)
+        raise fail()
+    if tp is str:
+        if isinstance(value, str):
+            return value
+        raise fail()
+    if origin in (list, tuple):
+        if not isinstance(value, list):
+            raise fail()
+        args = get_args(tp)
+        if origin is tuple and args and args[-1] is not Ellipsis:
+            if len(value) != len(args):
+                raise fail()
+            return tuple(convert(a, v, file, f"{key}[{i}]") for i, (a, v) in enumerate(zip(args, value)))
+        inner = args[0] if args else Any
+        items = [convert(inner, v, file, f"{key}[{i}]") for i, v in enumerate(value)]
+        return tuple(items) if origin is tuple else items
+    if origin is dict:
+        if not isinstance(value, dict):
+            raise fail()
+        kt, vt = get_args(tp) or (Any, Any)
+        return {convert(kt, k, file, key): convert(vt, v, file, f"{key}.{k}") for k, v in value.items()}
+    if dataclasses.is_dataclass(tp):
+        return from_mapping(tp, value, file, key)
+    raise TypeError(f"unsupported config type {tp!r}")
+
+
+def from_mapping(cls, data, file, key: str = ""):
+    """Build dataclass ``cls`` from a mapping, checking types, required and unknown keys."""
+    prefix = f"{key}." if key else ""
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise ConfigError(file, key or None, f"expected a mapping, got {data!r}")
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
+    unknown = sorted(set(map(str, data)) - set(fields))
+    if unknown:
+        raise ConfigError(file, prefix + unknown[0], f"unknown key (expected one of: {', '.join(fields)})")
+    kwargs = {}
+    for name, fld in fields.items():
+        if name in data:
+            kwargs[name] = convert(hints[name], data[name], file, prefix + name)
+        elif fld.default is dataclasses.MISSING and fld.default_factory is dataclasses.MISSING:
+            raise ConfigError(file, prefix + name, f"missing required key ({_type_name(hints[name])})")
+    obj = cls(**kwargs)
+    check = getattr(obj, "validate", None)
+    if check is not None:
+        problem = check()
+        if problem:
+            bad_key, message = problem
+            raise ConfigError(file, prefix + bad_key, message)
+    return obj
+
+
+def to_plain(obj):
+    """Dataclass → plain dict/list/scalars, suitable for YAML or JSON."""
+    if dataclasses.is_dataclass(obj):
+        return {f.name: to_plain(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+    if isinstance(obj, list | tuple):
+        return [to_plain(v) for v in obj]
+    if isinstance(obj, dict):
+        return {k: to_plain(v) for k, v in obj.items()}
+    if isinstance(obj, Path):
+        return str(obj)
+    return obj
