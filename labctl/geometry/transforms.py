@@ -92,7 +92,8 @@ def matrix_to_rotvec(R: np.ndarray) -> np.ndarray:
 def rotation_angle(R: np.ndarray) -> float:
     """Angle (rad) of the rotation ``R``, e.g. the error between two rotations ``Ra.T @ Rb``."""
     c = (np.trace(R) - 1.0) / 2.0
-    return float(np.arccos(np.clip(c, -1.0, 1.0)))
+    s = 0.5 * np.linalg.norm([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    return float(np.arctan2(s, c))  # atan2 keeps precision near 0, where arccos loses half the digits
 
 
 def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
