@@ -1,0 +1,130 @@
+"""Hand-eye calibration AX = XB by the Tsai–Lenz method, in numpy.
+
+Implements R. Y. Tsai and R. K. Lenz, "A new technique for fully autonomous and efficient 3D
+robotics hand/eye calibration", IEEE Trans. Robotics and Automation 5(3), 1989, §III: the
+rotation from the modified Rodrigues vectors of every station pair (eq. 9–12), then the
+translation by linear least squares (eq. 13–15).
+
+Frames: robot base B (= world W in labctl), flange F, camera C (the mobile camera C2), target
+T fixed in B. Inputs are the flange poses ``T_b_f[i]`` reported by the robot and the target
+poses ``T_c_t[i]`` measured by the camera at the same stations; the result is
+``X = T_f_c`` (camera in the flange frame), the same quantity as OpenCV's
+``calibrateHandEye(R_gripper2base, t_gripper2base, R_target2cam, t_target2cam)``.
+"""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+
+from ..geometry import invert, make_T, matrix_to_rotvec, orthonormalize, rotation_angle
+
+MIN_STATIONS = 3
+MIN_AXIS_SPREAD_DEG = 5.0  # the motions' rotation axes must span at least this angle
+
+
+class HandEyeInputError(ValueError):
+    """The station set cannot determine X (too few, non-finite, degenerate motions)."""
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def _check_poses(name: str, Ts) -> np.ndarray:
+    A = np.asarray(Ts, dtype=float)
+    if A.ndim != 3 or A.shape[1:] != (4, 4):
+        raise HandEyeInputError(f"{name}: expected a list of 4×4 poses, got shape {A.shape}")
+    if not np.all(np.isfinite(A)):
+        raise HandEyeInputError(f"{name}: a pose is not finite (NaN or inf)")
+    for i, T in enumerate(A):
+        if abs(np.linalg.det(T[:3, :3]) - 1.0) > 1e-3 or np.abs(T[:3, :3] @ T[:3, :3].T - np.eye(3)).max() > 1e-3:
+            raise HandEyeInputError(f"{name}[{i}]: not a rigid transform (rotation part is not orthonormal)")
+    return A
+
+
+def motion_pairs(T_b_f, T_c_t) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Relative motions (A, B) of every station pair i < j with A·X = X·B:
+    ``A = T_b_f[j]⁻¹ T_b_f[i]`` (flange motion), ``B = T_c_t[j] T_c_t[i]⁻¹`` (camera motion)."""
+    As, Bs = [], []
+    for i, j in itertools.combinations(range(len(T_b_f)), 2):
+        As.append(invert(T_b_f[j]) @ T_b_f[i])
+        Bs.append(T_c_t[j] @ invert(T_c_t[i]))
+    return As, Bs
+
+
+def axis_spread_deg(rotations) -> float:
+    """Largest angle (deg, folded to ≤ 90°) between the rotation axes of significant motions;
+    a pure rotation about one axis gives 0, which leaves X undetermined (Tsai–Lenz §IV)."""
+    axes = []
+    for R in rotations:
+        rv = matrix_to_rotvec(R)
+        if np.linalg.norm(rv) > np.radians(1.0):
+            axes.append(rv / np.linalg.norm(rv))
+    best = 0.0
+    for a, b in itertools.combinations(axes, 2):
+        best = max(best, float(np.degrees(np.arccos(min(1.0, abs(float(a @ b)))))))
+    return best
+
+
+def tsai_lenz(T_b_f, T_c_t) -> np.ndarray:
+    """Hand-eye transform ``X = T_f_c`` from N ≥ 3 stations (Tsai & Lenz 1989, eq. 9–15).
+
+    ``T_b_f``: (N, 4, 4) flange poses in the robot base; ``T_c_t``: (N, 4, 4) target poses in
+    the camera. mm and rad. Raises :class:`HandEyeInputError` for too few stations or motions
+    whose rotation axes are all parallel (X is then not observable).
+    """
+    Tf = _check_poses("T_b_f", T_b_f)
+    Tc = _check_poses("T_c_t", T_c_t)
+    if len(Tf) != len(Tc):
+        raise HandEyeInputError(f"{len(Tf)} flange poses but {len(Tc)} target poses")
+    if len(Tf) < MIN_STATIONS:
+        raise HandEyeInputError(f"hand-eye calibration needs at least {MIN_STATIONS} stations, got {len(Tf)}")
+    As, Bs = motion_pairs(Tf, Tc)
+    spread = axis_spread_deg([A[:3, :3] for A in As])
+    if spread < MIN_AXIS_SPREAD_DEG:
+        raise HandEyeInputError(
+            f"degenerate robot poses: all rotations are about one axis (axes spread {spread:.1f}°, "
+            f"need ≥ {MIN_AXIS_SPREAD_DEG:.0f}°); rotate the flange about two different axes")
+
+    # rotation: skew(Pg + Pc) Pcg' = Pc − Pg with P = 2 sin(θ/2) n (eq. 9–12)
+    M, v = [], []
+    for A, B in zip(As, Bs):
+        rg, rc = matrix_to_rotvec(A[:3, :3]), matrix_to_rotvec(B[:3, :3])
+        tg, tc = np.linalg.norm(rg), np.linalg.norm(rc)
+        if tg < 1e-9 or tc < 1e-9:
+            continue
+        pg = 2.0 * np.sin(tg / 2.0) * rg / tg
+        pc = 2.0 * np.sin(tc / 2.0) * rc / tc
+        M.append(_skew(pg + pc))
+        v.append(pc - pg)
+    M, v = np.vstack(M), np.concatenate(v)
+    p_prime, *_ = np.linalg.lstsq(M, v, rcond=None)
+    p = 2.0 * p_prime / np.sqrt(1.0 + p_prime @ p_prime)
+    n2 = p @ p
+    R = (1.0 - n2 / 2.0) * np.eye(3) + 0.5 * (np.outer(p, p) + np.sqrt(max(4.0 - n2, 0.0)) * _skew(p))
+    R = orthonormalize(R)
+
+    # translation: (R_A − I) t = R t_B − t_A (eq. 13–15)
+    C = np.vstack([A[:3, :3] - np.eye(3) for A in As])
+    d = np.concatenate([R @ B[:3, 3] - A[:3, 3] for A, B in zip(As, Bs)])
+    t, *_ = np.linalg.lstsq(C, d, rcond=None)
+    X = make_T(R, t)
+    if not np.all(np.isfinite(X)):
+        raise HandEyeInputError("hand-eye calibration failed: the stations do not determine X")
+    return X
+
+
+def target_in_base(T_b_f, T_c_t, X: np.ndarray) -> np.ndarray:
+    """The fixed target's pose ``T_b_t`` implied by every station, averaged (rotation by the
+    chordal mean, translation by the mean): ``T_b_t = T_b_f · X · T_c_t``."""
+    Ts = [Tf @ X @ Tc for Tf, Tc in zip(T_b_f, T_c_t)]
+    R = orthonormalize(np.sum([T[:3, :3] for T in Ts], axis=0))
+    return make_T(R, np.mean([T[:3, 3] for T in Ts], axis=0))
+
+
+def pose_error(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
+    """(rotation error in degrees, translation error in mm) between two poses."""
+    rot = np.degrees(rotation_angle(T_est[:3, :3].T @ T_true[:3, :3]))
+    return float(rot), float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3]))
