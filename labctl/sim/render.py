@@ -1,0 +1,602 @@
+"""A CPU rasteriser for the simulated lab's cameras (numpy + OpenCV, no GPU, no system packages).
+
+Renders what a camera with Tsai's model (pinhole + radial κ1, Tsai 1987 §II) sees of triangle
+meshes resting on the table plane z = 0 of the world W:
+
+* **Distortion is exact.** Every output pixel is a *distorted* frame-buffer pixel; its ray is
+  ``camera.normalized(pixel)`` (Tsai's undistortion is closed-form), cached per camera. Triangles
+  are straight-edged in normalised coordinates, so coverage and depth are tested there.
+* **Occlusion by a z-buffer.** Each front-facing triangle is expanded to the pixels of its
+  (distorted) bounding box in one vectorised batch; edge functions decide coverage, the
+  triangle's plane gives the inverse depth along each pixel's ray, and ``np.maximum.at`` keeps
+  the nearest surface per pixel. No painter's sort.
+* **Lambert shading** per face from a directional light plus ambient.
+* **Markers are true circles** (the paper's premarking, He et al. 1996 §2): per pixel, the ray
+  is intersected with the marker plane and the signed distance to the circle (mm) is turned into
+  an analytic coverage ``clip(0.5 − d/|∇d|, 0, 1)`` with ``∇d`` in pixels, so the 50 % contour is
+  the projected circle to first order (sub-pixel exact); markers only show where their plane is
+  the nearest surface.
+* **The table** is a dark, textured plane (an optical breadboard: grain, blotches, tapped holes)
+  that moves with the NC table; objects are light grey so silhouettes separate.
+* **Anti-aliased silhouettes** (``supersample`` > 1): pixels on a boundary between surfaces are
+  resolved with ``s×s`` sub-samples against the triangles of their 3×3 neighbourhood.
+* **Sensor noise** (Gaussian, σ in grey levels, seeded from the caller's generator) and optional
+  **motion blur** (the mean of sub-frames over the exposure).
+
+Frames: vertices and markers in W (mm); ``T_w_c`` maps camera to world. Pixel (u, v) has its
+centre at integer coordinates, as in :class:`labctl.geometry.CameraModel`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from functools import lru_cache
+
+import cv2
+import numpy as np
+
+from ..geometry import CameraModel, invert
+
+_NEAR_MM = 1.0
+_EDGE_EPS = 1e-7  # normalised units (~0.0002 px): closes cracks on shared edges
+_AMBIENT = 0.38
+DEFAULT_LIGHT_DIR_W = (0.35, -0.25, 1.0)  # from the scene towards the light
+
+
+class RenderError(ValueError):
+    """Bad input to the renderer (non-finite pose, malformed mesh, wrong shapes)."""
+
+
+@dataclass
+class MarkerDisc:
+    """A flat circular marker: centre (3,) mm, outward unit normal (3,), radius mm, BGR colour."""
+
+    center: np.ndarray
+    normal: np.ndarray
+    radius: float
+    colour_bgr: tuple = (40, 40, 200)
+
+
+@dataclass
+class Mesh:
+    """A triangle mesh in the WORLD frame (mm) with outward (counter-clockwise) winding."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    colour_bgr: tuple = (185, 185, 185)
+    markers: list[MarkerDisc] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class TableSurface:
+    """The table top: the plane z = 0 of W, textured; ``origin_w`` (mm) moves the texture with the table."""
+
+    origin_w: tuple[float, float] = (0.0, 0.0)
+    brightness: float = 1.0
+    texture_seed: int = 7
+
+
+@dataclass
+class RenderResult:
+    """A rendered frame and, on request, its ground truth.
+
+    ``image`` H×W×3 uint8 BGR; ``mask`` H×W bool, pixels whose nearest surface is a mesh;
+    ``depth`` H×W float32, distance along the optical axis (mm, inf where nothing is hit);
+    ``markers_c`` the true (centre, unit normal) of every marker in the camera frame, in mesh and
+    marker order; ``marker_pixels`` how many pixels of each marker are visible (coverage ≥ 0.5).
+    """
+
+    image: np.ndarray
+    mask: np.ndarray | None = None
+    depth: np.ndarray | None = None
+    markers_c: list[tuple[np.ndarray, np.ndarray]] | None = None
+    marker_pixels: list[int] | None = None
+
+
+# --------------------------------------------------------------------------------------------
+# caches: per-camera pixel rays, per-pose table geometry, the table texture
+# --------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class _PixelRays:
+    nx: np.ndarray  # (H*W,) float32 normalised x/z of each pixel's ray
+    ny: np.ndarray
+    nx64: np.ndarray  # (H, W) float64, for the markers' sub-pixel geometry
+    ny64: np.ndarray
+
+
+@lru_cache(maxsize=8)
+def _pixel_rays(camera: CameraModel) -> _PixelRays:
+    u, v = np.meshgrid(np.arange(camera.width, dtype=float), np.arange(camera.height, dtype=float))
+    n = camera.normalized(np.stack([u, v], axis=-1))
+    return _PixelRays(
+        nx=np.ascontiguousarray(n[..., 0].ravel(), dtype=np.float32),
+        ny=np.ascontiguousarray(n[..., 1].ravel(), dtype=np.float32),
+        nx64=np.ascontiguousarray(n[..., 0]),
+        ny64=np.ascontiguousarray(n[..., 1]),
+    )
+
+
+_TEXTURE_MM_PER_TEXEL = 1.0
+_TEXTURE_SIZE = 1024  # texels; the texture tiles (periodic) so the plane is endless
+
+
+@lru_cache(maxsize=4)
+def _table_texture(seed: int) -> np.ndarray:
+    """A dark breadboard texture, (2N, 2N, 3) uint8 BGR, 1 mm per texel, periodic with period N."""
+    n = _TEXTURE_SIZE
+    rng = np.random.default_rng(seed)
+    f = np.fft.fftfreq(n)
+    fr = np.sqrt(f[:, None] ** 2 + f[None, :] ** 2)
+
+    def band(sigma_texels: float) -> np.ndarray:
+        white = rng.standard_normal((n, n))
+        smooth = np.real(np.fft.ifft2(np.fft.fft2(white) * np.exp(-0.5 * (fr * 2 * np.pi * sigma_texels) ** 2)))
+        return smooth / (smooth.std() + 1e-12)
+
+    grey = 52.0 + 7.0 * band(40.0) + 4.0 * band(3.0) + 2.5 * rng.standard_normal((n, n))
+    # tapped holes every 25 mm, 3 mm radius: darker dots
+    yy, xx = np.mgrid[0:n, 0:n] * _TEXTURE_MM_PER_TEXEL
+    d = np.hypot((xx + 12.5) % 25.0 - 12.5, (yy + 12.5) % 25.0 - 12.5)
+    grey = grey - 22.0 * np.clip(3.5 - d, 0.0, 1.0)
+    grey = np.clip(grey, 8.0, 110.0)
+    tile = np.stack([grey * 1.06, grey, grey * 0.94], axis=-1)
+    # two periods each way, centred on the table's zero: lookups never wrap (BORDER_REFLECT is faster)
+    return np.ascontiguousarray(np.round(np.tile(tile, (2, 2, 1))).astype(np.uint8))
+
+
+@dataclass(frozen=True)
+class _TableGeometry:
+    map_x: np.ndarray  # (H, W) float32 texture column of each pixel's hit (before the table offset)
+    map_y: np.ndarray
+    invz: np.ndarray  # (H*W,) float32 1/depth of the plane along each ray (0: ray misses the plane)
+    hit: np.ndarray  # (H, W) bool
+    all_hit: bool
+
+
+_table_cache: dict[tuple, _TableGeometry] = {}
+
+
+def _table_geometry(camera: CameraModel, T_w_c: np.ndarray) -> _TableGeometry:
+    key = (camera, T_w_c.tobytes())
+    hit = _table_cache.get(key)
+    if hit is not None:
+        return hit
+    rays = _pixel_rays(camera)
+    R, o = T_w_c[:3, :3], T_w_c[:3, 3]
+    x, y = rays.nx64, rays.ny64
+    dz = R[2, 0] * x + R[2, 1] * y + R[2, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = -o[2] / dz  # depth along the optical axis where the ray meets z = 0
+    hit_mask = np.isfinite(s) & (s > _NEAR_MM)
+    s = np.where(hit_mask, s, 0.0)
+    wx = o[0] + s * (R[0, 0] * x + R[0, 1] * y + R[0, 2])
+    wy = o[1] + s * (R[1, 0] * x + R[1, 1] * y + R[1, 2])
+    # texture rows run along −y of W so the texture reads like a map from above
+    geometry = _TableGeometry(
+        map_x=(wx / _TEXTURE_MM_PER_TEXEL + _TEXTURE_SIZE).astype(np.float32),
+        map_y=(-wy / _TEXTURE_MM_PER_TEXEL + _TEXTURE_SIZE).astype(np.float32),
+        invz=np.where(hit_mask, 1.0 / np.where(hit_mask, s, 1.0), 0.0).astype(np.float32).ravel(),
+        hit=hit_mask,
+        all_hit=bool(hit_mask.all()),
+    )
+    if len(_table_cache) > 16:
+        _table_cache.clear()
+    _table_cache[key] = geometry
+    return geometry
+
+
+_NOISE_MARGIN = 256
+
+
+@lru_cache(maxsize=4)
+def _noise_bank(height: int, width: int, sigma: float) -> np.ndarray:
+    """Gaussian sensor noise (grey levels) larger than a frame; each frame adds a random window.
+
+    Drawing a fresh 640×480×3 field costs more than the rest of a frame; a random window into
+    a fixed field (256² offsets) keeps the per-pixel statistics and varies from frame to frame.
+    """
+    rng = np.random.default_rng(20240611)
+    shape = (height + _NOISE_MARGIN, width + _NOISE_MARGIN, 3)
+    return (rng.standard_normal(shape, dtype=np.float32) * np.float32(sigma)).astype(np.float32)
+
+
+# --------------------------------------------------------------------------------------------
+# the core rasteriser
+# --------------------------------------------------------------------------------------------
+@dataclass
+class _Layer:
+    colour: np.ndarray  # (H*W, 3) float32, noiseless
+    tri_id: np.ndarray  # (H*W,) int32, -1 where no triangle is nearest
+    invz: np.ndarray  # (H*W,) float32 nearest surface's inverse depth (0: nothing)
+    marker_pixels: list[int]
+
+
+def _check_pose(T: np.ndarray) -> np.ndarray:
+    T = np.asarray(T, dtype=float)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise RenderError("camera pose T_w_c must be a finite 4×4 matrix")
+    return T
+
+
+def _gather_meshes(meshes: Sequence[Mesh]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Concatenate meshes: triangle corners (M, 3, 3) in W, per-triangle base colour (M, 3)."""
+    corners, colours = [], []
+    for m in meshes:
+        V = np.asarray(m.vertices, dtype=float)
+        F = np.asarray(m.faces)
+        if V.ndim != 2 or V.shape[1] != 3 or F.ndim != 2 or F.shape[1] != 3:
+            raise RenderError("mesh vertices must be (N, 3) and faces (M, 3)")
+        if len(F) == 0:
+            continue
+        if not np.all(np.isfinite(V)) or F.min() < 0 or F.max() >= len(V):
+            raise RenderError("mesh has non-finite vertices or face indices out of range")
+        corners.append(V[F])
+        colours.append(np.broadcast_to(np.asarray(m.colour_bgr, dtype=np.float32), (len(F), 3)))
+    if not corners:
+        return np.zeros((0, 3, 3)), np.zeros((0, 3), np.float32), np.zeros(0, int)
+    return np.concatenate(corners), np.concatenate(colours), np.zeros(0, int)
+
+
+def _lambert(normals_w: np.ndarray, light_w: np.ndarray) -> np.ndarray:
+    return _AMBIENT + (1.0 - _AMBIENT) * np.clip(normals_w @ light_w, 0.0, 1.0)
+
+
+def _triangle_setup(camera: CameraModel, Pc: np.ndarray):
+    """Front-facing triangles' coefficient rows and distorted-pixel bounding boxes.
+
+    ``Pc`` (M, 3, 3) corners in the camera frame. Returns (index of kept triangles,
+    coefficients (K, 4, 3) float32 of [edge0, edge1, edge2, inverse depth] as linear functions
+    of the normalised ray (x, y, 1), integer boxes (K, 4) x0, y0, x1, y1).
+    """
+    A, B, C = Pc[:, 0], Pc[:, 1], Pc[:, 2]
+    n = np.cross(B - A, C - A)
+    d = np.einsum("ij,ij->i", n, A)
+    keep = (d < 0) & (Pc[:, :, 2].min(axis=1) > _NEAR_MM)  # front-facing, in front of the camera
+    idx = np.nonzero(keep)[0]
+    if len(idx) == 0:
+        return idx, np.zeros((0, 4, 3), np.float32), np.zeros((0, 4), int)
+    Pc, n, d = Pc[idx], n[idx], d[idx]
+    q = Pc[:, :, :2] / Pc[:, :, 2:3]  # normalised image corners (K, 3, 2)
+    coef = np.empty((len(idx), 4, 3))
+    area = (q[:, 1, 0] - q[:, 0, 0]) * (q[:, 2, 1] - q[:, 0, 1]) - (q[:, 1, 1] - q[:, 0, 1]) * (q[:, 2, 0] - q[:, 0, 0])
+    sign = np.sign(area)
+    for e in range(3):
+        p0, p1 = q[:, e], q[:, (e + 1) % 3]
+        ex, ey = p1[:, 0] - p0[:, 0], p1[:, 1] - p0[:, 1]
+        length = np.hypot(ex, ey)
+        length = np.where(length > 0, length, 1.0)
+        s = sign / length
+        coef[:, e, 0] = -ey * s
+        coef[:, e, 1] = ex * s
+        coef[:, e, 2] = (ey * p0[:, 0] - ex * p0[:, 1]) * s
+    coef[:, 3, :] = n / d[:, None]  # 1/z = n·(x, y, 1) / (n·A)
+    # bounding box in distorted pixels from corners and edge points (edges bow under distortion)
+    ts = np.array([0.0, 0.25, 0.5, 0.75])
+    pts = np.concatenate([Pc[:, e:e + 1] * (1 - ts)[None, :, None] + Pc[:, (e + 1) % 3:(e + 1) % 3 + 1]
+                          * ts[None, :, None] for e in range(3)], axis=1)
+    px = camera.project(pts)
+    lo = np.floor(np.nanmin(px, axis=1)) - 1
+    hi = np.ceil(np.nanmax(px, axis=1)) + 1
+    box = np.empty((len(idx), 4))
+    box[:, 0] = np.clip(lo[:, 0], 0, camera.width - 1)
+    box[:, 1] = np.clip(lo[:, 1], 0, camera.height - 1)
+    box[:, 2] = np.clip(hi[:, 0], -1, camera.width - 1)
+    box[:, 3] = np.clip(hi[:, 1], -1, camera.height - 1)
+    empty = (area == 0) | (hi[:, 0] < 0) | (hi[:, 1] < 0) | (lo[:, 0] > camera.width - 1) \
+        | (lo[:, 1] > camera.height - 1) | ~np.all(np.isfinite(px), axis=(1, 2))
+    box[empty] = [0, 0, -1, -1]
+    return idx, coef.astype(np.float32), box.astype(np.int64)
+
+
+def _row_spans(camera: CameraModel, coef: np.ndarray, box: np.ndarray):
+    """Candidate pixel spans per (triangle, image row): a tight superset of each triangle's pixels.
+
+    Along one row of its box, each edge function is nearly linear in the column (exactly so
+    without distortion); it is evaluated at the row's two ends and middle, the covered interval
+    solved from the chord and widened by the chord's deviation (distortion bowing) plus 1.5 px.
+    Returns (triangle index, row, first column, count) per row, int arrays.
+    """
+    W = camera.width
+    rays = _pixel_rays(camera)
+    h = np.maximum(box[:, 3] - box[:, 1] + 1, 0)
+    n_rows = int(h.sum())
+    tri = np.repeat(np.arange(len(coef)), h)
+    row = np.repeat(box[:, 1], h) + (np.arange(n_rows) - np.repeat(np.cumsum(h) - h, h))
+    xl, xr = box[tri, 0], box[tri, 2]
+    xm = (xl + xr) // 2
+    c = coef[tri, :3, :]  # (R, 3 edges, 3)
+
+    def edge_at(col):
+        p = row * W + col
+        return c[:, :, 0] * rays.nx[p][:, None] + c[:, :, 1] * rays.ny[p][:, None] + c[:, :, 2]
+
+    el, er, em = edge_at(xl), edge_at(xr), edge_at(xm)
+    width = np.maximum(xr - xl, 1).astype(np.float64)[:, None]
+    slope = (er - el) / width  # per pixel
+    tm = ((xm - xl)[:, None] / width)
+    bow = np.abs(em - (el + tm * (er - el)))
+    lo = np.full(el.shape, -np.inf)
+    hi = np.full(el.shape, np.inf)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        root = xl[:, None] - el / slope  # column where the chord crosses zero
+        pad = 1.5 + np.where(slope != 0, bow / np.abs(slope), 0.0)
+    pos, neg = slope > 0, slope < 0
+    lo = np.where(pos, root - pad, lo)
+    hi = np.where(neg, root + pad, hi)
+    flat_out = (slope == 0) & (np.maximum(el, er) + bow < -_EDGE_EPS)
+    first = np.maximum(np.ceil(np.max(lo, axis=1)), xl)
+    last = np.minimum(np.floor(np.min(hi, axis=1)), xr)
+    count = np.where(flat_out.any(axis=1), 0, np.maximum(last - first + 1, 0))
+    keep = count > 0
+    return tri[keep], row[keep], first[keep].astype(np.int64), count[keep].astype(np.int64)
+
+
+def _rasterise(camera: CameraModel, coef: np.ndarray, box: np.ndarray, invz: np.ndarray):
+    """Z-buffer the triangles (``invz`` updated in place).
+
+    Returns (pixel index, triangle index) of every pixel a triangle wins, so callers touch only
+    those pixels.
+    """
+    W = camera.width
+    tri_r, row, first, count = _row_spans(camera, coef, box)
+    total = int(count.sum())
+    if total == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    start = np.cumsum(count) - count
+    pix = np.arange(total, dtype=np.int64) + np.repeat(row * W + first - start, count)
+    tri = np.repeat(tri_r, count)
+    rays = _pixel_rays(camera)
+    x = rays.nx[pix]
+    y = rays.ny[pix]
+    g = coef.reshape(len(coef), 12).T[:, tri]  # (12, total) contiguous rows
+    inside = g[0] * x + g[1] * y + g[2] >= -_EDGE_EPS
+    inside &= g[3] * x + g[4] * y + g[5] >= -_EDGE_EPS
+    inside &= g[6] * x + g[7] * y + g[8] >= -_EDGE_EPS
+    iz = g[9] * x + g[10] * y + g[11]
+    inside &= iz > 0
+    pix, tri, iz = pix[inside], tri[inside], iz[inside]
+    np.maximum.at(invz, pix, iz)
+    win = iz >= invz[pix]
+    return pix[win], tri[win]
+
+
+def _marker_pass(camera: CameraModel, T_c_w: np.ndarray, light_w: np.ndarray, markers: list[MarkerDisc],
+                 colour: np.ndarray, invz: np.ndarray) -> list[int]:
+    """Blend each marker disc into ``colour`` (in place) with analytic edge coverage."""
+    rays = _pixel_rays(camera)
+    H, W = camera.height, camera.width
+    img = colour.reshape(H, W, 3)
+    zbuf = invz.reshape(H, W)
+    counts = []
+    for mk in markers:
+        c = T_c_w[:3, :3] @ np.asarray(mk.center, dtype=float) + T_c_w[:3, 3]
+        nrm_w = np.asarray(mk.normal, dtype=float)
+        nrm_w = nrm_w / np.linalg.norm(nrm_w)
+        nrm = T_c_w[:3, :3] @ nrm_w
+        if c[2] <= _NEAR_MM or nrm @ c >= 0:  # behind the camera or seen from its back
+            counts.append(0)
+            continue
+        # boundary → pixel box
+        e1 = np.cross(nrm, [1.0, 0, 0] if abs(nrm[0]) < 0.9 else [0, 1.0, 0])
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(nrm, e1)
+        th = np.linspace(0, 2 * np.pi, 48, endpoint=False)
+        ring = c + mk.radius * (np.cos(th)[:, None] * e1 + np.sin(th)[:, None] * e2)
+        if ring[:, 2].min() <= _NEAR_MM:
+            counts.append(0)
+            continue
+        px = camera.project(ring)
+        x0 = int(max(np.floor(px[:, 0].min()) - 3, 0))
+        y0 = int(max(np.floor(px[:, 1].min()) - 3, 0))
+        x1 = int(min(np.ceil(px[:, 0].max()) + 3, W - 1))
+        y1 = int(min(np.ceil(px[:, 1].max()) + 3, H - 1))
+        if x1 < x0 or y1 < y0:
+            counts.append(0)
+            continue
+        x = rays.nx64[y0:y1 + 1, x0:x1 + 1]
+        y = rays.ny64[y0:y1 + 1, x0:x1 + 1]
+        denom = nrm[0] * x + nrm[1] * y + nrm[2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            z = (nrm @ c) / denom
+        ok = np.isfinite(z) & (z > _NEAR_MM)
+        z = np.where(ok, z, np.inf)
+        dist = np.sqrt((z * x - c[0]) ** 2 + (z * y - c[1]) ** 2 + (z - c[2]) ** 2) - mk.radius
+        dist = np.where(ok, dist, np.inf)
+        if dist.shape[0] < 2 or dist.shape[1] < 2:
+            counts.append(0)
+            continue
+        gy, gx = np.gradient(np.where(np.isfinite(dist), dist, 0.0))
+        grad = np.maximum(np.hypot(gx, gy), 1e-9)
+        cov = np.clip(0.5 - dist / grad, 0.0, 1.0)
+        # visible only where the marker plane is (within tolerance) the nearest surface
+        zb = zbuf[y0:y1 + 1, x0:x1 + 1]
+        with np.errstate(divide="ignore"):
+            z_near = np.where(zb > 0, 1.0 / zb, np.inf)
+        cov = np.where(z <= z_near + np.maximum(0.5, 1e-3 * z), cov, 0.0).astype(np.float32)
+        shade = float(_lambert(nrm_w[None, :], light_w)[0])
+        mcol = np.asarray(mk.colour_bgr, dtype=np.float32) * shade
+        patch = img[y0:y1 + 1, x0:x1 + 1]
+        patch += cov[..., None] * (mcol - patch)
+        counts.append(int(np.count_nonzero(cov >= 0.5)))
+    return counts
+
+
+def _edge_supersample(camera: CameraModel, s: int, coef: np.ndarray, tri_colour: np.ndarray,
+                      layer_colour: np.ndarray, tri_id: np.ndarray, table_colour: np.ndarray,
+                      win_pix: np.ndarray) -> None:
+    """Anti-alias boundaries: re-render pixels on an object/table or crease edge with s×s sub-samples.
+
+    Only the bounding box of the mesh pixels is scanned. Each boundary pixel's sub-samples are
+    tested against the triangles seen in its 3×3 neighbourhood (nearest wins, as in the z-buffer).
+    """
+    H, W = camera.height, camera.width
+    ys, xs = np.divmod(win_pix, W)
+    r0, r1 = max(int(ys.min()) - 1, 0), min(int(ys.max()) + 2, H)
+    c0, c1 = max(int(xs.min()) - 1, 0), min(int(xs.max()) + 2, W)
+    ids = tri_id.reshape(H, W)[r0:r1, c0:c1]
+    obj = ids >= 0
+    col = layer_colour.reshape(H, W, 3)[r0:r1, c0:c1]
+    grey = col[..., 0] + col[..., 1] + col[..., 2]
+    # boundary: object/table, or two faces whose shades differ visibly
+    dh = (obj[:, 1:] != obj[:, :-1]) | (obj[:, 1:] & obj[:, :-1] & (np.abs(grey[:, 1:] - grey[:, :-1]) > 6.0))
+    dv = (obj[1:, :] != obj[:-1, :]) | (obj[1:, :] & obj[:-1, :] & (np.abs(grey[1:, :] - grey[:-1, :]) > 6.0))
+    edge = np.zeros(ids.shape, bool)
+    edge[:, 1:] |= dh
+    edge[:, :-1] |= dh
+    edge[1:, :] |= dv
+    edge[:-1, :] |= dv
+    ey, ex = np.nonzero(edge)
+    if len(ey) == 0:
+        return
+    pad = np.pad(ids, 1, constant_values=-1)
+    ey, ex = ey + r0, ex + c0
+    pad_origin = (r0, c0)
+    # candidate surfaces: the ids of the 3×3 neighbourhood
+    pad = np.pad(ids, 1, constant_values=-1)
+    cand = np.stack([pad[ey - pad_origin[0] + dy, ex - pad_origin[1] + dx]
+                     for dy in range(3) for dx in range(3)], axis=1)  # (E, 9)
+    # sub-sample positions inside the pixel
+    off = (np.arange(s) + 0.5) / s - 0.5
+    ou, ov = np.meshgrid(off, off)
+    sub = np.stack([ex[:, None] + ou.ravel()[None, :], ey[:, None] + ov.ravel()[None, :]], axis=-1)  # (E, S, 2)
+    n = camera.normalized(sub).astype(np.float32)
+    xs, ys = n[..., 0], n[..., 1]  # (E, S)
+    flat = coef.reshape(len(coef), 12)
+    best_iz = np.full(xs.shape, -np.inf, np.float32)
+    best_tri = np.full(xs.shape, -1, np.int64)
+    for j in range(cand.shape[1]):  # loop over the 9 candidates: no reductions over tiny axes
+        t = cand[:, j]
+        g = flat[np.maximum(t, 0)].T[:, :, None]  # (12, E, 1)
+        ok = g[0] * xs + g[1] * ys + g[2] >= -_EDGE_EPS
+        ok &= g[3] * xs + g[4] * ys + g[5] >= -_EDGE_EPS
+        ok &= g[6] * xs + g[7] * ys + g[8] >= -_EDGE_EPS
+        iz = g[9] * xs + g[10] * ys + g[11]
+        ok &= (iz > 0) & (iz > best_iz) & (t >= 0)[:, None]
+        best_iz = np.where(ok, iz, best_iz)
+        best_tri = np.where(ok, t[:, None], best_tri)
+    pix = ey * W + ex
+    bg = table_colour[pix]  # (E, 3) the table behind, sampled at the pixel centre
+    acc = np.zeros((len(pix), 3), np.float32)
+    for k in range(xs.shape[1]):
+        bt = best_tri[:, k]
+        acc += np.where((bt >= 0)[:, None], tri_colour[np.maximum(bt, 0)], bg)
+    layer_colour[pix] = acc / np.float32(xs.shape[1])
+
+
+def _render_noiseless(camera: CameraModel, T_w_c: np.ndarray, meshes: Sequence[Mesh], table, light_w: np.ndarray,
+                      supersample: int):
+    H, W = camera.height, camera.width
+    T_c_w = invert(T_w_c)
+    # table layer
+    if table is False or table is None:
+        table_colour = np.zeros((H * W, 3), np.float32)
+        invz = np.zeros(H * W, np.float32)
+    else:
+        surface = table if isinstance(table, TableSurface) else TableSurface()
+        geo = _table_geometry(camera, T_w_c)
+        tex = _table_texture(surface.texture_seed)
+        ox, oy = surface.origin_w
+        shade = surface.brightness * float(_lambert(np.array([[0.0, 0.0, 1.0]]), light_w)[0])
+        map_x, map_y = geo.map_x, geo.map_y
+        if ox or oy:
+            map_x = map_x - np.float32(ox / _TEXTURE_MM_PER_TEXEL)
+            map_y = map_y + np.float32(oy / _TEXTURE_MM_PER_TEXEL)
+        sampled = cv2.remap(tex, map_x, map_y, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+        sampled = sampled.astype(np.float32)
+        sampled *= np.float32(shade)
+        if not geo.all_hit:
+            sampled[~geo.hit] = 0.0
+        table_colour = sampled.reshape(H * W, 3)
+        invz = geo.invz.copy()
+    colour = table_colour.copy()
+    corners_w, base_colour, _ = _gather_meshes(meshes)
+    tri_id = np.full(H * W, -1, np.int32)
+    if len(corners_w):
+        Pc = corners_w @ T_c_w[:3, :3].T + T_c_w[:3, 3]
+        idx, coef, box = _triangle_setup(camera, Pc)
+        if len(idx):
+            cw = corners_w[idx]
+            nw = np.cross(cw[:, 1] - cw[:, 0], cw[:, 2] - cw[:, 0])
+            nw /= np.maximum(np.linalg.norm(nw, axis=1, keepdims=True), 1e-300)
+            tri_colour = (base_colour[idx] * _lambert(nw, light_w)[:, None]).astype(np.float32)
+            win_pix, win_tri = _rasterise(camera, coef, box, invz)
+            tri_id[win_pix] = win_tri
+            colour[win_pix] = tri_colour[win_tri]
+            if supersample > 1:
+                if len(win_pix):
+                    _edge_supersample(camera, supersample, coef, tri_colour, colour, tri_id, table_colour, win_pix)
+    markers = [mk for m in meshes for mk in m.markers]
+    counts = _marker_pass(camera, T_c_w, light_w, markers, colour, invz) if markers else []
+    return _Layer(colour=colour, tri_id=tri_id, invz=invz, marker_pixels=counts), T_c_w, markers
+
+
+def render(
+    camera: CameraModel,
+    T_w_c: np.ndarray,
+    meshes: Sequence[Mesh],
+    *,
+    table: bool | TableSurface = True,
+    light_dir_w=DEFAULT_LIGHT_DIR_W,
+    noise_sigma: float = 2.0,
+    rng: np.random.Generator | None = None,
+    exposure_motion: Sequence[tuple[np.ndarray, Sequence[Mesh]]] | None = None,
+    truth: bool = False,
+    supersample: int = 3,
+) -> RenderResult:
+    """Render what ``camera`` at pose ``T_w_c`` (camera → world, mm) sees of ``meshes`` (world frame).
+
+    ``table``: True for the default textured table plane z = 0, a :class:`TableSurface` to place
+    its texture, False for a black void. ``light_dir_w``: direction from the scene to the light
+    (W). ``noise_sigma``: Gaussian sensor noise (grey levels), drawn from ``rng`` (None: a
+    generator seeded with 0, so renders are always reproducible). ``exposure_motion``: further
+    ``(T_w_c, meshes)`` states over the exposure; the image is the mean of all sub-frames (motion
+    blur); ground truth refers to the main state. ``truth``: also return mask, depth and marker
+    poses. ``supersample``: s×s sub-samples on surface boundaries (1 turns anti-aliasing off;
+    marker edges are always analytic).
+
+    Geometry: Tsai's camera model (Tsai 1987 §II) applied per pixel; markers are the circular
+    premarks of He et al. 1996 §2.
+    """
+    T_w_c = _check_pose(T_w_c)
+    if not np.isfinite(noise_sigma) or noise_sigma < 0:
+        raise RenderError(f"noise_sigma must be a finite non-negative number, got {noise_sigma}")
+    supersample = int(supersample)
+    if supersample < 1:
+        raise RenderError(f"supersample must be ≥ 1, got {supersample}")
+    light_w = np.asarray(light_dir_w, dtype=float).reshape(3)
+    if not np.all(np.isfinite(light_w)) or np.linalg.norm(light_w) == 0:
+        raise RenderError("light_dir_w must be a finite non-zero vector")
+    light_w = light_w / np.linalg.norm(light_w)
+    H, W = camera.height, camera.width
+
+    layer, T_c_w, markers = _render_noiseless(camera, T_w_c, meshes, table, light_w, supersample)
+    colour = layer.colour
+    if exposure_motion:
+        acc = colour.copy()
+        for T_sub, meshes_sub in exposure_motion:
+            sub, _, _ = _render_noiseless(camera, _check_pose(T_sub), meshes_sub, table, light_w, supersample)
+            acc += sub.colour
+        colour = acc / np.float32(1 + len(exposure_motion))
+
+    img_f = colour.reshape(H, W, 3)
+    if noise_sigma > 0:
+        rng = rng if rng is not None else np.random.default_rng(0)
+        bank = _noise_bank(H, W, float(noise_sigma))
+        oy = int(rng.integers(0, bank.shape[0] - H + 1))
+        ox = int(rng.integers(0, bank.shape[1] - W + 1))
+        image = cv2.add(img_f, bank[oy:oy + H, ox:ox + W], dtype=cv2.CV_8U)
+    else:
+        image = cv2.convertScaleAbs(img_f)  # rounds and saturates; values are never negative
+    result = RenderResult(image=image)
+    if truth:
+        result.mask = (layer.tri_id >= 0).reshape(H, W)
+        with np.errstate(divide="ignore"):
+            result.depth = np.where(layer.invz > 0, 1.0 / layer.invz, np.inf).astype(np.float32).reshape(H, W)
+        result.markers_c = [
+            (T_c_w[:3, :3] @ np.asarray(mk.center, float) + T_c_w[:3, 3],
+             T_c_w[:3, :3] @ (np.asarray(mk.normal, float) / np.linalg.norm(mk.normal)))
+            for mk in markers
+        ]
+        result.marker_pixels = layer.marker_pixels
+    return result
