@@ -1,0 +1,109 @@
+"""Resolving the two-fold ambiguity of a circle's pose from two images (He et al. 1996, §3.3).
+
+Each image of one circular marker gives two candidate normals (§3.2). Between the two images
+the object moved with a known kind of motion:
+
+* **translation** — the true normal is the same in both images; the false ones differ
+  (the false normal mirrors the true one about the line of sight, which changes).
+* **planar motion** with known plane normal p — the true normal's component along p is the
+  same in both images (the object only rotates about p and translates in the plane).
+
+Vectors of both images must be compared in one frame. When the camera itself moved between
+the images, pass ``R_first_second`` (3×3, maps vectors of the second image's camera frame into
+the first's, i.e. R_{c1←c2}); ``plane_normal`` is given in the first image's camera frame. With
+poses already expressed in a common (e.g. world) frame, leave ``R_first_second`` as None.
+
+The choice is reported with its margin: how much worse (rad) the best hypothesis for the other
+candidate of the second image is. Below ``min_margin_rad`` the answer is "ambiguous", e.g.
+when the marker faces the camera squarely and the two candidates merge, or when the motion
+was along the line of sight and left both candidates unchanged.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .circle_pose import CirclePose
+
+DEFAULT_MIN_MARGIN_RAD = math.radians(0.5)
+
+
+@dataclass(frozen=True)
+class DualityResult:
+    """``pose``: the second image's true pose, or None when ambiguous; ``best``: the better
+    candidate regardless; ``index``: its index (0/1) in the second pair; ``margin_rad``: score
+    gap between the two candidates of the second image (rad, ≥ 0); ``scores_rad``: each
+    candidate's mismatch with the first image (rad)."""
+
+    pose: CirclePose | None
+    best: CirclePose
+    index: int
+    margin_rad: float
+    scores_rad: tuple[float, float]
+    ambiguous: bool
+
+    def to_dict(self) -> dict:
+        return {"resolved": not self.ambiguous, "index": self.index, "margin_deg": math.degrees(self.margin_rad),
+                "scores_deg": [math.degrees(s) for s in self.scores_rad], "pose": self.best.to_dict()}
+
+
+def _angle(u: np.ndarray, v: np.ndarray) -> float:
+    return math.atan2(float(np.linalg.norm(np.cross(u, v))), float(u @ v))
+
+
+def _unit(v) -> np.ndarray:
+    v = np.asarray(v, dtype=float).ravel()
+    n = float(np.linalg.norm(v)) if v.shape == (3,) else float("nan")
+    if not (math.isfinite(n) and n > 0):
+        raise ValueError("expected a finite, non-zero 3-vector")
+    return v / n
+
+
+def resolve_duality_detailed(first, second, motion: str = "translation", plane_normal=None, *,
+                             R_first_second=None, min_margin_rad: float = DEFAULT_MIN_MARGIN_RAD) -> DualityResult:
+    """Pick the true pose of the *second* image from two candidate pairs (paper §3.3).
+
+    ``first``, ``second``: the (CirclePose, CirclePose) pairs of :func:`circle_poses` for the
+    two images. ``motion``: ``"translation"`` (true normals equal) or ``"planar"`` (true
+    normals have equal components along ``plane_normal``, a 3-vector in the first image's
+    frame). ``R_first_second`` rotates second-frame vectors into the first frame (default:
+    the frames coincide). Each candidate j of the second image scores the smallest mismatch
+    (rad) with either candidate of the first; the margin is the gap between the two scores.
+    Ambiguous when the margin is below ``min_margin_rad``.
+    """
+    if len(first) != 2 or len(second) != 2:
+        raise ValueError("first and second must each be a pair of CirclePose candidates")
+    R = np.eye(3) if R_first_second is None else np.asarray(R_first_second, dtype=float)
+    if R.shape != (3, 3) or not np.all(np.isfinite(R)):
+        raise ValueError("R_first_second must be a finite 3×3 rotation")
+    n1 = [_unit(p.normal) for p in first]
+    n2 = [R @ _unit(p.normal) for p in second]
+    if motion == "translation":
+        def mismatch(a, b):
+            return _angle(a, b)
+    elif motion == "planar":
+        if plane_normal is None:
+            raise ValueError("planar motion needs plane_normal")
+        pn = _unit(plane_normal)
+
+        def mismatch(a, b):  # difference of elevation above the motion plane (rad)
+            return abs(math.asin(max(-1.0, min(1.0, float(a @ pn)))) - math.asin(max(-1.0, min(1.0, float(b @ pn)))))
+    else:
+        raise ValueError(f"motion must be 'translation' or 'planar', got {motion!r}")
+    scores = tuple(min(mismatch(a, b) for a in n1) for b in n2)
+    index = 0 if scores[0] <= scores[1] else 1
+    margin = abs(scores[1] - scores[0])
+    ambiguous = not (margin >= min_margin_rad)
+    best = second[index]
+    return DualityResult(None if ambiguous else best, best, index, margin, scores, ambiguous)
+
+
+def resolve_duality(first, second, motion: str = "translation", plane_normal=None, *,
+                    R_first_second=None, min_margin_rad: float = DEFAULT_MIN_MARGIN_RAD) -> CirclePose | None:
+    """The true :class:`CirclePose` of the second image, or None when ambiguous (paper §3.3).
+    See :func:`resolve_duality_detailed` for the arguments and the margin."""
+    return resolve_duality_detailed(first, second, motion, plane_normal, R_first_second=R_first_second,
+                                    min_margin_rad=min_margin_rad).pose

@@ -1,0 +1,303 @@
+"""Red marker detection with sub-pixel, weighted boundary points (He et al. 1996, §3.1, §4.1).
+
+Pipeline for one BGR image (pixels are the image's own, i.e. distorted, frame-buffer pixels):
+
+1. **Colour threshold** in HSV (hue window around red, minimum saturation, minimum value), so
+   that shading — which scales R, G and B together — leaves hue and saturation unchanged.
+2. **Connected components** (8-connected). Blobs that are too small, cut by the image (or
+   search-window) border, or not elliptical are rejected.
+3. **Sub-pixel boundary.** Per blob, a linear "redness" image s = R − (G + B)/2 is normalised
+   by the blob's own inside and outside levels into a coverage image c ∈ [0, 1] (linear in the
+   fraction of the pixel the marker covers, so anti-aliasing and shading do not bias it). Each
+   row (where the boundary is closer to vertical) and each column (closer to horizontal) that
+   crosses the 50 % level gives one boundary point by the *area* rule: along a 6-pixel scan
+   across the edge the edge sits at (start − ½) + Σ c, which is exact for a straight edge at
+   any sub-pixel phase and angle up to 45° (no interpolation bias). Each point's weight wᵢ is
+   the boundary arc length it stands for (1/|cos| of the angle between scan and edge normal):
+   the paper's weights for non-uniform sampling (eq. 2).
+4. **Ellipse fit** of the boundary points with those weights (:func:`fit_ellipse`).
+
+The windowed mode searches only a rectangle around a predicted position (the tracker's
+one-step-ahead window, paper §4.1) and falls back to the full frame when nothing is found.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from .ellipse import Ellipse, EllipseFitError, fit_ellipse
+
+
+class MarkerImageError(ValueError):
+    """The image cannot be searched (not an H×W×3 uint8/float array, or empty)."""
+
+
+@dataclass(frozen=True)
+class Marker:
+    """One detected marker: ``centroid`` (x, y) px (coverage-weighted, sub-pixel), ``ellipse``
+    fitted to ``boundary`` (N×2 sub-pixel points) with ``weights`` (arc length per point),
+    ``area`` (px², coverage sum), ``bbox`` (x0, y0, x1, y1) and ``touches_border`` (the blob
+    reaches the image edge, so its boundary is incomplete). All in the image's own pixels."""
+
+    centroid: tuple[float, float]
+    ellipse: Ellipse
+    area: float
+    boundary: np.ndarray = field(repr=False)
+    weights: np.ndarray = field(repr=False)
+    bbox: tuple[int, int, int, int]
+    touches_border: bool = False
+    fit_rms_px: float = 0.0
+
+    def to_dict(self) -> dict:
+        return {"centroid_px": [float(v) for v in self.centroid], "area_px": float(self.area),
+                "bbox": list(self.bbox), "touches_border": bool(self.touches_border),
+                "fit_rms_px": float(self.fit_rms_px), "boundary_points": int(len(self.boundary)),
+                "ellipse": self.ellipse.to_dict()}
+
+
+def _as_bgr(image) -> np.ndarray:
+    img = np.asarray(image) if image is not None else None
+    if img is None or img.ndim != 3 or img.shape[2] != 3 or img.size == 0:
+        shape = None if img is None else img.shape
+        raise MarkerImageError(f"expected an H×W×3 BGR image, got shape {shape}")
+    if img.dtype != np.uint8:
+        if not np.issubdtype(img.dtype, np.number):
+            raise MarkerImageError(f"unsupported image dtype {img.dtype}")
+        f = np.nan_to_num(img.astype(np.float64), nan=0.0, posinf=255.0, neginf=0.0)
+        if f.max(initial=0.0) <= 1.0:
+            f = f * 255.0
+        img = np.clip(np.rint(f), 0, 255).astype(np.uint8)
+    return img
+
+
+def red_mask(image_bgr: np.ndarray, hue_range_deg=(-15.0, 15.0), min_saturation: float = 0.45,
+             min_value: float = 0.15) -> np.ndarray:
+    """Binary mask (uint8 0/255) of pixels whose HSV hue lies in ``hue_range_deg`` (degrees,
+    may straddle 0°, e.g. (−15, 15) for red), saturation ≥ ``min_saturation`` and value ≥
+    ``min_value`` (both 0–1). Hue and saturation do not change under shading."""
+    img = _as_bgr(image_bgr)
+    hsv = cv2.cvtColor(img, cv2.COLOR_BGR2HSV_FULL)  # hue 0–255 over 360°
+    lo, hi = (float(v) for v in hue_range_deg)
+    s_min = int(np.ceil(255.0 * float(min_saturation)))
+    v_min = int(np.ceil(255.0 * float(min_value)))
+    if hi - lo >= 360.0:
+        return cv2.inRange(hsv, (0, s_min, v_min), (255, 255, 255))
+    h_lo = int(np.ceil((lo % 360.0) * 256.0 / 360.0)) % 256
+    h_hi = int(np.floor((hi % 360.0) * 256.0 / 360.0)) % 256
+    if h_lo <= h_hi:
+        return cv2.inRange(hsv, (h_lo, s_min, v_min), (h_hi, 255, 255))
+    a = cv2.inRange(hsv, (h_lo, s_min, v_min), (255, 255, 255))
+    b = cv2.inRange(hsv, (0, s_min, v_min), (h_hi, 255, 255))
+    return cv2.bitwise_or(a, b)
+
+
+_SCAN = 6  # pixels per area-rule scan across an edge (3 on each side of the crossing)
+
+
+def _edge_points(c: np.ndarray, axis: int):
+    """Sub-pixel 50 % crossings of coverage image ``c`` along ``axis`` (1: rows, 0: columns)
+    by the area rule. Returns (positions N×2 as (x, y) in ``c``'s pixels, clean N bool)."""
+    if axis == 0:
+        pts, ok = _edge_points(c.T, 1)
+        return pts[:, ::-1], ok
+    inside = c > 0.5
+    rows, cols = np.nonzero(inside[:, 1:] != inside[:, :-1])  # crossing between cols j and j+1
+    if rows.size == 0:
+        return np.empty((0, 2)), np.empty(0, bool)
+    width = c.shape[1]
+    start = cols - (_SCAN // 2 - 1)
+    ok = (start >= 0) & (start + _SCAN <= width)
+    start = np.clip(start, 0, max(width - _SCAN, 0))
+    idx = start[:, None] + np.arange(_SCAN)[None, :]
+    idx = np.minimum(idx, width - 1)
+    prof = c[rows[:, None], idx]
+    total = prof.sum(axis=1)
+    falling = inside[rows, cols]  # marker on the left of the crossing
+    pos = np.where(falling, start - 0.5 + total, start + _SCAN - 0.5 - total)
+    # the scan must run from plateau to plateau (else another edge or a tip is inside it)
+    first, last = prof[:, 0], prof[:, -1]
+    ok &= np.where(falling, (first > 0.8) & (last < 0.2), (first < 0.2) & (last > 0.8))
+    return np.column_stack([pos, rows.astype(float)]), ok
+
+
+def _boundary(c: np.ndarray, ellipse0: Ellipse) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted sub-pixel boundary points of the blob in coverage image ``c`` (ROI pixels)."""
+    A = ellipse0.matrix[:2, :2]
+    ctr = ellipse0.center
+    out_p, out_w = [], []
+    for axis in (1, 0):
+        pts, ok = _edge_points(c, axis)
+        if not np.any(ok):
+            continue
+        pts = pts[ok]
+        normal = (pts - ctr) @ A  # ∝ ∇Q of the rough ellipse
+        nn = np.hypot(normal[:, 0], normal[:, 1])
+        along = np.abs(normal[:, 0 if axis == 1 else 1]) / np.maximum(nn, 1e-12)
+        # rows take the edge where it is closer to vertical, columns where closer to horizontal
+        keep = along > np.sqrt(0.5) if axis == 1 else along >= np.sqrt(0.5)
+        out_p.append(pts[keep])
+        out_w.append(1.0 / along[keep])
+    if not out_p:
+        return np.empty((0, 2)), np.empty(0)
+    return np.concatenate(out_p), np.concatenate(out_w)
+
+
+def _levels(s: np.ndarray, blob: np.ndarray) -> tuple[float, float]:
+    """Inside and outside levels of the redness ``s`` around one blob (medians, robust)."""
+    k = np.ones((3, 3), np.uint8)
+    core = cv2.erode(blob, k, iterations=2)
+    if np.count_nonzero(core) < 3:
+        core = cv2.erode(blob, k, iterations=1)
+    inside = s[core > 0] if np.count_nonzero(core) >= 3 else s[blob > 0]
+    ring = cv2.dilate(blob, k, iterations=4) & ~cv2.dilate(blob, k, iterations=2)
+    outside = s[ring > 0]
+    if inside.size == 0 or outside.size == 0:
+        return float("nan"), float("nan")
+    return float(np.median(inside)), float(np.median(outside))
+
+
+def _analyse_blob(img: np.ndarray, labels: np.ndarray, label: int, bbox, offset, image_shape,
+                  max_fit_rms_px: float) -> Marker | None:
+    x, y, w, h = bbox
+    H, W = labels.shape
+    pad = _SCAN
+    x0, y0 = max(x - pad, 0), max(y - pad, 0)
+    x1, y1 = min(x + w + pad, W), min(y + h + pad, H)
+    roi = img[y0:y1, x0:x1].astype(np.float32)
+    blob = (labels[y0:y1, x0:x1] == label).astype(np.uint8)
+    s = roi[:, :, 2] - 0.5 * (roi[:, :, 0] + roi[:, :, 1])
+    s_in, s_out = _levels(s, blob)
+    if not (np.isfinite(s_in) and np.isfinite(s_out)) or s_in - s_out < 10.0:
+        return None
+    c = (s - s_out) / (s_in - s_out)
+    # keep only this blob's neighbourhood (other blobs in the ROI must not add edges)
+    near = cv2.dilate(blob, np.ones((3, 3), np.uint8), iterations=pad)
+    c = np.where(near > 0, c, 0.0)
+    m = cv2.moments(blob, binaryImage=True)
+    if m["m00"] < 5:
+        return None
+    mu = np.array([m["m10"], m["m01"]]) / m["m00"]
+    cov = np.array([[m["mu20"], m["mu11"]], [m["mu11"], m["mu02"]]]) / m["m00"]
+    evals, evecs = np.linalg.eigh(cov)
+    if not evals[0] > 1e-6:
+        return None
+    try:
+        rough = Ellipse.from_params(mu, 2.0 * np.sqrt(evals[::-1]), float(np.arctan2(evecs[1, 1], evecs[0, 1])))
+    except EllipseFitError:
+        return None
+    pts, wts = _boundary(c, rough)
+    ox, oy = offset
+    gx0, gy0 = x0 + ox, y0 + oy
+    touches = bool((x + ox) <= 0 or (y + oy) <= 0 or (x + w + ox) >= image_shape[1]
+                   or (y + h + oy) >= image_shape[0])
+    if len(pts) < 6:
+        return None
+    if touches:  # drop points near the image edge: the boundary there is the frame, not the marker
+        g = pts + (gx0, gy0)
+        inner = (g[:, 0] > 1.5) & (g[:, 1] > 1.5) & (g[:, 0] < image_shape[1] - 2.5) & (g[:, 1] < image_shape[0] - 2.5)
+        pts, wts = pts[inner], wts[inner]
+        if len(pts) < 6:
+            return None
+    try:
+        ell_roi = fit_ellipse(pts, wts, refine_iterations=3 if touches else 0)
+    except EllipseFitError:
+        return None
+    rms = float(np.sqrt(np.average(ell_roi.sampson_distances(pts) ** 2, weights=wts)))
+    if not (rms <= max_fit_rms_px) or not np.isfinite(rms):
+        return None
+    if not touches:  # the blob must look like its ellipse (not two touching discs, not a bar)
+        ratio = m["m00"] / ell_roi.area
+        if not 0.75 < ratio < 1.25:
+            return None
+    cc = np.clip(c, 0.0, 1.0)
+    area = float(cc.sum())
+    yy, xx = np.indices(cc.shape)
+    cx = float((cc * xx).sum() / area) + gx0
+    cy = float((cc * yy).sum() / area) + gy0
+    boundary = pts + (gx0, gy0)
+    ell = Ellipse.from_conic(_shift_conic(ell_roi.conic, gx0, gy0))
+    return Marker((cx, cy), ell, area, boundary, wts, (int(x + ox), int(y + oy), int(x + w + ox), int(y + h + oy)),
+                  touches, rms)
+
+
+def _shift_conic(q: np.ndarray, dx: float, dy: float) -> np.ndarray:
+    """Conic of the same curve after translating coordinates by (dx, dy): Q'(x) = Q(x − d)."""
+    a, b, c, d, e, f = q.tolist()
+    d2 = d - 2 * a * dx - b * dy
+    e2 = e - b * dx - 2 * c * dy
+    f2 = a * dx * dx + b * dx * dy + c * dy * dy - d * dx - e * dy + f
+    return np.array([a, b, c, d2, e2, f2])
+
+
+def detect_markers(image_bgr, *, hue_range_deg=(-15.0, 15.0), min_saturation: float = 0.45,
+                   min_value: float = 0.15, window=None, min_area_px: int = 12, keep_border: bool = False,
+                   max_fit_rms_px: float = 0.6, max_markers: int = 32) -> list[Marker]:
+    """Find red circular markers in a BGR image (paper §3.1 and §4.1's marker thresholding).
+
+    ``hue_range_deg`` / ``min_saturation`` / ``min_value``: the HSV colour window (the camera's
+    configured marker colour). ``window`` = (x0, y0, x1, y1) px restricts the search to that
+    rectangle (the tracker's one-step-ahead window); blobs cut by its edge are rejected like
+    blobs cut by the image border. ``keep_border=True`` keeps markers that reach the image
+    edge (flagged ``touches_border``, ellipse fitted to the remaining arc). Blobs smaller than
+    ``min_area_px``, non-elliptical ones (boundary RMS distance to the fitted ellipse above
+    ``max_fit_rms_px``, or area unlike the ellipse's) are dropped.
+
+    Returns markers sorted by decreasing area (possibly empty). Raises
+    :class:`MarkerImageError` only for an array that is not an image.
+    """
+    img = _as_bgr(image_bgr)
+    H, W = img.shape[:2]
+    ox = oy = 0
+    sub = img
+    if window is not None:
+        try:
+            wx0, wy0, wx1, wy1 = (int(round(float(v))) for v in window)
+        except (TypeError, ValueError):
+            raise MarkerImageError(f"window must be (x0, y0, x1, y1), got {window!r}") from None
+        wx0, wy0 = max(wx0, 0), max(wy0, 0)
+        wx1, wy1 = min(wx1, W), min(wy1, H)
+        if wx1 - wx0 < 3 or wy1 - wy0 < 3:
+            return []
+        sub = img[wy0:wy1, wx0:wx1]
+        ox, oy = wx0, wy0
+    mask = red_mask(sub, hue_range_deg, min_saturation, min_value)
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    sh, sw = mask.shape
+    order = np.argsort(-stats[1:, cv2.CC_STAT_AREA]) + 1 if n > 1 else []
+    found: list[Marker] = []
+    for label in order:
+        x, y, w, h, area = (int(v) for v in stats[label])
+        if area < min_area_px:
+            break
+        at_image_edge = x + ox <= 0 or y + oy <= 0 or x + w + ox >= W or y + h + oy >= H
+        at_window_edge = x <= 0 or y <= 0 or x + w >= sw or y + h >= sh
+        if at_window_edge and not at_image_edge:
+            continue  # cut by the search window: not measurable here
+        if at_image_edge and not keep_border:
+            continue
+        marker = _analyse_blob(sub, labels, label, (x, y, w, h), (ox, oy), (H, W), max_fit_rms_px)
+        if marker is not None:
+            found.append(marker)
+            if len(found) >= max_markers:
+                break
+    return found
+
+
+def detect_markers_windowed(image_bgr, predicted_xy, half_size_px: float, **kw) -> list[Marker]:
+    """:func:`detect_markers` in the square window of half-size ``half_size_px`` around
+    ``predicted_xy`` (the tracker's one-step-ahead prediction, paper §4.1); if nothing is found
+    there (the marker was lost or left the window), search the full frame instead."""
+    kw.pop("window", None)
+    try:
+        px, py = (float(v) for v in predicted_xy)
+        half = float(half_size_px)
+    except (TypeError, ValueError):
+        px = py = half = float("nan")
+    if np.isfinite(px) and np.isfinite(py) and np.isfinite(half) and half > 0:
+        found = detect_markers(image_bgr, window=(px - half, py - half, px + half + 1, py + half + 1), **kw)
+        if found:
+            return found
+    return detect_markers(image_bgr, **kw)
