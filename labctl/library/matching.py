@@ -1,0 +1,231 @@
+"""Standard-view matching (paper §3.4): minimum distance, ambiguity threshold, next standard view.
+
+"The object is identified by matching its feature vector, consisting of a global eccentricity
+measure and the shape signature, with the feature information of the standard views in the
+database. The identity of the shape is determined by the minimum-distance rule. However, if the
+measures of dissimilarity between the acquired shape and multiple standard views are below a
+certain threshold, the object cannot be uniquely recognized ... the system will identify the
+several candidates ... for the acquisition of an additional standard view."
+
+Dissimilarity of a query q to a library view v (two-level matching, Tchoukanov et al. 1992):
+
+1. gates: ``|ε_q² − ε_v²| ≤ ecc_gate`` (characteristic-ellipse eccentricity) and
+   ``|ln(size_q/size_v)| ≤ size_gate`` (metric size known from the stand-off);
+2. ``score = d_AOS(q, v) + size_weight·|ln(size_q/size_v)|`` with ``d_AOS`` the RMS angle-of-sight
+   difference (rad) minimised over circular shifts (:func:`labctl.vision.shape.signature_distance`).
+
+An object's score is its best view's. Objects scoring ≤ ``threshold`` are the candidates; two or
+more candidates make the result ambiguous. Baseline methods ("hu", "fd") replace ``d_AOS`` by
+the Hu-moment (``cv2.matchShapes`` I1) or Fourier-descriptor distance, same gates.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..vision.shape import ShapeFeatures, hu_distance, signature_distance
+
+ECC_GATE = 0.15
+SIZE_GATE = 0.12
+SIZE_WEIGHT = 0.5
+DEFAULT_THRESHOLD = 0.15
+
+
+@dataclass
+class LibraryIndex:
+    """All standard views of a library stacked for batched matching."""
+
+    names: list[str]  # object of each view
+    marker_ids: np.ndarray  # (V,)
+    aos: np.ndarray  # (V, S, N)
+    ecc2: np.ndarray  # (V,) ε²
+    log_size: np.ndarray  # (V,)
+    fd: np.ndarray  # (V, K)
+    hu: np.ndarray  # (V, 7)
+    _pair: np.ndarray | None = field(default=None, repr=False)
+
+    @classmethod
+    def from_views(cls, views: Sequence[tuple[str, int, ShapeFeatures]]) -> LibraryIndex:
+        if not views:
+            raise ValueError("the library has no standard views")
+        return cls(
+            names=[n for n, _, _ in views], marker_ids=np.array([m for _, m, _ in views]),
+            aos=np.stack([f.aos for _, _, f in views]), ecc2=np.array([f.eccentricity ** 2 for _, _, f in views]),
+            log_size=np.log([f.size_mm for _, _, f in views]), fd=np.stack([f.fd for _, _, f in views]),
+            hu=np.stack([f.hu for _, _, f in views]),
+        )
+
+    @classmethod
+    def from_library(cls, library: Mapping) -> LibraryIndex:
+        """From ``{name: LibraryObject}`` (objects with ``.views``: {marker_id: StandardView})."""
+        return cls.from_views([(name, mid, v.features) for name, obj in sorted(library.items())
+                               for mid, v in sorted(obj.views.items())])
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+    def view_index(self, name: str, marker_id: int) -> int:
+        for i, (n, m) in enumerate(zip(self.names, self.marker_ids, strict=True)):
+            if n == name and m == marker_id:
+                return i
+        raise KeyError(f"no standard view {name}/{marker_id}")
+
+    def features_of(self, i: int) -> ShapeFeatures:
+        """A minimal feature record of view i (for view-to-view distances)."""
+        return ShapeFeatures(eccentricity=float(np.sqrt(self.ecc2[i])), size_mm=float(np.exp(self.log_size[i])),
+                             perimeter_mm=0.0, chain_start=(0, 0), chain_code=np.zeros(0, np.uint8),
+                             aos=self.aos[i], fd=self.fd[i], hu=self.hu[i])
+
+    def pairwise(self) -> np.ndarray:
+        """(V, V) view-to-view scores (symmetrised), cached; used by the next-view planner."""
+        if self._pair is None:
+            D = np.stack([view_scores(self.features_of(i), self) for i in range(len(self))])
+            self._pair = np.minimum(D, D.T)
+        return self._pair
+
+
+@dataclass
+class MatchResult:
+    """``best`` (name, marker_id) of the minimum-distance view or None if nothing passes the gates;
+    ``candidates`` objects (best first) scoring ≤ threshold; ``scores`` each object's best score
+    (inf when gated out); ``views`` each object's best-matching marker id; ``ambiguous`` when more
+    than one candidate remains; ``shift`` the start-point offset of the best view (samples)."""
+
+    best: tuple[str, int] | None
+    candidates: list[str]
+    scores: dict[str, float]
+    views: dict[str, int]
+    ambiguous: bool
+    shift: int = 0
+
+    @property
+    def accepted(self) -> bool:
+        return bool(self.candidates)
+
+
+def view_scores(q: ShapeFeatures, index: LibraryIndex, *, method: str = "aos", ecc_gate: float = ECC_GATE,
+                size_gate: float = SIZE_GATE, size_weight: float = SIZE_WEIGHT, with_shift: bool = False):
+    """Dissimilarity (V,) of a query to every view of ``index`` (inf where gated out)."""
+    dlog = np.abs(np.log(q.size_mm) - index.log_size)
+    ok = (np.abs(q.eccentricity ** 2 - index.ecc2) <= ecc_gate) & (dlog <= size_gate)
+    shift = np.zeros(len(index), int)
+    if method == "aos":
+        d, shift = signature_distance(q.aos, index.aos)
+    elif method == "fd":
+        d = np.linalg.norm(index.fd - q.fd[None], axis=1)
+    elif method == "hu":
+        d = hu_distance(q.hu, index.hu)
+    else:
+        raise ValueError(f"unknown matching method {method!r} (aos, fd, hu)")
+    s = np.where(ok, d + size_weight * dlog, np.inf)
+    return (s, shift) if with_shift else s
+
+
+def match(features: ShapeFeatures, index: LibraryIndex, threshold: float = DEFAULT_THRESHOLD, *,
+          method: str = "aos", restrict: Sequence[str] | None = None, **gates) -> MatchResult:
+    """Minimum-distance identification of one standard view with the ambiguity rule (paper §3.4)."""
+    s, shift = view_scores(features, index, method=method, with_shift=True, **gates)
+    names = np.array(index.names)
+    if restrict is not None:
+        s = np.where(np.isin(names, list(restrict)), s, np.inf)
+    scores: dict[str, float] = {}
+    views: dict[str, int] = {}
+    for i in np.argsort(s, kind="stable"):
+        n = names[i]
+        if n not in scores:
+            scores[n] = float(s[i])
+            views[n] = int(index.marker_ids[i])
+    i_best = int(np.argmin(s))
+    if not np.isfinite(s[i_best]):
+        return MatchResult(None, [], scores, views, False)
+    cands = [n for n, v in scores.items() if v <= threshold]
+    return MatchResult((str(names[i_best]), int(index.marker_ids[i_best])), cands, scores, views,
+                       len(cands) > 1, int(shift[i_best]))
+
+
+def plan_next_view(candidates: Sequence[str], index: LibraryIndex,
+                   viewed: Mapping[str, Sequence[int]] | None = None) -> tuple[str, int]:
+    """Next standard view to resolve an ambiguity: ``(object, marker_id)``.
+
+    For every not-yet-viewed marker j of every candidate h, its separation is the smallest
+    score between h's view j and any view of another candidate; the marker with the largest
+    separation is the one whose view best tells h apart from the rest (paper §3.4: "acquisition
+    of an additional standard view to resolve the ambiguity").
+    """
+    if len(candidates) < 1:
+        raise ValueError("no candidates to plan a view for")
+    viewed = viewed or {}
+    P = index.pairwise()
+    names = np.array(index.names)
+    best, best_sep = None, -np.inf
+    for h in candidates:
+        others = np.isin(names, [c for c in candidates if c != h])
+        for i in np.flatnonzero(names == h):
+            mid = int(index.marker_ids[i])
+            if mid in viewed.get(h, ()):
+                continue
+            sep = float(P[i, others].min()) if others.any() else np.inf
+            if sep > best_sep:
+                best, best_sep = (h, mid), sep
+    if best is None:
+        raise ValueError("every marker of every candidate has been viewed")
+    return best
+
+
+@dataclass
+class Identification:
+    """Outcome of :func:`identify`: the object (None if unresolved), views used, their results."""
+
+    name: str | None
+    views_used: int
+    steps: list[MatchResult]
+    requested: list[tuple[str, int]]
+
+
+def identify(first: ShapeFeatures, index: LibraryIndex, acquire: Callable[[str, int], ShapeFeatures | None], *,
+             threshold: float = DEFAULT_THRESHOLD, max_views: int = 3, method: str = "aos") -> Identification:
+    """Recognise with extra standard views where ambiguous (paper §3.4, §2 stage 2).
+
+    ``acquire(name, marker_id)`` moves the camera to the standard view of marker ``marker_id``
+    *assuming* the object is ``name`` and returns the view's features (None if nothing usable
+    was seen). Hypothesis ``name`` survives if that view matches its view ``marker_id`` within
+    ``threshold``; any other candidate survives if the view matches any of its views.
+    """
+    r = match(first, index, threshold, method=method)
+    steps, requested = [r], []
+    remaining = list(r.candidates)
+    viewed: dict[str, list[int]] = {n: [m] for n, m in r.views.items() if n in remaining}
+    views_used = 1
+    while len(remaining) > 1 and views_used < max_views:
+        h, j = plan_next_view(remaining, index, viewed)
+        requested.append((h, j))
+        f = acquire(h, j)
+        views_used += 1
+        viewed.setdefault(h, []).append(j)
+        if f is None:
+            remaining = [c for c in remaining if c != h]
+            continue
+        s = view_scores(f, index, method=method)
+        names = np.array(index.names)
+        keep = []
+        for c in remaining:
+            if c == h:
+                ok = s[index.view_index(h, j)] <= threshold
+            else:
+                ok = bool(np.any(s[names == c] <= threshold))
+            if ok:
+                keep.append(c)
+        steps.append(match(f, index, threshold, method=method, restrict=remaining))
+        if keep:
+            remaining = keep
+        if h in remaining and len(remaining) > 1:
+            # the hypothesis was confirmed by a view chosen to separate it: prefer it
+            sh = s[index.view_index(h, j)]
+            rivals = [min(s[names == c]) for c in remaining if c != h]
+            if sh < min(rivals):
+                remaining = [h]
+    name = remaining[0] if len(remaining) == 1 else None
+    return Identification(name, views_used, steps, requested)

@@ -1,0 +1,163 @@
+"""Object models: loading and validating CAD meshes (STL/OBJ, mm), stable resting poses, extrusion.
+
+Paper §4.1 / DESIGN §1 "Offline": markers are planned from the object's CAD model. Models are
+``trimesh.Trimesh`` in millimetres in the object frame O. Stable poses come from trimesh's
+quasi-static computation (``trimesh.poses.compute_stable_poses``: the convex-hull facets the
+centre of mass projects into, with the probability of landing on each estimated from the solid
+angle of the hull facet region seen from the centre of mass).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from ..errors import UserInputError
+
+# what the lab can hold: the paper's objects are 40×40×35 … 90×90×70 mm
+MIN_EXTENT_MM = 5.0
+MAX_EXTENT_MM = 130.0
+
+
+class ModelError(UserInputError):
+    """A CAD model that cannot be taught (not watertight, empty, wrong units, too small…)."""
+
+
+def load_model(path: Path | str) -> trimesh.Trimesh:
+    """Read an STL/OBJ file (mm) as one mesh; raise :class:`ModelError` if unreadable or empty."""
+    path = Path(path)
+    if not path.is_file():
+        raise ModelError(f"model file not found: {path}")
+    if path.suffix.lower() not in (".stl", ".obj"):
+        raise ModelError(f"unsupported model format {path.suffix!r}: use an STL or OBJ file in mm")
+    try:
+        loaded = trimesh.load(path, force="mesh", process=True)
+    except Exception as exc:  # trimesh raises many kinds on broken files
+        raise ModelError(f"cannot read model {path.name}: {exc}") from exc
+    if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
+        raise ModelError(f"model {path.name} is empty (no triangles)")
+    return loaded
+
+
+def validate_model(mesh: trimesh.Trimesh, *, marker_radius_mm: float, name: str = "model") -> trimesh.Trimesh:
+    """Check a mesh can be taught; return it (O = the CAD file's frame, faces wound outward).
+
+    Raises :class:`ModelError` when the mesh is empty, not watertight (no inside/outside, so no
+    volume, centre of mass or silhouette), implausibly sized for the lab (a factor-1000 hint
+    when it looks like metres or micrometres), or without a flat face that can hold one marker.
+    """
+    if mesh is None or len(mesh.faces) == 0 or len(mesh.vertices) == 0:
+        raise ModelError(f"{name}: the mesh is empty")
+    if not np.all(np.isfinite(mesh.vertices)):
+        raise ModelError(f"{name}: the mesh has non-finite vertices")
+    if not mesh.is_watertight:
+        raise ModelError(f"{name}: the mesh is not watertight (open edges); close it in the CAD tool")
+    if mesh.volume <= 0:
+        mesh = mesh.copy()
+        mesh.invert()
+    if not mesh.is_volume:
+        raise ModelError(f"{name}: the mesh does not enclose a consistent volume (check face winding)")
+    ext = float(np.max(mesh.extents))
+    if ext > MAX_EXTENT_MM:
+        hint = " — is it in metres×1000 or µm? models must be in mm" if ext > 20 * MAX_EXTENT_MM else ""
+        raise ModelError(f"{name}: largest extent {ext:.4g} mm exceeds what the lab holds "
+                         f"({MAX_EXTENT_MM:.0f} mm){hint}")
+    if ext < MIN_EXTENT_MM:
+        hint = " — is it in metres? models must be in mm" if ext < 1.0 else ""
+        raise ModelError(f"{name}: largest extent {ext:.4g} mm is below {MIN_EXTENT_MM:.0f} mm{hint}")
+    if sorted(mesh.extents)[1] < 2.0 * marker_radius_mm:
+        raise ModelError(f"{name}: too small for a marker of radius {marker_radius_mm:g} mm "
+                         f"(extents {np.round(mesh.extents, 1).tolist()} mm)")
+    return mesh
+
+
+def stable_poses(mesh: trimesh.Trimesh, *, min_probability: float = 0.0) -> list[tuple[np.ndarray, float]]:
+    """Stable resting poses ``(T_w_o, probability)`` placing the object on the table plane z = 0.
+
+    Quasi-static analysis (trimesh): each pose rests on a convex-hull facet whose region
+    contains the projection of the centre of mass. Probabilities sum to 1 over the returned
+    poses (renormalised after dropping those under ``min_probability``). Poses are sorted by
+    probability, most likely first; translations put the lowest point at z = 0 and the centre
+    of mass over the origin of x, y.
+    """
+    Ts, probs = trimesh.poses.compute_stable_poses(mesh, n_samples=1)
+    out = []
+    for T, p in zip(Ts, probs, strict=True):
+        if p < min_probability:
+            continue
+        T = np.array(T, dtype=float)
+        v = trimesh.transform_points(mesh.vertices, T)
+        com = trimesh.transform_points(mesh.center_mass[None], T)[0]
+        T[:3, 3] += [-com[0], -com[1], -v[:, 2].min()]
+        out.append((T, float(p)))
+    total = sum(p for _, p in out)
+    if not out or total <= 0:
+        raise ModelError("no stable resting pose found")
+    out = [(T, p / total) for T, p in out]
+    out.sort(key=lambda tp: -tp[1])
+    return out
+
+
+# --- building models (sample objects, tests) ------------------------------------------
+def triangulate_polygon(poly: np.ndarray) -> np.ndarray:
+    """Ear-clipping triangulation of a simple polygon (n, 2); returns (n−2, 3) vertex indices, CCW."""
+    p = np.asarray(poly, dtype=float)
+    n = len(p)
+    area = 0.5 * (np.dot(p[:, 0], np.roll(p[:, 1], -1)) - np.dot(np.roll(p[:, 0], -1), p[:, 1]))
+    idx = list(range(n)) if area > 0 else list(range(n))[::-1]
+
+    def cross(o, a, b):
+        return (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0])
+
+    tris = []
+    guard = 0
+    while len(idx) > 3 and guard < 10 * n * n:
+        guard += 1
+        m = len(idx)
+        for j in range(m):
+            i0, i1, i2 = idx[j - 1], idx[j], idx[(j + 1) % m]
+            a, b, c = p[i0], p[i1], p[i2]
+            if cross(a, b, c) <= 1e-12:
+                continue  # reflex or degenerate vertex
+            inside = False
+            for k in idx:
+                if k in (i0, i1, i2):
+                    continue
+                q = p[k]
+                if cross(a, b, q) >= 0 and cross(b, c, q) >= 0 and cross(c, a, q) >= 0:
+                    inside = True
+                    break
+            if not inside:
+                tris.append((i0, i1, i2))
+                idx.pop(j)
+                break
+        else:
+            raise ValueError("polygon is not simple: ear clipping failed")
+    tris.append(tuple(idx))
+    return np.array(tris, dtype=np.int64)
+
+
+def extrude_polygon(poly_xy: np.ndarray, height: float) -> trimesh.Trimesh:
+    """Watertight prism: a simple polygon (n, 2) in mm extruded along +z by ``height`` mm.
+
+    Hand-built (no triangulation engine needed): ear-clipped caps plus two triangles per side.
+    """
+    p = np.asarray(poly_xy, dtype=float)
+    area = 0.5 * (np.dot(p[:, 0], np.roll(p[:, 1], -1)) - np.dot(np.roll(p[:, 0], -1), p[:, 1]))
+    if area < 0:
+        p = p[::-1]
+    n = len(p)
+    cap = triangulate_polygon(p)
+    verts = np.vstack([np.column_stack([p, np.zeros(n)]), np.column_stack([p, np.full(n, float(height))])])
+    faces = [cap[:, ::-1], cap + n]  # bottom faces down, top faces up
+    i = np.arange(n)
+    j = (i + 1) % n
+    faces.append(np.column_stack([i, j, j + n]))
+    faces.append(np.column_stack([i, j + n, i + n]))
+    mesh = trimesh.Trimesh(verts, np.vstack(faces), process=True)
+    if not mesh.is_watertight or mesh.volume <= 0:
+        raise ValueError("extrusion failed to produce a closed solid")
+    return mesh
+

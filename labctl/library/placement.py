@@ -1,0 +1,318 @@
+"""Marker placement: the minimum set of markers so that one is always visible (paper §4.1).
+
+He, Benhabib & Smith, "CAD-based off-line planning for active vision", J. Robotic Systems 12,
+1995 (paper ref. [12]): find the minimum number and locations of markers such that, for a
+randomly posed object, at least one marker is visible to a single camera; and the optimal
+initial viewing angle (63° in the paper).
+
+Formulation used here:
+
+* **Candidate sites** — one per planar face region (``trimesh`` facets and lone triangles) that
+  can hold a marker disc of radius ``r`` with a margin: of the face points at least ``margin·r``
+  inside the face (distance transform of the face rasterised at ``grid_mm``), the one nearest
+  the projection of the object's centre, so the standard view is centred on the object.
+* **Poses** — every stable resting pose (quasi-static, :func:`labctl.library.model.stable_poses`)
+  × yaw ψ about the vertical sampled every ``360/n_yaw`` degrees.
+* **Visibility** of a site in pose (T, ψ): the camera sits at distance ``D`` from the object's
+  centre at elevation ``α`` (the viewing angle, from the table plane); the site is visible if
+  the angle between its normal and the direction to the camera (obliquity) is at most
+  ``max_obliquity`` and the segments from the marker's centre and four rim points to the
+  camera cross no triangle of the mesh (Möller–Trumbore ray casting, numpy, own
+  implementation — no ray engine needed).
+* **Set cover** — rows = (pose, yaw) samples, columns = sites; choose the fewest columns
+  covering every row. Exact 0/1 ILP with ``scipy.optimize.milp`` up to ``exact_max_sites``
+  sites (ties broken towards more redundant coverage); greedy beyond, whose count is within
+  ``H(m) ≤ ln m + 1`` of the optimum (m = the largest number of rows one site covers).
+* **Viewing angle** — the cover size as a function of α over a range; the optimal angles are
+  those with the smallest count; the reported one has the largest worst-case number of
+  visible chosen markers and, among those, is the steepest (top faces seen most frontally).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+import trimesh
+
+from ..geometry import rot_z
+from .model import ModelError
+
+
+@dataclass(frozen=True)
+class Marker:
+    """A circular marker in the object frame O: centre (mm), outward unit normal, radius (mm)."""
+
+    id: int
+    center: np.ndarray
+    normal: np.ndarray
+    radius: float
+
+    def to_dict(self) -> dict:
+        return {"id": int(self.id), "center": [round(float(v), 4) for v in self.center],
+                "normal": [round(float(v), 6) for v in self.normal], "radius": float(self.radius)}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> Marker:
+        c = np.asarray(d["center"], dtype=float).reshape(3)
+        n = np.asarray(d["normal"], dtype=float).reshape(3)
+        if not np.all(np.isfinite(c)) or not np.isfinite(n).all() or abs(np.linalg.norm(n) - 1) > 1e-3:
+            raise ValueError(f"marker {d.get('id')}: bad centre or normal")
+        if not float(d["radius"]) > 0:
+            raise ValueError(f"marker {d.get('id')}: radius must be positive")
+        return cls(int(d["id"]), c, n / np.linalg.norm(n), float(d["radius"]))
+
+
+@dataclass(frozen=True)
+class ViewingGeometry:
+    """Initial-view geometry (paper §5.3: ~1 m, 63°) and the visibility limits."""
+
+    angle_deg: float = 63.0
+    distance_mm: float = 1000.0
+    max_obliquity_deg: float = 75.0
+    n_yaw: int = 360
+
+
+@dataclass
+class PlacementResult:
+    markers: list[Marker]
+    candidates: list[Marker]
+    method: str  # "exact" (milp) or "greedy"
+    bound: float  # greedy approximation factor bound (1.0 when exact)
+    n_rows: int
+    min_visible: int  # worst case over the sampled (pose, yaw) of visible chosen markers
+    coverage: np.ndarray = field(repr=False)  # (rows, chosen) bool
+
+
+# --- ray casting ------------------------------------------------------------------------
+def segments_blocked(origins: np.ndarray, targets: np.ndarray, triangles: np.ndarray,
+                     eps: float = 1e-9, chunk: int = 4096) -> np.ndarray:
+    """For each segment origin→target (mm), does it cross any triangle (F, 3, 3)? Möller–Trumbore."""
+    o = np.asarray(origins, dtype=float)
+    d = np.asarray(targets, dtype=float) - o
+    v0, v1, v2 = triangles[:, 0], triangles[:, 1], triangles[:, 2]
+    e1, e2 = v1 - v0, v2 - v0
+    out = np.zeros(len(o), dtype=bool)
+    for s in range(0, len(o), chunk):
+        oo, dd = o[s:s + chunk, None, :], d[s:s + chunk, None, :]
+        p = np.cross(dd, e2[None])
+        det = np.sum(e1[None] * p, axis=-1)
+        ok = np.abs(det) > eps
+        inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+        tv = oo - v0[None]
+        u = np.sum(tv * p, axis=-1) * inv
+        q = np.cross(tv, e1[None])
+        v = np.sum(dd * q, axis=-1) * inv
+        t = np.sum(e2[None] * q, axis=-1) * inv
+        hit = ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 1e-6) & (t < 1.0)
+        out[s:s + chunk] = hit.any(axis=1)
+    return out
+
+
+# --- candidate sites --------------------------------------------------------------------
+def _plane_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    a = np.array([1.0, 0, 0]) if abs(n[0]) < 0.9 else np.array([0, 1.0, 0])
+    u = np.cross(n, a)
+    u /= np.linalg.norm(u)
+    return u, np.cross(n, u)
+
+
+def candidate_sites(mesh: trimesh.Trimesh, radius_mm: float, *, margin: float = 1.3,
+                    grid_mm: float = 0.25) -> list[Marker]:
+    """Marker sites: per planar face region that can hold a disc of ``margin·radius``, the point
+    nearest the object's bounding-box centre (projected on the face) at least that far inside
+    the face, so standard views are centred. Ids in order of decreasing face area."""
+    groups = [np.asarray(f) for f in mesh.facets]
+    in_facet = np.zeros(len(mesh.faces), bool)
+    for g in groups:
+        in_facet[g] = True
+    groups += [np.array([i]) for i in np.flatnonzero(~in_facet)]
+    sites = []
+    need = margin * radius_mm
+    centre = mesh.bounds.mean(axis=0)
+    for g in groups:
+        n = mesh.face_normals[g].mean(axis=0)
+        n /= np.linalg.norm(n)
+        tri = mesh.triangles[g]  # (k, 3, 3)
+        u, v = _plane_basis(n)
+        uv = np.stack([tri @ u, tri @ v], axis=-1)  # (k, 3, 2)
+        lo = uv.reshape(-1, 2).min(axis=0) - 2 * grid_mm
+        hi = uv.reshape(-1, 2).max(axis=0) + 2 * grid_mm
+        if np.min(hi - lo) < 2 * need:
+            continue
+        shape = np.ceil((hi - lo) / grid_mm).astype(int) + 1
+        img = np.zeros((shape[1], shape[0]), np.uint8)
+        pix = np.round((uv - lo) / grid_mm * 16).astype(np.int32)  # 4 fractional bits
+        cv2.fillPoly(img, list(pix), 1, lineType=cv2.LINE_8, shift=4)
+        dist = cv2.distanceTransform(img, cv2.DIST_L2, 5) * grid_mm
+        deep_r, deep_c = np.nonzero(dist >= need)
+        if deep_r.size == 0:
+            continue
+        # of the points deep enough, the one nearest the object's centre: centred standard views
+        aim = (np.array([centre @ u, centre @ v]) - lo) / grid_mm
+        k = int(np.argmin((deep_c - aim[0]) ** 2 + (deep_r - aim[1]) ** 2))
+        p2 = lo + np.array([deep_c[k], deep_r[k]]) * grid_mm
+        plane_d = float(np.mean(tri.reshape(-1, 3) @ n))
+        center = p2[0] * u + p2[1] * v + plane_d * n
+        sites.append((float(mesh.area_faces[g].sum()), center, n))
+    sites.sort(key=lambda s: -s[0])
+    return [Marker(i, c, nn, float(radius_mm)) for i, (_, c, nn) in enumerate(sites)]
+
+
+# --- visibility -------------------------------------------------------------------------
+def _rim_points(m: Marker, k: int = 4) -> np.ndarray:
+    u, v = _plane_basis(m.normal)
+    a = np.arange(k) * 2 * np.pi / k
+    return m.center + 0.9 * m.radius * (np.cos(a)[:, None] * u + np.sin(a)[:, None] * v)
+
+
+def view_directions_o(poses: list[np.ndarray], angle_deg: float, n_yaw: int, yaw_offset: float = 0.0) -> np.ndarray:
+    """Unit directions (P·n_yaw, 3) from the object towards the camera, in the object frame O.
+
+    World camera direction ``(cos α, 0, sin α)`` (α = viewing angle from the table plane); the
+    object rests in pose ``T`` rotated by yaw ψ about the vertical, so ``d_O = (Rz(ψ)·R_T)ᵀ d``.
+    Row ``p·n_yaw + j`` is pose p at yaw ``(j + yaw_offset)·360°/n_yaw``.
+    """
+    a = np.radians(angle_deg)
+    d = np.array([np.cos(a), 0.0, np.sin(a)])
+    out = []
+    for T in poses:
+        for j in range(n_yaw):
+            R = rot_z(2 * np.pi * (j + yaw_offset) / n_yaw) @ T[:3, :3]
+            out.append(R.T @ d)
+    return np.array(out)
+
+
+def visibility_matrix(mesh: trimesh.Trimesh, sites: list[Marker], dirs_o: np.ndarray, *,
+                      distance_mm: float, max_obliquity_deg: float) -> np.ndarray:
+    """Bool (rows, sites): is site s visible from camera direction row r (see module docstring)."""
+    cam = mesh.bounds.mean(axis=0) + dirs_o * distance_mm  # camera aimed at the bounding-box centre
+    tris = np.asarray(mesh.triangles)
+    cos_max = np.cos(np.radians(max_obliquity_deg))
+    vis = np.zeros((len(dirs_o), len(sites)), bool)
+    for s, m in enumerate(sites):
+        to_cam = cam - m.center
+        to_cam /= np.linalg.norm(to_cam, axis=1, keepdims=True)
+        ok = to_cam @ m.normal >= cos_max
+        rows = np.flatnonzero(ok)
+        if rows.size == 0:
+            continue
+        pts = np.vstack([m.center[None], _rim_points(m)]) + 1e-3 * m.normal  # lift off the face
+        origins = np.repeat(pts[None], rows.size, axis=0).reshape(-1, 3)
+        targets = np.repeat(cam[rows], len(pts), axis=0)
+        blocked = segments_blocked(origins, targets, tris).reshape(rows.size, len(pts)).any(axis=1)
+        vis[rows[~blocked], s] = True
+    return vis
+
+
+# --- set cover --------------------------------------------------------------------------
+def set_cover(cover: np.ndarray, *, exact_max_sites: int = 60) -> tuple[np.ndarray, str, float]:
+    """Fewest columns of ``cover`` (rows × cols bool) such that every row has one True.
+
+    Exact (``scipy.optimize.milp``) when cols ≤ ``exact_max_sites``: minimise Σx − ε·Σ(rows
+    covered)·x, so among minimum covers the most redundant one is chosen. Otherwise greedy
+    (Chvátal), whose size is at most H(max column count) times the optimum. Returns
+    (chosen column indices, "exact"|"greedy", bound factor).
+    """
+    A = np.unique(np.asarray(cover, bool), axis=0)
+    if A.shape[0] == 0:
+        return np.array([], int), "exact", 1.0
+    if not A.any(axis=1).all():
+        raise ValueError("some row cannot be covered")
+    ncol = A.shape[1]
+    if ncol <= exact_max_sites:
+        from scipy.optimize import Bounds, LinearConstraint, milp
+
+        counts = np.asarray(cover, bool).sum(axis=0).astype(float)
+        eps = 0.5 / (ncol * (counts.max() + 1.0))
+        c = 1.0 - eps * counts
+        res = milp(c, constraints=LinearConstraint(A.astype(float), lb=1.0, ub=np.inf),
+                   integrality=np.ones(ncol), bounds=Bounds(0, 1))
+        if res.status == 0 and res.x is not None:
+            return np.flatnonzero(res.x > 0.5), "exact", 1.0
+    left = np.ones(A.shape[0], bool)
+    chosen = []
+    while left.any():
+        gain = A[left].sum(axis=0)
+        j = int(np.argmax(gain))
+        chosen.append(j)
+        left &= ~A[:, j]
+    m = int(A.sum(axis=0).max())
+    return np.array(sorted(chosen)), "greedy", float(np.sum(1.0 / np.arange(1, m + 1)))
+
+
+def plan_markers(mesh: trimesh.Trimesh, poses: list[tuple[np.ndarray, float]], radius_mm: float,
+                 view: ViewingGeometry, *, planning_margin_deg: float = 2.0,
+                 candidates: list[Marker] | None = None) -> PlacementResult:
+    """Minimum marker set for ``mesh`` (paper §4.1). Raises :class:`ModelError` if some stable
+    pose has a yaw from which no candidate site can be seen (no placement can work).
+
+    Planning uses an obliquity limit ``planning_margin_deg`` tighter than the check's, so the
+    result holds between the sampled yaws too.
+    """
+    sites = candidates if candidates is not None else candidate_sites(mesh, radius_mm)
+    if not sites:
+        raise ModelError(f"no flat face can hold a marker of radius {radius_mm:g} mm")
+    Ts = [T for T, _ in poses]
+    dirs = view_directions_o(Ts, view.angle_deg, view.n_yaw)
+    vis = visibility_matrix(mesh, sites, dirs, distance_mm=view.distance_mm,
+                            max_obliquity_deg=view.max_obliquity_deg - planning_margin_deg)
+    uncovered = ~vis.any(axis=1)
+    if uncovered.any():
+        r = int(np.flatnonzero(uncovered)[0])
+        p, j = divmod(r, view.n_yaw)
+        n_bad = int(uncovered.reshape(len(Ts), view.n_yaw)[p].sum())
+        raise ModelError(
+            f"no marker can be made visible in stable pose {p} (probability {poses[p][1]:.3f}) at "
+            f"{n_bad} of {view.n_yaw} yaw angles, e.g. {360.0 * j / view.n_yaw:.0f}° (viewing angle "
+            f"{view.angle_deg:g}°, max obliquity {view.max_obliquity_deg:g}°)")
+    chosen, method, bound = set_cover(vis)
+    markers = [Marker(i, sites[k].center, sites[k].normal, sites[k].radius) for i, k in enumerate(chosen)]
+    cov = vis[:, chosen]
+    return PlacementResult(markers=markers, candidates=sites, method=method, bound=bound,
+                           n_rows=len(dirs), min_visible=int(cov.sum(axis=1).min()), coverage=cov)
+
+
+def check_coverage(mesh: trimesh.Trimesh, poses: list[np.ndarray], markers: list[Marker],
+                   view: ViewingGeometry, n_yaw: int = 360, yaw_offset: float = 0.5) -> np.ndarray:
+    """Brute force: number of visible markers for every stable pose × ``n_yaw`` yaws (P, n_yaw).
+
+    Yaws are offset by ``yaw_offset`` steps from the planning grid so they are fresh samples.
+    """
+    dirs = view_directions_o(poses, view.angle_deg, n_yaw, yaw_offset)
+    vis = visibility_matrix(mesh, markers, dirs, distance_mm=view.distance_mm,
+                            max_obliquity_deg=view.max_obliquity_deg)
+    return vis.sum(axis=1).reshape(len(poses), n_yaw)
+
+
+def optimal_viewing_angle(mesh: trimesh.Trimesh, poses: list[tuple[np.ndarray, float]], radius_mm: float,
+                          view: ViewingGeometry, angles_deg=None, n_yaw: int = 72) -> dict:
+    """Minimum marker count versus viewing angle; the optimal initial viewing angle (paper §4.1).
+
+    Returns ``{"angles_deg", "counts", "min_visible", "optimal_deg", "optimal_range_deg"}``;
+    angles where some pose cannot be covered get count ``None``.
+    """
+    angles = np.arange(30.0, 90.01, 3.0) if angles_deg is None else np.asarray(angles_deg, float)
+    sites = candidate_sites(mesh, radius_mm)
+    counts, worst = [], []
+    for a in angles:
+        v = ViewingGeometry(float(a), view.distance_mm, view.max_obliquity_deg, n_yaw)
+        try:
+            r = plan_markers(mesh, poses, radius_mm, v, candidates=sites)
+            counts.append(len(r.markers))
+            worst.append(r.min_visible)
+        except ModelError:
+            counts.append(None)
+            worst.append(0)
+    valid = [i for i, c in enumerate(counts) if c is not None]
+    if not valid:
+        return {"angles_deg": angles.tolist(), "counts": counts, "min_visible": worst,
+                "optimal_deg": None, "optimal_range_deg": None}
+    best = min(counts[i] for i in valid)
+    tied = [i for i in valid if counts[i] == best]
+    top = max(worst[i] for i in tied)
+    pick = max(i for i in tied if worst[i] == top)  # steepest: top faces seen most frontally
+    return {"angles_deg": angles.tolist(), "counts": counts, "min_visible": worst,
+            "optimal_deg": float(angles[pick]),
+            "optimal_range_deg": [float(angles[tied].min()), float(angles[tied].max())]}

@@ -1,0 +1,113 @@
+"""Teaching an object (``labctl teach-object``): model → stable poses → markers → standard views.
+
+Runs paper §4.1 (marker placement and the optimal initial viewing angle) and §3.4 (standard
+views and their features) on a CAD model. The images come from an injected
+``render_view_factory(mesh, markers) -> render_view(T_o_c) -> BGR image`` (the simulated lab's
+renderer, or the robot camera on hardware), so nothing here touches a device or the simulator.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import trimesh
+import yaml
+
+from ..vision.shape import ShapeError
+from .model import ModelError, load_model, stable_poses, validate_model
+from .placement import Marker, ViewingGeometry, check_coverage, optimal_viewing_angle, plan_markers
+from .storage import LibraryError, LibraryObject, check_name, save_object
+from .views import RenderView, build_standard_views
+
+RenderFactory = Callable[[trimesh.Trimesh, list[Marker]], RenderView]
+
+
+def read_markers_file(path: Path | str, default_radius_mm: float) -> list[Marker]:
+    """Markers given by hand: YAML ``markers: [{id, center, normal, radius?}]`` in the model's frame (mm)."""
+    path = Path(path)
+    try:
+        data = yaml.safe_load(path.read_text())
+        items = data["markers"] if isinstance(data, dict) else data
+        out = []
+        for i, d in enumerate(items):
+            d = dict(d)
+            d.setdefault("id", i)
+            d.setdefault("radius", default_radius_mm)
+            n = np.asarray(d["normal"], float)
+            d["normal"] = (n / np.linalg.norm(n)).tolist()
+            out.append(Marker.from_dict(d))
+    except FileNotFoundError:
+        raise ModelError(f"markers file not found: {path}") from None
+    except (yaml.YAMLError, KeyError, TypeError, ValueError, ZeroDivisionError) as exc:
+        raise ModelError(f"markers file {path.name} is malformed: {exc}") from None
+    if not out:
+        raise ModelError(f"markers file {path.name} lists no markers")
+    return out
+
+
+def teach_object(name: str, model: Path | str | trimesh.Trimesh, *, radius_mm: float, view: ViewingGeometry,
+                 standoff_mm: float, scale_mm_per_px: float, render_factory: RenderFactory,
+                 markers: list[Marker] | None = None, library_dir: Path | str | None = None,
+                 progress: Callable[[str, int, int], None] | None = None) -> LibraryObject:
+    """Teach one object; write it to ``library_dir/NAME`` (atomically) when a folder is given.
+
+    Raises :class:`ModelError` for a model that cannot be taught (the library is untouched).
+    ``progress(stage, done, total)`` is called as the stages advance.
+    """
+    check_name(name)
+
+    def step(stage, done, total):
+        if progress is not None:
+            progress(stage, done, total)
+
+    mesh = load_model(model) if not isinstance(model, trimesh.Trimesh) else model
+    mesh = validate_model(mesh, marker_radius_mm=radius_mm, name=name)
+    step("stable poses", 0, 1)
+    poses = stable_poses(mesh)
+    step("marker placement", 0, 1)
+    if markers is None:
+        placement = plan_markers(mesh, poses, radius_mm, view)
+        markers = placement.markers
+        method, bound = placement.method, placement.bound
+        n_candidates = len(placement.candidates)
+    else:
+        method, bound, n_candidates = "given", None, len(markers)
+    counts = check_coverage(mesh, [T for T, _ in poses], markers, view)
+    if counts.min() == 0:
+        p = int(np.argmin(counts.min(axis=1)))
+        raise ModelError(f"{name}: in stable pose {p} (probability {poses[p][1]:.3f}) no marker is visible at "
+                         f"{int((counts[p] == 0).sum())} of {counts.shape[1]} yaw angles")
+    sweep = optimal_viewing_angle(mesh, poses, radius_mm, view)
+    step("standard views", 0, len(markers))
+    render_view = render_factory(mesh, markers)
+    done = [0]
+
+    def tick(k):
+        done[0] += k
+        step("standard views", done[0], len(markers))
+
+    try:
+        views = build_standard_views(markers, render_view, standoff_mm=standoff_mm, scale_mm_per_px=scale_mm_per_px,
+                                     progress=tick)
+    except ShapeError as exc:
+        raise ModelError(f"{name}: a standard view shows no usable silhouette ({exc})") from None
+    info = {
+        "units": "mm",
+        "source": str(model) if not isinstance(model, trimesh.Trimesh) else "mesh",
+        "extents_mm": [round(float(v), 3) for v in mesh.extents],
+        "placement": {"method": method, "greedy_bound": bound, "candidate_sites": n_candidates,
+                      "markers": len(markers), "viewing_angle_deg": view.angle_deg,
+                      "distance_mm": view.distance_mm, "max_obliquity_deg": view.max_obliquity_deg,
+                      "min_visible_markers": int(counts.min()), "checked_yaw_steps": int(counts.shape[1])},
+        "viewing_angle_sweep": sweep,
+        "standoff_mm": float(standoff_mm), "mm_per_px": float(scale_mm_per_px),
+    }
+    obj = LibraryObject(name, mesh, list(markers), poses, {v.marker_id: v for v in views}, info=info)
+    if library_dir is not None:
+        try:
+            obj.path = save_object(library_dir, obj)
+        except OSError as exc:
+            raise LibraryError(f"cannot write {Path(library_dir) / name}: {exc}") from None
+    return obj
