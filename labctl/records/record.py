@@ -1,0 +1,292 @@
+"""Run records: ``runs/<UTC timestamp>/`` with an append-only event log, images and a result.
+
+Layout of one record::
+
+    runs/20250314T101502Z/          sortable UTC start time (``-001``, ``-002`` … if taken)
+        meta.json                   what was asked for (written once, atomically)
+        events.jsonl                one JSON object per line, appended, fsynced per event
+        initial1.png …              the images decisions were made on (atomic writes)
+        result.json                 the final result (atomic; absent if the run never finished)
+        report.html, report.png     written by :func:`labctl.records.report.write_report`
+
+Several processes may append to the same ``events.jsonl``: each opens it with ``O_APPEND`` and
+writes each line with a single ``os.write``, which the kernel appends whole, so lines from
+different workers never interleave. After every event the file is fsynced (``durable=True``),
+so a crash or a killed worker leaves the log complete up to its last event.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import re
+import threading
+import time
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import LabctlError
+from ..fsutil import atomic_write_bytes, atomic_write_text
+
+__all__ = ["RecordError", "RunRecord", "RunData", "read_events", "load_run", "to_jsonable", "EVENTS", "META",
+           "RESULT"]
+
+EVENTS = "events.jsonl"
+META = "meta.json"
+RESULT = "result.json"
+_NAME_OK = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
+
+
+class RecordError(LabctlError):
+    """A run record cannot be created, written or read."""
+
+
+def to_jsonable(obj: Any) -> Any:
+    """``obj`` with numpy scalars/arrays, tuples, paths and dataclasses turned into JSON types.
+
+    Non-finite floats become ``null`` (strict JSON has no NaN); unknown objects become ``str(obj)``.
+    """
+    if obj is None or isinstance(obj, bool | str | int):
+        return obj
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, np.generic):
+        return to_jsonable(obj.item())
+    if isinstance(obj, np.ndarray):
+        return to_jsonable(obj.tolist())
+    if isinstance(obj, dict):
+        return {str(k): to_jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple | set | frozenset):
+        return [to_jsonable(v) for v in obj]
+    if isinstance(obj, Path):
+        return str(obj)
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return to_jsonable(dataclasses.asdict(obj))
+    return str(obj)
+
+
+def _dumps(obj: Any) -> str:
+    return json.dumps(to_jsonable(obj), allow_nan=False, ensure_ascii=False, separators=(",", ":"))
+
+
+def _timestamp(now: datetime | None = None) -> str:
+    now = now or datetime.now(UTC)
+    return now.astimezone(UTC).strftime("%Y%m%dT%H%M%SZ")
+
+
+class RunRecord:
+    """Writer for one run's folder. Picklable: a child process re-opens the log on first use."""
+
+    def __init__(self, path: Path | str, *, durable: bool = True) -> None:
+        self.path = Path(path)
+        if not self.path.is_dir():
+            raise RecordError(f"no run record at {self.path}")
+        self.durable = durable
+        self._fd: int | None = None
+        self._fd_pid: int | None = None
+        self._lock = threading.Lock()
+
+    # ---- creation ---------------------------------------------------------------------------
+
+    @classmethod
+    def create(cls, runs_dir: Path | str, meta: dict | None = None, *, now: datetime | None = None,
+               durable: bool = True) -> RunRecord:
+        """Make ``runs_dir/<UTC timestamp>[-NNN]/`` with ``meta.json``; unique even within one second."""
+        runs_dir = Path(runs_dir)
+        try:
+            runs_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise RecordError(f"cannot create runs folder {runs_dir}: {exc.strerror or exc}") from exc
+        stamp = _timestamp(now)
+        for k in range(1000):
+            path = runs_dir / (stamp if k == 0 else f"{stamp}-{k:03d}")
+            try:
+                os.mkdir(path)  # atomic claim: fails if another run took this name
+                break
+            except FileExistsError:
+                continue
+            except OSError as exc:
+                raise RecordError(f"cannot create run folder {path}: {exc.strerror or exc}") from exc
+        else:
+            raise RecordError(f"more than 1000 runs started at {stamp} in {runs_dir}")
+        header = {"created_utc": datetime.now(UTC).isoformat(timespec="milliseconds"), "run_id": path.name,
+                  **(meta or {})}
+        atomic_write_text(path / META, json.dumps(to_jsonable(header), indent=2, allow_nan=False) + "\n")
+        (path / EVENTS).touch()
+        return cls(path, durable=durable)
+
+    @classmethod
+    def open(cls, run_dir: Path | str, *, durable: bool = True) -> RunRecord:
+        """Attach to an existing record (e.g. from a worker process) to add events and images."""
+        return cls(run_dir, durable=durable)
+
+    @property
+    def events_path(self) -> Path:
+        return self.path / EVENTS
+
+    # ---- pickling: the fd belongs to one process ----------------------------------------------
+
+    def __getstate__(self):
+        return {"path": self.path, "durable": self.durable}
+
+    def __setstate__(self, state):
+        self.path = state["path"]
+        self.durable = state["durable"]
+        self._fd = None
+        self._fd_pid = None
+        self._lock = threading.Lock()
+
+    def _events_fd(self) -> int:
+        pid = os.getpid()
+        if self._fd is None or self._fd_pid != pid:  # first use, or we are a forked child
+            flags = os.O_WRONLY | os.O_APPEND | os.O_CREAT | getattr(os, "O_CLOEXEC", 0)
+            try:
+                self._fd = os.open(self.events_path, flags, 0o644)
+            except OSError as exc:
+                raise RecordError(f"cannot open {self.events_path}: {exc.strerror or exc}") from exc
+            self._fd_pid = pid
+        return self._fd
+
+    # ---- writing ------------------------------------------------------------------------------
+
+    def event(self, name: str, **fields) -> dict:
+        """Append ``{"event": name, "wall": <unix time>, **fields}`` as one line; fsync it. Returns the line."""
+        if not isinstance(name, str) or not name:
+            raise RecordError(f"event name must be a non-empty string, not {name!r}")
+        if "event" in fields:
+            raise RecordError("'event' is reserved for the event name")
+        line = {"event": name, "wall": time.time(), **fields}
+        data = (_dumps(line) + "\n").encode("utf-8")
+        with self._lock:
+            fd = self._events_fd()
+            try:
+                written = os.write(fd, data)  # one write with O_APPEND: the line lands whole
+                if written != len(data):
+                    raise RecordError(f"short write to {self.events_path} ({written}/{len(data)} bytes)")
+                if self.durable:
+                    os.fsync(fd)
+            except OSError as exc:
+                raise RecordError(f"cannot append to {self.events_path}: {exc.strerror or exc}") from exc
+        return line
+
+    def save_image(self, name: str, image: np.ndarray) -> Path:
+        """Write ``image`` (uint8/uint16 gray, BGR or BGRA; bool masks as 0/255) as PNG ``name``.
+
+        Encoded in memory and written through a temporary file + ``os.replace``, so a reader never
+        sees half a PNG.
+        """
+        import cv2
+
+        fname = name if name.lower().endswith(".png") else f"{name}.png"
+        if not _NAME_OK.match(fname):
+            raise RecordError(f"image name {name!r} must be a plain file name")
+        img = np.asarray(image)
+        if img.dtype == bool:
+            img = img.astype(np.uint8) * 255
+        if img.dtype not in (np.uint8, np.uint16):
+            raise RecordError(f"image {fname}: dtype {img.dtype} (need uint8, uint16 or bool)")
+        if not (img.ndim == 2 or (img.ndim == 3 and img.shape[2] in (1, 3, 4))) or img.size == 0:
+            raise RecordError(f"image {fname}: shape {img.shape} is not an image")
+        ok, buf = cv2.imencode(".png", np.ascontiguousarray(img))
+        if not ok:
+            raise RecordError(f"image {fname}: PNG encoding failed")
+        path = self.path / fname
+        atomic_write_bytes(path, buf.tobytes())
+        return path
+
+    def finish(self, result: dict) -> Path:
+        """Write ``result.json`` atomically (numpy values converted); return its path."""
+        path = self.path / RESULT
+        atomic_write_text(path, json.dumps(to_jsonable(result), indent=2, allow_nan=False) + "\n")
+        return path
+
+    def close(self) -> None:
+        with self._lock:
+            if self._fd is not None and self._fd_pid == os.getpid():
+                os.close(self._fd)
+            self._fd = None
+            self._fd_pid = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def __repr__(self) -> str:
+        return f"RunRecord({str(self.path)!r})"
+
+
+# ---- reading --------------------------------------------------------------------------------------
+
+
+def read_events(run_dir: Path | str, *, strict: bool = False) -> list[dict]:
+    """All events of a record in file order.
+
+    A line that is not a JSON object (e.g. torn by a power cut) is skipped, or raises
+    :class:`RecordError` with ``strict=True``. A missing log reads as no events.
+    """
+    path = Path(run_dir) / EVENTS
+    if not path.is_file():
+        return []
+    events = []
+    with open(path, "rb") as fh:
+        for lineno, raw in enumerate(fh, start=1):
+            if not raw.strip():
+                continue
+            try:
+                obj = json.loads(raw)
+            except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+                if strict:
+                    raise RecordError(f"{path}:{lineno}: not JSON ({exc})") from exc
+                continue
+            if not isinstance(obj, dict) or "event" not in obj:
+                if strict:
+                    raise RecordError(f"{path}:{lineno}: not an event object")
+                continue
+            events.append(obj)
+    return events
+
+
+@dataclasses.dataclass
+class RunData:
+    """A record read back: ``result`` is None for a run that did not finish."""
+
+    path: Path
+    meta: dict
+    events: list[dict]
+    result: dict | None
+    images: dict[str, Path]
+
+    @property
+    def finished(self) -> bool:
+        return self.result is not None
+
+    def of(self, name: str) -> list[dict]:
+        """The events called ``name``, in order."""
+        return [e for e in self.events if e.get("event") == name]
+
+
+def _read_json(path: Path) -> dict | None:
+    if not path.is_file():
+        return None
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise RecordError(f"{path}: unreadable ({exc})") from exc
+    return data if isinstance(data, dict) else None
+
+
+def load_run(run_dir: Path | str) -> RunData:
+    """Read a whole record: meta, events, result (or None) and its PNG images by stem."""
+    path = Path(run_dir)
+    if not path.is_dir() or not ((path / META).is_file() or (path / EVENTS).is_file()):
+        raise RecordError(f"{path} is not a run record (no {META} or {EVENTS})")
+    images = {p.stem: p for p in sorted(path.glob("*.png")) if not p.name.startswith((".", "report"))}
+    return RunData(path=path, meta=_read_json(path / META) or {}, events=read_events(path),
+                   result=_read_json(path / RESULT), images=images)

@@ -1,0 +1,136 @@
+"""Run reports from synthetic records: every section present, early ends shown as "not reached"."""
+
+from __future__ import annotations
+
+import base64
+import re
+
+import cv2
+import numpy as np
+import pytest
+
+from labctl.records import RunRecord, load_run, write_report
+from labctl.records.report import SECTIONS, render_figure
+
+
+def _marker_image(cx, cy, a, b, theta_deg):
+    img = np.full((240, 320, 3), 40, np.uint8)
+    cv2.ellipse(img, (int(cx), int(cy)), (int(a), int(b)), theta_deg, 0, 360, (0, 0, 255), -1)
+    return img
+
+
+def _full_run(tmp_path):
+    rec = RunRecord.create(tmp_path, {"trajectory": "line", "speed_mm_s": 8.0, "object": "wedge"})
+    rec.event("worker_started", role="predictor", pid=11)
+    rec.event("worker_started", role="recognizer", pid=12)
+    for i in range(20):
+        t = 0.1 * i
+        rec.event("track", t=t, x=100 + 8 * t, y=50.0)
+        if i % 5 == 4:
+            rec.event("predict", t=t, path=[[100 + 8 * (t + s), 50.0] for s in np.linspace(0, 5, 11)])
+        rec.event("robot", t=t, p=np.array([300 - 10 * t, 20 + 2 * t, 400.0]))
+    rec.save_image("initial1", _marker_image(160, 120, 30, 18, 20))
+    rec.save_image("initial2", _marker_image(150, 125, 28, 20, 35))
+    rec.event("marker_pose", view_id=2, center_w=[120.0, 50.0, 35.0], normal_w=[0.0, 0.0, 1.0], ambiguous=False,
+              margin=3.1, ellipses={"initial1": [160, 120, 30, 18, np.deg2rad(20)],
+                                    "initial2": [150, 125, 28, 20, np.deg2rad(35)]})
+    std = np.full((240, 320), 90, np.uint8)
+    sil = np.zeros((240, 320), bool)
+    sil[60:180, 100:220] = True
+    std[sil] = 200
+    rec.save_image("standard_0", std)
+    rec.save_image("silhouette_0", sil)
+    rec.event("match", view=0, scores={"wedge": 0.97, "cube": 0.61, "prism": np.float32(0.4)})
+    rec.finish({"identity": "wedge", "true_identity": "wedge", "correct": True, "time_to_identity_s": 9.2,
+                "views": 1, "stages": {"track": 3.0, "intercept": 4.0, "standard": 2.2}})
+    return rec
+
+
+def _section(html_text, sid):
+    m = re.search(rf'<section id="{sid}">(.*?)</section>', html_text, re.S)
+    assert m, f"section {sid} missing"
+    return m.group(1)
+
+
+def test_full_report_has_every_section_and_a_figure(tmp_path):
+    rec = _full_run(tmp_path)
+    out = write_report(rec.path)
+    assert out == rec.path / "report.html"
+    text = out.read_text()
+    for sid in SECTIONS:
+        assert "not reached" not in _section(text, sid), sid
+    assert "20 tracked points, 4 predictions, 20 robot samples" in _section(text, "paths")
+    assert 'href="initial1.png"' in _section(text, "markers") and "3.1" in _section(text, "markers")
+    assert 'href="silhouette_0.png"' in _section(text, "standard")
+    scores = _section(text, "scores")
+    assert scores.index("wedge") < scores.index("cube") < scores.index("prism")  # best first
+    assert "time_to_identity_s" in _section(text, "summary")
+    # the embedded figure is the same PNG as report.png and decodes to an image
+    b64 = re.search(r'src="data:image/png;base64,([^"]+)"', text).group(1)
+    png = base64.b64decode(b64)
+    assert png == (rec.path / "report.png").read_bytes()
+    img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
+    assert img is not None and img.shape[0] > 300 and img.shape[1] > 600
+
+
+def test_figure_draws_the_recorded_data(tmp_path):
+    rec = _full_run(tmp_path)
+    fig = render_figure(load_run(rec.path))
+    axes = fig.axes
+    titles = [ax.get_title() for ax in axes]
+    assert any("paths" in t for t in titles)
+    paths_ax = next(ax for ax in axes if "paths" in ax.get_title())
+    labels = {line.get_label() for line in paths_ax.get_lines()}
+    assert {"tracked (KF)", "predicted", "robot (x-y)"} <= labels
+    tracked = next(line for line in paths_ax.get_lines() if line.get_label() == "tracked (KF)")
+    assert np.allclose(tracked.get_xdata(), [100 + 0.8 * i for i in range(20)])
+    # ellipses drawn where recorded, in pixel coordinates
+    m1 = next(ax for ax in axes if ax.get_title() == "Marker image initial1")
+    ell = m1.patches[0]
+    assert ell.center == (160, 120) and ell.width == pytest.approx(60) and ell.angle == pytest.approx(20)
+    std_ax = next(ax for ax in axes if ax.get_title().startswith("Standard view 0"))
+    assert "silhouette" in std_ax.get_title() and std_ax.collections  # the silhouette contour
+    score_ax = next(ax for ax in axes if ax.get_title().startswith("Match scores"))
+    widths = sorted(p.get_width() for p in score_ax.patches)
+    assert widths == pytest.approx([0.4, 0.61, 0.97])
+
+
+def test_early_ended_run_reports_not_reached(tmp_path):
+    rec = RunRecord.create(tmp_path, {"trajectory": "arc"})
+    rec.event("worker_started", role="predictor", pid=11)
+    for i in range(5):
+        rec.event("track", t=0.1 * i, x=10.0 * i, y=0.0)
+    rec.event("failure", stage="intercept", reason="recognizer worker died")
+    text = write_report(rec.path).read_text()
+    assert "5 tracked points" in _section(text, "paths")
+    for sid in ("standard", "scores"):
+        assert "not reached" in _section(text, sid)
+    assert "initial1: not reached" in _section(text, "markers")
+    assert "did not finish" in _section(text, "summary")
+    assert "failure" in _section(text, "events")
+    assert (rec.path / "report.png").stat().st_size > 1000
+    titles = [ax.get_title() for ax in render_figure(load_run(rec.path)).axes]
+    assert "Standard view" in titles and "Match scores" in titles
+
+
+def test_report_of_an_empty_record_and_of_bad_event_fields(tmp_path):
+    rec = RunRecord.create(tmp_path)
+    rec.event("track", t="soon", x=None, y=1)  # malformed: ignored, not a crash
+    rec.event("predict", t=0.0, path="nowhere")
+    rec.event("robot", t=0.0, p=[1, 2])
+    rec.event("match", scores={"a": float("nan")})
+    rec.event("marker_pose", ellipses={"initial1": [1, 2, 3]})
+    text = write_report(rec.path).read_text()
+    for sid in ("paths", "standard", "scores"):
+        assert "not reached" in _section(text, sid)
+
+
+def test_several_standard_views_are_all_shown(tmp_path):
+    rec = _full_run(tmp_path)
+    std = np.full((240, 320), 90, np.uint8)
+    rec.save_image("standard_1", std)  # second view, silhouette never saved
+    text = write_report(rec.path).read_text()
+    sec = _section(text, "standard")
+    assert "standard_0.png" in sec and "standard_1.png" in sec and "silhouette not recorded" in sec
+    titles = [ax.get_title() for ax in render_figure(load_run(rec.path)).axes]
+    assert "Standard view 1 (silhouette not recorded)" in titles
