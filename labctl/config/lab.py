@@ -51,6 +51,8 @@ class TrackingConfig:
     measurement_noise_mm: float = 0.7
     gate_sigma: float = 4.0
     window_px: int = 48
+    plane_height_mm: float = 30.0  # height of the plane the fixed camera's centroids are mapped onto
+    min_track_s: float = 1.0  # track this long before planning the interception
 
 
 @dataclass(frozen=True)
@@ -58,8 +60,10 @@ class RunConfig:
     trajectory: str = "line"
     speed_mm_s: float = 8.0
     timeout_s: float = 90.0
-    ambiguity_threshold: float = 0.15
+    ambiguity_threshold: float | None = None  # None: the library's own default
     max_views: int = 3
+    second_image_azimuth_deg: float = 25.0  # camera moves this far round the marker between the two images
+    fps: float = 30.0
 
 
 @dataclass(frozen=True)

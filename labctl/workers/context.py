@@ -1,0 +1,78 @@
+"""What both workers know before a run starts: the lab, its calibration, the library, the limits.
+
+Each worker builds its own :class:`RunContext` from the lab workspace (as the paper's two PCs
+each had their own copy of the calibration and the library); nothing here opens a device.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..calibration.store import Calibration, load_calibration
+from ..config import Lab
+from ..errors import UserInputError
+from ..geometry import CameraModel, apply, invert
+from ..library.matching import LibraryIndex
+from ..library.storage import load_library
+from ..planning import Limits
+
+
+@dataclass
+class RunContext:
+    lab: Lab
+    calibration: Calibration
+    library: dict  # name -> LibraryObject
+    names: list[str]  # object id on the host link = index in this list (sorted names)
+    index: LibraryIndex
+    limits: Limits
+
+    @classmethod
+    def load(cls, lab: Lab) -> RunContext:
+        calibration = load_calibration(lab.root)
+        library = load_library(lab.library_dir)
+        if not library:
+            raise UserInputError(f"the object library {lab.library_dir} is empty (teach objects first)")
+        names = sorted(library)
+        return cls(lab, calibration, library, names, LibraryIndex.from_library(library),
+                   Limits.from_config(lab.robot))
+
+    @property
+    def root(self) -> Path:
+        return self.lab.root
+
+    @property
+    def fixed_camera(self) -> CameraModel:
+        return self.calibration.fixed_camera
+
+    @property
+    def mobile_camera(self) -> CameraModel:
+        return self.calibration.mobile_camera
+
+    @property
+    def T_f_c2(self) -> np.ndarray:
+        return self.calibration.T_f_c2
+
+    @property
+    def plane_height_mm(self) -> float:
+        return self.lab.config.tracking.plane_height_mm
+
+    def fixed_pixel_to_plane(self, px) -> np.ndarray:
+        """Fixed-camera pixel → (x, y) mm in W on the tracking plane z = plane_height_mm."""
+        T = self.calibration.T_w_c1
+        ray_w = T[:3, :3] @ self.fixed_camera.backproject(np.asarray(px, dtype=float))
+        origin = T[:3, 3]
+        s = (self.plane_height_mm - origin[2]) / ray_w[2]
+        return (origin + s * ray_w)[:2]
+
+    def plane_to_fixed_pixel(self, xy) -> np.ndarray:
+        p_w = np.array([xy[0], xy[1], self.plane_height_mm])
+        return self.fixed_camera.project(apply(invert(self.calibration.T_w_c1), p_w))
+
+    def displacement_scale(self, z_mm: float) -> float:
+        """Displacements tracked on the plane z = h0, rescaled to a point at height z (pinhole,
+        camera looking down from height H): (H − z)/(H − h0)."""
+        H = float(self.calibration.T_w_c1[2, 3])
+        return (H - z_mm) / (H - self.plane_height_mm)

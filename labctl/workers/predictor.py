@@ -1,0 +1,401 @@
+"""Host 1: the object-trajectory predictor and robot-motion planner (paper §4, Fig. 1 Module 2).
+
+The run's state machine lives here (paper §2, §5.2):
+
+1. ``wait``      — find the marker in the fixed camera (full frame);
+2. ``track``     — follow it with the one-step-ahead window, Kalman filter on the table plane;
+3. ``intercept`` — time-optimal move to the initial viewing point on G(t), re-planned as the
+   predictions improve;
+4. ``initial``   — two images of one marker from two viewpoints, the recognizer resolves its pose;
+5. ``standard``  — time-optimal move to the standard view along the marker normal, snapshot;
+6. ``match``     — the recognizer matches; if ambiguous, back to 3 for another marker;
+7. ``done`` / ``failed``.
+
+The class is driven from outside — ``on_frame`` (fixed camera), ``on_message`` (recognizer),
+``tick`` (clock) — by a live or a virtual runtime; it owns no clock, thread or process. It
+commands the robot through the :class:`labctl.drivers.interfaces.Robot` interface.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..drivers.interfaces import Frame, Robot
+from ..geometry import make_T, matrix_to_rotvec
+from ..planning import Interception, camera_placement_trajectory, plan_interception
+from ..planning.targets import standard_view_path
+from ..tracking.tracker import MarkerTracker
+from ..vision import detect_markers, detect_markers_windowed
+from . import messages as m
+from .context import RunContext
+
+STAGES = ("wait", "track", "intercept", "initial", "standard", "match", "done", "failed")
+
+
+@dataclass
+class StageClock:
+    """Start time of each stage, for the per-stage durations of the result."""
+
+    started: dict[str, float] = field(default_factory=dict)
+    durations: dict[str, float] = field(default_factory=dict)
+    current: str | None = None
+
+    def enter(self, stage: str, now: float) -> None:
+        if self.current is not None:
+            self.durations[self.current] = self.durations.get(self.current, 0.0) + now - self.started[self.current]
+        self.current = stage
+        self.started[stage] = now
+
+
+class _RestAt:
+    """G(t) for arriving at rest: the positions of ``G`` with zero velocity and acceleration."""
+
+    def __init__(self, G):
+        self.G = G
+        self.rotation = G.rotation
+
+    def __call__(self, times):
+        p, v, a = self.G(times)
+        return p, np.zeros_like(v), np.zeros_like(a)
+
+
+class _Scaled:
+    """A table-plane path rescaled about the origin (the displacement scale of a point at another height)."""
+
+    def __init__(self, path, s: float):
+        self.path, self.s = path, s
+
+    def __call__(self, times):
+        p, v, a = self.path(times)
+        return self.s * p, self.s * v, self.s * a
+
+
+class PredictorPlanner:
+    """Host 1's logic. ``send(msg)`` goes to the recognizer; ``log(event, **fields)`` to the record."""
+
+    def __init__(self, ctx: RunContext, robot: Robot, send: Callable[[m.Message], None],
+                 log: Callable[..., None], *, t_start: float = 0.0):
+        self.ctx, self.robot, self.send, self.log = ctx, robot, send, log
+        cfg = ctx.lab.config
+        self.cfg = cfg
+        self.tracker = MarkerTracker.from_config(cfg.tracking)
+        self.stage = "wait"
+        self.clock = StageClock()
+        self.clock.enter("wait", t_start)
+        self.t_start = t_start
+        self.deadline = t_start + cfg.run.timeout_s
+        self.n_updates = 0
+        self.t_first_seen: float | None = None
+        self.t_last_seen: float | None = None
+        self.last_px: np.ndarray | None = None
+        self.plan: Interception | None = None
+        self.plan_kind: str | None = None  # "initial1", "initial2", "standard"
+        self.t_last_plan = -math.inf
+        self.segment_id = 0
+        self.view_id = 0
+        self.pending: int | None = None  # view id awaiting the recognizer
+        self.views_used = 0
+        self.markers_tried = 0
+        self.azimuth_deg: float | None = None
+        self.image_azimuths: list[float] = []
+        self.marker_pose: m.MarkerPose | None = None
+        self.R_w_c_ref = np.eye(3)
+        self.t_marker_pose: float | None = None
+        self.identity: m.Identity | None = None
+        self.failure: str | None = None
+        self.robot_path: list[tuple[float, list[float]]] = []
+        self.min_motion_s = 0.0  # sum over legs of the robot-limited rest-to-rest time (lower bound)
+
+    # -- helpers ------------------------------------------------------------------------------
+    @property
+    def finished(self) -> bool:
+        return self.stage in ("done", "failed")
+
+    def _enter(self, stage: str, now: float) -> None:
+        self.clock.enter(stage, now)
+        self.stage = stage
+        self.log("stage", t=now, stage=stage)
+
+    def fail(self, now: float, reason: str) -> None:
+        if self.finished:
+            return
+        self.failure = reason
+        self.log("failure", t=now, reason=reason, stage=self.stage)
+        self._enter("failed", now)
+        self._stop_robot(now)
+
+    def _stop_robot(self, now: float) -> None:
+        try:
+            self.robot.stop()
+        except Exception as exc:  # noqa: BLE001 — a stop must never raise out of a failure path
+            self.log("robot_stop_failed", t=now, error=str(exc))
+
+    def _flange_state(self, now: float):
+        """Current commanded flange state (p, v, a) and rotation, from the plan being executed."""
+        if self.plan is not None and self.plan.trajectory is not None:
+            traj = self.plan.trajectory
+            t = min(max(now, traj.t_start), traj.t_end)
+            p, v, a = traj.state(t)
+            R = traj.orientation(t)
+            if now >= traj.t_end:
+                v, a = np.zeros(3), np.zeros(3)
+            if R is not None:
+                return (p, v, a), R
+        st = self.robot.status()
+        T = st.T_base_flange
+        return (T[:3, 3].copy(), np.zeros(3), np.zeros(3)), T[:3, :3].copy()
+
+    def _marker_path(self):
+        return self.tracker.predicted_path()
+
+    def _send_segment(self, now: float, plan: Interception) -> None:
+        end = plan.trajectory.segments[0]
+        T_end = make_T(end.orientation(end.t1) if end.rot_coeffs is not None else plan.target.rotation,
+                       end.state(end.t1)[0])
+        self.segment_id += 1
+        self.robot.segment(T_end, end.t1 - now, self.segment_id)
+        self.log("segment", t=now, id=self.segment_id, kind=self.plan_kind, t_end=end.t1,
+                 p=T_end[:3, 3], rotvec=matrix_to_rotvec(T_end[:3, :3]))
+
+    def _rest_to_rest_time(self, p0, p1) -> float:
+        """Robot-limited minimum time of a straight rest-to-rest move (trapezoidal v/a profile)."""
+        d = float(np.linalg.norm(np.asarray(p1) - np.asarray(p0)))
+        v, a = self.ctx.limits.v_max, self.ctx.limits.a_max
+        return 2 * math.sqrt(d / a) if d < v * v / a else d / v + v / a
+
+    # -- planning ----------------------------------------------------------------------------
+    def _initial_view_target(self, azimuth_deg: float):
+        G = camera_placement_trajectory(self._marker_path(), self.cfg.viewing.initial_distance_mm,
+                                        self.cfg.viewing.initial_angle_deg, azimuth_deg,
+                                        marker_z_mm=self.ctx.plane_height_mm, T_f_c=self.ctx.T_f_c2)
+        return _RestAt(G)
+
+    def _plan(self, now: float, kind: str, target) -> Interception:
+        state, R = self._flange_state(now)
+        return plan_interception(state, now, target, self.ctx.limits, horizon_s=15.0, R0=R)
+
+    def _start_move(self, now: float, kind: str, plan: Interception) -> None:
+        state, _ = self._flange_state(now)
+        self.plan, self.plan_kind, self.t_last_plan = plan, kind, now
+        self.min_motion_s += self._rest_to_rest_time(state[0], plan.trajectory.state(plan.t_hit)[0])
+        self._send_segment(now, plan)
+        self.log("plan", t=now, kind=kind, t_hit=plan.t_hit)
+
+    def _choose_azimuth(self) -> float:
+        """Initial viewing side: from the marker towards the robot's home (shortest reach)."""
+        mp = self._marker_path()(np.array([self.tracker.time]))[0][0]
+        home = np.asarray(self.ctx.lab.robot.home_mm)
+        return math.degrees(math.atan2(home[1] - mp[1], home[0] - mp[0]))
+
+    def _plan_initial(self, now: float, kind: str) -> bool:
+        for delta in (0.0, 20.0, -20.0, 45.0, -45.0, 90.0, -90.0, 180.0):
+            az = self.azimuth_deg + delta
+            plan = self._plan(now, kind, self._initial_view_target(az))
+            if plan.reachable:
+                self.azimuth_deg = az
+                self._start_move(now, kind, plan)
+                return True
+            last = plan.reason
+        self.fail(now, f"initial viewing point unreachable: {last}")
+        return False
+
+    def _replan(self, now: float) -> None:
+        """Re-plan the unexecuted motion with the newest prediction (paper §4.3)."""
+        if self.plan is None or now - self.t_last_plan < 0.25 or self.plan.t_hit - now < 0.4:
+            return
+        if self.plan_kind == "standard":
+            target = self._standard_target()
+        else:
+            target = self._initial_view_target(self.azimuth_deg)
+        state, R = self._flange_state(now)
+        plan = plan_interception(state, now, target, self.ctx.limits, horizon_s=15.0, R0=R)
+        self.t_last_plan = now
+        if not plan.reachable:
+            return  # keep executing the current plan
+        old_end = self.plan.trajectory.state(self.plan.t_hit)[0]
+        new_end = plan.trajectory.state(plan.t_hit)[0]
+        if np.linalg.norm(new_end - old_end) > 0.5 or abs(plan.t_hit - self.plan.t_hit) > 0.02:
+            self.plan = plan
+            self._send_segment(now, plan)
+
+    def _standard_target(self):
+        """G(t) of the standard view (paper §4.3): the marker, carried by the table's predicted
+        motion from where it was measured, seen along its normal from the stand-off; at rest."""
+        mp = self.marker_pose
+        scale = self.ctx.displacement_scale(mp.center_w[2])
+        return _RestAt(standard_view_path(_Scaled(self._marker_path(), scale), self.t_marker_pose,
+                                          mp.center_w, mp.normal_w, self.cfg.viewing.standoff_mm, self.R_w_c_ref,
+                                          T_f_c=self.ctx.T_f_c2))
+
+    def _plan_standard(self, now: float) -> bool:
+        _, R = self._flange_state(now)
+        self.R_w_c_ref = R @ self.ctx.T_f_c2[:3, :3]
+        plan = self._plan(now, "standard", self._standard_target())
+        if not plan.reachable:
+            self.log("standard_view_unreachable", t=now, reason=plan.reason, code=plan.code)
+            return False
+        self._start_move(now, "standard", plan)
+        return True
+
+    # -- capture ---------------------------------------------------------------------------------
+    def _request_capture(self, now: float, kind: str) -> None:
+        T_w_f = self.robot.status().T_base_flange  # robot base = world
+        T_w_c2 = T_w_f @ self.ctx.T_f_c2
+        self.robot_path.append((now, T_w_f[:3, 3].tolist()))
+        self.view_id += 1
+        self.pending = self.view_id
+        self.send(m.CaptureRequest(view_id=self.view_id, kind=kind, t_capture=now,
+                                   position=tuple(T_w_c2[:3, 3]), rotvec=tuple(matrix_to_rotvec(T_w_c2[:3, :3]))))
+        self.log("capture_request", t=now, view_id=self.view_id, kind=kind, T_w_c2=T_w_c2)
+
+    def _next_marker(self, now: float) -> None:
+        """Look at the object from another side to pick up another marker (ambiguity or no pose)."""
+        self.markers_tried += 1
+        if self.markers_tried >= 4:
+            self.fail(now, "no marker gave a usable pose from four viewpoints")
+            return
+        self.azimuth_deg += 120.0
+        self.marker_pose = None
+        self._enter("intercept", now)
+        self._plan_initial(now, "initial1")
+
+    # -- inputs ----------------------------------------------------------------------------------
+    def on_frame(self, frame: Frame) -> None:
+        """A fixed-camera frame: detect, track, and (re)plan (paper §5.2: ~65 ms per cycle in 1996)."""
+        now = frame.t
+        if self.finished:
+            return
+        cam_cfg = self.ctx.lab.fixed_camera
+        kw = dict(hue_range_deg=cam_cfg.marker_hue_deg, min_saturation=cam_cfg.marker_min_saturation)
+        if self.tracker.initialized and self.t_last_seen is not None and now - self.t_last_seen < 1.0:
+            pred_xy, _ = self.tracker.predict(now)
+            pred_px = self.ctx.plane_to_fixed_pixel(pred_xy)
+            if not self.ctx.fixed_camera.contains(pred_px, margin=-5):
+                self.fail(now, "the object left the fixed camera's field of view")
+                return
+            markers = detect_markers_windowed(frame.image, pred_px, self.cfg.tracking.window_px, **kw)
+            if markers:
+                markers.sort(key=lambda mk: float(np.hypot(*(np.asarray(mk.centroid) - pred_px))))
+        else:
+            markers = detect_markers(frame.image, **kw)
+            if markers and self.last_px is not None:
+                markers.sort(key=lambda mk: float(np.hypot(*(np.asarray(mk.centroid) - self.last_px))))
+            elif markers:
+                markers.sort(key=lambda mk: -mk.area)
+        if markers:
+            px = np.asarray(markers[0].centroid, dtype=float)
+            xy = self.ctx.fixed_pixel_to_plane(px)
+            if self.tracker.update(now, xy):
+                self.n_updates += 1
+                self.t_last_seen, self.last_px = now, px
+                if self.t_first_seen is None:
+                    self.t_first_seen = now
+                    self._enter("track", now)
+                self.log("track", t=now, x=float(xy[0]), y=float(xy[1]), px=px)
+        elif self.stage == "track" and self.t_last_seen is not None and now - self.t_last_seen > 2.0:
+            self.log("marker_lost", t=now)
+            self.tracker.reset()
+            self.t_first_seen = None
+            self._enter("wait", now)
+        self.tick(now)
+
+    def on_message(self, msg: m.Message, now: float) -> None:
+        if self.finished:
+            return
+        if isinstance(msg, m.FrameTaken) and msg.view_id == self.pending:
+            self.pending = None
+            self.image_azimuths.append(self.azimuth_deg)
+            self.azimuth_deg += self.cfg.run.second_image_azimuth_deg
+            self._plan_initial(now, "initial2")
+        elif isinstance(msg, m.MarkerPose) and msg.view_id == self.pending:
+            self.pending = None
+            self.log("marker_pose", t=now, center_w=msg.center_w, normal_w=msg.normal_w, ambiguous=msg.ambiguous,
+                     margin=msg.margin)
+            if msg.ambiguous:
+                # the two views did not separate the candidates: one more image, further round
+                self.azimuth_deg += self.cfg.run.second_image_azimuth_deg
+                self._plan_initial(now, "initial2")
+                return
+            self.marker_pose, self.t_marker_pose = msg, now
+            self._enter("standard", now)
+            if not self._plan_standard(now):
+                self._next_marker(now)
+        elif isinstance(msg, m.Identity):
+            self.pending = None
+            self.identity = msg
+            self.log("identity", t=now, object=self.ctx.names[msg.object_id], score=msg.score,
+                     candidates=[self.ctx.names[i] for i in msg.candidates])
+            self._enter("done", now)
+            self._stop_robot(now)
+        elif isinstance(msg, m.Ambiguous):
+            self.pending = None
+            self.log("ambiguous", t=now, candidates=[self.ctx.names[i] for i in msg.candidates])
+            if self.views_used >= self.cfg.run.max_views:
+                self.fail(now, f"still ambiguous after {self.views_used} standard views")
+                return
+            self._next_marker(now)
+        elif isinstance(msg, m.Failure):
+            self.pending = None
+            self.log("recognizer_failure", t=now, code=msg.code, text=msg.text)
+            if msg.code in (m.FailureCode.NO_MARKER_FOUND, m.FailureCode.MARKER_LOST):
+                self._next_marker(now)
+            else:
+                self.fail(now, f"recognizer: {msg.text}")
+
+    def tick(self, now: float) -> None:
+        """Advance the state machine on the clock: planning, arrivals, time-outs."""
+        if self.finished:
+            return
+        if now > self.deadline:
+            self.fail(now, f"no identity within the run's {self.cfg.run.timeout_s:.0f} s")
+            return
+        if self.stage == "track":
+            if self.n_updates >= 10 and now - self.t_first_seen >= self.cfg.tracking.min_track_s:
+                self.azimuth_deg = self._choose_azimuth()
+                self._enter("intercept", now)
+                self._plan_initial(now, "initial1")
+            return
+        if self.stage in ("intercept", "initial", "standard") and self.pending is None and self.plan is not None:
+            if now < self.plan.t_hit + 0.05:
+                self._replan(now)
+                return
+            st = self.robot.status()
+            if st.moving and now < self.plan.t_hit + 1.0:
+                return
+            p = st.T_base_flange[:3, 3]
+            self.robot_path.append((now, p.tolist()))
+            self.log("robot", t=now, p=p)
+            kind = self.plan_kind
+            self.plan = None
+            if kind == "standard":
+                self.views_used += 1
+                self._enter("match", now)
+            else:
+                self._enter("initial", now)
+            self._request_capture(now, kind)
+        if self.pending is not None and now - self.clock.started[self.stage] > 10.0:
+            self.fail(now, f"the recognizer did not answer within 10 s (stage {self.stage})")
+
+    # -- result ------------------------------------------------------------------------------------
+    def result(self, now: float) -> dict:
+        if self.clock.current is not None and self.clock.current not in ("done", "failed"):
+            self.clock.enter(self.clock.current, now)
+        ident = self.identity
+        t_id = (self.clock.started.get("done") - self.t_start) if ident is not None else None
+        lower = None
+        if t_id is not None and self.t_first_seen is not None:
+            lower = (self.t_first_seen - self.t_start) + self.cfg.tracking.min_track_s + self.min_motion_s
+        return {
+            "identity": self.ctx.names[ident.object_id] if ident is not None else None,
+            "score": ident.score if ident is not None else None,
+            "candidates": [self.ctx.names[i] for i in ident.candidates] if ident is not None else [],
+            "time_to_identity_s": t_id,
+            "lower_bound_s": lower,
+            "views": self.views_used,
+            "stages": {k: round(v, 4) for k, v in self.clock.durations.items()},
+            "failure": self.failure,
+        }

@@ -1,0 +1,152 @@
+"""Host 2: the object recognizer (paper §3, Fig. 1 Module 1).
+
+On each :class:`~labctl.workers.messages.CaptureRequest` it grabs the mobile camera's frame and
+
+* ``initial1`` — picks one marker and keeps both candidate poses (§3.2), in the world frame;
+* ``initial2`` — finds the same marker again and resolves the two-fold ambiguity (§3.3): the
+  object only translated, so the true world normal is the one both images share;
+* ``standard`` — extracts the silhouette, computes the shape features and matches them against
+  the library (§3.4), keeping the candidate set across views when one view is ambiguous.
+
+Driven from outside (``handle``); it owns no clock, thread or process. ``grab()`` returns the
+mobile camera's latest :class:`~labctl.drivers.interfaces.Frame`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import cv2
+import numpy as np
+
+from ..drivers.interfaces import Frame
+from ..geometry import make_T, rotvec_to_matrix
+from ..library.matching import DEFAULT_THRESHOLD, match
+from ..library.views import mm_per_px
+from ..vision import CirclePose, CirclePoseError, EllipseFitError, detect_markers, marker_pose_candidates
+from ..vision.duality import resolve_duality_detailed
+from ..vision.shape import ShapeError, features_from_image, silhouette_mask
+from . import messages as m
+from .context import RunContext
+
+
+def _to_world(T_w_c: np.ndarray, pose: CirclePose) -> CirclePose:
+    return CirclePose(T_w_c[:3, :3] @ pose.center + T_w_c[:3, 3], T_w_c[:3, :3] @ pose.normal)
+
+
+def _angle(u, v) -> float:
+    return float(np.arctan2(np.linalg.norm(np.cross(u, v)), float(np.dot(u, v))))
+
+
+class Recognizer:
+    """Host 2's logic. ``save_image(name, image)`` and ``log(event, **fields)`` go to the record."""
+
+    def __init__(self, ctx: RunContext, grab: Callable[[], Frame], log: Callable[..., None],
+                 save_image: Callable[[str, np.ndarray], None] | None = None):
+        self.ctx, self.grab, self.log = ctx, grab, log
+        self.save_image = save_image or (lambda name, image: None)
+        self.radius = ctx.lab.config.marker.radius_mm
+        self.threshold = ctx.lab.config.run.ambiguity_threshold or DEFAULT_THRESHOLD
+        self.first: tuple[CirclePose, CirclePose] | None = None  # world frame
+        self.first_px: np.ndarray | None = None
+        self.resolved_normals: list[np.ndarray] = []
+        self.remaining: list[str] | None = None
+        self.n_standard = 0
+        cam_cfg = ctx.lab.mobile_camera
+        self.detect_kw = dict(hue_range_deg=cam_cfg.marker_hue_deg, min_saturation=cam_cfg.marker_min_saturation)
+
+    def handle(self, msg: m.Message) -> list[m.Message]:
+        if not isinstance(msg, m.CaptureRequest):
+            return []
+        frame = self.grab()
+        T_w_c2 = make_T(rotvec_to_matrix(msg.rotvec), msg.position)
+        if msg.kind == "standard":
+            return [self._standard(msg, frame)]
+        return [self._initial(msg, frame, T_w_c2)]
+
+    # -- marker pose (paper §3.1–3.3) -------------------------------------------------------------
+    def _candidates(self, frame: Frame, T_w_c2: np.ndarray):
+        """Every complete marker in the frame with its two world-frame candidate poses."""
+        out = []
+        for mk in detect_markers(frame.image, **self.detect_kw):
+            try:
+                a, b = marker_pose_candidates(mk, self.ctx.mobile_camera, self.radius)
+            except (CirclePoseError, EllipseFitError, ValueError):
+                continue
+            out.append((mk, (_to_world(T_w_c2, a), _to_world(T_w_c2, b))))
+        return out
+
+    def _annotated(self, frame: Frame, marker) -> np.ndarray:
+        img = frame.image.copy()
+        e = marker.ellipse
+        box = ((float(e.center[0]), float(e.center[1])), (2 * float(e.axes[0]), 2 * float(e.axes[1])),
+               float(np.degrees(e.angle)))
+        cv2.ellipse(img, box, (0, 255, 0), 1, cv2.LINE_AA)
+        c = np.asarray(e.center)
+        for ax, ang in ((e.axes[0], e.angle), (e.axes[1], e.angle + np.pi / 2)):
+            d = ax * np.array([np.cos(ang), np.sin(ang)])
+            cv2.line(img, tuple(np.round(c - d).astype(int)), tuple(np.round(c + d).astype(int)), (255, 255, 0), 1)
+        return img
+
+    def _initial(self, msg: m.CaptureRequest, frame: Frame, T_w_c2: np.ndarray) -> m.Message:
+        found = self._candidates(frame, T_w_c2)
+        if not found:
+            self.log("no_marker", t=frame.t, view_id=msg.view_id, kind=msg.kind)
+            return m.Failure(code=m.FailureCode.NO_MARKER_FOUND, text=f"no marker in mobile image {msg.view_id}")
+        if msg.kind == "initial1" or self.first is None:
+            centre = np.array([self.ctx.mobile_camera.width, self.ctx.mobile_camera.height]) / 2.0
+
+            def novelty(item):  # prefer markers whose normals differ from markers already used
+                _, poses = item
+                if not self.resolved_normals:
+                    return 0.0
+                return -min(_angle(p.normal, n) for p in poses for n in self.resolved_normals)
+
+            found.sort(key=lambda it: (round(novelty(it), 1), float(np.hypot(*(np.asarray(it[0].centroid) - centre)))))
+            marker, poses = found[0]
+            self.first, self.first_px = poses, np.asarray(marker.centroid)
+            self.save_image("initial1", self._annotated(frame, marker))
+            self.log("marker_candidates", t=frame.t, view_id=msg.view_id, ellipse=marker.ellipse.to_dict(),
+                     candidates=[p.to_dict() for p in poses])
+            return m.FrameTaken(view_id=msg.view_id, t=frame.t)
+        # initial2: the same marker is the one whose centre lies nearest the first image's centres
+        ref = 0.5 * (self.first[0].center + self.first[1].center)
+        found.sort(key=lambda it: float(np.linalg.norm(0.5 * (it[1][0].center + it[1][1].center) - ref)))
+        marker, poses = found[0]
+        res = resolve_duality_detailed(self.first, poses, motion="translation")
+        self.save_image("initial2", self._annotated(frame, marker))
+        self.log("duality", t=frame.t, view_id=msg.view_id, ellipse=marker.ellipse.to_dict(), **res.to_dict())
+        pose = res.best
+        if not res.ambiguous:
+            self.resolved_normals.append(np.asarray(pose.normal))
+        # outward normal of the marker (away from the object) = towards the camera that saw it
+        return m.MarkerPose(view_id=msg.view_id, center_w=tuple(pose.center), normal_w=tuple(pose.normal),
+                            ambiguous=bool(res.ambiguous), margin=float(res.margin_rad))
+
+    # -- standard view (paper §3.4) -----------------------------------------------------------------
+    def _standard(self, msg: m.CaptureRequest, frame: Frame) -> m.Message:
+        self.n_standard += 1
+        k = self.n_standard
+        self.save_image(f"standard_{k}", frame.image)
+        scale = mm_per_px(self.ctx.mobile_camera, self.ctx.lab.config.viewing.standoff_mm)
+        try:
+            mask = silhouette_mask(frame.image)
+            features = features_from_image(frame.image, scale)
+        except (ShapeError, ValueError) as exc:
+            self.log("no_silhouette", t=frame.t, view_id=msg.view_id, error=str(exc))
+            return m.Failure(code=m.FailureCode.NO_MATCH, text=f"no silhouette in standard view {k}")
+        self.save_image(f"silhouette_{k}", (mask.astype(np.uint8) * 255))
+        res = match(features, self.ctx.index, self.threshold, restrict=self.remaining)
+        scores = {n: (s if np.isfinite(s) else None) for n, s in res.scores.items()}
+        self.log("match", t=frame.t, view_id=msg.view_id, view=k, scores=scores, candidates=res.candidates,
+                 best=res.best[0] if res.best else None)
+        ids = {n: i for i, n in enumerate(self.ctx.names)}
+        if res.best is None:
+            return m.Failure(code=m.FailureCode.NO_MATCH, text=f"standard view {k} matches no library view")
+        if len(res.candidates) > 1:
+            self.remaining = list(res.candidates)
+            return m.Ambiguous(candidates=tuple(ids[c] for c in res.candidates[: m.MAX_CANDIDATES]))
+        best = res.best[0]
+        cands = res.candidates or [best]
+        return m.Identity(object_id=ids[best], score=float(res.scores[best]), n_candidates=len(res.candidates),
+                          candidates=tuple(ids[c] for c in cands[: m.MAX_CANDIDATES]))
