@@ -1,0 +1,72 @@
+"""Robot limits for planning and the planner's typed errors.
+
+The mobile camera's robot is driven in task space (paper §4.3: time-optimal task-space quintic
+polynomials). Its limits come from ``drivers/robot.yaml`` (:class:`labctl.config.devices.RobotConfig`).
+``v_max`` and ``a_max`` bound each Cartesian axis separately (a Cartesian manipulator's axes, and
+what ruckig takes, so the two planners are compared on the same limits); ``w_max`` bounds the
+rotation rate. Units: mm, s, rad.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import LabctlError
+
+
+class PlanningError(LabctlError):
+    """A planning request that cannot be served (bad input or an unsafe result)."""
+
+
+class LimitViolation(PlanningError):
+    """A segment would leave the workspace box or exceed a velocity/acceleration/rotation limit.
+
+    ``kind`` is one of ``"box"``, ``"velocity"``, ``"acceleration"``, ``"angular_velocity"``,
+    ``"invalid"``; ``value`` and ``limit`` are the offending number and its bound.
+    """
+
+    def __init__(self, kind: str, value: float, limit: float, detail: str = ""):
+        self.kind, self.value, self.limit = kind, float(value), float(limit)
+        super().__init__(f"segment violates {kind} limit: {value:.6g} vs {limit:.6g}{' (' + detail + ')' if detail else ''}")
+
+
+@dataclass(frozen=True)
+class Limits:
+    """Workspace box (mm, world frame), per-axis speed (mm/s) and acceleration (mm/s²), rotation rate (rad/s)."""
+
+    box_min: np.ndarray
+    box_max: np.ndarray
+    v_max: float
+    a_max: float
+    w_max: float = float(np.deg2rad(120.0))
+
+    def __post_init__(self):
+        lo = np.asarray(self.box_min, dtype=float).reshape(3)
+        hi = np.asarray(self.box_max, dtype=float).reshape(3)
+        object.__setattr__(self, "box_min", lo)
+        object.__setattr__(self, "box_max", hi)
+        if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi)) and np.all(lo < hi)):
+            raise PlanningError(f"workspace box needs finite min < max on every axis, got {lo} .. {hi}")
+        for name in ("v_max", "a_max", "w_max"):
+            value = float(getattr(self, name))
+            if not np.isfinite(value) or value <= 0:
+                raise PlanningError(f"{name} must be a positive number, got {value!r}")
+            object.__setattr__(self, name, value)
+
+    @classmethod
+    def from_config(cls, robot_cfg) -> Limits:
+        """From a :class:`labctl.config.devices.RobotConfig` (degrees converted to radians)."""
+        return cls(
+            box_min=np.array(robot_cfg.workspace_min_mm, dtype=float),
+            box_max=np.array(robot_cfg.workspace_max_mm, dtype=float),
+            v_max=float(robot_cfg.v_max_mm_s),
+            a_max=float(robot_cfg.a_max_mm_s2),
+            w_max=float(np.deg2rad(robot_cfg.w_max_deg_s)),
+        )
+
+    def contains(self, points, tol: float = 1e-6) -> np.ndarray:
+        """Which of ``points`` (..., 3) lie in the box (with ``tol`` mm slack)."""
+        p = np.asarray(points, dtype=float)
+        return np.all((p >= self.box_min - tol) & (p <= self.box_max + tol), axis=-1)

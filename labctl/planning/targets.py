@@ -1,0 +1,147 @@
+"""Target paths for the mobile camera: G(t) for the initial view and the standard-view pose.
+
+Paper §4.3: "Given the predicted trajectory of an object's travel through the robot's
+workspace, a corresponding camera placement trajectory {G(t)} can be determined, via a constant
+transformation, to represent potential viewing-points." The constant transformation is the
+initial viewing pose (§5.3: about 1 m from the marker at a 63° viewing angle). The
+standard-viewing location puts the optical axis on the marker normal at a stand-off distance
+(§3.3, §4.3). World frame W, table plane z = 0, mm, rad (degrees only in ``*_deg`` arguments).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..geometry import look_at, make_T
+from .limits import PlanningError
+
+MarkerPath = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]]
+"""``path(times) -> (pos, vel, acc)`` each (N, 2): the marker's (predicted) table-plane motion."""
+
+
+@dataclass(frozen=True)
+class TargetPath:
+    """G(t): a commanded point that keeps a constant offset from a moving marker and a constant rotation.
+
+    ``G(t) = [m(t), marker_z_mm] + offset_w`` where ``m`` is ``marker_path``; the commanded frame's
+    rotation (world ← commanded frame) is ``rotation`` at all times, so G's angular velocity is 0.
+    """
+
+    marker_path: MarkerPath
+    offset_w: np.ndarray
+    rotation: np.ndarray
+    marker_z_mm: float = 0.0
+
+    def __call__(self, times) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Positions, velocities, accelerations of G, each (N, 3), at ``times`` (s)."""
+        mp, mv, ma = self.marker_path(np.atleast_1d(np.asarray(times, dtype=float)))
+        n = mp.shape[0]
+        p = np.empty((n, 3))
+        p[:, :2] = mp
+        p[:, 2] = self.marker_z_mm
+        p += self.offset_w
+        v = np.zeros((n, 3))
+        v[:, :2] = mv
+        a = np.zeros((n, 3))
+        a[:, :2] = ma
+        return p, v, a
+
+    def marker(self, times) -> np.ndarray:
+        """The marker's 3D position (N, 3) at ``times``."""
+        mp, _, _ = self.marker_path(np.atleast_1d(np.asarray(times, dtype=float)))
+        return np.column_stack([mp, np.full(len(mp), self.marker_z_mm)])
+
+    def pose(self, t: float) -> np.ndarray:
+        """``T_w_x`` (4×4) of the commanded frame at time ``t``."""
+        return make_T(self.rotation, self(t)[0][0])
+
+
+def _flange_offset(R_w_c: np.ndarray, T_f_c) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation of the flange and the camera→flange offset in W, for a camera rotation ``R_w_c``."""
+    if T_f_c is None:
+        return R_w_c, np.zeros(3)
+    T_f_c = np.asarray(T_f_c, dtype=float)
+    R_c_f = T_f_c[:3, :3].T
+    t_c_f = -R_c_f @ T_f_c[:3, 3]
+    return R_w_c @ R_c_f, R_w_c @ t_c_f
+
+
+def camera_placement_trajectory(predict: MarkerPath, distance_mm: float, angle_deg: float,
+                                azimuth_deg: float = -90.0, marker_z_mm: float = 0.0,
+                                T_f_c=None) -> TargetPath:
+    """G(t) for the initial view (paper §4.3, §5.3): the predicted marker path composed with a constant pose.
+
+    The camera sits ``distance_mm`` from the marker, at elevation ``angle_deg`` above the table
+    plane, on the side given by ``azimuth_deg`` (0 = +x of W, -90 = -y), looking at the marker
+    (optical axis +z, image "up" towards world +z). ``predict(times)`` gives the marker's
+    table-plane position/velocity/acceleration (e.g. ``MarkerTracker.predicted_path()``) at
+    height ``marker_z_mm``. With ``T_f_c`` (hand-eye, camera in flange) G is the flange's path.
+    """
+    if not (np.isfinite(distance_mm) and distance_mm > 0):
+        raise PlanningError(f"viewing distance must be positive, got {distance_mm!r}")
+    if not (np.isfinite(angle_deg) and 0 < angle_deg <= 90):
+        raise PlanningError(f"viewing angle must be in (0, 90] degrees, got {angle_deg!r}")
+    el, az = np.deg2rad(angle_deg), np.deg2rad(azimuth_deg)
+    offset = distance_mm * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+    R_w_c = look_at(offset, np.zeros(3))[:3, :3]
+    R, extra = _flange_offset(R_w_c, T_f_c)
+    return TargetPath(predict, offset + extra, R, float(marker_z_mm))
+
+
+def standard_view_pose(marker_center_w, marker_normal_w, standoff_mm: float, current_R) -> np.ndarray:
+    """``T_w_c`` of the standard view: camera ``standoff_mm`` out along the marker normal, looking along −normal.
+
+    Paper §3.3/§4.3: the optical axis is aligned with the marker's standard-viewing axis. The
+    roll about that axis is the one that rotates least from ``current_R`` (world ← camera):
+    maximising ``trace(current_Rᵀ · R(φ))`` over the roll φ has the closed form used here.
+    """
+    c = np.asarray(marker_center_w, dtype=float).reshape(3)
+    n = np.asarray(marker_normal_w, dtype=float).reshape(3)
+    Rc = np.asarray(current_R, dtype=float).reshape(3, 3)
+    norm = float(np.linalg.norm(n))
+    if not (np.all(np.isfinite(c)) and np.isfinite(norm) and norm > 1e-9 and np.all(np.isfinite(Rc))):
+        raise PlanningError("standard view needs a finite marker centre, a non-zero normal and a finite rotation")
+    if not (np.isfinite(standoff_mm) and standoff_mm > 0):
+        raise PlanningError(f"stand-off must be positive, got {standoff_mm!r}")
+    n = n / norm
+    z = -n
+    helper = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    x = np.cross(helper, z)
+    x /= np.linalg.norm(x)
+    base = np.column_stack([x, np.cross(z, x), z])
+    M = Rc.T @ base
+    phi = np.arctan2(M[0, 1] - M[1, 0], M[0, 0] + M[1, 1])
+    cph, sph = np.cos(phi), np.sin(phi)
+    roll = np.array([[cph, -sph, 0.0], [sph, cph, 0.0], [0.0, 0.0, 1.0]])
+    return make_T(base @ roll, c + standoff_mm * n)
+
+
+@dataclass(frozen=True)
+class _CarriedMarker:
+    """A marker carried by the table: known at ``center_xy`` at ``t_ref``, moving as ``table_path`` moves."""
+
+    table_path: MarkerPath
+    t_ref: float
+    center_xy: np.ndarray
+
+    def __call__(self, times):
+        p, v, a = self.table_path(times)
+        p_ref, _, _ = self.table_path(np.array([self.t_ref]))
+        return p - p_ref[0] + self.center_xy, v, a
+
+
+def standard_view_path(table_path: MarkerPath, t_ref: float, marker_center_w, marker_normal_w,
+                       standoff_mm: float, current_R, T_f_c=None) -> TargetPath:
+    """G(t) of the standard view for a marker that rides the table (paper §4.3, standard-viewing location).
+
+    The marker centre measured at ``t_ref`` translates with the table's predicted motion
+    ``table_path``; the view pose (:func:`standard_view_pose`) translates with it.
+    """
+    T = standard_view_pose(marker_center_w, marker_normal_w, standoff_mm, current_R)
+    c = np.asarray(marker_center_w, dtype=float).reshape(3)
+    R, extra = _flange_offset(T[:3, :3], T_f_c)
+    carried = _CarriedMarker(table_path, float(t_ref), c[:2].copy())
+    return TargetPath(carried, T[:3, 3] - c + extra, R, float(c[2]))
