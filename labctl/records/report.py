@@ -105,6 +105,13 @@ def _load_rgb(path: Path) -> np.ndarray | None:
     return img
 
 
+def _show(ax, img: np.ndarray) -> None:
+    """imshow without contrast stretching: grey levels as recorded."""
+    if img.dtype == np.uint16:
+        img = (img >> 8).astype(np.uint8)
+    ax.imshow(img, cmap="gray" if img.ndim == 2 else None, vmin=0, vmax=255)
+
+
 def _not_reached(ax, title: str, why: str = NOT_REACHED) -> None:
     ax.set_title(title)
     ax.text(0.5, 0.5, why, ha="center", va="center", transform=ax.transAxes, fontsize=12, color="0.45")
@@ -174,7 +181,7 @@ def render_figure(run: RunData):
         if img is None:
             _not_reached(ax, f"Marker image {name}")
             continue
-        ax.imshow(img, cmap="gray" if img.ndim == 2 else None)
+        _show(ax, img)
         ax.set_title(f"Marker image {name}")
         ax.set_xticks([])
         ax.set_yticks([])
@@ -196,7 +203,7 @@ def render_figure(run: RunData):
         if img is None:
             _not_reached(ax, f"Standard view {k}", "image unreadable")
             continue
-        ax.imshow(img, cmap="gray" if img.ndim == 2 else None)
+        _show(ax, img)
         ax.set_xticks([])
         ax.set_yticks([])
         sil = run.images.get(f"silhouette_{k}")

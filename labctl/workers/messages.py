@@ -98,7 +98,10 @@ def _uint(name: str, value, bits: int) -> int:
 
 def _vec3(name: str, value) -> tuple[float, float, float]:
     try:
-        seq = [float(v) for v in np.asarray(value, dtype=float).reshape(-1)]
+        if isinstance(value, tuple | list):  # the common case, without a numpy round trip
+            seq = [float(v) for v in value]
+        else:
+            seq = [float(v) for v in np.asarray(value, dtype=float).reshape(-1)]
     except (TypeError, ValueError) as exc:
         raise MessageError(f"{name}: not a 3-vector: {value!r}") from exc
     if len(seq) != 3:
