@@ -122,8 +122,8 @@ _TEXTURE_SIZE = 1024  # texels; the texture tiles (periodic) so the plane is end
 
 
 @lru_cache(maxsize=4)
-def _table_texture(seed: int) -> np.ndarray:
-    """A dark breadboard texture, (2N, 2N, 3) uint8 BGR, 1 mm per texel, periodic with period N."""
+def _table_grey(seed: int) -> np.ndarray:
+    """A dark breadboard texture, (2N, 2N) float32 grey levels, 1 mm per texel, periodic with period N."""
     n = _TEXTURE_SIZE
     rng = np.random.default_rng(seed)
     f = np.fft.fftfreq(n)
@@ -138,11 +138,15 @@ def _table_texture(seed: int) -> np.ndarray:
     # tapped holes every 25 mm, 3 mm radius: darker dots
     yy, xx = np.mgrid[0:n, 0:n] * _TEXTURE_MM_PER_TEXEL
     d = np.hypot((xx + 12.5) % 25.0 - 12.5, (yy + 12.5) % 25.0 - 12.5)
-    grey = grey - 22.0 * np.clip(3.5 - d, 0.0, 1.0)
-    grey = np.clip(grey, 8.0, 110.0)
-    tile = np.stack([grey * 1.06, grey, grey * 0.94], axis=-1)
+    grey = np.clip(grey - 22.0 * np.clip(3.5 - d, 0.0, 1.0), 8.0, 110.0)
     # two periods each way, centred on the table's zero: lookups never wrap (BORDER_REFLECT is faster)
-    return np.ascontiguousarray(np.round(np.tile(tile, (2, 2, 1))).astype(np.uint8))
+    return np.tile(grey, (2, 2)).astype(np.float32)
+
+
+@lru_cache(maxsize=8)
+def _table_texture(seed: int, shade_milli: int) -> np.ndarray:
+    """The texture lit (shade in thousandths), uint8."""
+    return np.ascontiguousarray(np.clip(np.round(_table_grey(seed) * (shade_milli / 1000.0)), 0, 255).astype(np.uint8))
 
 
 @dataclass(frozen=True)
@@ -206,7 +210,7 @@ def _noise_bank(height: int, width: int, sigma: float) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 @dataclass
 class _Layer:
-    colour: np.ndarray  # (H*W, 3) float32, noiseless
+    colour: np.ndarray  # (H, W, 3) uint8, noiseless
     tri_id: np.ndarray  # (H*W,) int32, -1 where no triangle is nearest
     invz: np.ndarray  # (H*W,) float32 nearest surface's inverse depth (0: nothing)
     marker_pixels: list[int]
@@ -363,10 +367,10 @@ def _rasterise(camera: CameraModel, coef: np.ndarray, box: np.ndarray, invz: np.
 
 def _marker_pass(camera: CameraModel, T_c_w: np.ndarray, light_w: np.ndarray, markers: list[MarkerDisc],
                  colour: np.ndarray, invz: np.ndarray) -> list[int]:
-    """Blend each marker disc into ``colour`` (in place) with analytic edge coverage."""
+    """Blend each marker disc into ``colour`` (H×W×3 uint8, in place) with analytic edge coverage."""
     rays = _pixel_rays(camera)
     H, W = camera.height, camera.width
-    img = colour.reshape(H, W, 3)
+    img = colour
     zbuf = invz.reshape(H, W)
     counts = []
     for mk in markers:
@@ -416,31 +420,30 @@ def _marker_pass(camera: CameraModel, T_c_w: np.ndarray, light_w: np.ndarray, ma
         cov = np.where(z <= z_near + np.maximum(0.5, 1e-3 * z), cov, 0.0).astype(np.float32)
         shade = float(_lambert(nrm_w[None, :], light_w)[0])
         mcol = np.asarray(mk.colour_bgr, dtype=np.float32) * shade
-        patch = img[y0:y1 + 1, x0:x1 + 1]
+        patch = img[y0:y1 + 1, x0:x1 + 1].astype(np.float32)
         patch += cov[..., None] * (mcol - patch)
+        img[y0:y1 + 1, x0:x1 + 1] = np.round(patch).astype(np.uint8)
         counts.append(int(np.count_nonzero(cov >= 0.5)))
     return counts
 
 
 def _edge_supersample(camera: CameraModel, s: int, coef: np.ndarray, tri_colour: np.ndarray,
-                      layer_colour: np.ndarray, tri_id: np.ndarray, table_colour: np.ndarray,
-                      win_pix: np.ndarray) -> None:
+                      colour: np.ndarray, tri_id: np.ndarray, table_roi: np.ndarray, roi: tuple) -> None:
     """Anti-alias boundaries: re-render pixels on an object/table or crease edge with s×s sub-samples.
 
-    Only the bounding box of the mesh pixels is scanned. Each boundary pixel's sub-samples are
-    tested against the triangles seen in its 3×3 neighbourhood (nearest wins, as in the z-buffer).
+    Only ``roi`` (rows r0:r1, columns c0:c1; the mesh pixels' box plus one) is scanned;
+    ``table_roi`` is the table image there. Each boundary pixel's sub-samples are tested against
+    the triangles seen in its 3×3 neighbourhood (nearest wins, as in the z-buffer).
     """
     H, W = camera.height, camera.width
-    ys, xs = np.divmod(win_pix, W)
-    r0, r1 = max(int(ys.min()) - 1, 0), min(int(ys.max()) + 2, H)
-    c0, c1 = max(int(xs.min()) - 1, 0), min(int(xs.max()) + 2, W)
+    r0, r1, c0, c1 = roi
     ids = tri_id.reshape(H, W)[r0:r1, c0:c1]
     obj = ids >= 0
-    col = layer_colour.reshape(H, W, 3)[r0:r1, c0:c1]
+    col = colour[r0:r1, c0:c1].astype(np.int16)
     grey = col[..., 0] + col[..., 1] + col[..., 2]
     # boundary: object/table, or two faces whose shades differ visibly
-    dh = (obj[:, 1:] != obj[:, :-1]) | (obj[:, 1:] & obj[:, :-1] & (np.abs(grey[:, 1:] - grey[:, :-1]) > 6.0))
-    dv = (obj[1:, :] != obj[:-1, :]) | (obj[1:, :] & obj[:-1, :] & (np.abs(grey[1:, :] - grey[:-1, :]) > 6.0))
+    dh = (obj[:, 1:] != obj[:, :-1]) | (obj[:, 1:] & obj[:, :-1] & (np.abs(grey[:, 1:] - grey[:, :-1]) > 6))
+    dv = (obj[1:, :] != obj[:-1, :]) | (obj[1:, :] & obj[:-1, :] & (np.abs(grey[1:, :] - grey[:-1, :]) > 6))
     edge = np.zeros(ids.shape, bool)
     edge[:, 1:] |= dh
     edge[:, :-1] |= dh
@@ -450,6 +453,7 @@ def _edge_supersample(camera: CameraModel, s: int, coef: np.ndarray, tri_colour:
     if len(ey) == 0:
         return
     pad = np.pad(ids, 1, constant_values=-1)
+    bg = table_roi[ey, ex].astype(np.float32)  # (E, 3) the table behind, sampled at the pixel centre
     ey, ex = ey + r0, ex + c0
     pad_origin = (r0, c0)
     # candidate surfaces: the ids of the 3×3 neighbourhood
@@ -475,41 +479,37 @@ def _edge_supersample(camera: CameraModel, s: int, coef: np.ndarray, tri_colour:
         ok &= (iz > 0) & (iz > best_iz) & (t >= 0)[:, None]
         best_iz = np.where(ok, iz, best_iz)
         best_tri = np.where(ok, t[:, None], best_tri)
-    pix = ey * W + ex
-    bg = table_colour[pix]  # (E, 3) the table behind, sampled at the pixel centre
-    acc = np.zeros((len(pix), 3), np.float32)
+    acc = np.zeros((len(ey), 3), np.float32)
     for k in range(xs.shape[1]):
         bt = best_tri[:, k]
         acc += np.where((bt >= 0)[:, None], tri_colour[np.maximum(bt, 0)], bg)
-    layer_colour[pix] = acc / np.float32(xs.shape[1])
+    colour[ey, ex] = np.round(acc / np.float32(xs.shape[1])).astype(np.uint8)
 
 
 def _render_noiseless(camera: CameraModel, T_w_c: np.ndarray, meshes: Sequence[Mesh], table, light_w: np.ndarray,
                       supersample: int):
     H, W = camera.height, camera.width
     T_c_w = invert(T_w_c)
-    # table layer
+    # table layer (uint8 BGR)
     if table is False or table is None:
-        table_colour = np.zeros((H * W, 3), np.float32)
+        colour = np.zeros((H, W, 3), np.uint8)
         invz = np.zeros(H * W, np.float32)
     else:
         surface = table if isinstance(table, TableSurface) else TableSurface()
         geo = _table_geometry(camera, T_w_c)
-        tex = _table_texture(surface.texture_seed)
-        ox, oy = surface.origin_w
         shade = surface.brightness * float(_lambert(np.array([[0.0, 0.0, 1.0]]), light_w)[0])
+        tex = _table_texture(surface.texture_seed, int(round(1000 * shade)))
+        ox, oy = surface.origin_w
         map_x, map_y = geo.map_x, geo.map_y
         if ox or oy:
             map_x = map_x - np.float32(ox / _TEXTURE_MM_PER_TEXEL)
             map_y = map_y + np.float32(oy / _TEXTURE_MM_PER_TEXEL)
-        sampled = cv2.remap(tex, map_x, map_y, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
-        sampled = sampled.astype(np.float32)
-        sampled *= np.float32(shade)
+        grey = cv2.remap(tex, map_x, map_y, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
         if not geo.all_hit:
-            sampled[~geo.hit] = 0.0
-        table_colour = sampled.reshape(H * W, 3)
+            grey[~geo.hit] = 0
+        colour = cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR)
         invz = geo.invz.copy()
-    colour = table_colour.copy()
+    flat = colour.reshape(H * W, 3)
     corners_w, base_colour, _ = _gather_meshes(meshes)
     tri_id = np.full(H * W, -1, np.int32)
     if len(corners_w):
@@ -521,11 +521,15 @@ def _render_noiseless(camera: CameraModel, T_w_c: np.ndarray, meshes: Sequence[M
             nw /= np.maximum(np.linalg.norm(nw, axis=1, keepdims=True), 1e-300)
             tri_colour = (base_colour[idx] * _lambert(nw, light_w)[:, None]).astype(np.float32)
             win_pix, win_tri = _rasterise(camera, coef, box, invz)
-            tri_id[win_pix] = win_tri
-            colour[win_pix] = tri_colour[win_tri]
-            if supersample > 1:
-                if len(win_pix):
-                    _edge_supersample(camera, supersample, coef, tri_colour, colour, tri_id, table_colour, win_pix)
+            if len(win_pix):
+                tri_id[win_pix] = win_tri
+                ys, xs = np.divmod(win_pix, W)
+                roi = (max(int(ys.min()) - 1, 0), min(int(ys.max()) + 2, H),
+                       max(int(xs.min()) - 1, 0), min(int(xs.max()) + 2, W))
+                table_roi = colour[roi[0]:roi[1], roi[2]:roi[3]].copy() if supersample > 1 else None
+                flat[win_pix] = np.round(tri_colour).astype(np.uint8)[win_tri]
+                if supersample > 1:
+                    _edge_supersample(camera, supersample, coef, tri_colour, colour, tri_id, table_roi, roi)
     markers = [mk for m in meshes for mk in m.markers]
     counts = _marker_pass(camera, T_c_w, light_w, markers, colour, invz) if markers else []
     return _Layer(colour=colour, tri_id=tri_id, invz=invz, marker_pixels=counts), T_c_w, markers
@@ -571,23 +575,23 @@ def render(
     H, W = camera.height, camera.width
 
     layer, T_c_w, markers = _render_noiseless(camera, T_w_c, meshes, table, light_w, supersample)
-    colour = layer.colour
+    img = layer.colour
     if exposure_motion:
-        acc = colour.copy()
+        acc = img.astype(np.float32)
         for T_sub, meshes_sub in exposure_motion:
             sub, _, _ = _render_noiseless(camera, _check_pose(T_sub), meshes_sub, table, light_w, supersample)
             acc += sub.colour
-        colour = acc / np.float32(1 + len(exposure_motion))
-
-    img_f = colour.reshape(H, W, 3)
+        img = acc / np.float32(1 + len(exposure_motion))
     if noise_sigma > 0:
         rng = rng if rng is not None else np.random.default_rng(0)
         bank = _noise_bank(H, W, float(noise_sigma))
         oy = int(rng.integers(0, bank.shape[0] - H + 1))
         ox = int(rng.integers(0, bank.shape[1] - W + 1))
-        image = cv2.add(img_f, bank[oy:oy + H, ox:ox + W], dtype=cv2.CV_8U)
+        image = cv2.add(img, bank[oy:oy + H, ox:ox + W], dtype=cv2.CV_8U)
+    elif img.dtype != np.uint8:
+        image = cv2.convertScaleAbs(img)  # rounds and saturates; values are never negative
     else:
-        image = cv2.convertScaleAbs(img_f)  # rounds and saturates; values are never negative
+        image = img
     result = RenderResult(image=image)
     if truth:
         result.mask = (layer.tri_id >= 0).reshape(H, W)
