@@ -123,6 +123,9 @@ def test_tcp_exchange_and_frame_bytes():
     with client, server:
         log = exchange(server, client)
         assert log[0][2] == len(encode(SAMPLE[0])) + TCP_HEADER.size
+        client.send(SAMPLE[2])
+        time.sleep(0.2)
+        assert server.recv(timeout=0) == SAMPLE[2]
 
 
 def test_tcp_peer_close_is_link_closed():
@@ -197,6 +200,10 @@ def test_serial_exchange_over_ptys():
             log = exchange(a, b)
             assert log[0][2] == len(encode(SAMPLE[0])) + SERIAL_OVERHEAD
             assert modem.bytes_a_to_b == a.bytes_sent
+            a.send(SAMPLE[2])
+            time.sleep(0.2)
+            assert b.recv(timeout=0) == SAMPLE[2]  # a zero timeout still takes what has arrived
+            assert b.recv(timeout=0) is None
 
 
 def test_serial_open_bad_port_is_link_error(tmp_path):

@@ -510,9 +510,7 @@ class SerialLink(Link):
 
         while not self._ready:
             wait = _remaining(deadline)
-            if wait is not None and wait <= 0:
-                return None
-            want = self.POLL_S if wait is None else min(self.POLL_S, wait)
+            want = self.POLL_S if wait is None else min(self.POLL_S, wait)  # 0: just take what is there
             try:
                 if self._port.timeout != want:
                     self._port.timeout = want
@@ -522,6 +520,8 @@ class SerialLink(Link):
             if data:
                 self.bytes_received += len(data)
                 self._ready.extend(self._deframer.feed(data))
+            elif wait is not None and wait <= 0:
+                return None
         return self._ready.pop(0), 0
 
     def _close(self):
