@@ -79,18 +79,27 @@ def red_mask(image_bgr: np.ndarray, hue_range_deg=(-15.0, 15.0), min_saturation:
     may straddle 0°, e.g. (−15, 15) for red), saturation ≥ ``min_saturation`` and value ≥
     ``min_value`` (both 0–1). Hue and saturation do not change under shading."""
     img = _as_bgr(image_bgr)
-    hsv = cv2.cvtColor(img, cv2.COLOR_BGR2HSV_FULL)  # hue 0–255 over 360°
     lo, hi = (float(v) for v in hue_range_deg)
     s_min = int(np.ceil(255.0 * float(min_saturation)))
     v_min = int(np.ceil(255.0 * float(min_value)))
     if hi - lo >= 360.0:
+        hsv = cv2.cvtColor(img, cv2.COLOR_BGR2HSV_FULL)
         return cv2.inRange(hsv, (0, s_min, v_min), (255, 255, 255))
-    h_lo = int(np.ceil((lo % 360.0) * 256.0 / 360.0)) % 256
-    h_hi = int(np.floor((hi % 360.0) * 256.0 / 360.0)) % 256
-    if h_lo <= h_hi:
+    lo, hi = lo % 360.0, (lo % 360.0) + (hi - lo)
+    if hi >= 360.0:
+        # the window wraps through 0° (red): read the BGR image as RGB, which maps hue h to
+        # 240° − h and moves the window away from the wrap, so one inRange suffices
+        hsv = cv2.cvtColor(img, cv2.COLOR_RGB2HSV_FULL)
+        lo, hi = 240.0 - hi, 240.0 - lo
+        lo, hi = lo % 360.0, (lo % 360.0) + (hi - lo)
+    else:
+        hsv = cv2.cvtColor(img, cv2.COLOR_BGR2HSV_FULL)
+    h_lo = int(np.ceil(lo * 256.0 / 360.0))
+    h_hi = int(np.floor(hi * 256.0 / 360.0))
+    if h_hi <= 255:
         return cv2.inRange(hsv, (h_lo, s_min, v_min), (h_hi, 255, 255))
     a = cv2.inRange(hsv, (h_lo, s_min, v_min), (255, 255, 255))
-    b = cv2.inRange(hsv, (0, s_min, v_min), (h_hi, 255, 255))
+    b = cv2.inRange(hsv, (0, s_min, v_min), (h_hi - 256, 255, 255))
     return cv2.bitwise_or(a, b)
 
 
@@ -159,68 +168,87 @@ def _levels(s: np.ndarray, blob: np.ndarray) -> tuple[float, float]:
     return float(np.median(inside)), float(np.median(outside))
 
 
-def _analyse_blob(img: np.ndarray, labels: np.ndarray, label: int, bbox, offset, image_shape,
-                  max_fit_rms_px: float) -> Marker | None:
+def _analyse_blob(img: np.ndarray, labels: np.ndarray, label: int, bbox, label_origin,
+                  max_fit_rms_px: float, refine: bool) -> Marker | None:
+    """Measure one connected component: ``bbox`` (x, y, w, h) in ``labels``' pixels, whose
+    top-left pixel is ``label_origin`` in the full image ``img``."""
     x, y, w, h = bbox
-    H, W = labels.shape
+    lx, ly = label_origin
+    H, W = img.shape[:2]
     pad = _SCAN
-    x0, y0 = max(x - pad, 0), max(y - pad, 0)
-    x1, y1 = min(x + w + pad, W), min(y + h + pad, H)
+    gx, gy = x + lx, y + ly  # blob bbox in image pixels
+    x0, y0 = max(gx - pad, 0), max(gy - pad, 0)
+    x1, y1 = min(gx + w + pad, W), min(gy + h + pad, H)
     roi = img[y0:y1, x0:x1].astype(np.float32)
-    blob = (labels[y0:y1, x0:x1] == label).astype(np.uint8)
+    blob = np.zeros((y1 - y0, x1 - x0), np.uint8)
+    blob[gy - y0:gy - y0 + h, gx - x0:gx - x0 + w] = labels[y:y + h, x:x + w] == label
     s = roi[:, :, 2] - 0.5 * (roi[:, :, 0] + roi[:, :, 1])
     s_in, s_out = _levels(s, blob)
     if not (np.isfinite(s_in) and np.isfinite(s_out)) or s_in - s_out < 10.0:
         return None
-    c = (s - s_out) / (s_in - s_out)
+    c = (s - s_out) * (1.0 / (s_in - s_out))
     # keep only this blob's neighbourhood (other blobs in the ROI must not add edges)
-    near = cv2.dilate(blob, np.ones((3, 3), np.uint8), iterations=pad)
-    c = np.where(near > 0, c, 0.0)
-    m = cv2.moments(blob, binaryImage=True)
-    if m["m00"] < 5:
+    near = cv2.dilate(blob, _K3, iterations=pad)
+    c[near == 0] = 0.0
+    touches = bool(gx <= 0 or gy <= 0 or gx + w >= W or gy + h >= H)
+    cc = np.clip(c, 0.0, 1.0)
+    m = cv2.moments(cc)
+    if m["m00"] < 3:
         return None
-    mu = np.array([m["m10"], m["m01"]]) / m["m00"]
-    cov = np.array([[m["mu20"], m["mu11"]], [m["mu11"], m["mu02"]]]) / m["m00"]
-    evals, evecs = np.linalg.eigh(cov)
-    if not evals[0] > 1e-6:
-        return None
-    try:
-        rough = Ellipse.from_params(mu, 2.0 * np.sqrt(evals[::-1]), float(np.arctan2(evecs[1, 1], evecs[0, 1])))
-    except EllipseFitError:
+    area = float(m["m00"])
+    centroid = (m["m10"] / area + x0, m["m01"] / area + y0)
+    bbox_img = (int(gx), int(gy), int(gx + w), int(gy + h))
+    mb = cv2.moments(blob, binaryImage=True)
+    if not refine:  # centroid only (tracker mode): the ellipse of the coverage moments
+        rough = _moment_ellipse(m)
+        if rough is None:
+            return None
+        ell = Ellipse.from_conic(_shift_conic(rough.conic, x0, y0))
+        return Marker(centroid, ell, area, np.empty((0, 2)), np.empty(0), bbox_img, touches, float("nan"))
+    rough = _moment_ellipse(mb)
+    if rough is None:
         return None
     pts, wts = _boundary(c, rough)
-    ox, oy = offset
-    gx0, gy0 = x0 + ox, y0 + oy
-    touches = bool((x + ox) <= 0 or (y + oy) <= 0 or (x + w + ox) >= image_shape[1]
-                   or (y + h + oy) >= image_shape[0])
+    if touches:  # drop points near the image edge: the boundary there is the frame, not the marker
+        g = pts + (x0, y0)
+        inner = (g[:, 0] > 1.5) & (g[:, 1] > 1.5) & (g[:, 0] < W - 2.5) & (g[:, 1] < H - 2.5)
+        pts, wts = pts[inner], wts[inner]
     if len(pts) < 6:
         return None
-    if touches:  # drop points near the image edge: the boundary there is the frame, not the marker
-        g = pts + (gx0, gy0)
-        inner = (g[:, 0] > 1.5) & (g[:, 1] > 1.5) & (g[:, 0] < image_shape[1] - 2.5) & (g[:, 1] < image_shape[0] - 2.5)
-        pts, wts = pts[inner], wts[inner]
-        if len(pts) < 6:
-            return None
     try:
         ell_roi = fit_ellipse(pts, wts, refine_iterations=3 if touches else 0)
     except EllipseFitError:
         return None
-    rms = float(np.sqrt(np.average(ell_roi.sampson_distances(pts) ** 2, weights=wts)))
-    if not (rms <= max_fit_rms_px) or not np.isfinite(rms):
+    d = ell_roi.sampson_distances(pts)
+    rms = float(np.sqrt((wts @ (d * d)) / wts.sum()))
+    if not (rms <= max_fit_rms_px):
         return None
     if not touches:  # the blob must look like its ellipse (not two touching discs, not a bar)
-        ratio = m["m00"] / ell_roi.area
-        if not 0.75 < ratio < 1.25:
+        ratio = area / ell_roi.area
+        if not 0.8 < ratio < 1.2:
             return None
-    cc = np.clip(c, 0.0, 1.0)
-    area = float(cc.sum())
-    yy, xx = np.indices(cc.shape)
-    cx = float((cc * xx).sum() / area) + gx0
-    cy = float((cc * yy).sum() / area) + gy0
-    boundary = pts + (gx0, gy0)
-    ell = Ellipse.from_conic(_shift_conic(ell_roi.conic, gx0, gy0))
-    return Marker((cx, cy), ell, area, boundary, wts, (int(x + ox), int(y + oy), int(x + w + ox), int(y + h + oy)),
-                  touches, rms)
+    ell = Ellipse.from_conic(_shift_conic(ell_roi.conic, x0, y0))
+    return Marker(centroid, ell, area, pts + (x0, y0), wts, bbox_img, touches, rms)
+
+
+_K3 = np.ones((3, 3), np.uint8)
+
+
+def _moment_ellipse(m: dict) -> Ellipse | None:
+    """Ellipse with the same area, centroid and second moments as a region (cv2.moments)."""
+    if not m["m00"] > 0:
+        return None
+    mu = (m["m10"] / m["m00"], m["m01"] / m["m00"])
+    a, b, c = m["mu20"] / m["m00"], m["mu11"] / m["m00"], m["mu02"] / m["m00"]
+    half_tr, rad = 0.5 * (a + c), float(np.hypot(0.5 * (a - c), b))
+    lo, hi = half_tr - rad, half_tr + rad
+    if not lo > 1e-6:
+        return None
+    angle = 0.5 * float(np.arctan2(2.0 * b, a - c))
+    try:
+        return Ellipse.from_params(mu, (2.0 * np.sqrt(hi), 2.0 * np.sqrt(lo)), angle)
+    except EllipseFitError:
+        return None
 
 
 def _shift_conic(q: np.ndarray, dx: float, dy: float) -> np.ndarray:
@@ -234,7 +262,7 @@ def _shift_conic(q: np.ndarray, dx: float, dy: float) -> np.ndarray:
 
 def detect_markers(image_bgr, *, hue_range_deg=(-15.0, 15.0), min_saturation: float = 0.45,
                    min_value: float = 0.15, window=None, min_area_px: int = 12, keep_border: bool = False,
-                   max_fit_rms_px: float = 0.6, max_markers: int = 32) -> list[Marker]:
+                   max_fit_rms_px: float = 0.6, max_markers: int = 32, refine: bool = True) -> list[Marker]:
     """Find red circular markers in a BGR image (paper §3.1 and §4.1's marker thresholding).
 
     ``hue_range_deg`` / ``min_saturation`` / ``min_value``: the HSV colour window (the camera's
@@ -243,7 +271,9 @@ def detect_markers(image_bgr, *, hue_range_deg=(-15.0, 15.0), min_saturation: fl
     blobs cut by the image border. ``keep_border=True`` keeps markers that reach the image
     edge (flagged ``touches_border``, ellipse fitted to the remaining arc). Blobs smaller than
     ``min_area_px``, non-elliptical ones (boundary RMS distance to the fitted ellipse above
-    ``max_fit_rms_px``, or area unlike the ellipse's) are dropped.
+    ``max_fit_rms_px``, or area unlike the ellipse's) are dropped. ``refine=False`` is the
+    tracker's centroid-only mode: no boundary points, and the ellipse is the one with the
+    blob's coverage-weighted moments.
 
     Returns markers sorted by decreasing area (possibly empty). Raises
     :class:`MarkerImageError` only for an array that is not an image.
@@ -264,8 +294,13 @@ def detect_markers(image_bgr, *, hue_range_deg=(-15.0, 15.0), min_saturation: fl
         sub = img[wy0:wy1, wx0:wx1]
         ox, oy = wx0, wy0
     mask = red_mask(sub, hue_range_deg, min_saturation, min_value)
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
     sh, sw = mask.shape
+    # label only the bounding box of all red pixels: labelling costs per pixel, markers are small
+    bx, by, bw, bh = cv2.boundingRect(mask)
+    if bw == 0 or bh == 0:
+        return []
+    ox, oy = ox + bx, oy + by
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask[by:by + bh, bx:bx + bw], connectivity=8)
     order = np.argsort(-stats[1:, cv2.CC_STAT_AREA]) + 1 if n > 1 else []
     found: list[Marker] = []
     for label in order:
@@ -273,12 +308,12 @@ def detect_markers(image_bgr, *, hue_range_deg=(-15.0, 15.0), min_saturation: fl
         if area < min_area_px:
             break
         at_image_edge = x + ox <= 0 or y + oy <= 0 or x + w + ox >= W or y + h + oy >= H
-        at_window_edge = x <= 0 or y <= 0 or x + w >= sw or y + h >= sh
+        at_window_edge = x + bx <= 0 or y + by <= 0 or x + bx + w >= sw or y + by + h >= sh
         if at_window_edge and not at_image_edge:
             continue  # cut by the search window: not measurable here
         if at_image_edge and not keep_border:
             continue
-        marker = _analyse_blob(sub, labels, label, (x, y, w, h), (ox, oy), (H, W), max_fit_rms_px)
+        marker = _analyse_blob(img, labels, label, (x, y, w, h), (ox, oy), max_fit_rms_px, refine)
         if marker is not None:
             found.append(marker)
             if len(found) >= max_markers:

@@ -32,15 +32,22 @@ def disc_outline(center, normal, radius: float, n: int = 256) -> np.ndarray:
     return np.asarray(center, float) + radius * (np.cos(t)[:, None] * b1 + np.sin(t)[:, None] * b2)
 
 
-def disc_coverage(camera: CameraModel, center, normal, radius: float, supersample: int = 12):
+def disc_coverage(camera: CameraModel, center, normal, radius: float, supersample: int = 12) -> np.ndarray:
     """Fraction of each pixel covered by the disc (float H×W in [0, 1]).
 
     ``center`` (mm) and unit ``normal`` in the camera frame; pixels are the camera's distorted
     frame-buffer pixels. Pixels whose footprint the rim crosses are supersampled
     ``supersample``² times; the others are 0 or 1.
     """
+    cov = np.zeros((camera.height, camera.width))
+    x0, y0, block = _coverage_roi(camera, center, normal, radius, supersample)
+    cov[y0:y0 + block.shape[0], x0:x0 + block.shape[1]] = block
+    return cov
+
+
+def _coverage_roi(camera: CameraModel, center, normal, radius: float, supersample: int):
+    """(x0, y0, coverage block) of the disc's bounding box."""
     H, W = camera.height, camera.width
-    cov = np.zeros((H, W))
     center = np.asarray(center, float)
     n = np.asarray(normal, float) / np.linalg.norm(normal)
     rim = camera.project(disc_outline(center, n, radius, 360))
@@ -50,7 +57,7 @@ def disc_coverage(camera: CameraModel, center, normal, radius: float, supersampl
     x1, y1 = np.ceil(rim.max(axis=0)).astype(int) + 3
     x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, W), min(y1, H)
     if x1 <= x0 or y1 <= y0:
-        return cov
+        return 0, 0, np.zeros((0, 0))
     Kinv = np.linalg.inv(camera.K)
     d_plane = float(n @ center)
 
@@ -77,8 +84,7 @@ def disc_coverage(camera: CameraModel, center, normal, radius: float, supersampl
         pts = px[ey, ex][:, None, :] + sub[None, :, :]
         r_sub, _, _ = radial_mm(pts)
         block[ey, ex] = (r_sub <= radius).mean(axis=1)
-    cov[y0:y1, x0:x1] = block
-    return cov
+    return int(x0), int(y0), block
 
 
 def render_disc(camera: CameraModel, center, normal, radius: float = 10.0, *, rng=None,
@@ -89,12 +95,19 @@ def render_disc(camera: CameraModel, center, normal, radius: float = 10.0, *, rn
     ``shading`` scales all colours (a dimmer face); ``noise_sigma`` is the sensor noise in grey
     levels (Gaussian, per channel, from ``rng``).
     """
-    cov = disc_coverage(camera, center, normal, radius, supersample)[..., None]
-    img = shading * (cov * np.asarray(disc_bgr, float) + (1.0 - cov) * np.asarray(face_bgr, float))
+    x0, y0, block = _coverage_roi(camera, center, normal, radius, supersample)
+    face = shading * np.asarray(face_bgr, np.float32)
+    disc = shading * np.asarray(disc_bgr, np.float32)
+    img = np.empty((camera.height, camera.width, 3), np.float32)
+    img[:] = face
+    cov = block.astype(np.float32)[..., None]
+    img[y0:y0 + block.shape[0], x0:x0 + block.shape[1]] = cov * disc + (1.0 - cov) * face
     if noise_sigma > 0:
         rng = np.random.default_rng() if rng is None else rng
-        img = img + rng.normal(0.0, noise_sigma, img.shape)
-    return np.clip(np.rint(img), 0, 255).astype(np.uint8)
+        img += np.float32(noise_sigma) * rng.standard_normal(img.shape, dtype=np.float32)
+    np.clip(img, 0.0, 255.0, out=img)
+    img += 0.5
+    return img.astype(np.uint8)
 
 
 def random_disc_pose(rng, camera: CameraModel, *, range_mm=(300.0, 1200.0), obliquity_deg=(0.0, 70.0),
@@ -118,7 +131,7 @@ def random_disc_pose(rng, camera: CameraModel, *, range_mm=(300.0, 1200.0), obli
     raise ValueError("could not place a disc inside the image")
 
 
-def test_camera(kappa1: float = 0.0, width: int = 640, height: int = 480, focal_px: float = 2500.0) -> CameraModel:
+def issue_camera(kappa1: float = 0.0, width: int = 640, height: int = 480, focal_px: float = 2500.0) -> CameraModel:
     """The issue's test camera: 640×480, 2500 px focal length, centred principal point."""
     dx = 0.01
     return CameraModel(f=focal_px * dx, kappa1=kappa1, sx=1.0, cx=(width - 1) / 2.0, cy=(height - 1) / 2.0,
