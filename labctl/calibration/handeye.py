@@ -18,7 +18,16 @@ import itertools
 
 import numpy as np
 
-from ..geometry import invert, make_T, matrix_to_rotvec, orthonormalize, rotation_angle
+from ..geometry import (
+    CameraModel,
+    apply,
+    invert,
+    make_T,
+    matrix_to_rotvec,
+    orthonormalize,
+    rotation_angle,
+    rotvec_to_matrix,
+)
 
 MIN_STATIONS = 3
 MIN_AXIS_SPREAD_DEG = 5.0  # the motions' rotation axes must span at least this angle
@@ -114,6 +123,47 @@ def tsai_lenz(T_b_f, T_c_t) -> np.ndarray:
     if not np.all(np.isfinite(X)):
         raise HandEyeInputError("hand-eye calibration failed: the stations do not determine X")
     return X
+
+
+def refine_hand_eye(camera: CameraModel, X0: np.ndarray, T_b_t0: np.ndarray, T_b_f, points_t, pixels, *,
+                    free_intrinsics: bool = True) -> tuple[CameraModel, np.ndarray, np.ndarray, np.ndarray]:
+    """Reprojection refinement of X (and of f, κ1, sx) after Tsai–Lenz.
+
+    Minimises, over every station i and target dot j, the pixel distance between the observed
+    dot and ``camera.project((T_b_f[i]·X)⁻¹ · T_b_t · P_j)`` — the robot's known motions fix the
+    scale that a single view leaves correlated with f (Tsai 1987 §V, f/Tz coupling). Parameters:
+    X, the target pose ``T_b_t`` and, with ``free_intrinsics``, f, κ1, sx (Cx, Cy stay). Starts
+    from Tsai–Lenz's X0 and the averaged ``T_b_t0``. ``points_t[i]`` (N_i, 3) mm in the target
+    frame, ``pixels[i]`` (N_i, 2). Returns (camera, X, T_b_t, residuals (ΣN_i, 2) px).
+    """
+    Tf = [np.asarray(T, float) for T in T_b_f]
+    P = [np.asarray(p, float) for p in points_t]
+    px = [np.asarray(p, float) for p in pixels]
+
+    def unpack(q):
+        X = make_T(X0[:3, :3] @ rotvec_to_matrix(q[0:3]), X0[:3, 3] + q[3:6])
+        Tt = make_T(T_b_t0[:3, :3] @ rotvec_to_matrix(q[6:9]), T_b_t0[:3, 3] + q[9:12])
+        cam = camera
+        if free_intrinsics:
+            cam = camera.with_(f=float(camera.f * (1 + q[12])), kappa1=float(camera.kappa1 + q[13] * 1e-4),
+                               sx=float(camera.sx * (1 + q[14])))
+        return cam, X, Tt
+
+    def residuals(q):
+        cam, X, Tt = unpack(q)
+        out = []
+        for T, Pi, pi in zip(Tf, P, px):
+            out.append(cam.project(apply(invert(T @ X) @ Tt, Pi)) - pi)
+        r = np.vstack(out).ravel()
+        return np.where(np.isfinite(r), r, 1e6)
+
+    from scipy.optimize import least_squares
+
+    n = 15 if free_intrinsics else 12
+    sol = least_squares(residuals, np.zeros(n), method="lm", x_scale=[1e-3] * 3 + [1.0] * 3 + [1e-3] * 3
+                        + [1.0] * 3 + ([1e-3, 1.0, 1e-4] if free_intrinsics else []))
+    cam, X, Tt = unpack(sol.x)
+    return cam, X, Tt, sol.fun.reshape(-1, 2)
 
 
 def target_in_base(T_b_f, T_c_t, X: np.ndarray) -> np.ndarray:
