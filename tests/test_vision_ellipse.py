@@ -68,7 +68,6 @@ def test_a_doubled_weight_equals_a_duplicated_point(params, seed):
 def test_weights_compensate_non_uniform_sampling():
     # dense sampling of one half, sparse of the other, with a constant radial error on the dense
     # half: arc-length weights (paper's w_i) restore the balance the unweighted fit loses
-    e = Ellipse.from_params((0, 0), (50, 30), 0.3)
     t = np.concatenate([np.linspace(0, np.pi, 300, endpoint=False), np.linspace(np.pi, 2 * np.pi, 20, endpoint=False)])
     ca, sa = np.cos(0.3), np.sin(0.3)
     x, y = 50 * np.cos(t), 30 * np.sin(t)
@@ -89,10 +88,10 @@ def _centre_rms(arc: float, trials: int, seed: int):
         t0 = rng.uniform(0, 2 * np.pi)
         pts = e.points(360, t0, t0 + arc) + rng.normal(0, 0.5, (360, 2))
         p32 = pts.astype(np.float32)
-        for name, fn in (("ours", lambda: fit_ellipse(pts)), ("fitEllipse", lambda: cv2.fitEllipse(p32)),
-                         ("AMS", lambda: cv2.fitEllipseAMS(p32)), ("Direct", lambda: cv2.fitEllipseDirect(p32))):
-            r = fn()
-            r = r if isinstance(r, Ellipse) else ellipse_from_cv_box(r)
+        results = {"ours": fit_ellipse(pts), "fitEllipse": ellipse_from_cv_box(cv2.fitEllipse(p32)),
+                   "AMS": ellipse_from_cv_box(cv2.fitEllipseAMS(p32)),
+                   "Direct": ellipse_from_cv_box(cv2.fitEllipseDirect(p32))}
+        for name, r in results.items():
             errs[name].append(np.linalg.norm(r.center - e.center))
     return {k: float(np.sqrt(np.mean(np.square(v)))) for k, v in errs.items()}
 

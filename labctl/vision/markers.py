@@ -6,9 +6,11 @@ Pipeline for one BGR image (pixels are the image's own, i.e. distorted, frame-bu
    that shading — which scales R, G and B together — leaves hue and saturation unchanged.
 2. **Connected components** (8-connected). Blobs that are too small, cut by the image (or
    search-window) border, or not elliptical are rejected.
-3. **Sub-pixel boundary.** Per blob, a linear "redness" image s = R − (G + B)/2 is normalised
+3. **Sub-pixel boundary.** Per blob, a linear "redness" image is normalised
    by the blob's own inside and outside levels into a coverage image c ∈ [0, 1] (linear in the
-   fraction of the pixel the marker covers, so anti-aliasing and shading do not bias it). Each
+   fraction of the pixel the marker covers, so anti-aliasing and shading do not bias it).
+   The "redness" is the projection of each pixel's BGR colour on the difference between the
+   blob's inside and outside colours (medians), so any configured marker colour works. Each
    row (where the boundary is closer to vertical) and each column (closer to horizontal) that
    crosses the 50 % level gives one boundary point by the *area* rule: along a 6-pixel scan
    across the edge the edge sits at (start − ½) + Σ c, which is exact for a straight edge at
@@ -154,18 +156,18 @@ def _boundary(c: np.ndarray, ellipse0: Ellipse) -> tuple[np.ndarray, np.ndarray]
     return np.concatenate(out_p), np.concatenate(out_w)
 
 
-def _levels(s: np.ndarray, blob: np.ndarray) -> tuple[float, float]:
-    """Inside and outside levels of the redness ``s`` around one blob (medians, robust)."""
-    k = np.ones((3, 3), np.uint8)
-    core = cv2.erode(blob, k, iterations=2)
+def _levels(roi: np.ndarray, blob: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """Inside and outside colours (BGR medians) of one blob: its core and a ring around it."""
+    core = cv2.erode(blob, _K3, iterations=2)
     if np.count_nonzero(core) < 3:
-        core = cv2.erode(blob, k, iterations=1)
-    inside = s[core > 0] if np.count_nonzero(core) >= 3 else s[blob > 0]
-    ring = cv2.dilate(blob, k, iterations=4) & ~cv2.dilate(blob, k, iterations=2)
-    outside = s[ring > 0]
-    if inside.size == 0 or outside.size == 0:
-        return float("nan"), float("nan")
-    return float(np.median(inside)), float(np.median(outside))
+        core = cv2.erode(blob, _K3, iterations=1)
+    if np.count_nonzero(core) < 3:
+        core = blob
+    ring = cv2.dilate(blob, _K3, iterations=4) & ~cv2.dilate(blob, _K3, iterations=2)
+    inside, outside = roi[core > 0], roi[ring > 0]
+    if inside.shape[0] == 0 or outside.shape[0] == 0:
+        return None
+    return np.median(inside, axis=0), np.median(outside, axis=0)
 
 
 def _analyse_blob(img: np.ndarray, labels: np.ndarray, label: int, bbox, label_origin,
@@ -182,11 +184,16 @@ def _analyse_blob(img: np.ndarray, labels: np.ndarray, label: int, bbox, label_o
     roi = img[y0:y1, x0:x1].astype(np.float32)
     blob = np.zeros((y1 - y0, x1 - x0), np.uint8)
     blob[gy - y0:gy - y0 + h, gx - x0:gx - x0 + w] = labels[y:y + h, x:x + w] == label
-    s = roi[:, :, 2] - 0.5 * (roi[:, :, 0] + roi[:, :, 1])
-    s_in, s_out = _levels(s, blob)
-    if not (np.isfinite(s_in) and np.isfinite(s_out)) or s_in - s_out < 10.0:
+    levels = _levels(roi, blob)
+    if levels is None:
         return None
-    c = (s - s_out) * (1.0 / (s_in - s_out))
+    col_in, col_out = levels
+    contrast = col_in - col_out
+    c2 = float(contrast @ contrast)
+    if not c2 >= 100.0:  # under 10 grey levels of colour contrast: no measurable edge
+        return None
+    # coverage: each pixel's colour projected on the outside→inside colour difference
+    c = (roi - col_out.astype(np.float32)) @ (contrast / c2).astype(np.float32)
     # keep only this blob's neighbourhood (other blobs in the ROI must not add edges)
     near = cv2.dilate(blob, _K3, iterations=pad)
     c[near == 0] = 0.0
