@@ -28,7 +28,7 @@ import numpy as np
 
 from .circle_pose import CirclePose
 
-DEFAULT_MIN_MARGIN_RAD = math.radians(0.5)
+DEFAULT_MIN_MARGIN_RAD = math.radians(0.1)
 
 
 @dataclass(frozen=True)
