@@ -1,8 +1,8 @@
 """Dot detection with sub-pixel centres, identification against the target model, and the
 perspective-bias correction of a dot's centroid.
 
-* Detection: dark dots are holes in the light regions of an Otsu-thresholded image (so the
-  dark, textured table never yields dots); each centre is the grey-level centroid
+* Detection: dark dots are holes in the light regions of an Otsu-thresholded image, with a
+  minimum contrast to their surroundings (so the dark, textured table yields none); each centre is the grey-level centroid
   ``Σ w·x / Σ w`` with ``w = (background − I) / (background − dot)`` clipped to [0, 1], which
   uses the partial coverage of boundary pixels (sub-pixel).
 * Identification: a few coloured fiducial dots (told apart by chroma, which foreshortening does
@@ -41,8 +41,11 @@ class Blobs:
 
 
 def detect_dots(image: np.ndarray, *, min_area: float = 8.0, max_area: float = 5000.0,
-                min_circularity: float = 0.6) -> Blobs:
-    """Dark circular dots on light surfaces in a BGR or grey uint8 image (pixels, sub-pixel)."""
+                min_circularity: float = 0.6, min_contrast: float = 40.0) -> Blobs:
+    """Dark circular dots on light surfaces in a BGR or grey uint8 image (pixels, sub-pixel).
+
+    A dot must be at least ``min_contrast`` grey levels darker than the surface around it, which
+    keeps the table's own texture (tapped holes, blotches) out."""
     img = np.asarray(image)
     bgr = img if img.ndim == 3 else None
     if img.ndim == 3:
@@ -79,7 +82,7 @@ def detect_dots(image: np.ndarray, *, min_area: float = 8.0, max_area: float = 5
             continue
         bg = float(np.median(roi[ring]))
         fg = float(np.median(roi[core])) if core.sum() >= 3 else float(roi[hole > 0].min())
-        if bg - fg < 10.0:
+        if bg - fg < min_contrast:
             continue
         wgt = np.clip((bg - roi) / (bg - fg), 0.0, 1.0) * inner
         s = wgt.sum()
