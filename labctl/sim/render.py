@@ -194,15 +194,18 @@ _NOISE_MARGIN = 256
 
 
 @lru_cache(maxsize=4)
-def _noise_bank(height: int, width: int, sigma: float) -> np.ndarray:
-    """Gaussian sensor noise (grey levels) larger than a frame; each frame adds a random window.
+def _noise_bank(height: int, width: int, sigma: float) -> tuple[np.ndarray, np.ndarray]:
+    """Gaussian sensor noise (grey levels, rounded) larger than a frame, as its positive and
+    negative parts (uint8); each frame adds a random window: ``clip(clip(I + n⁺) − n⁻)`` equals
+    ``clip(I + n)`` because only one part is non-zero per pixel.
 
     Drawing a fresh 640×480×3 field costs more than the rest of a frame; a random window into
     a fixed field (256² offsets) keeps the per-pixel statistics and varies from frame to frame.
     """
     rng = np.random.default_rng(20240611)
     shape = (height + _NOISE_MARGIN, width + _NOISE_MARGIN, 3)
-    return (rng.standard_normal(shape, dtype=np.float32) * np.float32(sigma)).astype(np.float32)
+    n = np.round(rng.standard_normal(shape) * sigma)
+    return (np.clip(n, 0, 255).astype(np.uint8), np.clip(-n, 0, 255).astype(np.uint8))
 
 
 # --------------------------------------------------------------------------------------------
@@ -365,65 +368,86 @@ def _rasterise(camera: CameraModel, coef: np.ndarray, box: np.ndarray, invz: np.
     return pix[win], tri[win]
 
 
+def _central_gradient_norm(d: np.ndarray) -> np.ndarray:
+    """|∇d| per pixel by central differences (one-sided on the border)."""
+    gx = np.empty_like(d)
+    gy = np.empty_like(d)
+    gx[:, 1:-1] = (d[:, 2:] - d[:, :-2]) * 0.5
+    gx[:, 0] = d[:, 1] - d[:, 0]
+    gx[:, -1] = d[:, -1] - d[:, -2]
+    gy[1:-1] = (d[2:] - d[:-2]) * 0.5
+    gy[0] = d[1] - d[0]
+    gy[-1] = d[-1] - d[-2]
+    return np.sqrt(gx * gx + gy * gy)
+
+
+_RING = np.linspace(0, 2 * np.pi, 48, endpoint=False)
+
+
 def _marker_pass(camera: CameraModel, T_c_w: np.ndarray, light_w: np.ndarray, markers: list[MarkerDisc],
                  colour: np.ndarray, invz: np.ndarray) -> list[int]:
-    """Blend each marker disc into ``colour`` (H×W×3 uint8, in place) with analytic edge coverage."""
+    """Blend each marker disc into ``colour`` (H×W×3 uint8, in place) with analytic edge coverage.
+
+    Per pixel of the disc's box: intersect the pixel's ray with the marker plane, take the signed
+    distance d (mm) of the hit from the circle, and cover ``clip(0.5 − d/|∇d|, 0, 1)`` with ∇d in
+    pixels; only where the marker plane is the nearest surface (within 0.5 mm or 0.1 %).
+    """
     rays = _pixel_rays(camera)
     H, W = camera.height, camera.width
-    img = colour
     zbuf = invz.reshape(H, W)
-    counts = []
-    for mk in markers:
-        c = T_c_w[:3, :3] @ np.asarray(mk.center, dtype=float) + T_c_w[:3, 3]
-        nrm_w = np.asarray(mk.normal, dtype=float)
-        nrm_w = nrm_w / np.linalg.norm(nrm_w)
-        nrm = T_c_w[:3, :3] @ nrm_w
-        if c[2] <= _NEAR_MM or nrm @ c >= 0:  # behind the camera or seen from its back
-            counts.append(0)
+    counts = [0] * len(markers)
+    if not markers:
+        return counts
+    R, t = T_c_w[:3, :3], T_c_w[:3, 3]
+    centres = np.array([np.asarray(mk.center, dtype=float) for mk in markers]) @ R.T + t
+    normals_w = np.array([np.asarray(mk.normal, dtype=float) for mk in markers])
+    normals_w /= np.linalg.norm(normals_w, axis=1, keepdims=True)
+    normals = normals_w @ R.T
+    radii = np.array([float(mk.radius) for mk in markers])
+    facing = (centres[:, 2] > _NEAR_MM + radii) & (np.einsum("ij,ij->i", normals, centres) < 0)
+    idx = np.nonzero(facing)[0]
+    if len(idx) == 0:
+        return counts
+    # disc boundaries → pixel boxes, all markers in one projection
+    helper = np.where(np.abs(normals[idx, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]])
+    e1 = np.cross(normals[idx], helper)
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    e2 = np.cross(normals[idx], e1)
+    ring = (centres[idx, None, :] + radii[idx, None, None]
+            * (np.cos(_RING)[None, :, None] * e1[:, None, :] + np.sin(_RING)[None, :, None] * e2[:, None, :]))
+    ring_px = camera.project(ring)
+    shades = _lambert(normals_w[idx], light_w)
+    for j, i in enumerate(idx):
+        px = ring_px[j]
+        if not np.all(np.isfinite(px)):
             continue
-        # boundary → pixel box
-        e1 = np.cross(nrm, [1.0, 0, 0] if abs(nrm[0]) < 0.9 else [0, 1.0, 0])
-        e1 /= np.linalg.norm(e1)
-        e2 = np.cross(nrm, e1)
-        th = np.linspace(0, 2 * np.pi, 48, endpoint=False)
-        ring = c + mk.radius * (np.cos(th)[:, None] * e1 + np.sin(th)[:, None] * e2)
-        if ring[:, 2].min() <= _NEAR_MM:
-            counts.append(0)
-            continue
-        px = camera.project(ring)
         x0 = int(max(np.floor(px[:, 0].min()) - 3, 0))
         y0 = int(max(np.floor(px[:, 1].min()) - 3, 0))
         x1 = int(min(np.ceil(px[:, 0].max()) + 3, W - 1))
         y1 = int(min(np.ceil(px[:, 1].max()) + 3, H - 1))
-        if x1 < x0 or y1 < y0:
-            counts.append(0)
+        if x1 - x0 < 2 or y1 - y0 < 2:
             continue
+        c, nrm = centres[i], normals[i]
         x = rays.nx64[y0:y1 + 1, x0:x1 + 1]
         y = rays.ny64[y0:y1 + 1, x0:x1 + 1]
         denom = nrm[0] * x + nrm[1] * y + nrm[2]
         with np.errstate(divide="ignore", invalid="ignore"):
             z = (nrm @ c) / denom
         ok = np.isfinite(z) & (z > _NEAR_MM)
-        z = np.where(ok, z, np.inf)
-        dist = np.sqrt((z * x - c[0]) ** 2 + (z * y - c[1]) ** 2 + (z - c[2]) ** 2) - mk.radius
-        dist = np.where(ok, dist, np.inf)
-        if dist.shape[0] < 2 or dist.shape[1] < 2:
-            counts.append(0)
-            continue
-        gy, gx = np.gradient(np.where(np.isfinite(dist), dist, 0.0))
-        grad = np.maximum(np.hypot(gx, gy), 1e-9)
+        z = np.where(ok, z, 0.0)
+        dist = np.sqrt((z * x - c[0]) ** 2 + (z * y - c[1]) ** 2 + (z - c[2]) ** 2) - radii[i]
+        grad = np.maximum(_central_gradient_norm(dist), 1e-9)
         cov = np.clip(0.5 - dist / grad, 0.0, 1.0)
         # visible only where the marker plane is (within tolerance) the nearest surface
         zb = zbuf[y0:y1 + 1, x0:x1 + 1]
         with np.errstate(divide="ignore"):
             z_near = np.where(zb > 0, 1.0 / zb, np.inf)
-        cov = np.where(z <= z_near + np.maximum(0.5, 1e-3 * z), cov, 0.0).astype(np.float32)
-        shade = float(_lambert(nrm_w[None, :], light_w)[0])
-        mcol = np.asarray(mk.colour_bgr, dtype=np.float32) * shade
-        patch = img[y0:y1 + 1, x0:x1 + 1].astype(np.float32)
+        cov = np.where(ok & (z <= z_near + np.maximum(0.5, 1e-3 * z)), cov, 0.0).astype(np.float32)
+        mcol = np.asarray(markers[i].colour_bgr, dtype=np.float32) * np.float32(shades[j])
+        patch = colour[y0:y1 + 1, x0:x1 + 1].astype(np.float32)
         patch += cov[..., None] * (mcol - patch)
-        img[y0:y1 + 1, x0:x1 + 1] = np.round(patch).astype(np.uint8)
-        counts.append(int(np.count_nonzero(cov >= 0.5)))
+        colour[y0:y1 + 1, x0:x1 + 1] = np.round(patch).astype(np.uint8)
+        counts[i] = int(np.count_nonzero(cov >= 0.5))
     return counts
 
 
@@ -460,6 +484,11 @@ def _edge_supersample(camera: CameraModel, s: int, coef: np.ndarray, tri_colour:
     pad = np.pad(ids, 1, constant_values=-1)
     cand = np.stack([pad[ey - pad_origin[0] + dy, ex - pad_origin[1] + dx]
                      for dy in range(3) for dx in range(3)], axis=1)  # (E, 9)
+    # distinct candidates first, duplicates and "no triangle" (-1) last; drop all-empty columns
+    cand = -np.sort(-cand, axis=1)
+    cand[:, 1:][cand[:, 1:] == cand[:, :-1]] = -1
+    cand = -np.sort(-cand, axis=1)
+    cand = cand[:, : max(int(np.count_nonzero(cand >= 0, axis=1).max()), 1)]
     # sub-sample positions inside the pixel
     off = (np.arange(s) + 0.5) / s - 0.5
     ou, ov = np.meshgrid(off, off)
@@ -584,12 +613,14 @@ def render(
         img = acc / np.float32(1 + len(exposure_motion))
     if noise_sigma > 0:
         rng = rng if rng is not None else np.random.default_rng(0)
-        bank = _noise_bank(H, W, float(noise_sigma))
-        oy = int(rng.integers(0, bank.shape[0] - H + 1))
-        ox = int(rng.integers(0, bank.shape[1] - W + 1))
-        image = cv2.add(img, bank[oy:oy + H, ox:ox + W], dtype=cv2.CV_8U)
+        pos, neg = _noise_bank(H, W, float(noise_sigma))
+        oy = int(rng.integers(0, pos.shape[0] - H + 1))
+        ox = int(rng.integers(0, pos.shape[1] - W + 1))
+        if img.dtype != np.uint8:
+            img = cv2.convertScaleAbs(img)  # rounds and saturates; values are never negative
+        image = cv2.subtract(cv2.add(img, pos[oy:oy + H, ox:ox + W]), neg[oy:oy + H, ox:ox + W])
     elif img.dtype != np.uint8:
-        image = cv2.convertScaleAbs(img)  # rounds and saturates; values are never negative
+        image = cv2.convertScaleAbs(img)
     else:
         image = img
     result = RenderResult(image=image)

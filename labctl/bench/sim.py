@@ -1,0 +1,147 @@
+"""Simulated-lab benchmark (issue 8): frame rendering rate and virtual-time trial speed.
+
+* ``render fixed/<object>``: one 640×480 frame of the fixed camera C1 (1.8 m, 25 mm lens) seeing
+  the object on the table: z-buffer, Tsai distortion, anti-aliased silhouettes, analytic markers,
+  textured table, noise. Baseline, timed in the same run: the cheapest possible picture of the
+  same scene — OpenCV ``fillConvexPoly`` of the depth-sorted projected triangles (painter's
+  algorithm, no z-buffer, no distortion, no markers, no texture) plus the same noise. Target:
+  ≥ 60 frames/s (``fps`` column; ``meets_60fps``).
+* ``render mobile/<object>``: the robot camera C2 at the 600 mm standard-view stand-off.
+* ``virtual trial 10 s``: build the virtual lab, stream a G-code line move at 8 mm/s to the GRBL
+  emulator, then grab 300 fixed-camera frames at 30 Hz (each advances the virtual clock and the
+  table) with a status poll every 6 frames. Baseline: 10 s of real time. Target ratio ≥ 5.
+"""
+
+from __future__ import annotations
+
+import time
+
+import cv2
+import numpy as np
+
+from ..geometry import invert, look_at
+from ._timing import median_time, row
+
+
+def _objects() -> dict:
+    """The sample objects (library samples) with markers on their largest flat faces, plus a 512-face cylinder."""
+    import trimesh
+
+    from ..sim.world import SimMarker, SimObject, builtin_test_object
+
+    objs = {"test_block": builtin_test_object()}
+    try:
+        from ..library.samples import sample_objects
+
+        meshes = sample_objects()
+    except Exception:  # the library may be unavailable in a stripped install; the block still runs
+        meshes = {}
+    meshes["cylinder_512"] = trimesh.creation.cylinder(radius=35.0, height=60.0, sections=128)
+    for name, mesh in meshes.items():
+        markers = []
+        facets = sorted(range(len(mesh.facets)), key=lambda i: -mesh.facets_area[i])[:6]
+        for k, i in enumerate(facets):
+            faces = mesh.facets[i]
+            w = mesh.area_faces[faces]
+            centre = (mesh.triangles_center[faces] * w[:, None]).sum(0) / w.sum()
+            markers.append(SimMarker(k, centre, mesh.facets_normal[i], 8.0))
+        objs[name] = SimObject.from_trimesh(name, mesh, markers)
+    return objs
+
+
+def _painter_baseline(camera, T_w_c, meshes, rng) -> np.ndarray:
+    """The cheap, wrong picture: depth-sorted filled triangles, pinhole only, flat table, noise."""
+    img = np.full((camera.height, camera.width, 3), 50, np.uint8)
+    T_c_w = invert(T_w_c)
+    K = camera.K
+    for m in meshes:
+        Pc = (m.vertices @ T_c_w[:3, :3].T + T_c_w[:3, 3])[m.faces]
+        n = np.cross(Pc[:, 1] - Pc[:, 0], Pc[:, 2] - Pc[:, 0])
+        front = np.einsum("ij,ij->i", n, Pc[:, 0]) < 0
+        order = np.argsort(-Pc[front, :, 2].mean(axis=1))
+        uv = (Pc[front][..., :2] / Pc[front][..., 2:3]) * [K[0, 0], K[1, 1]] + K[:2, 2]
+        for tri in uv[order]:
+            cv2.fillConvexPoly(img, np.round(tri * 16).astype(np.int32), (185, 185, 185), cv2.LINE_8, 4)
+    noise = np.empty(img.shape, np.int16)
+    cv2.randn(noise, 0, 2.0)
+    return cv2.add(img, noise, dtype=cv2.CV_8U)
+
+
+def _trial(lab, seconds: float = 10.0) -> tuple[float, float]:
+    """Wall time of a virtual-time trial of ``seconds`` simulated seconds; returns (wall_s, sim_s)."""
+    from ..sim.virtual import build_virtual_lab
+
+    t0 = time.perf_counter()
+    vl = build_virtual_lab(lab, seed=1)
+    g = vl.table
+    g.receive(b"$X\n")
+    g.receive(b"G90 G1 X%.1f Y200 F480\n" % (300 + 8.0 * seconds))  # 8 mm/s along +x
+    cam = vl.cameras["fixed"]
+    cam.open()
+    n = int(round(seconds * cam.fps))
+    for i in range(n):
+        cam.grab()
+        if i % 6 == 0:
+            g.receive(b"?")
+            g.read_output()
+    return time.perf_counter() - t0, vl.clock.now()
+
+
+def run(quick: bool = False) -> dict:
+    from ..config import load_lab
+    from ..sim.render import render
+    from ..sim.world import SimWorld, random_placement
+    from ..workspace import sample_lab_path
+
+    lab = load_lab(sample_lab_path())
+    repeat = 5 if quick else 30
+    rows = []
+    fps = {}
+    objs = _objects()
+    if quick:
+        objs = {k: objs[k] for k in list(objs)[:2] + ["cylinder_512"]}
+    world = SimWorld.from_lab(lab)
+    rng = np.random.default_rng(0)
+    for name, obj in objs.items():
+        world.place(obj, random_placement(obj, np.random.default_rng(3)))
+        meshes = world.meshes_at(0.0)
+        faces = len(obj.faces)
+        for role in ("fixed", "mobile"):
+            rig = world.rigs[role]
+            if role == "fixed":
+                T_w_c = world.T_w_c1
+            else:  # the standard view: 600 mm along the object's most upward-facing marker normal
+                tr = world.truth(0.0)
+                _, c, n = max(tr.markers_w, key=lambda m: m[2][2])
+                up = (0, 1, 0) if abs(n[1]) < 0.9 else (1, 0, 0)
+                T_w_c = look_at(c + lab.config.viewing.standoff_mm * n, c, up=up)
+
+            def frame(rig=rig, T_w_c=T_w_c, meshes=meshes):
+                return render(rig.model, T_w_c, meshes, table=world.table_surface(0.0), noise_sigma=rig.noise_sigma,
+                              rng=rng)
+
+            med = median_time(frame, repeat)
+            if role == "fixed":
+                base = median_time(lambda rig=rig, T_w_c=T_w_c, meshes=meshes:
+                                   _painter_baseline(rig.model, T_w_c, meshes, rng), repeat)
+            else:
+                base = None
+            fps[f"{role}/{name}"] = 1.0 / med
+            rows.append(row(f"render {role}/{name} ({faces} faces)", med,
+                            baseline="painter's fillConvexPoly" if base else None, baseline_s=base,
+                            fps=round(1.0 / med, 1), meets_60fps=bool(med <= 1 / 60)))
+    trial_runs = []
+    for _ in range(1 if quick else 3):
+        trial_runs.append(_trial(lab, 3.0 if quick else 10.0))
+    wall = float(np.median([w for w, _ in trial_runs]))
+    sim_s = trial_runs[0][1]
+    rows.append(row(f"virtual trial {sim_s:.1f} s (fixed camera 30 Hz + GRBL)", wall, baseline="real time",
+                    baseline_s=sim_s, faster_than_real_time=round(sim_s / wall, 2)))
+    fixed_fps = [v for k, v in fps.items() if k.startswith("fixed/")]
+    return {
+        "rows": rows,
+        "fixed_fps_min": round(min(fixed_fps), 1),
+        "mobile_fps_min": round(min(v for k, v in fps.items() if k.startswith("mobile/")), 1),
+        "trial_speedup": round(sim_s / wall, 2),
+        "targets": {"fixed_fps": 60, "trial_speedup": 5},
+    }
