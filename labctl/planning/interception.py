@@ -7,7 +7,8 @@ the workspace arrives on the target path G(t) with G's own velocity and accelera
 camera is riding along with the view when it arrives). The segment's duration is ``t - t0``, so
 the search is one-dimensional in ``t``: a geometric coarse grid over the horizon (sampled limit
 checks, all candidates at once in numpy), two rounds of refinement inside the first feasible
-bracket, then the exact :func:`~labctl.planning.safety.check_segment` on the result. Re-planning
+bracket, a closer look at near misses (local minima of a constraint score, for narrow feasible windows),
+then the exact :func:`~labctl.planning.safety.check_segment` on the result. Re-planning
 (:func:`replan`) restarts the same search from the current trajectory's state at ``t_now``, so
 position, velocity and acceleration are continuous at the splice. Units: mm, s, rad; world frame.
 """
@@ -32,6 +33,9 @@ _SAMPLES = 33
 _BASIS_T = np.ascontiguousarray(np.vstack(basis(np.linspace(0.0, 1.0, _SAMPLES))).T)  # (6, 3S): p, p', p''
 _BV_T = np.ascontiguousarray(_BASIS_T[:, _SAMPLES : 2 * _SAMPLES])
 _MARGIN = 1e-3  # relative margin of the sampled checks; the exact check decides in the end
+_U = np.linspace(0.0, 1.0, _SAMPLES)
+# the margin tapers to 0 at both ends: the start state (and G's state) may sit right at a limit
+_TAPER = _MARGIN * np.minimum(1.0, 16.0 * _U * (1.0 - _U))
 
 
 @dataclass(frozen=True)
@@ -65,25 +69,35 @@ def _as_state(state0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return p0, v0, a0
 
 
-def _feasible(p0, v0, a0, gp, gv, ga, Ts, limits: Limits, rot=None) -> tuple[np.ndarray, np.ndarray]:
-    """Sampled feasibility of the quintics to each (gp, gv, ga)[k] in time Ts[k]; also G-in-box mask."""
+def _score(p0, v0, a0, gp, gv, ga, Ts, limits: Limits, rot=None) -> tuple[np.ndarray, np.ndarray]:
+    """Sampled constraint score of the quintics to each (gp, gv, ga)[k] taking Ts[k]; feasible where ≤ 0.
+
+    The score is the worst normalised excess over all constraints (box excess per 100 mm, speed,
+    acceleration and rotation rate relative to their limits, each with the sampling margin), so
+    a dip towards zero between grid points flags a narrow feasible window. Also returns the
+    mask of G-in-box.
+    """
     b = quintic_coefficients(p0, v0, a0, gp, gv, ga, Ts)  # (K, 6, 3)
-    bt = b.transpose(0, 2, 1)  # (K, 3, 6)
     S = _SAMPLES
-    X = bt @ _BASIS_T  # (K, 3, 3S): sampled p(u), then p'(u), then p''(u), per axis
-    in_box = ((gp >= limits.box_min) & (gp <= limits.box_max)).all(axis=-1)
+    X = b.transpose(0, 2, 1) @ _BASIS_T  # (K, 3, 3S): sampled p(u), then p'(u), then p''(u), per axis
     P = X[:, :, :S]
-    ok = in_box & ((P.min(axis=2) >= limits.box_min) & (P.max(axis=2) <= limits.box_max)).all(axis=-1)
-    D = np.abs(X[:, :, S:]).reshape(len(Ts), 3, 2, S).max(axis=(1, 3))  # (K, 2): max |p'|, max |p''|
-    ok &= D[:, 0] <= limits.v_max * (1 - _MARGIN) * Ts
-    ok &= D[:, 1] <= limits.a_max * (1 - _MARGIN) * Ts * Ts
+    box_excess = np.maximum(limits.box_min - P.min(axis=2), P.max(axis=2) - limits.box_max).max(axis=1)
+    g_excess = np.maximum(limits.box_min - gp, gp - limits.box_max).max(axis=1)
+    D = np.abs(X[:, :, S:]).max(axis=1).reshape(len(Ts), 2, S)  # (K, 2, S): max over axes of |p'|, |p''|
+    v_excess = (D[:, 0] / (limits.v_max * Ts)[:, None] + _TAPER).max(axis=1) - 1
+    a_excess = (D[:, 1] / (limits.a_max * Ts * Ts)[:, None] + _TAPER).max(axis=1) - 1
+    score = np.maximum(np.maximum(box_excess, g_excess) / 100.0, np.maximum(v_excess, a_excess))
     if rot is not None:
         w0, dw0, r1 = rot
         z = np.zeros(3)
         rc = quintic_coefficients(z, w0, dw0, r1, z, z, Ts)
         W = rc.transpose(0, 2, 1) @ _BV_T  # (K, 3, S): dr/du
-        ok &= np.max(np.einsum("kds,kds->ks", W, W), axis=1) <= (limits.w_max * (1 - _MARGIN) * Ts) ** 2
-    return ok, in_box
+        w = np.sqrt(np.einsum("kds,kds->ks", W, W))
+        score = np.maximum(score, (w / (limits.w_max * Ts)[:, None] + _TAPER).max(axis=1) - 1)
+    return score, g_excess <= 0
+
+
+_SLIVER = 0.05  # a local minimum of the score below this is searched for a narrow feasible window
 
 
 @lru_cache(maxsize=64)
@@ -152,31 +166,54 @@ def plan_interception(state0, t0: float, G: TargetFn, limits: Limits, horizon_s:
 
     Ts = _grid(float(t_min), float(horizon_s), int(n_coarse))
     gp, gv, ga = G(t0 + Ts)
-    ok, in_box = _feasible(p0, v0, a0, gp, gv, ga, Ts, limits, rot)
-    start = 0
-    while True:
-        idx = np.flatnonzero(ok[start:])
-        if idx.size == 0:
-            code, reason = _unreachable_reason(bool(in_box.any()), gp, limits, horizon_s)
-            return Interception(None, None, reason, code, G)
-        k = start + int(idx[0])
-        lo, hi = (Ts[k - 1] if k > 0 else 0.0), Ts[k]
-        for _ in range(2):  # refine the bracket (lo infeasible, hi feasible)
+    score, in_box = _score(p0, v0, a0, gp, gv, ga, Ts, limits, rot)
+
+    def score_at(cand):
+        cp, cv, ca = G(t0 + cand)
+        return _score(p0, v0, a0, cp, cv, ca, cand, limits, rot)[0]
+
+    def refine_edge(lo, hi):  # lo infeasible (or 0), hi feasible: close in on the earliest feasible time
+        for _ in range(2):
             cand = np.linspace(lo, hi, 9)[1:]
-            cp, cv, ca = G(t0 + cand)
-            cok, _ = _feasible(p0, v0, a0, cp, cv, ca, cand, limits, rot)
-            j = int(np.argmax(cok))  # cand[-1] == hi is feasible
+            j = int(np.argmax(score_at(cand) <= 0.0))  # cand[-1] == hi is feasible
             lo, hi = (cand[j - 1] if j > 0 else lo), cand[j]
-        for bump in range(12):  # the exact check decides; sampling may have missed a sliver
-            T = hi * (1.0 + 0.002 * bump)
+        return hi
+
+    def exact(T_feasible):  # the exact check decides; the sampled score may be a hair optimistic
+        for bump in range(8):
+            T = T_feasible * (1.0 + 0.0005 * bump)
             seg = _segment(t0, T, p0, v0, a0, G, rot_args)
             try:
-                check_segment(seg, limits)
+                return check_segment(seg, limits)
             except LimitViolation:
                 continue
+        return None
+
+    n = len(Ts)
+    for k in range(n):
+        lo = Ts[k - 1] if k > 0 else 0.0
+        if score[k] <= 0.0:
+            seg = exact(refine_edge(lo, Ts[k]))
+        elif score[k] < _SLIVER and (k == 0 or score[k] <= score[k - 1]) and (k == n - 1 or score[k] <= score[k + 1]):
+            # a near miss: look for a feasible sliver between the neighbouring grid points
+            hi = Ts[k + 1] if k + 1 < n else Ts[k]
+            seg = None
+            for _ in range(2):
+                cand = np.linspace(lo, hi, 17)[1:-1]
+                sc = score_at(cand)
+                if np.any(sc <= 0.0):
+                    j = int(np.argmax(sc <= 0.0))
+                    seg = exact(refine_edge(cand[j - 1] if j > 0 else lo, cand[j]))
+                    break
+                j = int(np.argmin(sc))
+                lo, hi = (cand[j - 1] if j > 0 else lo), (cand[j + 1] if j + 1 < len(cand) else hi)
+        else:
+            continue
+        if seg is not None:
             segs = [seg, *_follow_segments(seg, G, limits, follow_s, follow_step_s)]
-            return Interception(t0 + T, Trajectory(tuple(segs)), None, "ok", G)
-        start = k + 1
+            return Interception(seg.t1, Trajectory(tuple(segs)), None, "ok", G)
+    code, reason = _unreachable_reason(bool(in_box.any()), gp, limits, horizon_s)
+    return Interception(None, None, reason, code, G)
 
 
 def _rotation_state(traj: Trajectory, t: float):

@@ -29,7 +29,8 @@ class LimitViolation(PlanningError):
 
     def __init__(self, kind: str, value: float, limit: float, detail: str = ""):
         self.kind, self.value, self.limit = kind, float(value), float(limit)
-        super().__init__(f"segment violates {kind} limit: {value:.6g} vs {limit:.6g}{' (' + detail + ')' if detail else ''}")
+        extra = f" ({detail})" if detail else ""
+        super().__init__(f"segment violates {kind} limit: {value:.6g} vs {limit:.6g}{extra}")
 
 
 @dataclass(frozen=True)

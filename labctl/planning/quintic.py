@@ -234,7 +234,10 @@ class QuinticSegment:
         return out
 
     def max_rotation_rate(self) -> float:
-        """Upper bound on the angular speed (rad/s): max |dr/dt| (≥ |ω| since ‖J_r‖ ≤ 1), exact; 0 without orientation."""
+        """Upper bound on the angular speed (rad/s): max |dr/dt|, which is ≥ |ω| since ‖J_r‖ ≤ 1.
+
+        Exact (critical points of |dr/du|²); 0 without orientation.
+        """
         if self.rot_coeffs is None:
             return 0.0
         dr = _derivative(self.rot_coeffs)  # (5, 3): dr/du

@@ -19,14 +19,17 @@ from typing import Literal
 import numpy as np
 from filterpy.kalman import IMMEstimator, KalmanFilter
 
-from ..errors import LabctlError
 from .models import plane_matrices, position_matrix
 
 ModelName = Literal["cv", "ca", "imm"]
 
 
-class TrackingError(LabctlError, ValueError):
-    """Bad input to the tracker (non-finite measurement, prediction into the past, no track yet)."""
+class TrackingError(ValueError):
+    """Bad input to the tracker (non-finite measurement, prediction into the past, no track yet).
+
+    A ``ValueError`` (the tracking layer imports nothing else from labctl); callers at the edges
+    turn it into a ``UserInputError`` or ``LabctlError`` as fits.
+    """
 
 
 @dataclass(frozen=True)
@@ -183,7 +186,7 @@ class MarkerTracker:
             P[base + 1, base + 1] = speed_sigma**2
             if d == 3:
                 P[base + 2, base + 2] = accel_sigma**2
-        for kf, (order, _, embed) in zip(self._kfs, self._specs):
+        for kf, (_, _, embed) in zip(self._kfs, self._specs):
             kf.x = x.copy()
             kf.P = P.copy()
             if embed:  # the CV model inside the IMM carries no acceleration
