@@ -2,8 +2,8 @@
 perspective-bias correction of a dot's centroid.
 
 * Detection: dark dots are holes in the light regions of an Otsu-thresholded image, with a
-  minimum contrast to their surroundings (so the dark, textured table yields none); each centre is the grey-level centroid
-  ``Σ w·x / Σ w`` with ``w = (background − I) / (background − dot)`` clipped to [0, 1], which
+  minimum contrast to their surroundings (so the dark, textured table yields none); each centre
+  is the grey-level centroid ``Σ w·x / Σ w`` with ``w = (background − I) / (background − dot)`` clipped to [0, 1], which
   uses the partial coverage of boundary pixels (sub-pixel).
 * Identification: a few coloured fiducial dots (told apart by chroma, which foreshortening does
   not change) fix the correspondence; every assignment of the detected fiducials to the model's

@@ -158,7 +158,7 @@ def residual_plot_png(residuals: dict[str, np.ndarray]) -> bytes:
     from matplotlib.figure import Figure
 
     n = max(1, len(residuals))
-    fig = Figure(figsize=(9, 3.6 * n), dpi=90)
+    fig = Figure(figsize=(9, 3.9 * n), dpi=90)
     for i, (name, r) in enumerate(residuals.items()):
         r = np.asarray(r, float)
         ax = fig.add_subplot(n, 2, 2 * i + 1)
@@ -170,7 +170,7 @@ def residual_plot_png(residuals: dict[str, np.ndarray]) -> bytes:
         ax.axhline(0, lw=0.5, c="k")
         ax.axvline(0, lw=0.5, c="k")
         rms = float(np.sqrt(np.mean(np.sum(r**2, axis=1))))
-        ax.set_title(f"{name}: residuals (px), RMS {rms:.4f}")
+        ax.set_title(f"{name}\nresiduals (px), RMS {rms:.4f}", fontsize=10)
         ax2 = fig.add_subplot(n, 2, 2 * i + 2)
         ax2.hist(np.linalg.norm(r, axis=1), bins=30)
         ax2.set_xlabel("|residual| (px)")

@@ -227,4 +227,4 @@ def target_yaml(target: RoofTarget) -> str:
             "# z up, x across the ridge. fiducials: (face, k, row) of the coloured dots. placements_w: where\n"
             "# it sits in the world frame during calibration (x, y, yaw_deg). plate_*: the table-registration\n"
             "# plate on the carriage; table_positions_mm: where the table is commanded while C1 looks.\n")
-    return head + yaml.safe_dump(d, sort_keys=False)
+    return head + yaml.safe_dump(d, sort_keys=False, default_flow_style=None)
