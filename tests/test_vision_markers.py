@@ -125,7 +125,7 @@ def test_windowed_search_and_fallback():
     np.testing.assert_allclose(cut[0].centroid, full.centroid, atol=1e-9)
     # tracker mode: centroid only, same centroid
     quick = detect_markers_windowed(img, (385, 255), 40, refine=False)
-    np.testing.assert_allclose(quick[0].centroid, full.centroid, atol=1e-9)
+    np.testing.assert_allclose(quick[0].centroid, full.centroid, atol=0.3)  # thresholded-pixel centroid
     assert len(quick[0].boundary) == 0
     # nonsense predictions fall back instead of crashing
     for bad in ((np.nan, 3), ("a", "b")):

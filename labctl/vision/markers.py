@@ -10,7 +10,8 @@ Pipeline for one BGR image (pixels are the image's own, i.e. distorted, frame-bu
    by the blob's own inside and outside levels into a coverage image c ∈ [0, 1] (linear in the
    fraction of the pixel the marker covers, so anti-aliasing and shading do not bias it).
    The "redness" is the projection of each pixel's BGR colour on the difference between the
-   blob's inside and outside colours (medians), so any configured marker colour works. Each
+   blob's inside and outside colours (means over its core and a ring around it), so any
+   configured marker colour works. Each
    row (where the boundary is closer to vertical) and each column (closer to horizontal) that
    crosses the 50 % level gives one boundary point by the *area* rule: along a 6-pixel scan
    across the edge the edge sits at (start − ½) + Σ c, which is exact for a straight edge at
@@ -157,17 +158,17 @@ def _boundary(c: np.ndarray, ellipse0: Ellipse) -> tuple[np.ndarray, np.ndarray]
 
 
 def _levels(roi: np.ndarray, blob: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-    """Inside and outside colours (BGR medians) of one blob: its core and a ring around it."""
+    """Inside and outside colours (BGR means) of one blob: its core and a ring around it."""
     core = cv2.erode(blob, _K3, iterations=2)
     if np.count_nonzero(core) < 3:
         core = cv2.erode(blob, _K3, iterations=1)
     if np.count_nonzero(core) < 3:
         core = blob
     ring = cv2.dilate(blob, _K3, iterations=4) & ~cv2.dilate(blob, _K3, iterations=2)
-    inside, outside = roi[core > 0], roi[ring > 0]
-    if inside.shape[0] == 0 or outside.shape[0] == 0:
+    if not (np.count_nonzero(core) and np.count_nonzero(ring)):
         return None
-    return np.median(inside, axis=0), np.median(outside, axis=0)
+    # means over clean pixels (core well inside, ring well outside); cv2.mean is fast
+    return np.array(cv2.mean(roi, mask=core)[:3]), np.array(cv2.mean(roi, mask=ring)[:3])
 
 
 def _analyse_blob(img: np.ndarray, labels: np.ndarray, label: int, bbox, label_origin,
@@ -181,9 +182,19 @@ def _analyse_blob(img: np.ndarray, labels: np.ndarray, label: int, bbox, label_o
     gx, gy = x + lx, y + ly  # blob bbox in image pixels
     x0, y0 = max(gx - pad, 0), max(gy - pad, 0)
     x1, y1 = min(gx + w + pad, W), min(gy + h + pad, H)
-    roi = img[y0:y1, x0:x1].astype(np.float32)
     blob = np.zeros((y1 - y0, x1 - x0), np.uint8)
     blob[gy - y0:gy - y0 + h, gx - x0:gx - x0 + w] = labels[y:y + h, x:x + w] == label
+    touches = bool(gx <= 0 or gy <= 0 or gx + w >= W or gy + h >= H)
+    bbox_img = (int(gx), int(gy), int(gx + w), int(gy + h))
+    mb = cv2.moments(blob, binaryImage=True)
+    if not refine:  # tracker mode (paper §4.1): centroid and moment ellipse of the thresholded blob
+        rough = _moment_ellipse(mb)
+        if rough is None:
+            return None
+        centroid = (mb["m10"] / mb["m00"] + x0, mb["m01"] / mb["m00"] + y0)
+        ell = Ellipse.from_conic(_shift_conic(rough.conic, x0, y0))
+        return Marker(centroid, ell, float(mb["m00"]), np.empty((0, 2)), np.empty(0), bbox_img, touches, float("nan"))
+    roi = img[y0:y1, x0:x1].astype(np.float32)
     levels = _levels(roi, blob)
     if levels is None:
         return None
@@ -197,21 +208,12 @@ def _analyse_blob(img: np.ndarray, labels: np.ndarray, label: int, bbox, label_o
     # keep only this blob's neighbourhood (other blobs in the ROI must not add edges)
     near = cv2.dilate(blob, _K3, iterations=pad)
     c[near == 0] = 0.0
-    touches = bool(gx <= 0 or gy <= 0 or gx + w >= W or gy + h >= H)
     cc = np.clip(c, 0.0, 1.0)
     m = cv2.moments(cc)
     if m["m00"] < 3:
         return None
     area = float(m["m00"])
     centroid = (m["m10"] / area + x0, m["m01"] / area + y0)
-    bbox_img = (int(gx), int(gy), int(gx + w), int(gy + h))
-    mb = cv2.moments(blob, binaryImage=True)
-    if not refine:  # centroid only (tracker mode): the ellipse of the coverage moments
-        rough = _moment_ellipse(m)
-        if rough is None:
-            return None
-        ell = Ellipse.from_conic(_shift_conic(rough.conic, x0, y0))
-        return Marker(centroid, ell, area, np.empty((0, 2)), np.empty(0), bbox_img, touches, float("nan"))
     rough = _moment_ellipse(mb)
     if rough is None:
         return None
@@ -279,8 +281,8 @@ def detect_markers(image_bgr, *, hue_range_deg=(-15.0, 15.0), min_saturation: fl
     edge (flagged ``touches_border``, ellipse fitted to the remaining arc). Blobs smaller than
     ``min_area_px``, non-elliptical ones (boundary RMS distance to the fitted ellipse above
     ``max_fit_rms_px``, or area unlike the ellipse's) are dropped. ``refine=False`` is the
-    tracker's centroid-only mode: no boundary points, and the ellipse is the one with the
-    blob's coverage-weighted moments.
+    tracker's centroid-only mode (paper §4.1): the centroid, area and moment ellipse of the
+    thresholded pixels, no boundary points, no shape check.
 
     Returns markers sorted by decreasing area (possibly empty). Raises
     :class:`MarkerImageError` only for an array that is not an image.

@@ -1,0 +1,87 @@
+"""``labctl bench vision``: marker detection, fit + pose and the ellipse fitters, timed against
+baselines in the same run (medians). Synthetic 640×480 images of the issue's test scene."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from ._timing import median_time, row
+
+
+def run(quick: bool = False) -> dict:
+    from ..vision import (
+        circle_poses,
+        detect_markers,
+        detect_markers_windowed,
+        ellipse_from_cv_box,
+        fit_ellipse,
+        marker_pose_candidates,
+    )
+    from ..vision.baseline import centroid_inrange_moments
+    from ..vision.synthetic import issue_camera, render_disc
+
+    repeat = 15 if quick else 200
+    cam = issue_camera()
+    rng = np.random.default_rng(1)
+    center = np.array([40.0, -25.0, 900.0])
+    sight = -center / np.linalg.norm(center)
+    side = np.cross(sight, [1.0, 0.0, 0.0])
+    side /= np.linalg.norm(side)
+    normal = np.cos(np.radians(45)) * sight + np.sin(np.radians(45)) * side
+    img = render_disc(cam, center, normal, 10.0, rng=rng)
+    marker = detect_markers(img)[0]
+    predicted = (marker.centroid[0] + 3.0, marker.centroid[1] - 2.0)
+    half = 48.0
+    rows = []
+
+    t_base = median_time(lambda: centroid_inrange_moments(img), repeat)
+    t_full = median_time(lambda: detect_markers(img), repeat)
+    t_full_c = median_time(lambda: detect_markers(img, refine=False), repeat)
+    t_win = median_time(lambda: detect_markers_windowed(img, predicted, half), repeat)
+    t_win_c = median_time(lambda: detect_markers_windowed(img, predicted, half, refine=False), repeat)
+    rows.append(row("detect full frame (sub-pixel boundary + fit)", t_full, "cv2.inRange+cv2.moments", t_base))
+    rows.append(row("detect full frame, centroid only", t_full_c, "cv2.inRange+cv2.moments", t_base))
+    rows.append(row(f"detect windowed ±{half:.0f} px (sub-pixel + fit)", t_win, "same, full frame", t_full))
+    rows.append(row(f"detect windowed ±{half:.0f} px, centroid only", t_win_c, "same, full frame", t_full_c))
+
+    boundary32 = marker.boundary.astype(np.float32)
+    t_pose = median_time(lambda: marker_pose_candidates(marker, cam, 10.0), repeat * 5)
+    t_pose_cv = median_time(lambda: circle_poses(ellipse_from_cv_box(cv2.fitEllipse(boundary32)), 10.0, cam.K),
+                            repeat * 5)
+    rows.append(row(f"fit + pose of one marker ({len(marker.boundary)} pts)", t_pose, "cv2.fitEllipse + same pose",
+                    t_pose_cv))
+
+    # the ellipse fitters on 360 noisy points (σ = 0.5 px): full boundary and half arc
+    accuracy = {}
+    for name, arc in (("full", 2 * np.pi), ("half arc", np.pi)):
+        frng = np.random.default_rng(5)
+        sets = []
+        for _ in range(40 if quick else 300):
+            from ..vision import Ellipse
+
+            e = Ellipse.from_params(frng.uniform(200, 400, 2), (frng.uniform(15, 80), frng.uniform(8, 60)),
+                                    frng.uniform(0, np.pi))
+            t0 = frng.uniform(0, 2 * np.pi)
+            sets.append((e, e.points(360, t0, t0 + arc) + frng.normal(0, 0.5, (360, 2))))
+        fitters = {
+            "labctl fit_ellipse": lambda p: fit_ellipse(p),
+            "cv2.fitEllipse": lambda p: ellipse_from_cv_box(cv2.fitEllipse(p.astype(np.float32))),
+            "cv2.fitEllipseAMS": lambda p: ellipse_from_cv_box(cv2.fitEllipseAMS(p.astype(np.float32))),
+            "cv2.fitEllipseDirect": lambda p: ellipse_from_cv_box(cv2.fitEllipseDirect(p.astype(np.float32))),
+        }
+        accuracy[name] = {}
+        pts0 = sets[0][1]
+        t_cv = median_time(lambda p=pts0: cv2.fitEllipse(p.astype(np.float32)), repeat * 2)
+        for fname, fn in fitters.items():
+            errs = [np.linalg.norm(fn(p).center - e.center) for e, p in sets]
+            accuracy[name][fname] = {"centre_rms_px": float(np.sqrt(np.mean(np.square(errs))))}
+            t = median_time(lambda p=pts0, fn=fn: fn(p), repeat * 2)
+            rows.append(row(f"ellipse fit {name}, 360 pts: {fname}", t, "cv2.fitEllipse", t_cv))
+    return {
+        "rows": rows,
+        "windowed_speedup": t_full / t_win,
+        "windowed_speedup_centroid_only": t_full_c / t_win_c,
+        "fit_pose_median_us": t_pose * 1e6,
+        "ellipse_fit_centre_rms_px": accuracy,
+    }
