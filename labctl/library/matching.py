@@ -30,7 +30,7 @@ from ..vision.shape import ShapeFeatures, hu_distance, signature_distance
 
 ECC_GATE = 0.15
 SIZE_GATE = 0.12
-SIZE_WEIGHT = 0.5
+SIZE_WEIGHT = 1.0
 DEFAULT_THRESHOLD = 0.15
 
 
@@ -177,9 +177,16 @@ def plan_next_view(candidates: Sequence[str], index: LibraryIndex,
 
 @dataclass
 class Identification:
-    """Outcome of :func:`identify`: the object (None if unresolved), views used, their results."""
+    """Outcome of :func:`identify`.
+
+    ``name`` the identified object (lowest accumulated score among the surviving candidates);
+    ``resolved`` True when exactly one candidate survived (False: ``name`` is a best guess among
+    ``candidates``); ``views_used`` standard views taken; ``requested`` the planned (object, marker).
+    """
 
     name: str | None
+    resolved: bool
+    candidates: list[str]
     views_used: int
     steps: list[MatchResult]
     requested: list[tuple[str, int]]
@@ -189,43 +196,40 @@ def identify(first: ShapeFeatures, index: LibraryIndex, acquire: Callable[[str, 
              threshold: float = DEFAULT_THRESHOLD, max_views: int = 3, method: str = "aos") -> Identification:
     """Recognise with extra standard views where ambiguous (paper §3.4, §2 stage 2).
 
-    ``acquire(name, marker_id)`` moves the camera to the standard view of marker ``marker_id``
-    *assuming* the object is ``name`` and returns the view's features (None if nothing usable
-    was seen). Hypothesis ``name`` survives if that view matches its view ``marker_id`` within
-    ``threshold``; any other candidate survives if the view matches any of its views.
+    ``acquire(name, marker_id)`` moves the camera towards the standard view of marker
+    ``marker_id`` *assuming* the object is ``name`` and returns the features of the standard view
+    it then takes of the marker actually there (None if no usable view). Hypothesis ``name`` stays
+    a candidate if the view matches its view ``marker_id`` within ``threshold``; any other
+    candidate if the view matches one of its views. Scores accumulate over the views; the
+    surviving candidate with the lowest total is the answer.
     """
     r = match(first, index, threshold, method=method)
     steps, requested = [r], []
-    remaining = list(r.candidates)
-    viewed: dict[str, list[int]] = {n: [m] for n, m in r.views.items() if n in remaining}
+    if r.best is None:
+        return Identification(None, False, [], 1, steps, requested)
+    remaining = list(r.candidates) or [r.best[0]]
+    total = {c: r.scores[c] for c in remaining}
+    viewed: dict[str, list[int]] = {c: [r.views[c]] for c in remaining}
+    names = np.array(index.names)
     views_used = 1
     while len(remaining) > 1 and views_used < max_views:
-        h, j = plan_next_view(remaining, index, viewed)
+        try:
+            h, j = plan_next_view(remaining, index, viewed)
+        except ValueError:
+            break
         requested.append((h, j))
+        viewed.setdefault(h, []).append(j)
         f = acquire(h, j)
         views_used += 1
-        viewed.setdefault(h, []).append(j)
         if f is None:
-            remaining = [c for c in remaining if c != h]
             continue
         s = view_scores(f, index, method=method)
-        names = np.array(index.names)
-        keep = []
-        for c in remaining:
-            if c == h:
-                ok = s[index.view_index(h, j)] <= threshold
-            else:
-                ok = bool(np.any(s[names == c] <= threshold))
-            if ok:
-                keep.append(c)
+        step_score = {c: float(s[index.view_index(h, j)]) if c == h else float(np.min(s[names == c]))
+                      for c in remaining}
         steps.append(match(f, index, threshold, method=method, restrict=remaining))
-        if keep:
-            remaining = keep
-        if h in remaining and len(remaining) > 1:
-            # the hypothesis was confirmed by a view chosen to separate it: prefer it
-            sh = s[index.view_index(h, j)]
-            rivals = [min(s[names == c]) for c in remaining if c != h]
-            if sh < min(rivals):
-                remaining = [h]
-    name = remaining[0] if len(remaining) == 1 else None
-    return Identification(name, views_used, steps, requested)
+        for c in remaining:
+            total[c] += step_score[c]
+        keep = [c for c in remaining if step_score[c] <= threshold]
+        remaining = keep or [min(remaining, key=lambda c: step_score[c])]
+    name = min(remaining, key=lambda c: total[c])
+    return Identification(name, len(remaining) == 1, remaining, views_used, steps, requested)

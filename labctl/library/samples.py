@@ -80,32 +80,32 @@ def random_object(rng: np.random.Generator) -> trimesh.Trimesh:
     """A random prismatic part within the lab's size range (L, T, U, cross, polygon, step, trapezoid, box)."""
     kind = rng.choice(["box", "L", "T", "U", "cross", "ngon", "step", "trap"])
     u = lambda lo, hi: float(rng.uniform(lo, hi))  # noqa: E731
-    length = u(30, 80)
+    length = u(30, 70)
     if kind == "box":
-        return trimesh.creation.box((u(30, 85), u(30, 85), u(25, 70)))
+        return trimesh.creation.box((u(30, 70), u(30, 70), u(25, 60)))
     if kind == "L":
-        w, h = u(50, 85), u(50, 85)
+        w, h = u(50, 70), u(50, 70)
         poly = l_profile(w, h, u(22, min(w, h) - 22), 0)
     elif kind == "T":
-        w, h = u(60, 85), u(55, 85)
-        poly = t_profile(w, h, u(22, 30), u(22, w - 30))
+        w, h = u(60, 75), u(50, 70)
+        poly = t_profile(w, h, u(22, 28), u(22, w - 30))
     elif kind == "U":
-        w, h = u(70, 90), u(50, 80)
+        w, h = u(70, 78), u(50, 65)
         t = u(22, 26)
         poly = [(0, 0), (w, 0), (w, h), (w - t, h), (w - t, t), (t, t), (t, h), (0, h)]
     elif kind == "cross":
-        a, t = u(70, 88), u(22, 30)
+        a, t = u(68, 78), u(22, 28)
         c0, c1 = (a - t) / 2, (a + t) / 2
         poly = [(c0, 0), (c1, 0), (c1, c0), (a, c0), (a, c1), (c1, c1), (c1, a), (c0, a), (c0, c1), (0, c1),
                 (0, c0), (c0, c0)]
     elif kind == "ngon":
-        poly = regular_polygon(int(rng.integers(3, 9)), u(50, 80))
+        poly = regular_polygon(int(rng.integers(3, 9)), u(45, 65))
     elif kind == "step":
         n = int(rng.integers(2, 4))
-        poly = stepped(u(28 * n, 90), sorted([u(24, 75) for _ in range(n)], reverse=True))
+        poly = stepped(u(28 * n, 84), sorted([u(24, 60) for _ in range(n)], reverse=True))
     else:
-        b = u(60, 88)
-        poly = trapezoid(b, u(25, b - 20), u(30, 60))
+        b = u(60, 78)
+        poly = trapezoid(b, u(25, b - 20), u(30, 50))
     return _profile(poly, length, lay_flat=bool(rng.integers(0, 2)))
 
 

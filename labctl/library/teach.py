@@ -50,11 +50,12 @@ def read_markers_file(path: Path | str, default_radius_mm: float) -> list[Marker
 def teach_object(name: str, model: Path | str | trimesh.Trimesh, *, radius_mm: float, view: ViewingGeometry,
                  standoff_mm: float, scale_mm_per_px: float, render_factory: RenderFactory,
                  markers: list[Marker] | None = None, library_dir: Path | str | None = None,
-                 progress: Callable[[str, int, int], None] | None = None) -> LibraryObject:
+                 progress: Callable[[str, int, int], None] | None = None, sweep: bool = True) -> LibraryObject:
     """Teach one object; write it to ``library_dir/NAME`` (atomically) when a folder is given.
 
     Raises :class:`ModelError` for a model that cannot be taught (the library is untouched).
-    ``progress(stage, done, total)`` is called as the stages advance.
+    ``progress(stage, done, total)`` is called as the stages advance. ``sweep`` also computes the
+    marker count versus viewing angle (the optimal initial viewing angle, paper §4.1).
     """
     check_name(name)
 
@@ -79,7 +80,7 @@ def teach_object(name: str, model: Path | str | trimesh.Trimesh, *, radius_mm: f
         p = int(np.argmin(counts.min(axis=1)))
         raise ModelError(f"{name}: in stable pose {p} (probability {poses[p][1]:.3f}) no marker is visible at "
                          f"{int((counts[p] == 0).sum())} of {counts.shape[1]} yaw angles")
-    sweep = optimal_viewing_angle(mesh, poses, radius_mm, view)
+    sweep = optimal_viewing_angle(mesh, poses, radius_mm, view) if sweep else None
     step("standard views", 0, len(markers))
     render_view = render_factory(mesh, markers)
     done = [0]
@@ -101,7 +102,7 @@ def teach_object(name: str, model: Path | str | trimesh.Trimesh, *, radius_mm: f
                       "markers": len(markers), "viewing_angle_deg": view.angle_deg,
                       "distance_mm": view.distance_mm, "max_obliquity_deg": view.max_obliquity_deg,
                       "min_visible_markers": int(counts.min()), "checked_yaw_steps": int(counts.shape[1])},
-        "viewing_angle_sweep": sweep,
+        "viewing_angle_sweep": sweep if sweep is not None else {},
         "standoff_mm": float(standoff_mm), "mm_per_px": float(scale_mm_per_px),
     }
     obj = LibraryObject(name, mesh, list(markers), poses, {v.marker_id: v for v in views}, info=info)

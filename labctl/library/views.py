@@ -17,7 +17,7 @@ import numpy as np
 import trimesh
 
 from ..geometry import CameraModel, invert, make_T, rotvec_to_matrix
-from ..vision.shape import ShapeFeatures, features_from_image
+from ..vision.shape import ShapeError, ShapeFeatures, features_from_image, silhouette_mask
 from .placement import Marker
 
 RenderView = Callable[[np.ndarray], np.ndarray]
@@ -93,10 +93,26 @@ def build_standard_views(markers: list[Marker], render_view: RenderView, *, stan
     views = []
     for m in markers:
         img = render_view(standard_view_pose(m, standoff_mm))
+        check_fits_any_rotation(silhouette_mask(img))
         views.append(StandardView(m.id, features_from_image(img, scale_mm_per_px), img))
         if progress is not None:
             progress(1)
     return views
+
+
+def check_fits_any_rotation(mask: np.ndarray, margin_px: int = 4) -> None:
+    """Raise :class:`ShapeError` unless the silhouette stays in the image for any in-plane rotation.
+
+    A standard view is reached with an arbitrary rotation about the optical axis, so the object
+    must lie within the circle inscribed in the image around its centre.
+    """
+    h, w = mask.shape
+    ys, xs = np.nonzero(mask)
+    r = np.sqrt((xs - (w - 1) / 2) ** 2 + (ys - (h - 1) / 2) ** 2).max()
+    limit = min(w, h) / 2 - margin_px
+    if r > limit:
+        raise ShapeError(f"the object reaches {r:.0f} px from the view centre (limit {limit:.0f} px for any "
+                         "in-plane rotation): too large for the standard view at this stand-off")
 
 
 def silhouette_renderer(camera: CameraModel, mesh: trimesh.Trimesh, markers: list[Marker] = (), *,

@@ -13,7 +13,8 @@ amount of smoothing, and several chord lengths give a multi-scale representation
 implementation exists; the exact definition used here is:
 
 * the outer contour is oriented counter-clockwise (positive shoelace area in pixel coordinates)
-  and resampled to ``N`` points ``p_0 … p_{N-1}`` equally spaced in arc length;
+  and resampled to ``N`` points ``p_0 … p_{N-1}`` equally spaced in arc length (computed at
+  4N points and averaged in runs of 4, against sampling-phase jitter at corners);
 * for each scale ``k`` (a number of samples, i.e. a fixed fraction ``k/N`` of the perimeter) the
   chord of sight of ``p_i`` is ``p_{i-k} p_{i+k}`` and the angle of sight is the angle it subtends
   at ``p_i`` measured through the shape's interior::
@@ -47,6 +48,7 @@ import numpy as np
 N_SAMPLES = 128
 AOS_SCALES = (4, 8, 16, 32)  # chord half-lengths in samples: 1/32 … 1/4 of the perimeter
 N_FOURIER = 24
+OVERSAMPLE = 4
 
 # Freeman directions 0..7, counter-clockwise from +x in a y-up frame; in image coordinates
 # (rows down) direction 2 is "up" = −row.
@@ -182,21 +184,24 @@ def resample_closed(contour: np.ndarray, n: int = N_SAMPLES) -> np.ndarray:
     return np.column_stack([np.interp(t, s, closed[:, 0]), np.interp(t, s, closed[:, 1])])
 
 
-def angle_of_sight_signature(points: np.ndarray, scales=AOS_SCALES) -> np.ndarray:
-    """Angle-of-sight signature ``θ_k(i)`` (rad, (len(scales), N)) of arc-length-resampled CCW points.
+def angle_of_sight_signature(points: np.ndarray, scales=AOS_SCALES, oversample: int = OVERSAMPLE) -> np.ndarray:
+    """Angle-of-sight signature ``θ_k(i)`` (rad, (len(scales), N)) of a closed CCW contour.
 
     See the module docstring for the definition (Tchoukanov et al. 1992, our sliding-chord
-    variant). Straight boundary → π; convex corner < π; concave > π.
+    variant). Straight boundary → π; convex corner < π; concave > π. ``points`` are resampled
+    to ``oversample·N`` points (N = ``N_SAMPLES``), θ is computed with chords ``oversample·k``
+    and averaged over each run of ``oversample`` samples, so a corner falling between two
+    samples (sampling phase) barely changes the signature.
     """
-    p = np.asarray(points, dtype=float)
+    p = resample_closed(points, N_SAMPLES * oversample)
     out = np.empty((len(scales), len(p)))
     for j, k in enumerate(scales):
-        a = np.roll(p, k, axis=0) - p  # p_{i-k} - p_i
-        b = np.roll(p, -k, axis=0) - p  # p_{i+k} - p_i
+        a = np.roll(p, k * oversample, axis=0) - p  # p_{i-k} - p_i
+        b = np.roll(p, -k * oversample, axis=0) - p  # p_{i+k} - p_i
         cross = b[:, 0] * a[:, 1] - b[:, 1] * a[:, 0]
         dot = np.sum(a * b, axis=1)
         out[j] = np.mod(np.arctan2(cross, dot), 2 * np.pi)
-    return out
+    return out.reshape(len(scales), N_SAMPLES, oversample).mean(axis=2)
 
 
 def signature_distance(query: np.ndarray, library: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -304,7 +309,7 @@ def features_from_mask(mask: np.ndarray, mm_per_px: float) -> ShapeFeatures:
     return ShapeFeatures(
         eccentricity=eccentricity(mask), size_mm=float(np.sqrt(area) * mm_per_px),
         perimeter_mm=chain_perimeter(code) * mm_per_px, chain_start=(int(contour[0, 0]), int(contour[0, 1])),
-        chain_code=code, aos=angle_of_sight_signature(pts), fd=centroid_distance_fd(pts), hu=hu_moments(mask),
+        chain_code=code, aos=angle_of_sight_signature(contour), fd=centroid_distance_fd(pts), hu=hu_moments(mask),
     )
 
 

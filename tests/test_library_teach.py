@@ -1,0 +1,176 @@
+"""Teaching objects: models, stable poses, marker placement, storage, bad input (issue 5)."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+import trimesh
+import yaml
+
+from labctl.geometry import CameraModel
+from labctl.library import samples
+from labctl.library.model import ModelError, extrude_polygon, load_model, stable_poses, validate_model
+from labctl.library.placement import (
+    ViewingGeometry,
+    candidate_sites,
+    check_coverage,
+    plan_markers,
+    segments_blocked,
+    set_cover,
+)
+from labctl.library.storage import LibraryError, load_library
+from labctl.library.teach import teach_object
+from labctl.library.views import mm_per_px, silhouette_renderer
+
+CAM = CameraModel(f=25.0, kappa1=-0.0008, sx=1.0, cx=319.5, cy=239.5, dx=0.0098, dy=0.0098, ncx=640, nfx=640)
+VIEW = ViewingGeometry()
+PROFILES = {
+    "L": samples.l_profile(60, 50, 25, 0),
+    "T": samples.t_profile(70, 60, 25, 30),
+    "hex": samples.regular_polygon(6, 55),
+    "triangle": samples.regular_polygon(3, 45),
+    "trapezoid": samples.trapezoid(70, 35, 40),
+}
+
+
+def _teach(name, mesh, library_dir=None, **kw):
+    return teach_object(name, mesh, radius_mm=8.0, view=VIEW, standoff_mm=600.0, scale_mm_per_px=mm_per_px(CAM, 600),
+                        render_factory=lambda m, mk: silhouette_renderer(CAM, m, mk), library_dir=library_dir,
+                        sweep=False, **kw)
+
+
+def test_set_cover_exact_is_minimal_by_brute_force():
+    rng = np.random.default_rng(3)
+    for _ in range(5):
+        A = rng.random((40, 9)) < 0.3
+        A[np.arange(40), rng.integers(0, 9, 40)] = True
+        chosen, method, _ = set_cover(A)
+        assert method == "exact" and A[:, chosen].any(axis=1).all()
+        best = next(k for k in range(1, 10) for c in itertools.combinations(range(9), k) if A[:, c].any(axis=1).all())
+        assert len(chosen) == best
+
+
+def test_greedy_cover_beyond_exact_limit_covers_and_reports_bound():
+    A = np.eye(6, dtype=bool)[:, [0, 1, 2, 3, 4, 5, 0, 1]]
+    chosen, method, bound = set_cover(A, exact_max_sites=2)
+    assert method == "greedy" and A[:, chosen].any(axis=1).all() and bound >= 1.0
+
+
+def test_segment_blocking_against_a_cube():
+    tris = trimesh.creation.box((10, 10, 10)).triangles
+    o = np.array([[-20.0, 0, 0], [-20.0, 20, 0]])
+    t = np.array([[20.0, 0, 0], [20.0, 20, 0]])
+    assert segments_blocked(o, t, tris).tolist() == [True, False]
+
+
+def test_box_stable_poses_and_marker_sites():
+    box = validate_model(trimesh.creation.box((40, 40, 35)), marker_radius_mm=8)
+    poses = stable_poses(box)
+    assert len(poses) == 6 and sum(p for _, p in poses) == pytest.approx(1.0)
+    for T, _ in poses:
+        assert trimesh.transform_points(box.vertices, T)[:, 2].min() == pytest.approx(0.0, abs=1e-9)
+    sites = candidate_sites(box, 8.0)
+    assert len(sites) == 6
+    for s in sites:  # face centres of the box
+        assert np.allclose(np.abs(s.center), np.abs(s.normal) * [20, 20, 17.5], atol=0.5)
+
+
+@pytest.mark.parametrize("profile", sorted(PROFILES))
+def test_teaching_extruded_profiles_covers_every_pose_and_yaw(profile):
+    mesh = extrude_polygon(np.array(PROFILES[profile], float), 45.0)
+    obj = _teach(profile, mesh)
+    counts = check_coverage(obj.mesh, [T for T, _ in obj.stable_poses], obj.markers, VIEW, n_yaw=360)
+    assert counts.min() >= 1  # brute force over stable poses × 360 yaw steps
+    assert obj.info["placement"]["method"] == "exact"
+    assert len(obj.views) == len(obj.markers)
+
+
+def test_exact_marker_count_is_minimal_over_candidates():
+    mesh = validate_model(samples.sample_objects()["wedge"], marker_radius_mm=8)
+    poses = stable_poses(mesh)
+    view = ViewingGeometry(n_yaw=72)
+    r = plan_markers(mesh, poses, 8.0, view)
+    vis = r.coverage  # noqa: F841 - the chosen markers' coverage; check no smaller subset of candidates works
+    from labctl.library.placement import view_directions_o, visibility_matrix
+
+    full = visibility_matrix(mesh, r.candidates, view_directions_o([T for T, _ in poses], view.angle_deg, view.n_yaw),
+                             distance_mm=view.distance_mm, max_obliquity_deg=view.max_obliquity_deg - 2.0)
+    k = len(r.markers)
+    smaller = [c for c in itertools.combinations(range(len(r.candidates)), k - 1) if full[:, c].any(axis=1).all()]
+    assert smaller == []
+
+
+def test_saved_object_round_trips(tmp_path):
+    obj = _teach("hexagon", extrude_polygon(np.array(PROFILES["hex"], float), 40.0), library_dir=tmp_path)
+    lib = load_library(tmp_path)
+    got = lib["hexagon"]
+    assert [m.id for m in got.markers] == [m.id for m in obj.markers]
+    assert np.allclose(got.markers[0].center, obj.markers[0].center, atol=1e-3)
+    assert len(got.stable_poses) == len(obj.stable_poses)
+    assert np.allclose(got.views[0].features.aos, obj.views[0].features.aos, atol=1e-5)
+    assert got.view_image(0).shape[2] == 3 and (tmp_path / "hexagon" / "contact_sheet.png").is_file()
+    assert got.mesh.is_watertight
+
+
+def _snapshot(path):
+    return sorted((p.relative_to(path).as_posix(), p.stat().st_size) for p in path.rglob("*"))
+
+
+def test_bad_models_give_clear_errors_and_leave_library_untouched(tmp_path):
+    lib = tmp_path / "lib"
+    _teach("good", trimesh.creation.box((40, 40, 35)), library_dir=lib)
+    before = _snapshot(lib)
+    open_box = trimesh.creation.box((40, 40, 35))
+    open_box.update_faces(np.arange(len(open_box.faces)) > 0)
+    cases = {
+        "watertight": open_box,
+        "empty": trimesh.Trimesh(),
+        "metres": trimesh.creation.box((40000, 40000, 35000)),
+        "too small for one marker": trimesh.creation.box((12, 12, 12)),
+    }
+    for expect, mesh in cases.items():
+        with pytest.raises(ModelError) as err:
+            _teach("bad", mesh, library_dir=lib)
+        msg = str(err.value)
+        assert expect.split()[0] in msg or (expect == "metres" and "mm" in msg), msg
+    # a pose from which no marker can ever be seen: an obliquity limit that hides every face
+    with pytest.raises(ModelError, match="no marker can be made visible"):
+        teach_object("bad", trimesh.creation.box((40, 40, 35)), radius_mm=8.0,
+                     view=ViewingGeometry(angle_deg=63.0, max_obliquity_deg=15.0), standoff_mm=600.0,
+                     scale_mm_per_px=mm_per_px(CAM, 600), render_factory=lambda m, mk: silhouette_renderer(CAM, m, mk),
+                     library_dir=lib, sweep=False)
+    assert _snapshot(lib) == before
+    assert not (lib / "bad").exists()
+
+
+def test_units_hint_and_file_errors(tmp_path):
+    big = tmp_path / "big.stl"
+    trimesh.creation.box((40000, 40000, 35000)).export(big)
+    with pytest.raises(ModelError, match="mm"):
+        validate_model(load_model(big), marker_radius_mm=8)
+    with pytest.raises(ModelError, match="not found"):
+        load_model(tmp_path / "missing.stl")
+    (tmp_path / "junk.stl").write_bytes(b"solid x\nthis is not stl\n")
+    with pytest.raises(ModelError):
+        validate_model(load_model(tmp_path / "junk.stl"), marker_radius_mm=8)
+
+
+def test_corrupt_library_folder_is_a_clear_error(tmp_path):
+    _teach("cube", trimesh.creation.box((40, 40, 40)), library_dir=tmp_path)
+    mk = tmp_path / "cube" / "markers.yaml"
+    good = mk.read_text()
+    mk.write_text("markers: [{id: 0, center: [0, 0], normal: [0, 0, 1], radius: 8}]")
+    with pytest.raises(LibraryError, match="cube: markers.yaml"):
+        load_library(tmp_path)
+    mk.write_text(good)
+    (tmp_path / "cube" / "views" / "0.json").write_text("{not json")
+    with pytest.raises(LibraryError, match="views/0.json"):
+        load_library(tmp_path)
+    (tmp_path / "cube" / "views" / "0.json").unlink()
+    with pytest.raises(LibraryError, match="missing views/0.json"):
+        load_library(tmp_path)
+    (tmp_path / "cube" / "object.yaml").write_text(yaml.safe_dump({"name": "other", "format": 1}))
+    with pytest.raises(LibraryError, match="names it"):
+        load_library(tmp_path)
