@@ -165,9 +165,9 @@ def run(quick: bool = False) -> dict:
     standoff = lab.config.viewing.standoff_mm
     sample = load_library(lab.library_dir)
     run_cfg = {"threshold": lab.config.run.ambiguity_threshold, "max_views": lab.config.run.max_views}
-    res_sample = _evaluate(sample, camera, standoff, trials=2 if quick else 10, rng=rng, **run_cfg)
+    res_sample = _evaluate(sample, camera, standoff, trials=2 if quick else 4, rng=rng, **run_cfg)
     gen = generated_library(30, camera, lab, rng)
-    res_gen = _evaluate(gen, camera, standoff, trials=1 if quick else 3, rng=rng, **run_cfg)
+    res_gen = _evaluate(gen, camera, standoff, trials=1 if quick else 2, rng=rng, **run_cfg)
     timing_lib = {**gen, **{k: v for k, v in sample.items()}}
     for o in sample.values():
         for mid in o.views:
