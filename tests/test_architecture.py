@@ -17,7 +17,7 @@ ALLOWED = {
     "calibration": {"geometry", "vision", "config", "fsutil", "errors"},
     "library": {"geometry", "vision", "fsutil", "errors"},
     "drivers": {"geometry", "config", "errors"},
-    "records": {"fsutil"},
+    "records": {"fsutil", "errors"},
 }
 
 

@@ -1,18 +1,235 @@
-"""``labctl run`` (the live run). Not built yet: see issue 9."""
+"""``labctl run``, ``labctl trials``, ``labctl replay`` and ``labctl worker``: the main job."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import click
 
-from ..errors import LabctlError
+from ..errors import LabctlError, UserInputError
+from ._common import emit, get_ctx, json_option
+
+TRAJECTORIES = ("line", "arc", "circle", "zigzag")
+
+
+def _trajectory(value: str) -> str:
+    if value in TRAJECTORIES:
+        return value
+    if Path(value).is_file():
+        return str(Path(value).resolve())
+    raise UserInputError(f"--trajectory must be one of {', '.join(TRAJECTORIES)} or a G-code file; got {value!r}")
+
+
+def _speed(value: float | None, lab) -> float:
+    speed = lab.config.run.speed_mm_s if value is None else value
+    if not 0 < speed <= 200:
+        raise UserInputError(f"--speed must be in (0, 200] mm/s, got {speed}")
+    return speed
+
+
+def _print_result(console, result: dict, run_dir: Path | None) -> None:
+    if result.get("identity"):
+        line = f"[bold green]identity: {result['identity']}[/]"
+        if "true_identity" in result:
+            line += f"  (true: {result['true_identity']}, {'correct' if result['correct'] else '[red]WRONG[/]'})"
+        console.print(line)
+        console.print(f"time to identity {result['time_to_identity_s']:.2f} s, "
+                      f"{result['views']} standard view(s), stages: "
+                      + ", ".join(f"{k} {v:.2f} s" for k, v in result.get("stages", {}).items()))
+    else:
+        console.print(f"[bold red]no identity[/]: {result.get('failure')}")
+    if run_dir is not None:
+        console.print(f"record: {run_dir}")
 
 
 @click.command("run")
-@click.option("--trajectory", default="line", show_default=True)
-@click.option("--speed", type=float, default=None)
-@click.option("--object", "object_name", default=None)
-@click.option("--seed", type=int, default=None)
-@click.option("--json", "json_", is_flag=True)
-def run_cmd(trajectory, speed, object_name, seed, json_) -> None:
+@click.option("--trajectory", default=None, help="line, arc, circle, zigzag or a G-code FILE (default: lab.yaml).")
+@click.option("--speed", type=float, default=None, help="Table speed, mm/s (default: lab.yaml).")
+@click.option("--object", "object_name", default=None, help="Object to place (sim; default: random from the library).")
+@click.option("--seed", type=int, default=None, help="Seed of the simulated lab (default: random).")
+@click.option("--virtual", is_flag=True, help="Simulated lab in virtual time, one process (as fast as the CPU allows).")
+@json_option
+def run_cmd(trajectory, speed, object_name, seed, virtual) -> None:
     """A live run: move the table, track, intercept, pose, standard view, identify."""
-    raise LabctlError("labctl run is not built yet (the live run is issue 9)")
+    import secrets
+
+    from ..records import RunRecord, write_report
+    from ..workers.context import RunContext
+
+    c = get_ctx()
+    lab = c.lab()
+    spec = {"trajectory": _trajectory(trajectory or lab.config.run.trajectory), "speed_mm_s": _speed(speed, lab),
+            "object_name": object_name, "seed": secrets.randbelow(2**31) if seed is None else seed}
+    ctx = RunContext.load(lab)  # fails early, in one line, without a calibration or a library
+    if object_name is not None and object_name not in ctx.library:
+        raise UserInputError(f"no object {object_name!r} in the library (have: {', '.join(ctx.names)})")
+    if virtual and not lab.is_simulated:
+        raise UserInputError("--virtual needs the simulated lab (this lab's drivers point at hardware)")
+    record = RunRecord.create(lab.runs_dir, {"command": "run", "virtual": virtual, **spec})
+    try:
+        if virtual:
+            from ..workers.virtual import TrialSpec, simulate_run
+
+            result = simulate_run(lab, ctx, TrialSpec(**{k: spec[k] for k in ("trajectory", "speed_mm_s", "seed")},
+                                                      object_name=object_name), record)
+        else:
+            result = _run_live(c, lab, spec, record)
+    except KeyboardInterrupt:
+        record.finish({"identity": None, "failure": "interrupted (Ctrl-C): robot and table stopped"})
+        raise LabctlError(f"interrupted: robot and table stopped; record kept in {record.path}") from None
+    except LabctlError as exc:
+        record.finish({"identity": None, "failure": str(exc)})
+        with _quiet():
+            write_report(record.path)
+        raise LabctlError(f"{exc} (record: {record.path})") from None
+    result["record"] = str(record.path)
+    record.finish(result)
+    with _quiet():
+        result["report"] = str(write_report(record.path))
+    emit(result, lambda con: _print_result(con, result, record.path))
+    if not result.get("identity"):
+        return 1
+
+
+class _quiet:
+    """A report that cannot be drawn must not hide the run's own result."""
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, exc_type, exc, tb):
+        return exc_type is not None and issubclass(exc_type, Exception)
+
+
+def _run_live(c, lab, spec, record) -> dict:
+    from ..workers.live import WorkerDied, run_live
+
+    view = None if c.json else _LiveView(c.console)
+    try:
+        if view is None:
+            return run_live(lab.root, spec, record.path)
+        with view:
+            return run_live(lab.root, spec, record.path, on_status=view.update)
+    except WorkerDied as exc:
+        raise LabctlError(f"{exc}; robot and table stopped") from None
+
+
+class _LiveView:
+    """Rich live view: stage, Kalman estimate, robot state, link traffic."""
+
+    def __init__(self, console):
+        from rich.live import Live
+
+        self.state: dict = {}
+        self.live = Live(self._render(), console=console, refresh_per_second=8, transient=False)
+
+    def _render(self):
+        from rich.table import Table
+
+        t = Table.grid(padding=(0, 2))
+        p = self.state.get("predictor", {})
+        est = p.get("estimate")
+        t.add_row("stage", str(p.get("stage", "starting")))
+        t.add_row("time", f"{p.get('t', 0.0):.2f} s")
+        t.add_row("Kalman estimate", "-" if est is None else f"x {est[0]:.1f}  y {est[1]:.1f} mm")
+        rob = p.get("robot")
+        t.add_row("robot flange", "-" if rob is None else "  ".join(f"{v:.0f}" for v in rob) + " mm")
+        link = p.get("link") or {}
+        t.add_row("link", f"sent {link.get('sent', 0)} B, received {link.get('received', 0)} B")
+        t.add_row("standard views", str(p.get("views", 0)))
+        return t
+
+    def update(self, status: dict) -> None:
+        self.state[status["role"]] = status
+        self.live.update(self._render())
+
+    def __enter__(self):
+        self.live.__enter__()
+        return self
+
+    def __exit__(self, *exc):
+        return self.live.__exit__(*exc)
+
+
+@click.command("trials")
+@click.option("--n", "n", type=int, default=20, show_default=True, help="Number of simulated runs.")
+@click.option("--trajectory", default=None, help="line, arc, circle or zigzag (default: lab.yaml).")
+@click.option("--speed", default=None, help="Table speed mm/s, or a comma-separated list to sweep.")
+@click.option("--objects", default=None, help="Comma-separated objects to cycle through (default: all).")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the first trial.")
+@click.option("--record/--no-record", default=True, show_default=True, help="Keep a run record per trial.")
+@json_option
+def trials_cmd(n, trajectory, speed, objects, seed, record) -> None:
+    """Many simulated runs in virtual time with deterministic seeds: success and timing tables."""
+    from ..workers.trials import run_trials
+
+    c = get_ctx()
+    lab = c.lab()
+    if n < 1:
+        raise UserInputError(f"--n must be at least 1, got {n}")
+    try:
+        speeds = [float(s) for s in speed.split(",")] if speed else [lab.config.run.speed_mm_s]
+    except ValueError:
+        raise UserInputError(f"--speed must be numbers separated by commas, got {speed!r}") from None
+    for s in speeds:
+        _speed(s, lab)
+    names = [o.strip() for o in objects.split(",") if o.strip()] if objects else None
+    traj = trajectory or lab.config.run.trajectory
+    if traj not in TRAJECTORIES:
+        raise UserInputError(f"--trajectory must be one of {', '.join(TRAJECTORIES)}, got {traj!r}")
+    progress = None if c.json else c.console
+    summary = run_trials(lab, n=n, trajectory=traj, speeds=speeds, objects=names, seed=seed, record=record,
+                         console=progress)
+    emit(summary, lambda con: _print_trials(con, summary))
+
+
+def _print_trials(console, s: dict) -> None:
+    from rich.table import Table
+
+    t = Table("speed mm/s", "n", "success", "time to identity (median)", "×lower bound (median)", "views (mean)",
+              title="trials")
+    for row in s["by_speed"]:
+        t.add_row(f"{row['speed_mm_s']:g}", str(row["n"]), f"{100 * row['success_rate']:.1f} %",
+                  "-" if row["time_to_identity_s_median"] is None else f"{row['time_to_identity_s_median']:.2f} s",
+                  "-" if row["ratio_to_lower_bound_median"] is None else f"{row['ratio_to_lower_bound_median']:.2f}",
+                  f"{row['views_mean']:.2f}")
+    console.print(t)
+    st = Table("stage", "median s", title="stage timings")
+    for k, v in s["stage_medians_s"].items():
+        st.add_row(k, f"{v:.2f}")
+    console.print(st)
+    console.print(f"success rate {100 * s['success_rate']:.1f} % of {s['n']} trials")
+    for f in s["failed"]:
+        console.print(f"[red]failed[/] seed {f['seed']} {f['true_identity']} @ {f['speed_mm_s']} mm/s: "
+                      f"{f.get('failure') or 'identified as ' + str(f.get('identity'))}  {f.get('record') or ''}")
+
+
+@click.command("replay")
+@click.argument("run", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@json_option
+def replay_cmd(run: Path) -> None:
+    """Re-run the recognizer on a recorded run's images and compare with what it decided then."""
+    from ..workers.replay import replay_run
+
+    result = replay_run(get_ctx().lab(), run)
+
+    def human(con):
+        con.print(f"recorded identity: {result['recorded_identity']}   replayed: {result['identity']}  "
+                  f"({'same' if result['same'] else '[red]different[/]'})")
+
+    emit(result, human)
+
+
+@click.command("worker")
+@click.argument("role", type=click.Choice(["predictor", "recognizer"]))
+@click.option("--link", "link", default=None, help="tcp://HOST:PORT or a serial port (default: host_link.yaml).")
+@click.option("--trajectory", default=None)
+@click.option("--speed", type=float, default=None)
+def worker_cmd(role, link, trajectory, speed) -> None:
+    """Run one worker on this host (two PCs: start one of each, linked by TCP or RS-232)."""
+    from ..workers.standalone import run_worker
+
+    lab = get_ctx().lab()
+    spec = {"trajectory": _trajectory(trajectory or lab.config.run.trajectory), "speed_mm_s": _speed(speed, lab),
+            "object_name": None, "seed": 0}
+    run_worker(lab, role, spec, link)

@@ -184,6 +184,8 @@ class PredictorPlanner:
         self.min_motion_s += self._rest_to_rest_time(state[0], plan.trajectory.state(plan.t_hit)[0])
         self._send_segment(now, plan)
         self.log("plan", t=now, kind=kind, t_hit=plan.t_hit)
+        horizon = np.linspace(now, max(plan.t_hit, now + 1.0), 12)
+        self.log("predict", t=now, path=self._marker_path()(horizon)[0])
 
     def _choose_azimuth(self) -> float:
         """Initial viewing side: from the marker towards the robot's home (shortest reach)."""
@@ -313,7 +315,7 @@ class PredictorPlanner:
             self._plan_initial(now, "initial2")
         elif isinstance(msg, m.MarkerPose) and msg.view_id == self.pending:
             self.pending = None
-            self.log("marker_pose", t=now, center_w=msg.center_w, normal_w=msg.normal_w, ambiguous=msg.ambiguous,
+            self.log("pose_received", t=now, center_w=msg.center_w, normal_w=msg.normal_w, ambiguous=msg.ambiguous,
                      margin=msg.margin)
             if msg.ambiguous:
                 # the two views did not separate the candidates: one more image, further round

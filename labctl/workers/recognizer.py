@@ -34,6 +34,11 @@ def _to_world(T_w_c: np.ndarray, pose: CirclePose) -> CirclePose:
     return CirclePose(T_w_c[:3, :3] @ pose.center + T_w_c[:3, 3], T_w_c[:3, :3] @ pose.normal)
 
 
+def _ellipse_row(e) -> list[float]:
+    """[cx, cy, a, b, θ] (px, px, semi-axes px, rad) as the run report draws it."""
+    return [float(e.center[0]), float(e.center[1]), float(e.axes[0]), float(e.axes[1]), float(e.angle)]
+
+
 def _angle(u, v) -> float:
     return float(np.arctan2(np.linalg.norm(np.cross(u, v)), float(np.dot(u, v))))
 
@@ -49,6 +54,7 @@ class Recognizer:
         self.threshold = ctx.lab.config.run.ambiguity_threshold or DEFAULT_THRESHOLD
         self.first: tuple[CirclePose, CirclePose] | None = None  # world frame
         self.first_px: np.ndarray | None = None
+        self.first_ellipse = None
         self.resolved_normals: list[np.ndarray] = []
         self.remaining: list[str] | None = None
         self.n_standard = 0
@@ -105,6 +111,7 @@ class Recognizer:
             found.sort(key=lambda it: (round(novelty(it), 1), float(np.hypot(*(np.asarray(it[0].centroid) - centre)))))
             marker, poses = found[0]
             self.first, self.first_px = poses, np.asarray(marker.centroid)
+            self.first_ellipse = marker.ellipse
             self.save_image("initial1", self._annotated(frame, marker))
             self.log("marker_candidates", t=frame.t, view_id=msg.view_id, ellipse=marker.ellipse.to_dict(),
                      candidates=[p.to_dict() for p in poses])
@@ -115,8 +122,10 @@ class Recognizer:
         marker, poses = found[0]
         res = resolve_duality_detailed(self.first, poses, motion="translation")
         self.save_image("initial2", self._annotated(frame, marker))
-        self.log("duality", t=frame.t, view_id=msg.view_id, ellipse=marker.ellipse.to_dict(), **res.to_dict())
         pose = res.best
+        ellipses = {"initial1": _ellipse_row(self.first_ellipse), "initial2": _ellipse_row(marker.ellipse)}
+        self.log("marker_pose", t=frame.t, view_id=msg.view_id, ellipses=ellipses, center_w=pose.center,
+                 normal_w=pose.normal, **res.to_dict())
         if not res.ambiguous:
             self.resolved_normals.append(np.asarray(pose.normal))
         # outward normal of the marker (away from the object) = towards the camera that saw it
