@@ -41,7 +41,7 @@ class ViewingConfig:
 
     initial_distance_mm: float = 1000.0
     initial_angle_deg: float = 63.0
-    standoff_mm: float = 600.0
+    standoff_mm: float = 800.0
     max_obliquity_deg: float = 75.0  # a marker seen more obliquely than this does not count as visible
 
 
