@@ -69,6 +69,18 @@ class _Control:
             self.conn.send(msg)
 
 
+def _load_lab(args: WorkerArgs):
+    """The lab as the worker sees it (a standalone worker may override the host link)."""
+    import dataclasses
+
+    from ..config import HostLinkConfig
+
+    lab = load_lab(args.lab_root)
+    if "host_link" in args.extra:
+        lab = dataclasses.replace(lab, host_link=HostLinkConfig(**args.extra["host_link"]))
+    return lab
+
+
 def _open_record(args: WorkerArgs):
     if args.run_dir is None:
         return None
@@ -107,7 +119,7 @@ def predictor_main(args: WorkerArgs, link_end, control) -> None:
     from .transport import LinkClosed, open_link
 
     ctl = _Control(control, "predictor")
-    lab = load_lab(args.lab_root)
+    lab = _load_lab(args)
     record = _open_record(args)
     log = record.event if record is not None else (lambda *a, **k: None)
     log("worker_started", role="predictor", pid=os.getpid())
@@ -171,7 +183,7 @@ def recognizer_main(args: WorkerArgs, link_end, control) -> None:
     from .transport import LinkClosed, open_link
 
     ctl = _Control(control, "recognizer")
-    lab = load_lab(args.lab_root)
+    lab = _load_lab(args)
     record = _open_record(args)
     log = record.event if record is not None else (lambda *a, **k: None)
     save = record.save_image if record is not None else None

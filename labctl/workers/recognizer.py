@@ -16,7 +16,6 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-import cv2
 import numpy as np
 
 from ..drivers.interfaces import Frame
@@ -65,6 +64,7 @@ class Recognizer:
         if not isinstance(msg, m.CaptureRequest):
             return []
         frame = self.grab()
+        self.save_image(f"view_{msg.view_id}", frame.image)  # raw, for `labctl replay`
         T_w_c2 = make_T(rotvec_to_matrix(msg.rotvec), msg.position)
         if msg.kind == "standard":
             return [self._standard(msg, frame)]
@@ -81,18 +81,6 @@ class Recognizer:
                 continue
             out.append((mk, (_to_world(T_w_c2, a), _to_world(T_w_c2, b))))
         return out
-
-    def _annotated(self, frame: Frame, marker) -> np.ndarray:
-        img = frame.image.copy()
-        e = marker.ellipse
-        box = ((float(e.center[0]), float(e.center[1])), (2 * float(e.axes[0]), 2 * float(e.axes[1])),
-               float(np.degrees(e.angle)))
-        cv2.ellipse(img, box, (0, 255, 0), 1, cv2.LINE_AA)
-        c = np.asarray(e.center)
-        for ax, ang in ((e.axes[0], e.angle), (e.axes[1], e.angle + np.pi / 2)):
-            d = ax * np.array([np.cos(ang), np.sin(ang)])
-            cv2.line(img, tuple(np.round(c - d).astype(int)), tuple(np.round(c + d).astype(int)), (255, 255, 0), 1)
-        return img
 
     def _initial(self, msg: m.CaptureRequest, frame: Frame, T_w_c2: np.ndarray) -> m.Message:
         found = self._candidates(frame, T_w_c2)
@@ -112,7 +100,7 @@ class Recognizer:
             marker, poses = found[0]
             self.first, self.first_px = poses, np.asarray(marker.centroid)
             self.first_ellipse = marker.ellipse
-            self.save_image("initial1", self._annotated(frame, marker))
+            self.save_image("initial1", frame.image)
             self.log("marker_candidates", t=frame.t, view_id=msg.view_id, ellipse=marker.ellipse.to_dict(),
                      candidates=[p.to_dict() for p in poses])
             return m.FrameTaken(view_id=msg.view_id, t=frame.t)
@@ -121,7 +109,7 @@ class Recognizer:
         found.sort(key=lambda it: float(np.linalg.norm(0.5 * (it[1][0].center + it[1][1].center) - ref)))
         marker, poses = found[0]
         res = resolve_duality_detailed(self.first, poses, motion="translation")
-        self.save_image("initial2", self._annotated(frame, marker))
+        self.save_image("initial2", frame.image)
         pose = res.best
         ellipses = {"initial1": _ellipse_row(self.first_ellipse), "initial2": _ellipse_row(marker.ellipse)}
         self.log("marker_pose", t=frame.t, view_id=msg.view_id, ellipses=ellipses, center_w=pose.center,

@@ -63,23 +63,24 @@ def choose_object(ctx: RunContext, spec: TrialSpec, rng: np.random.Generator) ->
 def simulate_run(lab: Lab, ctx: RunContext, spec: TrialSpec, record=None, *, heartbeat_s: float = 0.2) -> dict:
     """One complete run in virtual time; returns the result with the simulator's ground truth."""
     from ..sim.clock import VirtualClock
-    from ..sim.devices import SimBench
     from ..sim.world import SimObject, random_placement
+    from .simlab import SimBench, trajectory_program
 
     rng = np.random.default_rng(spec.seed)
     name = choose_object(ctx, spec, rng)
     sim_obj = SimObject.from_library(ctx.library[name])
+    placement = random_placement(sim_obj, rng)
+    start_xy, program = trajectory_program(spec.trajectory, spec.speed_mm_s, lab)
     clock = VirtualClock()
-    bench = SimBench(lab, clock)
-    start_xy, program = bench.trajectory(spec.trajectory, spec.speed_mm_s, rng)
-    placement = random_placement(sim_obj, rng, offset_xy=start_xy)
+    bench = SimBench(lab, clock, start_xy)  # opening the drivers takes virtual time (banner, queries)
     world = bench.world(sim_obj, placement)
+    t0 = clock.now()
 
     log = record.event if record is not None else (lambda *a, **k: None)
     save = record.save_image if record is not None else None
     meter = LinkMeter()
     outbox: list[m.Message] = []
-    predictor = PredictorPlanner(ctx, bench.robot, outbox.append, log, t_start=0.0)
+    predictor = PredictorPlanner(ctx, bench.robot, outbox.append, log, t_start=t0)
     seq = {"mobile": 0}
 
     def grab_mobile() -> Frame:
@@ -89,8 +90,7 @@ def simulate_run(lab: Lab, ctx: RunContext, spec: TrialSpec, record=None, *, hea
         return Frame(world.render("mobile", t, rng).image, t, seq["mobile"])
 
     recognizer = Recognizer(ctx, grab_mobile, log, save)
-    truth0 = world.truth(0.0)
-    log("truth", t=0.0, object=name, placement=truth0.to_dict()["placement"], seed=spec.seed)
+    log("truth", t=t0, object=name, placement=world.truth(t0).to_dict()["placement"], seed=spec.seed)
     bench.table.stream(program)
 
     dt = 1.0 / ctx.lab.config.run.fps
@@ -110,7 +110,7 @@ def simulate_run(lab: Lab, ctx: RunContext, spec: TrialSpec, record=None, *, hea
         while outbox:
             for reply in recognizer.handle(meter.carry(outbox.pop(0))):
                 predictor.on_message(meter.carry(reply), clock.now())
-        if t > ctx.lab.config.run.timeout_s + 5:
+        if t - t0 > ctx.lab.config.run.timeout_s + 5:
             predictor.fail(t, "virtual run exceeded its time-out")
     t_end = clock.now()
     bench.stop()
@@ -122,8 +122,8 @@ def simulate_run(lab: Lab, ctx: RunContext, spec: TrialSpec, record=None, *, hea
         "seed": spec.seed,
         "trajectory": spec.trajectory,
         "speed_mm_s": spec.speed_mm_s,
-        "sim_time_s": t_end,
-        "link": meter.summary(t_end),
+        "sim_time_s": t_end - t0,
+        "link": meter.summary(t_end - t0),
         "truth": {"placement": truth.to_dict()["placement"]},
     })
     pose_err = marker_pose_error(predictor, world)

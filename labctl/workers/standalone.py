@@ -1,0 +1,52 @@
+"""``labctl worker predictor|recognizer``: one worker on this host, for the two-PC set-up.
+
+On two PCs (as in the paper, §5.1) each host runs one worker; they meet over TCP
+(``--link tcp://HOST:PORT``: the predictor listens, the recognizer connects) or over an RS-232
+line (``--link /dev/ttyS0``). Each host reads the same lab workspace (calibration, library).
+There is no supervisor process: each worker stops its own devices when the other goes silent.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from urllib.parse import urlparse
+
+from ..config import Lab
+from ..errors import UserInputError
+from .live import WorkerArgs, predictor_main, recognizer_main
+
+
+class _NoSupervisor:
+    """Stands in for the control pipe when no supervisor runs: errors go to stderr."""
+
+    def send(self, msg) -> None:
+        if msg and msg[0] == "error":
+            import sys
+
+            print(f"labctl worker: {msg[1]}", file=sys.stderr)
+
+
+def link_config(lab: Lab, link: str | None):
+    """The lab's host link, overridden by ``--link`` (tcp://HOST:PORT or a serial port/URL)."""
+    cfg = lab.host_link
+    if link is None:
+        if cfg.transport == "local":
+            raise UserInputError("a standalone worker needs --link (tcp://HOST:PORT or a serial port); "
+                                 "host_link.yaml says local")
+        return cfg
+    if link.startswith("tcp://"):
+        u = urlparse(link)
+        if not u.hostname or not u.port:
+            raise UserInputError(f"--link {link!r}: expected tcp://HOST:PORT")
+        return dataclasses.replace(cfg, transport="tcp", host=u.hostname, tcp_port=u.port)
+    return dataclasses.replace(cfg, transport="serial", port=link)
+
+
+def run_worker(lab: Lab, role: str, spec: dict, link: str | None) -> None:
+    cfg = link_config(lab, link)
+    lab = dataclasses.replace(lab, host_link=cfg)
+    args = WorkerArgs(role=role, lab_root=str(lab.root), run_dir=None, spec=spec, origin=time.monotonic(),
+                      extra={"host_link": dataclasses.asdict(cfg)})
+    target = predictor_main if role == "predictor" else recognizer_main
+    target(args, None, _NoSupervisor())
