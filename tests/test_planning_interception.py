@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from labctl.config.devices import RobotConfig
 from labctl.planning import (
     Limits,
     camera_placement_trajectory,
@@ -18,7 +17,8 @@ from labctl.planning import (
 from labctl.planning.ruckig_baseline import RuckigInterceptor
 from labctl.tracking import PredictedPath
 
-LIMITS = Limits.from_config(RobotConfig())
+# fixed limits (a 1.2 × 1.4 × 1.1 m box, 500 mm/s, 1500 mm/s², 120°/s) so the tests do not move with the sample lab
+LIMITS = Limits([-300.0, -700.0, 80.0], [900.0, 700.0, 1200.0], v_max=500.0, a_max=1500.0, w_max=np.deg2rad(120.0))
 HOME = np.array([300.0, -450.0, 900.0])
 
 
