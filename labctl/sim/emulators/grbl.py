@@ -138,6 +138,12 @@ class GrblEmulator:
         self.state = "Alarm" if self.settings[22] else "Idle"
         self._reinit()
 
+    def power_cycle(self) -> None:
+        """Power loss and restart (a board reset by DTR or a brown-out): buffers, plan and modes are lost."""
+        self.advance(max(self.now, self.clock()))
+        self.planner.clear()
+        self._power_on()
+
     def _reinit(self) -> None:
         """What GRBL's main() does after power-up or a soft reset (abort)."""
         self.rx = bytearray()
@@ -179,9 +185,9 @@ class GrblEmulator:
         self.out.clear()
         return data
 
-    def receive(self, data: bytes) -> None:
-        """Bytes arriving on GRBL's serial RX at the clock's current time."""
-        self.advance(max(self.now, self.clock()))
+    def receive(self, data: bytes, t: float | None = None) -> None:
+        """Bytes arriving on GRBL's serial RX at time ``t`` (default: the clock's now)."""
+        self.advance(max(self.now, self.clock() if t is None else t))
         for b in bytes(data):
             if b == 0x3F:  # '?'
                 self._status_report()

@@ -232,7 +232,7 @@ class Planner:
     def advance(self, t: float, stop_at_block_end: bool = False) -> float:
         """Run the motion up to time ``t``; returns the time reached (earlier if a block ended and
         ``stop_at_block_end``)."""
-        while self.t < t - 1e-12:
+        while self.t < t:
             if not self.blocks or (self.hold and self.speed <= _EPS):
                 self.speed = 0.0 if not self.blocks or self.hold else self.speed
                 self._record(self.t, t, self.pos, (0.0, 0.0, 0.0), 0.0, 0.0)

@@ -1,0 +1,223 @@
+"""The serial link under every line-oriented device driver (GRBL table, robot controller).
+
+Built on pyserial's ``serial_for_url``, so device paths (``/dev/ttyUSB0``, ``/dev/pts/3``) and
+the ``socket://``, ``rfc2217://``, ``spy://`` and ``loop://`` URLs all work. It gives:
+
+* a line protocol: complete lines out of the byte stream, with timeouts on an injectable clock;
+* request/response matching: :meth:`SerialLink.request` sends a line and returns the first
+  line the caller's matcher accepts, handing every other line (asynchronous reports) to
+  ``on_async``;
+* write pacing (``pace_baud``: never put bytes on the wire faster than a UART at that rate,
+  for ``socket://`` links to a slow device) and :meth:`SerialLink.reconnect`;
+* a DEBUG log of every byte, with timestamps, on the ``labctl.drivers.serial_link`` logger.
+
+Single-threaded and polled: the caller drives it, which keeps it deterministic in virtual time
+(pass ``clock``/``sleep`` of the virtual clock and a ready ``port`` such as
+:class:`labctl.sim.emulators.link.EmulatorPort`).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+
+from ..errors import DeviceError
+
+log = logging.getLogger(__name__)
+
+
+class DeviceTimeout(DeviceError):
+    """A device did not answer within its timeout."""
+
+
+class LinkError(DeviceError):
+    """The port could not be opened, or failed while in use."""
+
+
+class ProtocolError(DeviceError):
+    """The device answered something the protocol does not allow (lost or garbled replies)."""
+
+
+class SerialLink:
+    """A polled line link over a pyserial port (or anything pyserial-like passed as ``port``)."""
+
+    def __init__(self, url: str | None = None, baud: int = 9600, timeout_s: float = 2.0, *, port=None,
+                 clock: Callable[[], float] = time.monotonic, sleep: Callable[[float], None] = time.sleep,
+                 name: str = "", pace_baud: int | None = None, eol: bytes = b"\n", poll_s: float = 0.005,
+                 serial_kwargs: dict | None = None):
+        if url is None and port is None:
+            raise LinkError("a serial link needs a port path/URL or a port object")
+        self.url = url
+        self.baud = baud
+        self.timeout_s = timeout_s
+        self.clock = clock
+        self.sleep = sleep
+        self.name = name or (url or getattr(port, "port", "port"))
+        self.pace_baud = pace_baud
+        self.eol = eol
+        self.poll_s = poll_s
+        self.serial_kwargs = serial_kwargs or {}
+        self._given_port = port
+        self.port = port
+        self._buf = bytearray()
+        self._next_write_t = 0.0
+        self.bytes_in = 0
+        self.bytes_out = 0
+
+    # --- lifecycle --------------------------------------------------------------------------
+    @property
+    def is_open(self) -> bool:
+        return self.port is not None and bool(getattr(self.port, "is_open", True))
+
+    def open(self) -> None:
+        if self._given_port is not None:
+            self.port = self._given_port
+            if not getattr(self.port, "is_open", True):
+                self.port.open()
+        else:
+            import serial
+
+            try:
+                self.port = serial.serial_for_url(self.url, baudrate=self.baud, timeout=0,
+                                                  write_timeout=self.timeout_s, **self.serial_kwargs)
+            except (serial.SerialException, OSError, ValueError) as exc:
+                raise LinkError(f"cannot open {self.url}: {exc}") from exc
+        self._buf.clear()
+        log.debug("%s open t=%.6f", self.name, self.clock())
+
+    def close(self) -> None:
+        if self.port is not None:
+            try:
+                self.port.close()
+            except Exception:  # closing a dead port must not mask the original error
+                log.debug("%s close failed", self.name, exc_info=True)
+        if self._given_port is None:
+            self.port = None
+        log.debug("%s closed t=%.6f", self.name, self.clock())
+
+    def reconnect(self, attempts: int = 3, backoff_s: float = 0.2) -> None:
+        """Close and reopen the port, retrying with a growing pause; LinkError if it stays down."""
+        last: Exception | None = None
+        for i in range(attempts):
+            self.close()
+            self.sleep(backoff_s * (i + 1))
+            try:
+                self.open()
+                return
+            except LinkError as exc:
+                last = exc
+        raise LinkError(f"{self.name}: reconnect failed after {attempts} attempts: {last}")
+
+    def __enter__(self):
+        self.open()
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    # --- bytes ------------------------------------------------------------------------------
+    def write(self, data: bytes) -> None:
+        """Write bytes (paced at ``pace_baud`` if set); LinkError if the port fails."""
+        if not self.is_open:
+            raise LinkError(f"{self.name}: port is not open")
+        if self.pace_baud:
+            wait = self._next_write_t - self.clock()
+            if wait > 0:
+                self.sleep(wait)
+            self._next_write_t = max(self._next_write_t, self.clock()) + len(data) * 10.0 / self.pace_baud
+        try:
+            self.port.write(data)
+        except Exception as exc:
+            raise LinkError(f"{self.name}: write failed: {exc}") from exc
+        self.bytes_out += len(data)
+        if log.isEnabledFor(logging.DEBUG):
+            log.debug("%s tx t=%.6f %r", self.name, self.clock(), bytes(data))
+
+    def _read_available(self) -> bytes:
+        try:
+            n = self.port.in_waiting
+            data = self.port.read(n) if n else b""
+        except Exception as exc:
+            raise LinkError(f"{self.name}: read failed: {exc}") from exc
+        if data:
+            self.bytes_in += len(data)
+            if log.isEnabledFor(logging.DEBUG):
+                log.debug("%s rx t=%.6f %r", self.name, self.clock(), bytes(data))
+        return data
+
+    def poll(self, timeout_s: float = 0.0) -> bool:
+        """Read whatever has arrived, waiting up to ``timeout_s`` for the first byte. True if any came."""
+        deadline = self.clock() + timeout_s
+        while True:
+            data = self._read_available()
+            if data:
+                self._buf += data
+                return True
+            now = self.clock()
+            if now >= deadline:
+                return False
+            self.sleep(min(self.poll_s, deadline - now))
+
+    def discard_input(self) -> bytes:
+        """Drop everything received so far (and not yet read as lines)."""
+        self.poll(0.0)
+        dropped = bytes(self._buf)
+        self._buf.clear()
+        return dropped
+
+    # --- lines ------------------------------------------------------------------------------
+    def _pop_line(self) -> str | None:
+        idx = self._buf.find(self.eol)
+        if idx < 0:
+            return None
+        raw = bytes(self._buf[:idx])
+        del self._buf[: idx + len(self.eol)]
+        return raw.decode("ascii", errors="replace").rstrip("\r")
+
+    def readline(self, timeout_s: float | None = None) -> str | None:
+        """The next complete line (without its end), or None after ``timeout_s``."""
+        timeout_s = self.timeout_s if timeout_s is None else timeout_s
+        deadline = self.clock() + timeout_s
+        while True:
+            line = self._pop_line()
+            if line is not None:
+                return line
+            remaining = deadline - self.clock()
+            if remaining <= 0:
+                return None
+            self.poll(remaining)
+
+    def lines(self, timeout_s: float = 0.0) -> list[str]:
+        """Every complete line available, waiting up to ``timeout_s`` for the first one."""
+        first = self.readline(timeout_s)
+        if first is None:
+            return []
+        out = [first]
+        self.poll(0.0)
+        while (line := self._pop_line()) is not None:
+            out.append(line)
+        return out
+
+    def send_line(self, line: str) -> None:
+        self.write(line.encode("ascii") + self.eol)
+
+    def request(self, line: str | None, is_reply: Callable[[str], bool], timeout_s: float | None = None,
+                on_async: Callable[[str], None] | None = None) -> str:
+        """Send ``line`` (if given) and return the first received line ``is_reply`` accepts.
+
+        Lines that are not the reply go to ``on_async``. DeviceTimeout after ``timeout_s``.
+        """
+        timeout_s = self.timeout_s if timeout_s is None else timeout_s
+        if line is not None:
+            self.send_line(line)
+        deadline = self.clock() + timeout_s
+        while True:
+            remaining = deadline - self.clock()
+            got = self.readline(max(remaining, 0.0))
+            if got is None:
+                raise DeviceTimeout(f"{self.name}: no reply to {line!r} within {timeout_s:g} s")
+            if is_reply(got):
+                return got
+            if on_async is not None:
+                on_async(got)
