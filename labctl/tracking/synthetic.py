@@ -125,3 +125,30 @@ def sample_measurements(traj: TableTrajectory, rate_hz: float = 30.0, noise_mm: 
     times = times[keep]
     pos, _, _ = traj.state(times)
     return times, pos + rng.normal(0.0, noise_mm, pos.shape)
+
+
+def prediction_errors(tracker, traj: TableTrajectory, horizons, warmup_s: float = 10.0, rate_hz: float = 30.0,
+                      noise_mm: float = 0.5, drop_prob: float = 0.05,
+                      rng: np.random.Generator | None = None) -> dict[float, np.ndarray]:
+    """Errors (mm) of ``tracker``'s predictions ``h`` s ahead, for each horizon ``h``, along ``traj``.
+
+    Feeds the noisy measurements of :func:`sample_measurements` one by one; after ``warmup_s``
+    predicts every horizon whose target time is still inside the trajectory and compares with
+    the true position. ``tracker`` is reset first.
+    """
+    tracker.reset()
+    times, z = sample_measurements(traj, rate_hz, noise_mm, drop_prob, rng)
+    horizons = [float(h) for h in horizons]
+    errs: dict[float, list[float]] = {h: [] for h in horizons}
+    for t, zi in zip(times, z):
+        tracker.update(t, zi)
+        if t < warmup_s:
+            continue
+        hs = [h for h in horizons if t + h <= traj.duration_s]
+        if not hs:
+            continue
+        truth, _, _ = traj.state(np.array([t + h for h in hs]))
+        for h, true_p in zip(hs, truth):
+            mean, _ = tracker.predict(t + h)
+            errs[h].append(float(np.hypot(*(mean - true_p))))
+    return {h: np.array(e) for h, e in errs.items()}
