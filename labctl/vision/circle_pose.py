@@ -22,10 +22,9 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
-from .ellipse import Ellipse, fit_ellipse
+from .ellipse import Ellipse, _fit_conic, _null_vector3, _validate
 
 
 class CirclePoseError(ValueError):
@@ -40,19 +39,141 @@ class CirclePose:
     center: np.ndarray
     normal: np.ndarray
 
+    def __eq__(self, other) -> bool:  # element-wise arrays: compare by value, not truth of an array
+        if not isinstance(other, CirclePose):
+            return NotImplemented
+        return bool(np.array_equal(self.center, other.center) and np.array_equal(self.normal, other.normal))
+
     def to_dict(self) -> dict:
         return {"center_mm": [float(v) for v in self.center], "normal": [float(v) for v in self.normal]}
 
 
-def _cone_matrix(ellipse: Ellipse, K) -> np.ndarray:
-    K = np.asarray(K, dtype=float)
+def _check_radius(radius) -> float:
+    try:
+        radius = float(radius)
+    except (TypeError, ValueError):
+        raise CirclePoseError(f"radius must be a number of mm, got {radius!r}") from None
+    if not (math.isfinite(radius) and radius > 0):
+        raise CirclePoseError(f"radius must be a positive number of mm, got {radius!r}")
+    return radius
+
+
+def _camera_matrix(K) -> list[list[float]]:
+    try:
+        K = np.asarray(K, dtype=float)
+    except (TypeError, ValueError):
+        raise CirclePoseError("K must be a finite 3×3 camera matrix") from None
     if K.shape != (3, 3) or not math.isfinite(float(K.sum())):
         raise CirclePoseError("K must be a finite 3×3 camera matrix")
-    Q = K.T @ ellipse.matrix @ K  # pixel x = K X  →  Xᵀ (Kᵀ C K) X = 0
-    scale = math.sqrt(float(np.vdot(Q, Q)))
-    if not (scale > 0 and math.isfinite(scale)):
+    return K.tolist()
+
+
+def _cone(conic, K: list[list[float]]) -> list[list[float]]:
+    """Cone quadric Q = Kᵀ C K (pixel x = K X, so Xᵀ Q X = 0 on the cone), C the conic matrix
+    of ``conic`` (a, b, c, d, e, f); unrolled 3×3 algebra, upper triangle returned as a full
+    symmetric nested list."""
+    a, b, c, d, e, f = conic
+    b2, d2, e2 = 0.5 * b, 0.5 * d, 0.5 * e
+    (k00, k01, k02), (k10, k11, k12), (k20, k21, k22) = K
+    # C K, column by column
+    ck00, ck10, ck20 = a * k00 + b2 * k10 + d2 * k20, b2 * k00 + c * k10 + e2 * k20, d2 * k00 + e2 * k10 + f * k20
+    ck01, ck11, ck21 = a * k01 + b2 * k11 + d2 * k21, b2 * k01 + c * k11 + e2 * k21, d2 * k01 + e2 * k11 + f * k21
+    ck02, ck12, ck22 = a * k02 + b2 * k12 + d2 * k22, b2 * k02 + c * k12 + e2 * k22, d2 * k02 + e2 * k12 + f * k22
+    q00 = k00 * ck00 + k10 * ck10 + k20 * ck20
+    q01 = k00 * ck01 + k10 * ck11 + k20 * ck21
+    q02 = k00 * ck02 + k10 * ck12 + k20 * ck22
+    q11 = k01 * ck01 + k11 * ck11 + k21 * ck21
+    q12 = k01 * ck02 + k11 * ck12 + k21 * ck22
+    q22 = k02 * ck02 + k12 * ck12 + k22 * ck22
+    return [[q00, q01, q02], [q01, q11, q12], [q02, q12, q22]]
+
+
+def _cone_frame(Q: list[list[float]]):
+    """Canonical frame of a real elliptic cone: eigenvalues λ1 ≥ λ2 > 0 > λ3 of ±Q/|Q| and the
+    unit eigenvectors e1, e3. λ3 (the isolated one) comes from the closed-form cubic, e3 from
+    the null space of Q − λ3 I (well conditioned: λ3 is far from λ1, λ2), and λ1, λ2, e1 from
+    the 2×2 problem in the plane ⊥ e3, which stays exact when λ1 ≈ λ2 (a frontal circle)."""
+    (q00, q01, q02), (_, q11, q12), (_, _, q22) = Q
+    norm = math.sqrt(q00 * q00 + q11 * q11 + q22 * q22 + 2.0 * (q01 * q01 + q02 * q02 + q12 * q12))
+    if not (norm > 0 and math.isfinite(norm)):
         raise CirclePoseError("degenerate cone")
-    return Q / scale
+    det = q00 * (q11 * q22 - q12 * q12) - q01 * (q01 * q22 - q12 * q02) + q02 * (q01 * q12 - q11 * q02)
+    s = (-1.0 if det > 0 else 1.0) / norm  # signature (+, +, −) has det < 0
+    q00, q01, q02, q11, q12, q22 = (s * q00, s * q01, s * q02, s * q11, s * q12, s * q22)
+    # smallest eigenvalue of the symmetric matrix (trigonometric form of the cubic)
+    m = (q00 + q11 + q22) / 3.0
+    off = q01 * q01 + q02 * q02 + q12 * q12
+    a0, a1, a2 = q00 - m, q11 - m, q22 - m
+    p = math.sqrt((a0 * a0 + a1 * a1 + a2 * a2 + 2.0 * off) / 6.0)
+    if not p > 0:
+        raise CirclePoseError("the ellipse does not define a real elliptic cone")
+    half_det_b = 0.5 * (a0 * (a1 * a2 - q12 * q12) - q01 * (q01 * a2 - q12 * q02) + q02 * (q01 * q12 - a1 * q02)) / p**3
+    phi = math.acos(max(-1.0, min(1.0, half_det_b))) / 3.0
+    lam3 = m + 2.0 * p * math.cos(phi + 2.0 * math.pi / 3.0)
+    e3 = _null_vector3([[q00, q01, q02], [q01, q11, q12], [q02, q12, q22]], lam3)
+    x3, y3, z3 = e3
+    if x3 == y3 == z3 == 0.0:
+        raise CirclePoseError("the ellipse does not define a real elliptic cone")
+    # orthonormal u, v spanning the plane ⊥ e3 (u from the axis least aligned with e3)
+    if abs(x3) <= abs(y3) and abs(x3) <= abs(z3):
+        u = (0.0, z3, -y3)
+    elif abs(y3) <= abs(z3):
+        u = (-z3, 0.0, x3)
+    else:
+        u = (y3, -x3, 0.0)
+    un = 1.0 / math.sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2])
+    u = (u[0] * un, u[1] * un, u[2] * un)
+    v = (y3 * u[2] - z3 * u[1], z3 * u[0] - x3 * u[2], x3 * u[1] - y3 * u[0])
+
+    def quad(a, b):  # aᵀ Q b
+        return (a[0] * (q00 * b[0] + q01 * b[1] + q02 * b[2]) + a[1] * (q01 * b[0] + q11 * b[1] + q12 * b[2])
+                + a[2] * (q02 * b[0] + q12 * b[1] + q22 * b[2]))
+
+    l3 = quad(e3, e3)  # Rayleigh quotient: accurate to O(ε²) given e3
+    quu, quv, qvv = quad(u, u), quad(u, v), quad(v, v)
+    mid, rad = 0.5 * (quu + qvv), math.hypot(0.5 * (quu - qvv), quv)
+    l1, l2 = mid + rad, mid - rad
+    theta = 0.5 * math.atan2(2.0 * quv, quu - qvv)  # eigenvector of the larger 2×2 eigenvalue
+    ct, st = math.cos(theta), math.sin(theta)
+    e1 = [ct * u[0] + st * v[0], ct * u[1] + st * v[1], ct * u[2] + st * v[2]]
+    return l1, l2, l3, e1, e3
+
+
+def _poses_from_cone(Q: list[list[float]], radius: float) -> tuple[CirclePose, CirclePose]:
+    """Both circle poses of ``radius`` on the cone ``Q`` (camera frame), Safaee-Rad et al. 1992."""
+    l1, l2, l3, e1, e3 = _cone_frame(Q)
+    if not (l2 > 0 > l3 and math.isfinite(l1)):
+        raise CirclePoseError("the ellipse does not define a real elliptic cone")
+    span = l1 - l3
+    g = math.sqrt(max(l1 - l2, 0.0) / span)
+    h = math.sqrt(max(l2 - l3, 0.0) / span)
+    gamma = l1 * g * g + l3 * h * h
+    x1, y1, z1 = e1
+    x3, y3, z3 = e3
+    poses = []
+    for sign in (1.0, -1.0):
+        # canonical frame: n = (s g, 0, h), u = (0, 1, 0), v = n × u = (−h, 0, s g)
+        beta = sign * g * h * (l3 - l1)
+        bl = beta / l2
+        k2 = bl * bl - gamma / l2
+        if not k2 > 0:
+            raise CirclePoseError("the cone has no circular section (degenerate ellipse)")
+        d = radius / math.sqrt(k2)
+        sg = sign * g
+        nx, ny, nz = sg * x1 + h * x3, sg * y1 + h * y3, sg * z1 + h * z3
+        # centre = d (n − (β/λ2) v) with v = −h e1 + s g e3
+        cx = d * (nx - bl * (-h * x1 + sg * x3))
+        cy = d * (ny - bl * (-h * y1 + sg * y3))
+        cz = d * (nz - bl * (-h * z1 + sg * z3))
+        if cz < 0:
+            cx, cy, cz = -cx, -cy, -cz
+        nn = math.sqrt(nx * nx + ny * ny + nz * nz)
+        if nx * cx + ny * cy + nz * cz > 0:
+            nn = -nn
+        if not (nn != 0 and math.isfinite(cx + cy + cz + nn)):
+            raise CirclePoseError("non-finite circle pose")
+        poses.append(CirclePose(np.array((cx, cy, cz)), np.array((nx / nn, ny / nn, nz / nn))))
+    return poses[0], poses[1]
 
 
 def circle_poses(ellipse: Ellipse, radius: float, K) -> tuple[CirclePose, CirclePose]:
@@ -64,62 +185,33 @@ def circle_poses(ellipse: Ellipse, radius: float, K) -> tuple[CirclePose, Circle
     circle faces the camera squarely the two candidates coincide. Raises
     :class:`CirclePoseError` if the cone is not a real elliptic cone.
     """
-    try:
-        radius = float(radius)
-    except (TypeError, ValueError):
-        raise CirclePoseError(f"radius must be a number of mm, got {radius!r}") from None
-    if not (math.isfinite(radius) and radius > 0):
-        raise CirclePoseError(f"radius must be a positive number of mm, got {radius!r}")
-    Q = _cone_matrix(ellipse, K)
-    ok, lam, V = cv2.eigen(Q)  # descending eigenvalues; eigenvectors as rows
-    if not ok:
-        raise CirclePoseError("eigen-decomposition of the cone failed")
-    lam_c, lam_b, lam_a = lam.ravel().tolist()
-    cols = V.tolist()[::-1]
-    if lam_b < 0:  # one positive, two negative eigenvalues: flip the quadric's sign
-        l1, l2, l3 = -lam_a, -lam_b, -lam_c
-        e1, e3 = cols[0], cols[2]
-    else:
-        l1, l2, l3 = lam_c, lam_b, lam_a
-        e1, e3 = cols[2], cols[0]
-    if not (l2 > 0 > l3 and math.isfinite(l1)):
-        raise CirclePoseError("the ellipse does not define a real elliptic cone")
-    span = l1 - l3
-    g = math.sqrt(max(l1 - l2, 0.0) / span)
-    h = math.sqrt(max(l2 - l3, 0.0) / span)
-    gamma = l1 * g * g + l3 * h * h
-    poses = []
-    for sign in (1.0, -1.0):
-        # canonical frame: n = (s g, 0, h), u = (0, 1, 0), v = n × u = (−h, 0, s g)
-        beta = sign * g * h * (l3 - l1)
-        k2 = (beta / l2) ** 2 - gamma / l2
-        if not k2 > 0:
-            raise CirclePoseError("the cone has no circular section (degenerate ellipse)")
-        d = radius / math.sqrt(k2)
-        bl = beta / l2
-        n = [sign * g * e1[i] + h * e3[i] for i in range(3)]
-        # centre = d (n − (β/λ2) v) with v = −h e1 + s g e3
-        c = [d * (n[i] - bl * (-h * e1[i] + sign * g * e3[i])) for i in range(3)]
-        if c[2] < 0:
-            c = [-v for v in c]
-        if n[0] * c[0] + n[1] * c[1] + n[2] * c[2] > 0:
-            n = [-v for v in n]
-        norm = math.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2])
-        if not (norm > 0 and all(math.isfinite(v) for v in c)):
-            raise CirclePoseError("non-finite circle pose")
-        poses.append(CirclePose(np.array(c), np.array([n[0] / norm, n[1] / norm, n[2] / norm])))
-    return poses[0], poses[1]
+    radius = _check_radius(radius)
+    return _poses_from_cone(_cone(ellipse.conic.tolist(), _camera_matrix(K)), radius)
 
 
 def marker_pose_candidates(marker, camera, radius: float) -> tuple[CirclePose, CirclePose]:
     """Both pose candidates of a detected marker (:class:`labctl.vision.Marker`).
 
-    Undistorts the marker's sub-pixel boundary points with ``camera.undistort_pixels``
-    (a :class:`labctl.geometry.CameraModel`), refits the ellipse there with the marker's
-    weights (paper §3.1), and solves the cone/plane problem with ``camera.K`` (paper §3.2).
-    Centres in mm in the camera frame.
+    Undistorts the marker's sub-pixel boundary points (Tsai's κ1 model of ``camera``, a
+    :class:`labctl.geometry.CameraModel`: the same mapping as ``camera.undistort_pixels``),
+    refits the ellipse there with the marker's weights (paper §3.1), and solves the cone/plane
+    problem with ``camera.K`` (paper §3.2). Centres in mm in the camera frame. Raises
+    :class:`EllipseFitError` for a degenerate boundary, :class:`CirclePoseError` for no pose.
     """
-    boundary = np.asarray(marker.boundary, dtype=float)
-    points = camera.undistort_pixels(boundary) if camera.kappa1 != 0.0 else boundary
-    ellipse = fit_ellipse(points, marker.weights)
-    return circle_poses(ellipse, radius, camera.K)
+    radius = _check_radius(radius)
+    boundary, weights = marker.boundary, marker.weights
+    if not (isinstance(boundary, np.ndarray) and boundary.dtype == np.float64 and boundary.ndim == 2
+            and boundary.shape[1] == 2 and boundary.shape[0] >= 5 and isinstance(weights, np.ndarray)
+            and weights.dtype == np.float64 and weights.shape == (boundary.shape[0],)):
+        boundary, weights = _validate(boundary, weights)
+    K = camera.K.tolist()
+    kappa1 = camera.kappa1
+    if kappa1 != 0.0:
+        # Tsai: x_u − c = (x_d − c)(1 + κ1 r²), r² in mm on the sensor (camera.undistort_pixels)
+        c = (K[0][2], K[1][2])
+        offset = boundary - c
+        mm = offset * (camera.dpx / camera.sx, camera.dpy)
+        factor = 1.0 + kappa1 * np.einsum("ij,ij->i", mm, mm)
+        boundary = offset * factor[:, None] + c
+    conic = _fit_conic(boundary, weights)
+    return _poses_from_cone(_cone(conic, K), radius)

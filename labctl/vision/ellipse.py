@@ -192,53 +192,111 @@ def _real_eigenvalues3(m: list[list[float]]) -> list[float]:
 
 def _null_vector3(m: list[list[float]], lam: float) -> list[float]:
     """Unit vector spanning the null space of (m − λI): the largest cross product of two rows."""
-    r0 = [m[0][0] - lam, m[0][1], m[0][2]]
-    r1 = [m[1][0], m[1][1] - lam, m[1][2]]
-    r2 = [m[2][0], m[2][1], m[2][2] - lam]
-    best, best_n = [0.0, 0.0, 0.0], 0.0
-    for u, v in ((r0, r1), (r0, r2), (r1, r2)):
-        cr = [u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0]]
-        n = cr[0] * cr[0] + cr[1] * cr[1] + cr[2] * cr[2]
-        if n > best_n:
-            best, best_n = cr, n
-    if best_n == 0.0:
-        return best
-    s = 1.0 / math.sqrt(best_n)
-    return [best[0] * s, best[1] * s, best[2] * s]
+    (a, b, c), (d, e, f), (g, h, i) = m
+    a -= lam
+    e -= lam
+    i -= lam
+    # cross products r0×r1, r0×r2, r1×r2 of the rows (a b c), (d e f), (g h i)
+    c01 = (b * f - c * e, c * d - a * f, a * e - b * d)
+    c02 = (b * i - c * h, c * g - a * i, a * h - b * g)
+    c12 = (e * i - f * h, f * g - d * i, d * h - e * g)
+    n01 = c01[0] * c01[0] + c01[1] * c01[1] + c01[2] * c01[2]
+    n02 = c02[0] * c02[0] + c02[1] * c02[1] + c02[2] * c02[2]
+    n12 = c12[0] * c12[0] + c12[1] * c12[1] + c12[2] * c12[2]
+    if n01 >= n02 and n01 >= n12:
+        v, n = c01, n01
+    elif n02 >= n12:
+        v, n = c02, n02
+    else:
+        v, n = c12, n12
+    if not n > 0:
+        return [0.0, 0.0, 0.0]
+    s = 1.0 / math.sqrt(n)
+    return [v[0] * s, v[1] * s, v[2] * s]
 
 
-def _direct_fit(design: np.ndarray, wk: np.ndarray) -> np.ndarray:
-    """Halíř–Flusser direct ellipse fit (constraint 4ac − b² = 1) on the design matrix
-    [x², xy, y², x, y, 1] with row weights ``wk``."""
-    S = (design * wk[:, None]).T @ design
-    S1, S2, S3 = S[:3, :3], S[:3, 3:], S[3:, 3:]
-    scale = float(np.abs(S3).max())
-    if not (scale > 0 and abs(cv2.determinant(S3)) > 1e-10 * scale**3):
+# degree of scatter-matrix entry (i, j) for the design row [x², xy, y², x, y, 1]
+_DEGREE = np.add.outer([2, 2, 2, 1, 1, 0], [2, 2, 2, 1, 1, 0]).astype(float)
+
+
+def _moment_matrix(p: np.ndarray, wk: np.ndarray) -> tuple[list[list[float]], float, float, float]:
+    """Weighted scatter matrix S = Σ wkᵢ Dᵢ Dᵢᵀ of the design rows Dᵢ = [x², xy, y², x, y, 1]
+    in Hartley-normalised coordinates (weighted centroid at the origin, RMS distance √2).
+    Returns (S as nested lists, mean x, mean y, scale s) with normalised = s·(p − mean)."""
+    mean = wk @ p
+    c = (p - mean).T
+    x, y = c[0], c[1]
+    rows = np.empty((6, x.shape[0]))
+    np.multiply(x, x, out=rows[0])
+    np.multiply(x, y, out=rows[1])
+    np.multiply(y, y, out=rows[2])
+    rows[3:5] = c
+    rows[5] = 1.0
+    S = (rows * wk) @ rows.T
+    var = float(S[0, 5] + S[2, 5])  # weighted mean squared distance from the centroid
+    if not (var > 0 and math.isfinite(var)):
+        raise EllipseFitError("all points coincide (or are not finite)")
+    s = math.sqrt(2.0 / var)
+    mx, my = mean.tolist()
+    # scale S to the normalised coordinates: entry (i, j) scales with s^(deg_i + deg_j)
+    return (S * np.power(s, _DEGREE)).tolist(), mx, my, s
+
+
+def _direct_fit(S: list[list[float]]) -> list[float]:
+    """Halíř–Flusser direct ellipse fit (constraint 4ac − b² = 1) from the 6×6 weighted scatter
+    matrix ``S`` of the design rows [x², xy, y², x, y, 1]; unit-norm conic in S's coordinates.
+    Unrolled float algebra: at 3×3 it is cheaper than array calls."""
+    (s00, s01, s02, s03, s04, s05), (_, s11, s12, s13, s14, s15), (_, _, s22, s23, s24, s25), \
+        (_, _, _, s33, s34, s35), (_, _, _, _, s44, s45), (_, _, _, _, _, s55) = S
+    # S3⁻¹ (symmetric) by the adjugate
+    A00, A01, A02 = s44 * s55 - s45 * s45, s35 * s45 - s34 * s55, s34 * s45 - s35 * s44
+    A11, A12, A22 = s33 * s55 - s35 * s35, s34 * s35 - s33 * s45, s33 * s44 - s34 * s34
+    det = s33 * A00 + s34 * A01 + s35 * A02
+    big = max(abs(s33), abs(s34), abs(s35), abs(s44), abs(s45), abs(s55))
+    if not abs(det) > 1e-10 * big**3:
         raise EllipseFitError("degenerate point set (collinear or too few distinct points)")
-    T = -cv2.invert(S3)[1] @ S2.T
-    Mc = _C1_INV @ (S1 + S2 @ T)
+    r = -1.0 / det
+    # T = −S3⁻¹ S2ᵀ: the linear part (d, e, f) = T (a, b, c); S2 rows are (s_i3, s_i4, s_i5)
+    t00 = r * (A00 * s03 + A01 * s04 + A02 * s05)
+    t01 = r * (A00 * s13 + A01 * s14 + A02 * s15)
+    t02 = r * (A00 * s23 + A01 * s24 + A02 * s25)
+    t10 = r * (A01 * s03 + A11 * s04 + A12 * s05)
+    t11 = r * (A01 * s13 + A11 * s14 + A12 * s15)
+    t12 = r * (A01 * s23 + A11 * s24 + A12 * s25)
+    t20 = r * (A02 * s03 + A12 * s04 + A22 * s05)
+    t21 = r * (A02 * s13 + A12 * s14 + A22 * s15)
+    t22 = r * (A02 * s23 + A12 * s24 + A22 * s25)
+    # M = S1 + S2 T (symmetric: the Schur complement of S3)
+    m00 = s00 + s03 * t00 + s04 * t10 + s05 * t20
+    m01 = s01 + s03 * t01 + s04 * t11 + s05 * t21
+    m02 = s02 + s03 * t02 + s04 * t12 + s05 * t22
+    m11 = s11 + s13 * t01 + s14 * t11 + s15 * t21
+    m12 = s12 + s13 * t02 + s14 * t12 + s15 * t22
+    m22 = s22 + s23 * t02 + s24 * t12 + s25 * t22
+    # C1⁻¹ M with C1 = [[0, 0, 2], [0, −1, 0], [2, 0, 0]]
+    Mc = [[0.5 * m02, 0.5 * m12, 0.5 * m22], [-m01, -m11, -m12], [0.5 * m00, 0.5 * m01, 0.5 * m02]]
     best = None
-    evals, evecs = cv2.eigenNonSymmetric(Mc)
-    if evecs is not None and evecs.shape == (3, 3):
-        cands = [(abs(lam), v) for lam, v in zip(evals.ravel().tolist(), evecs.tolist(), strict=True)
-                 if 4.0 * v[0] * v[2] - v[1] * v[1] > 0]
-        if cands:
-            best = min(cands)[1]
-    if best is None:  # OpenCV assumes real eigenvalues; fall back to the closed-form cubic
-        mc = Mc.tolist()
-        best_abs = math.inf
-        for lam in _real_eigenvalues3(mc):
-            v = _null_vector3(mc, lam)
-            if 4.0 * v[0] * v[2] - v[1] * v[1] > 0 and abs(lam) < best_abs:
-                best, best_abs = v, abs(lam)
+    # the ellipse is the eigenvector with 4ac − b² > 0; in exact arithmetic it belongs to the
+    # only non-negative eigenvalue, so try the largest first
+    lams = sorted(_real_eigenvalues3(Mc), reverse=True)
+    best_abs = math.inf
+    for lam in lams:
+        v = _null_vector3(Mc, lam)
+        if 4.0 * v[0] * v[2] - v[1] * v[1] > 0 and abs(lam) < best_abs:
+            best, best_abs = v, abs(lam)
+            if lam >= 0:
+                break
     if best is None:
         raise EllipseFitError("no ellipse fits these points (degenerate or hyperbolic set)")
-    upper = np.array(best)
-    return np.concatenate([upper, T @ upper])
-
-
-# C1⁻¹ for the constraint matrix C1 = [[0, 0, 2], [0, −1, 0], [2, 0, 0]] (4ac − b² = 1)
-_C1_INV = np.array([[0.0, 0.0, 0.5], [0.0, -1.0, 0.0], [0.5, 0.0, 0.0]])
+    a, b, c = best
+    d = t00 * a + t01 * b + t02 * c
+    e = t10 * a + t11 * b + t12 * c
+    f = t20 * a + t21 * b + t22 * c
+    norm = math.sqrt(a * a + b * b + c * c + d * d + e * e + f * f)
+    if not (norm > 0 and math.isfinite(norm)):
+        raise EllipseFitError("no ellipse fits these points (degenerate set)")
+    r = 1.0 / norm
+    return [a * r, b * r, c * r, d * r, e * r, f * r]
 
 
 def _is_ellipse(th: np.ndarray) -> bool:
@@ -246,15 +304,86 @@ def _is_ellipse(th: np.ndarray) -> bool:
     return bool(np.all(np.isfinite(th)) and 4.0 * a * c - b * b > 1e-12 * float(th @ th))
 
 
-def _is_arc(th: np.ndarray) -> bool:
+def _is_arc(th) -> bool:
     """True if the points (centred at their weighted mean, RMS radius √2) are an arc rather than
     a closed boundary: on a closed, evenly weighted boundary the mean is the ellipse's centre
     (central symmetry); a missing sector of 2π/16 already moves it by ≈ 0.065 of the radius."""
-    a, b, c, d, e, _ = th.tolist()
+    a, b, c, d, e, _ = th
     det2 = 4.0 * a * c - b * b
     x0 = (b * e - 2.0 * c * d) / det2
     y0 = (b * d - 2.0 * a * e) / det2
     return x0 * x0 + y0 * y0 > 0.03**2 * 2.0
+
+
+def _sampson_refine(p: np.ndarray, wk: np.ndarray, mx: float, my: float, s: float, th: list[float],
+                    iterations: int) -> list[float]:
+    """Up to ``iterations`` Gauss–Newton steps on eq. 2 with wᵢ/|∇Q|² (Sampson distance) from
+    the unit conic ``th`` in the normalised coordinates s·(p − mean)."""
+    xy = (p - (mx, my)) * s
+    x, y = xy[:, 0], xy[:, 1]
+    design = np.empty((x.shape[0], 6))
+    design[:, 0] = x * x
+    design[:, 1] = x * y
+    design[:, 2] = y * y
+    design[:, 3] = x
+    design[:, 4] = y
+    design[:, 5] = 1.0
+    th = np.array(th)
+    sw = np.sqrt(wk)
+    # ∂(gx, gy)/∂θ for gx = 2ax + by + d, gy = bx + 2cy + e
+    dgx = np.zeros_like(design)
+    dgx[:, 0] = 2 * x
+    dgx[:, 1] = y
+    dgx[:, 3] = 1.0
+    dgy = np.zeros_like(design)
+    dgy[:, 1] = x
+    dgy[:, 2] = 2 * y
+    dgy[:, 4] = 1.0
+    for _ in range(iterations):
+        a, b, c, d, e, _f = th.tolist()
+        q = design @ th
+        gx = 2 * a * x + b * y + d
+        gy = b * x + 2 * c * y + e
+        ig = 1.0 / np.sqrt(np.maximum(gx * gx + gy * gy, 1e-300))
+        r = sw * q * ig
+        J = design * (sw * ig)[:, None] - (r * ig * ig)[:, None] * (gx[:, None] * dgx + gy[:, None] * dgy)
+        A = J.T @ J + np.outer(th, th)  # r is scale-free in θ: fix the gauge along θ
+        solved, step = cv2.solve(A, J.T @ r, flags=cv2.DECOMP_CHOLESKY)
+        if not solved:
+            break
+        step = step.ravel()
+        new = th - step
+        new /= math.sqrt(float(new @ new))
+        if not _is_ellipse(new):
+            break
+        done = float(step @ step) < 1e-18
+        th = new
+        if done:
+            break
+    return th.tolist()
+
+
+def _fit_conic(p: np.ndarray, w: np.ndarray, refine_iterations: int | None = None) -> list[float]:
+    """Core of :func:`fit_ellipse` on already validated float arrays (N×2 points, N weights
+    with a positive sum): conic (a, b, c, d, e, f) of the fitted ellipse in ``p``'s
+    coordinates, not normalised. Raises :class:`EllipseFitError` for degenerate sets."""
+    wsum = float(w.sum())
+    if not wsum > 0:
+        raise EllipseFitError("weights sum to zero")
+    wk = w * (1.0 / wsum)
+    S, mx, my, s = _moment_matrix(p, wk)
+    th = _direct_fit(S)
+    if refine_iterations is None:
+        refine_iterations = 3 if _is_arc(th) else 0
+    if refine_iterations > 0:
+        th = _sampson_refine(p, wk, mx, my, s, th, refine_iterations)
+    # back to input coordinates: Q_n(s(x − mx), s(y − my)) expanded symbolically
+    a, b, c, d, e, f = th
+    A2, B2, C2 = a * s * s, b * s * s, c * s * s
+    D2 = -2 * A2 * mx - B2 * my + d * s
+    E2 = -B2 * mx - 2 * C2 * my + e * s
+    F2 = A2 * mx * mx + B2 * mx * my + C2 * my * my - d * s * mx - e * s * my + f
+    return [A2, B2, C2, D2, E2, F2]
 
 
 def fit_ellipse(points, weights=None, *, refine_iterations: int | None = None) -> Ellipse:
@@ -275,68 +404,7 @@ def fit_ellipse(points, weights=None, *, refine_iterations: int | None = None) -
     for fewer than 5 points, non-finite input, collinear or otherwise degenerate point sets.
     """
     p, w = _validate(points, weights)
-    wk = w * (1.0 / float(w.sum()))
-    mean = wk @ p
-    centred = p - mean
-    rms = math.sqrt(float(wk @ (centred * centred).sum(axis=1)))
-    if not rms > 0:
-        raise EllipseFitError("all points coincide")
-    scale = math.sqrt(2.0) / rms
-    xy = centred * scale
-    x, y = xy[:, 0], xy[:, 1]
-    design = np.empty((x.shape[0], 6))
-    design[:, 0] = x * x
-    design[:, 1] = x * y
-    design[:, 2] = y * y
-    design[:, 3] = x
-    design[:, 4] = y
-    design[:, 5] = 1.0
-    th = _direct_fit(design, wk)
-    th /= math.sqrt(float(th @ th))
-    if refine_iterations is None:
-        refine_iterations = 3 if _is_arc(th) else 0
-    if refine_iterations > 0:
-        sw = np.sqrt(wk)
-        # ∂(gx, gy)/∂θ for gx = 2ax + by + d, gy = bx + 2cy + e
-        dgx = np.zeros_like(design)
-        dgx[:, 0] = 2 * x
-        dgx[:, 1] = y
-        dgx[:, 3] = 1.0
-        dgy = np.zeros_like(design)
-        dgy[:, 1] = x
-        dgy[:, 2] = 2 * y
-        dgy[:, 4] = 1.0
-        for _ in range(refine_iterations):
-            a, b, c, d, e, _f = th.tolist()
-            q = design @ th
-            gx = 2 * a * x + b * y + d
-            gy = b * x + 2 * c * y + e
-            ig = 1.0 / np.sqrt(np.maximum(gx * gx + gy * gy, 1e-300))
-            r = sw * q * ig
-            J = design * (sw * ig)[:, None] - (r * ig * ig)[:, None] * (gx[:, None] * dgx + gy[:, None] * dgy)
-            A = J.T @ J + np.outer(th, th)  # r is scale-free in θ: fix the gauge along θ
-            solved, step = cv2.solve(A, J.T @ r, flags=cv2.DECOMP_CHOLESKY)
-            if not solved:
-                break
-            step = step.ravel()
-            new = th - step
-            new /= math.sqrt(float(new @ new))
-            if not _is_ellipse(new):
-                break
-            done = float(step @ step) < 1e-18
-            th = new
-            if done:
-                break
-    # back to input coordinates: x_n = s (x − m)  →  M_in = Hᵀ M_n H
-    a, b, c, d, e, f = th.tolist()
-    mx, my = float(mean[0]), float(mean[1])
-    s = scale
-    # expand Q_n(s(x − mx), s(y − my)) symbolically
-    A2, B2, C2 = a * s * s, b * s * s, c * s * s
-    D2 = -2 * A2 * mx - B2 * my + d * s
-    E2 = -B2 * mx - 2 * C2 * my + e * s
-    F2 = A2 * mx * mx + B2 * mx * my + C2 * my * my - d * s * mx - e * s * my + f
-    return Ellipse.from_conic([A2, B2, C2, D2, E2, F2])
+    return Ellipse.from_conic(_fit_conic(p, w, refine_iterations))
 
 
 def ellipse_from_cv_box(box) -> Ellipse:
