@@ -34,6 +34,7 @@ _BASIS_T = np.ascontiguousarray(np.vstack(basis(np.linspace(0.0, 1.0, _SAMPLES))
 _BV_T = np.ascontiguousarray(_BASIS_T[:, _SAMPLES : 2 * _SAMPLES])
 _MARGIN = 1e-3  # relative margin of the sampled checks; the exact check decides in the end
 _U = np.linspace(0.0, 1.0, _SAMPLES)
+_H2_8 = (1.0 / (_SAMPLES - 1)) ** 2 / 8.0
 # the margin tapers to 0 at both ends: the start state (and G's state) may sit right at a limit
 _TAPER = _MARGIN * np.minimum(1.0, 16.0 * _U * (1.0 - _U))
 
@@ -81,7 +82,10 @@ def _score(p0, v0, a0, gp, gv, ga, Ts, limits: Limits, rot=None) -> tuple[np.nda
     S = _SAMPLES
     X = b.transpose(0, 2, 1) @ _BASIS_T  # (K, 3, 3S): sampled p(u), then p'(u), then p''(u), per axis
     P = X[:, :, :S]
-    box_excess = np.maximum(limits.box_min - P.min(axis=2), P.max(axis=2) - limits.box_max).max(axis=1)
+    # between samples h apart a position extremum can overshoot the best sample by h²/8·|p''|
+    slack = _H2_8 * np.abs(X[:, :, 2 * S :]).max(axis=2)  # (K, 3)
+    low, high = P.min(axis=2) - slack, P.max(axis=2) + slack
+    box_excess = np.maximum(limits.box_min - low, high - limits.box_max).max(axis=1)
     g_excess = np.maximum(limits.box_min - gp, gp - limits.box_max).max(axis=1)
     D = np.abs(X[:, :, S:]).max(axis=1).reshape(len(Ts), 2, S)  # (K, 2, S): max over axes of |p'|, |p''|
     v_excess = (D[:, 0] / (limits.v_max * Ts)[:, None] + _TAPER).max(axis=1) - 1
@@ -180,8 +184,8 @@ def plan_interception(state0, t0: float, G: TargetFn, limits: Limits, horizon_s:
         return hi
 
     def exact(T_feasible):  # the exact check decides; the sampled score may be a hair optimistic
-        for bump in range(8):
-            T = T_feasible * (1.0 + 0.0005 * bump)
+        for bump in (0.0, 0.0005, 0.001, 0.002, 0.004, 0.008, 0.016, 0.032):
+            T = T_feasible * (1.0 + bump)
             seg = _segment(t0, T, p0, v0, a0, G, rot_args)
             try:
                 return check_segment(seg, limits)
