@@ -17,6 +17,7 @@ from __future__ import annotations
 import math
 import os
 import threading
+from multiprocessing import AuthenticationError
 from multiprocessing.connection import Client, Listener
 
 import numpy as np
@@ -119,15 +120,27 @@ class FrameServer:
         return self
 
     def stop(self) -> None:
+        if self._stopping.is_set():
+            return
         self._stopping.set()
+        if self._accept_thread is not None and self._accept_thread.is_alive():
+            # closing a socket does not wake a thread blocked in accept(): knock once to release it
+            # (from a daemon thread: if the accept loop is already leaving, nobody answers the knock,
+            # and closing the listener below resets it)
+            threading.Thread(target=self._knock, name="frame-server-knock", daemon=True).start()
+            self._accept_thread.join(timeout=2.0)
         try:
             self._listener.close()
         except OSError:
             pass
-        if self._accept_thread is not None:
-            self._accept_thread.join(timeout=2.0)
         for th in self._threads:
             th.join(timeout=2.0)
+
+    def _knock(self) -> None:
+        try:
+            Client(self.address, authkey=self.authkey).close()
+        except (OSError, EOFError, AuthenticationError):
+            pass
 
     def __enter__(self) -> FrameServer:
         return self.start()
@@ -139,10 +152,13 @@ class FrameServer:
         while not self._stopping.is_set():
             try:
                 conn = self._listener.accept()
-            except (OSError, EOFError):
+            except (OSError, EOFError, AuthenticationError):
                 if self._stopping.is_set():
                     return
                 continue  # a client that failed authentication or vanished mid-handshake
+            if self._stopping.is_set():
+                conn.close()
+                return
             th = threading.Thread(target=self._serve, args=(conn,), name="frame-client", daemon=True)
             self._threads.append(th)
             th.start()
@@ -169,7 +185,7 @@ class FrameServer:
                         frame = cam.grab()
                         img = np.ascontiguousarray(frame.image)
                         conn.send({"t": frame.t, "seq": frame.seq, "shape": img.shape, "dtype": str(img.dtype)})
-                        conn.send_bytes(img)
+                        conn.send_bytes(img.reshape(-1))
                     else:
                         conn.send({"error": f"unknown request {kind!r}"})
                 except (EOFError, OSError, BrokenPipeError):
@@ -192,6 +208,8 @@ class FrameClient:
     def open(self) -> None:
         try:
             self._conn = Client(self.address, authkey=self.authkey)
+        except AuthenticationError:
+            raise DeviceError(f"the frame server at {self.address} rejected the key") from None
         except (OSError, EOFError) as exc:
             raise DeviceError(f"cannot reach the frame server at {self.address}: {exc}") from None
 
