@@ -79,7 +79,8 @@ class GrblTable:
     def __init__(self, port: str | None = None, baud: int = 9600, *, timeout_s: float = 5.0,
                  reset_on_open: bool = True, status_hz: float = 5.0, boot_s: float = 2.5,
                  serial_port=None, clock: Callable[[], float] = time.monotonic,
-                 sleep: Callable[[float], None] = time.sleep, rx_buffer: int = RX_BUFFER_SIZE):
+                 sleep: Callable[[float], None] = time.sleep, rx_buffer: int = RX_BUFFER_SIZE,
+                 auto_unlock: bool = True):
         self.link = SerialLink(port, baud, timeout_s, port=serial_port, clock=clock, sleep=sleep,
                                name=f"grbl@{port or getattr(serial_port, 'port', 'port')}")
         self.timeout_s = timeout_s
@@ -99,6 +100,8 @@ class GrblTable:
         self.connected_by = ""
         self.status_reports = 0
         self.max_in_flight = 0
+        self.auto_unlock = auto_unlock
+        self.session_alarm: int | None = None  # the last ALARM:N seen since open
 
     @classmethod
     def from_config(cls, cfg, **kw) -> GrblTable:
@@ -158,6 +161,7 @@ class GrblTable:
 
     def _after_connect(self) -> None:
         self._alarm = None
+        self.session_alarm = None
         self._reset_seen = False
         self._read(0.05)  # the rest of the banner burst ([MSG:…])
         st = self.status()
@@ -197,6 +201,7 @@ class GrblTable:
             self.status_reports += 1
         elif msg.kind == "alarm":
             self._alarm = msg.code
+            self.session_alarm = msg.code
             log.warning("%s: ALARM:%s %s", self.link.name, msg.code, msg.text)
         elif msg.kind == "banner":
             self._reset_seen = True
@@ -266,7 +271,7 @@ class GrblTable:
 
     def _table_status(self) -> TableStatus:
         st = self.last_status
-        pos = st.machine_position(self._wco) or (float("nan"),) * 3
+        pos = st.machine_position(self._wco) or st.wpos or (0.0, 0.0, 0.0)  # WPos until a WCO arrives
         return TableStatus(state=st.state_word, position=tuple(float(v) for v in pos),
                            feed_mm_min=float(st.feed or 0.0), t=self.last_status_t)
 
@@ -291,9 +296,13 @@ class GrblTable:
         self.command("$H", timeout_s=timeout_s)
 
     def ensure_ready(self, unlock: bool = True) -> TableStatus:
-        """Idle and unlocked: unlock a power-up homing lock if asked; GrblAlarm otherwise."""
+        """Idle and unlocked. The power-up homing lock is released with ``$X`` if ``unlock``; an
+        alarm raised since open (limits, aborted motion) is never cleared silently: GrblAlarm."""
         st = self.status()
         if st.state == "Alarm":
+            if self.session_alarm is not None:
+                raise GrblAlarm(self.session_alarm, "the table alarmed during this session; check it, then reset "
+                                "and home or unlock")
             if not unlock:
                 raise GrblAlarm(None, "run `labctl table home` or unlock first")
             self.unlock()
@@ -316,6 +325,8 @@ class GrblTable:
         for i, line in enumerate(program):
             if len(line) > MAX_LINE:
                 raise GrblError(11, line, i)
+        if self.last_status is None or self.last_status.state == "Alarm":
+            self.ensure_ready(unlock=self.auto_unlock)
         in_flight: deque[tuple[int, int]] = deque()  # (index, bytes)
         used = 0
         sent = 0

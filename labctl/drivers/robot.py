@@ -1,0 +1,208 @@
+"""The robot controller driver for the dialect of docs/protocols/robot.md, over :class:`SerialLink`.
+
+Every request carries a sequence number and waits for its own ``$<seq>`` reply; ``@DONE``,
+``@WATCHDOG`` and other asynchronous reports that arrive meanwhile are recorded. ``E<code>``
+replies raise :class:`RobotError`. If the link fails or times out, the driver tries a
+best-effort ``STOP`` before raising, and the controller's watchdog stops the robot anyway when
+heartbeats stop.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from ..errors import DeviceError
+from ..geometry import make_T, matrix_to_rotvec, rotvec_to_matrix
+from .interfaces import RobotStatus
+from .robot_protocol import ERROR_CODES, MAX_SEQ, RobotReply, format_request, parse_reply
+from .serial_link import DeviceTimeout, LinkError, SerialLink
+
+log = logging.getLogger(__name__)
+
+STOP_LINE = b"#0 STOP\n"  # what a supervisor writes straight to the port in an emergency
+
+
+class RobotError(DeviceError):
+    """The controller refused a request (``E<code>``)."""
+
+    def __init__(self, code: int, message: str = "", command: str = ""):
+        self.code = code
+        super().__init__(f"robot E{code:02d} {message or ERROR_CODES.get(code, 'error')}"
+                         + (f" (for {command!r})" if command else ""))
+
+
+class RobotFault(DeviceError):
+    """The controller stopped on its own (watchdog) and needs CLEAR."""
+
+
+class SerialRobot:
+    """:class:`labctl.drivers.interfaces.Robot` over a serial port or pyserial URL."""
+
+    def __init__(self, port: str | None = None, baud: int = 9600, *, timeout_s: float = 2.0,
+                 heartbeat_s: float = 0.2, serial_port=None, clock: Callable[[], float] = time.monotonic,
+                 sleep: Callable[[float], None] = time.sleep, retries: int = 1):
+        self.link = SerialLink(port, baud, timeout_s, port=serial_port, clock=clock, sleep=sleep,
+                               name=f"robot@{port or getattr(serial_port, 'port', 'port')}")
+        self.timeout_s = timeout_s
+        self.heartbeat_s = heartbeat_s
+        self.clock = clock
+        self.retries = retries
+        self._seq = 0
+        self.done_ids: list[int] = []
+        self.faults: list[str] = []
+        self.ident = ""
+        self._last_sent = -1e18
+
+    @classmethod
+    def from_config(cls, cfg, **kw) -> SerialRobot:
+        return cls(kw.pop("port", cfg.port), kw.pop("baud", cfg.baud), timeout_s=cfg.timeout_s,
+                   heartbeat_s=cfg.heartbeat_s, **kw)
+
+    # --- connection -------------------------------------------------------------------------
+    def open(self) -> None:
+        self.link.open()
+        try:
+            self.link.discard_input()
+            reply = self.request("HELLO")
+            self.ident = " ".join(reply.fields)
+        except BaseException:
+            self.link.close()
+            raise
+
+    def close(self) -> None:
+        self.link.close()
+
+    def __enter__(self):
+        self.open()
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    # --- requests ---------------------------------------------------------------------------
+    def _on_async(self, line: str) -> None:
+        msg = parse_reply(line)
+        if msg.kind == "async":
+            if msg.report == "DONE" and msg.fields and msg.fields[0].isdigit():
+                self.done_ids.append(int(msg.fields[0]))
+            elif msg.report == "WATCHDOG":
+                self.faults.append("watchdog")
+                log.warning("%s: controller watchdog stopped the robot", self.link.name)
+            elif msg.report == "ERR":
+                log.warning("%s: %s", self.link.name, line)
+        elif msg.kind == "unknown" and line.strip():
+            log.warning("%s: unexpected line %r", self.link.name, line)
+
+    def request(self, command: str, *args) -> RobotReply:
+        """Send ``#<seq> command args`` and return its ``$<seq> ok`` reply; RobotError on ``E<code>``.
+
+        Retries once on a timeout (a lost line); DeviceTimeout if still no reply.
+        """
+        last_exc: Exception | None = None
+        for _attempt in range(self.retries + 1):
+            self._seq = self._seq % MAX_SEQ + 1
+            seq = self._seq
+            line = format_request(seq, command, *args)
+
+            def is_reply(text: str, seq=seq) -> bool:
+                msg = parse_reply(text)
+                return msg.kind == "reply" and msg.seq == seq
+
+            try:
+                got = self.link.request(line, is_reply, self.timeout_s, on_async=self._on_async)
+            except DeviceTimeout as exc:
+                last_exc = exc
+                continue
+            self._last_sent = self.clock()
+            msg = parse_reply(got)
+            if not msg.ok:
+                raise RobotError(msg.code or 0, msg.text, command)
+            return msg
+        raise DeviceTimeout(f"{self.link.name}: no reply to {command} after {self.retries + 1} tries") from last_exc
+
+    def poll(self) -> None:
+        """Collect asynchronous reports received so far."""
+        for line in self.link.lines(0.0):
+            self._on_async(line)
+
+    # --- Robot interface --------------------------------------------------------------------
+    def segment(self, T_base_flange: np.ndarray, duration_s: float, segment_id: int, *,
+                end_velocity_mm_s=None, end_omega_rad_s=None, replace: bool = False) -> tuple[float, float]:
+        """Queue (or with ``replace`` start now) a quintic segment; returns its controller (t0, t1)."""
+        T = np.asarray(T_base_flange, float)
+        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+            raise ValueError("T_base_flange must be a finite 4×4 matrix")
+        if not (duration_s > 0 and np.isfinite(duration_s)):
+            raise ValueError(f"segment duration must be positive, got {duration_s}")
+        rv = matrix_to_rotvec(T[:3, :3])
+        args: list = [int(segment_id), *map(float, T[:3, 3]), *map(float, rv), float(duration_s)]
+        if end_velocity_mm_s is not None or end_omega_rad_s is not None:
+            v = np.zeros(3) if end_velocity_mm_s is None else np.asarray(end_velocity_mm_s, float)
+            w = np.zeros(3) if end_omega_rad_s is None else np.asarray(end_omega_rad_s, float)
+            args += [*map(float, v), *map(float, w)]
+        try:
+            reply = self.request("SEGNOW" if replace else "SEG", *args)
+        except (DeviceTimeout, LinkError):
+            self.emergency_stop()
+            raise
+        times = reply.floats(2)
+        return (times[0], times[1]) if times else (float("nan"), float("nan"))
+
+    def stop(self) -> None:
+        self.request("STOP")
+
+    def emergency_stop(self) -> None:
+        """Best effort: send STOP without waiting; never raises (the watchdog is the backstop)."""
+        try:
+            self._seq = self._seq % MAX_SEQ + 1
+            self.link.send_line(format_request(self._seq, "STOP"))
+        except Exception:  # the link may be what failed
+            log.warning("%s: could not send STOP", self.link.name, exc_info=True)
+
+    def clear(self) -> None:
+        self.request("CLEAR")
+
+    def home(self) -> None:
+        self.request("HOME")
+
+    def heartbeat(self) -> None:
+        self.request("HB")
+
+    def maybe_heartbeat(self) -> None:
+        """Send HB if nothing was sent for ``heartbeat_s``."""
+        if self.clock() - self._last_sent >= self.heartbeat_s:
+            self.heartbeat()
+
+    def limits(self) -> dict:
+        f = self.request("LIMITS").floats(10)
+        if f is None:
+            raise DeviceError(f"{self.link.name}: malformed LIMITS reply")
+        return {"workspace_min_mm": f[0:3], "workspace_max_mm": f[3:6], "v_max_mm_s": f[6],
+                "a_max_mm_s2": f[7], "w_max_deg_s": f[8], "watchdog_s": f[9]}
+
+    def status(self) -> RobotStatus:
+        reply = self.request("STATUS")
+        f = reply.floats(10)
+        if f is None:
+            raise DeviceError(f"{self.link.name}: malformed STATUS reply {reply.raw!r}")
+        fault = reply.fields[10] if len(reply.fields) > 10 else "none"
+        if fault != "none" and fault not in self.faults:
+            self.faults.append(fault)
+        T = make_T(rotvec_to_matrix(np.array(f[3:6])), f[0:3])
+        return RobotStatus(T_base_flange=T, moving=bool(int(f[6])), segment_id=int(f[7]), t=f[9])
+
+    def wait_done(self, segment_id: int, timeout_s: float) -> None:
+        """Wait for ``@DONE segment_id`` (heartbeating meanwhile); RobotFault if the watchdog tripped."""
+        deadline = self.clock() + timeout_s
+        while segment_id not in self.done_ids:
+            if self.faults:
+                raise RobotFault(f"{self.link.name}: robot stopped by its controller ({self.faults[-1]})")
+            if self.clock() > deadline:
+                raise DeviceTimeout(f"{self.link.name}: segment {segment_id} not done within {timeout_s:g} s")
+            for line in self.link.lines(min(self.heartbeat_s / 2, 0.05)):
+                self._on_async(line)
+            self.maybe_heartbeat()
