@@ -195,3 +195,51 @@ def test_too_fast_target_is_reported_as_too_slow():
     G = camera_placement_trajectory(path, 1000.0, 63.0, azimuth_deg=-90.0, marker_z_mm=40.0)
     res = plan_interception((np.array([0.0, -450.0, 930.0]), np.zeros(3), np.zeros(3)), 0.0, G, slow, 10.0)
     assert not res.reachable and res.code == "too_slow"
+
+
+def test_ruckig_baseline_checks_the_box_that_ruckig_itself_ignores():
+    from ruckig import InputParameter, Result, Ruckig, Trajectory
+
+    # moving fast towards the +x wall, target just inside it: the time-optimal profile overshoots the wall
+    start = (np.array([850.0, 0.0, 600.0]), np.array([450.0, 0.0, 0.0]), np.zeros(3))
+    target = np.array([880.0, 0.0, 600.0])
+    inp = InputParameter(3)
+    inp.current_position, inp.current_velocity, inp.current_acceleration = (x.tolist() for x in start)
+    inp.target_position, inp.target_velocity, inp.target_acceleration = target.tolist(), [0.0] * 3, [0.0] * 3
+    inp.max_velocity, inp.max_acceleration, inp.max_jerk = [500.0] * 3, [1500.0] * 3, [15000.0] * 3
+    raw = Trajectory(3)
+    assert Ruckig(3).calculate(inp, raw) in (Result.Working, Result.Finished)
+    assert raw.position_extrema[0].max > LIMITS.box_max[0]  # ruckig alone leaves the workspace
+
+    def G(times):
+        n = len(np.atleast_1d(times))
+        return np.tile(target, (n, 1)), np.zeros((n, 3)), np.zeros((n, 3))
+
+    # stopping from 450 mm/s at 1500 mm/s² takes ≥ 67.5 mm, the wall is 50 mm away: no safe plan exists
+    assert not RuckigInterceptor(LIMITS).plan(start, 0.0, G, 10.0).reachable
+    assert not plan_interception(start, 0.0, G, LIMITS, 10.0).reachable
+    # slower, it can stop in time: both planners succeed and stay inside
+    slow = (start[0], np.array([250.0, 0.0, 0.0]), np.zeros(3))
+    res = RuckigInterceptor(LIMITS).plan(slow, 0.0, G, 10.0)
+    assert res.reachable and res.trajectory.position_extrema[0].max <= LIMITS.box_max[0] + 1e-6
+    quintic = plan_interception(slow, 0.0, G, LIMITS, 10.0)
+    assert quintic.reachable and check_segment(quintic.trajectory.segments[0], LIMITS)
+
+
+def test_standard_view_with_hand_eye_plans_the_flange_so_the_camera_lands_on_the_view():
+    from labctl.geometry import make_T, rpy_willson
+
+    T_f_c = make_T(rpy_willson(*np.deg2rad([1.5, -1.0, 90.0])), [0.0, 60.0, 80.0])
+    table = PredictedPath(0.0, np.zeros(2), np.array([8.0, 3.0]))
+    center, normal = np.array([250.0, 50.0, 60.0]), np.array([0.0, 0.0, 1.0])
+    R_cam_now = np.diag([1.0, -1.0, -1.0])  # looking straight down
+    res = plan_standard_view((HOME, np.zeros(3), np.zeros(3)), 0.0, table, 0.0, center, normal, 600.0, LIMITS,
+                             R_cam_now, 10.0, T_f_c=T_f_c)
+    assert res.reachable, res.reason
+    t = res.t_hit
+    T_w_f = np.eye(4)
+    T_w_f[:3, :3] = res.trajectory.orientation(t)
+    T_w_f[:3, 3] = res.trajectory.state(t)[0]
+    T_w_c = T_w_f @ T_f_c
+    np.testing.assert_allclose(T_w_c[:3, 3], center + np.array([8.0, 3.0, 0.0]) * t + [0, 0, 600.0], atol=1e-6)
+    np.testing.assert_allclose(T_w_c[:3, 2], -normal, atol=1e-9)

@@ -265,7 +265,10 @@ def plan_standard_view(state0, t0: float, table_path: MarkerPath, t_ref: float, 
     """
     G: TargetPath = standard_view_path(table_path, t_ref, marker_center_w, marker_normal_w, standoff_mm,
                                        current_R, T_f_c=T_f_c)
-    kwargs.setdefault("R0", current_R if T_f_c is None else None)
+    R_now = np.asarray(current_R, dtype=float)
+    if T_f_c is not None:  # the commanded frame is the flange: R_w_f = R_w_c · R_c_f
+        R_now = R_now @ np.asarray(T_f_c, dtype=float)[:3, :3].T
+    kwargs.setdefault("R0", R_now)
     return plan_interception(state0, t0, G, limits, horizon_s, **kwargs)
 
 
