@@ -19,6 +19,16 @@ from ..library.matching import LibraryIndex
 from ..library.storage import load_library
 from ..planning import Limits
 
+#: the planner keeps this fraction of the controller's limits in hand (latency, sampling, round-off)
+LIMIT_MARGIN = 0.95
+
+
+def planning_limits(robot_cfg) -> Limits:
+    """The limits the planner plans to: the controller's, with a margin."""
+    lim = Limits.from_config(robot_cfg)
+    return Limits(lim.box_min, lim.box_max, lim.v_max * LIMIT_MARGIN / 3**0.5, lim.a_max * LIMIT_MARGIN / 3**0.5,
+                  lim.w_max * LIMIT_MARGIN)
+
 
 @dataclass
 class RunContext:
@@ -36,8 +46,7 @@ class RunContext:
         if not library:
             raise UserInputError(f"the object library {lab.library_dir} is empty (teach objects first)")
         names = sorted(library)
-        return cls(lab, calibration, library, names, LibraryIndex.from_library(library),
-                   Limits.from_config(lab.robot))
+        return cls(lab, calibration, library, names, LibraryIndex.from_library(library), planning_limits(lab.robot))
 
     @property
     def root(self) -> Path:

@@ -112,10 +112,10 @@ def _mobile_camera(args: WorkerArgs, lab):
 def predictor_main(args: WorkerArgs, link_end, control) -> None:
     """Host 1's process: fixed camera → Kalman filter → planners → robot and table."""
     from ..drivers.grbl import GrblTable
-    from ..drivers.programs import program_for
     from ..drivers.robot import SerialRobot
     from .context import RunContext
     from .predictor import PredictorPlanner
+    from .simlab import trajectory_program
     from .transport import LinkClosed, open_link
 
     ctl = _Control(control, "predictor")
@@ -135,7 +135,7 @@ def predictor_main(args: WorkerArgs, link_end, control) -> None:
         link.send(m.Hello(role="predictor", pid=os.getpid()))
         now = _now(args.origin)
         planner = PredictorPlanner(ctx, robot, link.send, log, t_start=now)
-        table.stream(program_for(args.spec["trajectory"], args.spec["speed_mm_s"], lab.table))
+        table.stream(trajectory_program(args.spec["trajectory"], args.spec["speed_mm_s"], lab)[1])
         log("table_program", t=now, trajectory=args.spec["trajectory"], speed_mm_s=args.spec["speed_mm_s"])
         t_beat = 0.0
         while not planner.finished:

@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..drivers.interfaces import Frame, Robot
+from ..errors import DeviceError
 from ..geometry import make_T, matrix_to_rotvec
 from ..planning import Interception, camera_placement_trajectory, plan_interception
 from ..planning.targets import standard_view_path
@@ -108,6 +109,9 @@ class PredictorPlanner:
         self.identity: m.Identity | None = None
         self.failure: str | None = None
         self.robot_path: list[tuple[float, list[float]]] = []
+        # a segment command is ~100 bytes: at 9600 bps it reaches the controller ~0.1 s after it is sent
+        self.latency_s = 100 * 10.0 / ctx.lab.robot.baud
+        self.plan_shift = 0.0  # controller time − plan time of the segment being executed
         self.min_motion_s = 0.0  # sum over legs of the robot-limited rest-to-rest time (lower bound)
 
     # -- helpers ------------------------------------------------------------------------------
@@ -138,6 +142,7 @@ class PredictorPlanner:
         """Current commanded flange state (p, v, a) and rotation, from the plan being executed."""
         if self.plan is not None and self.plan.trajectory is not None:
             traj = self.plan.trajectory
+            now = now - self.plan_shift
             t = min(max(now, traj.t_start), traj.t_end)
             p, v, a = traj.state(t)
             R = traj.orientation(t)
@@ -153,11 +158,20 @@ class PredictorPlanner:
         return self.tracker.predicted_path()
 
     def _send_segment(self, now: float, plan: Interception) -> None:
+        """Command the plan's first segment; the controller splices it in from its own state on receipt,
+        which is the plan's start time (now + the command's transmission time)."""
         end = plan.trajectory.segments[0]
         T_end = make_T(end.orientation(end.t1) if end.rot_coeffs is not None else plan.target.rotation,
                        end.state(end.t1)[0])
         self.segment_id += 1
-        self.robot.segment(T_end, end.t1 - now, self.segment_id)
+        t0c, _ = self.robot.segment(T_end, end.t1 - end.t0, self.segment_id, replace=True)
+        # The controller reports when it started the segment; on the same clock (the simulated lab)
+        # that measures the command latency, and the plan is re-timed to what the robot really does.
+        if math.isfinite(t0c) and 0.0 <= t0c - now < 1.0:
+            self.latency_s = 0.5 * self.latency_s + 0.5 * (t0c - now)
+            self.plan_shift = t0c - end.t0
+        else:
+            self.plan_shift = 0.0
         self.log("segment", t=now, id=self.segment_id, kind=self.plan_kind, t_end=end.t1,
                  p=T_end[:3, 3], rotvec=matrix_to_rotvec(T_end[:3, :3]))
 
@@ -175,8 +189,10 @@ class PredictorPlanner:
         return _RestAt(G)
 
     def _plan(self, now: float, kind: str, target) -> Interception:
-        state, R = self._flange_state(now)
-        return plan_interception(state, now, target, self.ctx.limits, horizon_s=15.0, R0=R)
+        """Plan from where the robot will be when the command reaches the controller."""
+        t0 = now + self.latency_s
+        state, R = self._flange_state(t0)
+        return plan_interception(state, t0, target, self.ctx.limits, horizon_s=15.0, R0=R)
 
     def _start_move(self, now: float, kind: str, plan: Interception) -> None:
         state, _ = self._flange_state(now)
@@ -213,16 +229,20 @@ class PredictorPlanner:
             target = self._standard_target()
         else:
             target = self._initial_view_target(self.azimuth_deg)
-        state, R = self._flange_state(now)
-        plan = plan_interception(state, now, target, self.ctx.limits, horizon_s=15.0, R0=R)
+        plan = self._plan(now, self.plan_kind, target)
         self.t_last_plan = now
         if not plan.reachable:
             return  # keep executing the current plan
         old_end = self.plan.trajectory.state(self.plan.t_hit)[0]
         new_end = plan.trajectory.state(plan.t_hit)[0]
         if np.linalg.norm(new_end - old_end) > 0.5 or abs(plan.t_hit - self.plan.t_hit) > 0.02:
+            old, old_shift = self.plan, self.plan_shift
             self.plan = plan
-            self._send_segment(now, plan)
+            try:
+                self._send_segment(now, plan)
+            except DeviceError as exc:  # the controller refused the splice: keep the motion it runs
+                self.plan, self.plan_shift = old, old_shift
+                self.log("replan_refused", t=now, error=str(exc))
 
     def _standard_target(self):
         """G(t) of the standard view (paper §4.3): the marker, carried by the table's predicted
@@ -362,11 +382,11 @@ class PredictorPlanner:
                 self._plan_initial(now, "initial1")
             return
         if self.stage in ("intercept", "initial", "standard") and self.pending is None and self.plan is not None:
-            if now < self.plan.t_hit + 0.05:
+            if now < self.plan.t_hit + self.plan_shift + 0.05:
                 self._replan(now)
                 return
             st = self.robot.status()
-            if st.moving and now < self.plan.t_hit + 1.0:
+            if st.moving and now < self.plan.t_hit + self.plan_shift + 1.0:
                 return
             p = st.T_base_flange[:3, 3]
             self.robot_path.append((now, p.tolist()))

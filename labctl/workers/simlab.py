@@ -31,7 +31,7 @@ def trajectory_program(name: str, speed_mm_s: float, lab: Lab) -> tuple[tuple[fl
     """``(start_xy, gcode_lines)`` of a named trajectory, or of a G-code file (started at the centre)."""
     if name in TRAJECTORY_STARTS:
         start = TRAJECTORY_STARTS[name]
-        return start, program(name, speed_mm_s, start=start)
+        return start, program(name, speed_mm_s, start=start, travel_mm=lab.table.travel_mm)
     from ..drivers.programs import load_gcode
 
     try:
@@ -70,8 +70,7 @@ class SimBench:
         t = lab.table
         self.grbl = GrblEmulator(clock.now, travel_mm=t.travel_mm, max_feed_mm_min=t.max_feed_mm_min,
                                  accel_mm_s2=t.accel_mm_s2, start_mm=(start_xy[0], start_xy[1], 0.0))
-        self.robot_emu = RobotEmulator.from_config(lab.robot, clock.now,
-                                                   home=home_flange_pose(lab))
+        self.robot_emu = RobotEmulator(clock.now, lab.robot, start_pose=home_flange_pose(lab))
         self.table = GrblTable.from_config(t, serial_port=EmulatorPort(self.grbl, clock.now, t.baud, sleep=clock.sleep),
                                            clock=clock.now, sleep=clock.sleep)
         self.robot = SerialRobot.from_config(
@@ -129,7 +128,7 @@ class LiveSimLab:
         t = lab.table
         self.grbl = GrblEmulator(clock.now, travel_mm=t.travel_mm, max_feed_mm_min=t.max_feed_mm_min,
                                  accel_mm_s2=t.accel_mm_s2, start_mm=(start[0], start[1], 0.0))
-        self.robot_emu = RobotEmulator.from_config(lab.robot, clock.now, home=home_flange_pose(lab))
+        self.robot_emu = RobotEmulator(clock.now, lab.robot, start_pose=home_flange_pose(lab))
         self.table_pty = run_on_pty(self.grbl, t.baud, clock=clock.now)
         self._stack.callback(self.table_pty.stop)
         self.robot_pty = run_on_pty(self.robot_emu, lab.robot.baud, clock=clock.now)
