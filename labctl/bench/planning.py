@@ -32,25 +32,26 @@ MODELS = {
 }
 
 
-def _prediction_table(quick: bool) -> list[dict]:
+def _prediction_table(quick: bool) -> dict:
+    """``{model: {"shape@speed": {"rms_mm": [...], "p95_mm": [...]}}}`` over :data:`HORIZONS`."""
     shapes = ("line", "arc", "s_curve", "stop_and_go")
     speeds = (10.0,) if quick else (4.0, 8.0, 12.0, 100.0)
     default = TrackingConfig()
     models = dict(MODELS)
     models["cv (config default)"] = dict(model="cv", process_noise=default.process_noise, measurement_noise_mm=0.5)
-    out = []
+    out: dict = {"horizons_s": list(HORIZONS)}
     for name, kw in models.items():
         trk = MarkerTracker(**kw)
+        table = out[name] = {}
         for shape in shapes:
             for speed in speeds:
                 traj = make_trajectory(shape, speed, duration_s=20.0 if quick else 30.0)
                 errs = prediction_errors(trk, traj, HORIZONS, warmup_s=5.0 if quick else 10.0,
                                          rng=np.random.default_rng(int(speed * 10) + len(shape)))
-                for h, e in errs.items():
-                    if e.size:
-                        out.append(dict(model=name, shape=shape, speed_mm_s=speed, horizon_s=h,
-                                        rms_mm=round(float(np.sqrt(np.mean(e**2))), 3),
-                                        p95_mm=round(float(np.percentile(e, 95)), 3), n=int(e.size)))
+                table[f"{shape}@{speed:g}"] = {
+                    "rms_mm": [round(float(np.sqrt(np.mean(errs[h] ** 2))), 2) for h in HORIZONS],
+                    "p95_mm": [round(float(np.percentile(errs[h], 95)), 2) for h in HORIZONS],
+                }
     return out
 
 

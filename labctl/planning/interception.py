@@ -6,7 +6,7 @@ earliest ``t`` at which a quintic that respects the velocity and acceleration li
 the workspace arrives on the target path G(t) with G's own velocity and acceleration (so the
 camera is riding along with the view when it arrives). The segment's duration is ``t - t0``, so
 the search is one-dimensional in ``t``: a geometric coarse grid over the horizon (sampled limit
-checks, all candidates at once in numpy), two rounds of refinement inside the first feasible
+checks, all candidates at once in numpy), one round of 32 refining the first feasible
 bracket, a closer look at near misses (local minima of a constraint score, for narrow feasible windows),
 then the exact :func:`~labctl.planning.safety.check_segment` on the result. Re-planning
 (:func:`replan`) restarts the same search from the current trajectory's state at ``t_now``, so
@@ -177,11 +177,9 @@ def plan_interception(state0, t0: float, G: TargetFn, limits: Limits, horizon_s:
         return _score(p0, v0, a0, cp, cv, ca, cand, limits, rot)[0]
 
     def refine_edge(lo, hi):  # lo infeasible (or 0), hi feasible: close in on the earliest feasible time
-        for _ in range(2):
-            cand = np.linspace(lo, hi, 9)[1:]
-            j = int(np.argmax(score_at(cand) <= 0.0))  # cand[-1] == hi is feasible
-            lo, hi = (cand[j - 1] if j > 0 else lo), cand[j]
-        return hi
+        cand = np.linspace(lo, hi, 33)[1:]  # one round: the coarse ratio 1.1 → 0.3 % resolution
+        j = int(np.argmax(score_at(cand) <= 0.0))  # cand[-1] == hi is feasible
+        return cand[j]
 
     def exact(T_feasible):  # the exact check decides; the sampled score may be a hair optimistic
         for bump in (0.0, 0.0005, 0.001, 0.002, 0.004, 0.008, 0.016, 0.032):
