@@ -189,6 +189,13 @@ def test_unreachable_standard_views_come_back_with_a_reason(center, normal, code
     assert res.code == code and res.reason
 
 
+def test_start_outside_the_box_is_reported():
+    path = PredictedPath(0.0, np.array([100.0, 0.0]), np.array([10.0, 0.0]))
+    G = camera_placement_trajectory(path, 1000.0, 63.0, azimuth_deg=-90.0, marker_z_mm=40.0)
+    res = plan_interception((np.array([0.0, 0.0, 2000.0]), np.zeros(3), np.zeros(3)), 0.0, G, LIMITS, 10.0)
+    assert not res.reachable and res.code == "start_outside_box"
+
+
 def test_too_fast_target_is_reported_as_too_slow():
     slow = Limits(LIMITS.box_min, LIMITS.box_max, v_max=20.0, a_max=50.0)
     path = PredictedPath(0.0, np.array([600.0, 0.0]), np.array([60.0, 0.0]))  # runs away faster than v_max

@@ -45,7 +45,8 @@ class Interception:
 
     ``t_hit``: time (s) the robot arrives on G (None if unreachable); ``trajectory``: the checked
     segments from the start state (interception, then any follow segments); ``reason``/``code``:
-    why it is unreachable (``"outside_box"``, ``"below_floor"``, ``"too_slow"``) or ``"ok"``;
+    why it is unreachable (``"outside_box"``, ``"below_floor"``, ``"too_slow"``,
+    ``"start_outside_box"``) or ``"ok"``;
     ``target``: the G that was planned for (its ``pose(t_hit)`` is the viewing pose).
     """
 
@@ -158,6 +159,9 @@ def plan_interception(state0, t0: float, G: TargetFn, limits: Limits, horizon_s:
     p0, v0, a0 = _as_state(state0)
     if not (np.isfinite(t0) and np.isfinite(horizon_s) and horizon_s > t_min > 0):
         raise PlanningError(f"need finite t0 and horizon_s > t_min > 0, got t0={t0!r}, horizon_s={horizon_s!r}")
+    if not limits.contains(p0):
+        return Interception(None, None, f"the robot is outside the workspace box at {np.round(p0, 1).tolist()} mm",
+                            "start_outside_box", G)
     rot = None
     rot_args = (None, None, None, None)
     R1 = getattr(G, "rotation", None)
