@@ -114,7 +114,8 @@ class HostLinkConfig:
     port: str | None = None  # serial device or pyserial URL
     baud: int = 9600
     heartbeat_s: float = 0.2
-    dead_after_s: float = 0.5
+    dead_after_s: float = 0.5  # a worker process gone: robot and table stopped within this
+    stall_after_s: float = 3.0  # a worker alive but silent this long counts as dead too
 
     def validate(self):
         if self.transport == "serial" and not self.port:

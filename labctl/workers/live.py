@@ -313,6 +313,7 @@ class LiveRun:
                         kind, truth = sim_conn.recv()
                         if kind == "truth":
                             result.update(truth)
+                            result["correct"] = result.get("identity") == truth["true_identity"]
             return result
         finally:
             for p in procs.values():
@@ -330,7 +331,7 @@ class LiveRun:
 
     def _supervise(self, lab, procs, controls, origin) -> dict:
         last_beat = {r: time.monotonic() for r in procs}
-        dead_after = max(lab.host_link.dead_after_s, 0.3)
+        stall_after = lab.host_link.stall_after_s
         started = time.monotonic()
         result = None
         while True:
@@ -356,9 +357,9 @@ class LiveRun:
                 grace = 15.0 if now - started < 15.0 else 0.0  # imports and device opening
                 if not p.is_alive():
                     raise WorkerDied(f"the {role} worker died (exit code {p.exitcode})")
-                if now - last_beat[role] > dead_after + grace:
+                if now - last_beat[role] > stall_after + grace:
                     raise WorkerDied(f"the {role} worker stopped answering ({now - last_beat[role]:.1f} s)")
-            time.sleep(0.02)
+            time.sleep(min(0.02, lab.host_link.dead_after_s / 10))
 
 
 def run_live(lab_root: Path, spec: dict, run_dir: Path | None, on_status=None) -> dict:
