@@ -321,3 +321,31 @@ def test_snapshot_cli_on_the_sample_lab(tmp_path):
     assert res.exit_code == 0, res.output
     assert cv2.imread(str(out)).shape == (480, 640, 3)
     assert Path(out).stat().st_size > 10_000
+
+
+def test_mobile_camera_rides_the_robot_emulator(lab):
+    from labctl.geometry import matrix_to_rotvec
+
+    vl = build_virtual_lab(lab, seed=3)
+    home = home_flange_pose(lab)
+    assert np.allclose(vl.world.T_w_c("mobile", 0.0)[:3, 3], lab.robot.home_mm)
+    rv = matrix_to_rotvec(home[:3, :3])
+    target = home[:3, 3] + [100.0, 50.0, -150.0]
+    args = " ".join(f"{v:.9f}" for v in (*target, *rv))
+    vl.robot.receive(f"#1 SEG 7 {args} 2.0\n".encode())
+    assert b"ok" in vl.robot.read_output()
+    for k in range(1, 13):  # heartbeats every 0.2 s keep the controller's watchdog quiet
+        vl.step_to(0.2 * k)
+        vl.robot.receive(f"#{k + 1} HB\n".encode())
+        if k == 5:
+            mid = vl.world.T_w_c("mobile", 1.0)
+    vl.step_to(2.5)
+    end = vl.world.T_w_c("mobile", 2.5)
+    T_f_c2 = hand_eye(lab.mobile_camera)
+    assert np.allclose(end, vl.robot.flange_pose_at(2.5) @ T_f_c2)
+    assert np.allclose(end[:3, :3], (home @ T_f_c2)[:3, :3], atol=1e-9)
+    assert np.allclose((end @ invert(T_f_c2))[:3, 3], target, atol=1e-6)
+    # a quintic is symmetric: halfway in time is halfway in space
+    assert np.allclose((mid @ invert(T_f_c2))[:3, 3], (home[:3, 3] + target) / 2, atol=1e-6)
+    vl.cameras["mobile"].open()
+    assert vl.cameras["mobile"].grab().image.shape == (480, 640, 3)
