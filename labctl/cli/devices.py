@@ -103,6 +103,25 @@ def table_home(port, baud, timeout_s) -> None:
     emit(d, _print_status(d))
 
 
+@table_group.command("reset")
+@click.option("--unlock", is_flag=True, help="Also leave the Alarm state with $X (no homing).")
+@_port
+@_baud
+@_timeout
+@json_option
+def table_reset(unlock, port, baud, timeout_s) -> None:
+    """Soft reset (Ctrl-X): stop at once and clear a locked alarm; then optionally unlock."""
+    table = _open_table(port, baud, timeout_s)
+    try:
+        table.reset()
+        if unlock and table.status().state == "Alarm":
+            table.unlock()
+        d = _status_dict(table, table.status())
+    finally:
+        table.close()
+    emit(d, _print_status(d))
+
+
 @table_group.command("move")
 @click.argument("x", type=float)
 @click.argument("y", type=float)

@@ -101,6 +101,7 @@ class GrblTable:
         self.status_reports = 0
         self.max_in_flight = 0
         self.auto_unlock = auto_unlock
+        self.locked = False  # GRBL ignores lines until a reset (critical alarm)
         self.session_alarm: int | None = None  # the last ALARM:N seen since open
 
     @classmethod
@@ -165,8 +166,12 @@ class GrblTable:
         self._reset_seen = False
         self._read(0.05)  # the rest of the banner burst ([MSG:…])
         st = self.status()
+        self.locked = False
         if st.state not in ("Run", "Hold", "Jog", "Home"):
-            self._sync()
+            self.locked = not self._sync()
+        if self.locked:
+            log.warning("%s: controller ignores lines (critical alarm: reset to continue)", self.link.name)
+            return
         try:
             feedback = self.command("$I")
             self.info.update(parse_version(feedback))
@@ -175,10 +180,11 @@ class GrblTable:
         if "rx_buffer" in self.info and 16 <= self.info["rx_buffer"] <= 4096:
             self.rx_limit = min(self.rx_limit, self.info["rx_buffer"] - 1)
 
-    def _sync(self) -> None:
-        """Terminate any half-line left in GRBL's buffer and drain stale replies."""
+    def _sync(self) -> bool:
+        """Terminate any half-line left in GRBL's buffer and drain stale replies. False if no reply
+        came (GRBL locked by a critical alarm ignores lines until reset)."""
         self.link.write(b"\n")
-        deadline = self.clock() + self.timeout_s
+        deadline = self.clock() + min(self.timeout_s, 1.5)
         got = False
         while self.clock() < deadline and not got:
             got = any(m.is_response for m in self._read(0.05, raise_alarm=False))
@@ -186,6 +192,7 @@ class GrblTable:
         while self.clock() < quiet_until:
             if self._read(0.02, raise_alarm=False):
                 quiet_until = self.clock() + 0.1
+        return got
 
     # --- reading ----------------------------------------------------------------------------
     def _query(self) -> None:
@@ -220,7 +227,7 @@ class GrblTable:
             out.append(msg)
         if raise_alarm and self._alarm is not None:
             code, self._alarm = self._alarm, None
-            raise GrblAlarm(code, "reset (labctl table reset) and unlock/home before moving")
+            raise GrblAlarm(code, "reset (labctl table reset), then home or unlock before moving")
         return out
 
     def _maybe_poll(self) -> None:
@@ -244,7 +251,8 @@ class GrblTable:
                     raise GrblReset(f"{self.link.name}: controller reset while running {line!r}")
                 if msg.kind != "status":
                     got.append(msg)
-                deadline = max(deadline, self.clock() + timeout_s) if msg.kind == "status" else deadline
+                elif msg.status.state in ("Run", "Home", "Jog", "Hold"):
+                    deadline = max(deadline, self.clock() + timeout_s)  # busy, not silent
             if self.clock() > deadline:
                 raise DeviceTimeout(f"{self.link.name}: no reply to {line!r} within {timeout_s:g} s")
             self._maybe_poll()
@@ -300,6 +308,8 @@ class GrblTable:
         alarm raised since open (limits, aborted motion) is never cleared silently: GrblAlarm."""
         st = self.status()
         if st.state == "Alarm":
+            if getattr(self, "locked", False):
+                raise GrblAlarm(None, "locked after a critical alarm (limits); reset it first: labctl table reset")
             if self.session_alarm is not None:
                 raise GrblAlarm(self.session_alarm, "the table alarmed during this session; check it, then reset "
                                 "and home or unlock")
@@ -413,6 +423,7 @@ class GrblTable:
             if any(m.kind == "banner" for m in self._read(0.05, raise_alarm=False)):
                 self._read(0.05, raise_alarm=False)
                 self._alarm = None
+                self.locked = False
                 return
         raise DeviceTimeout(f"{self.link.name}: no banner after a soft reset")
 
