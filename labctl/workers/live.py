@@ -223,19 +223,38 @@ def recognizer_main(args: WorkerArgs, link_end, control) -> None:
 
 
 def sim_server_main(lab_root: str, spec: dict, conn) -> None:
-    """The simulated lab for a live run: world + emulators on ptys + frame server, in real time."""
+    """The simulated lab for a live run: world + emulators on ptys + frame server, in real time.
+
+    Answers the supervisor's ``"state?"`` (are the robot and table moving), ``"truth?"`` (the
+    simulator's ground truth) and ``"stop"``."""
     from .simlab import LiveSimLab
 
     try:
         with LiveSimLab(load_lab(lab_root), spec) as sim:
             conn.send(("ready", sim.endpoints()))
-            while not conn.poll(0.2):
-                pass
-            conn.recv()
-            conn.send(("truth", sim.truth()))
+            while True:
+                if not conn.poll(0.2):
+                    continue
+                req = conn.recv()
+                if req == "state?":
+                    conn.send(("state", sim.device_state()))
+                elif req == "truth?":
+                    conn.send(("truth", sim.truth()))
+                else:
+                    return
+    except (EOFError, OSError):
+        return
     except Exception as exc:
         with contextlib.suppress(OSError):
             conn.send(("error", f"sim lab: {type(exc).__name__}: {exc}"))
+
+
+def _ask(conn, request: str, timeout_s: float = 5.0):
+    with contextlib.suppress(OSError, EOFError):
+        conn.send(request)
+        if conn.poll(timeout_s):
+            return conn.recv()[1]
+    return None
 
 
 class WorkerDied(Exception):
@@ -296,24 +315,32 @@ class LiveRun:
 
                 t0 = time.monotonic()
                 stopped = emergency_stop(lab, endpoints)
+                t_sent = time.monotonic() - t0
                 for p in procs.values():
                     if p.is_alive():
                         p.terminate()
+                after = None
+                if sim_conn is not None:  # the simulator can tell when the devices really stood still
+                    deadline = time.monotonic() + 2.0
+                    while time.monotonic() < deadline:
+                        after = _ask(sim_conn, "state?")
+                        if after is None or not (after["robot_moving"] or after["table_moving"]):
+                            break
+                        time.sleep(0.01)
+                    if after is not None:
+                        after["still_after_s"] = time.monotonic() - t0
                 if self.run_dir is not None:
                     from ..records import RunRecord
 
                     RunRecord.open(self.run_dir).event(
                         "run_aborted", reason=str(exc) or "interrupted", devices_stopped=stopped,
-                        stop_latency_s=time.monotonic() - t0)
+                        stop_commands_sent_s=t_sent, devices_after_stop=after)
                 raise
             if sim_conn is not None:
-                with contextlib.suppress(OSError):
-                    sim_conn.send("truth?")
-                    if sim_conn.poll(5):
-                        kind, truth = sim_conn.recv()
-                        if kind == "truth":
-                            result.update(truth)
-                            result["correct"] = result.get("identity") == truth["true_identity"]
+                truth = _ask(sim_conn, "truth?")
+                if truth is not None:
+                    result.update(truth)
+                    result["correct"] = result.get("identity") == truth["true_identity"]
             return result
         finally:
             for p in procs.values():

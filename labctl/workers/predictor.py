@@ -112,6 +112,7 @@ class PredictorPlanner:
         # a segment command is ~100 bytes: at 9600 bps it reaches the controller ~0.1 s after it is sent
         self.latency_s = 100 * 10.0 / ctx.lab.robot.baud
         self.plan_shift = 0.0  # controller time − plan time of the segment being executed
+        self.t_robot_log = -math.inf
         self.min_motion_s = 0.0  # sum over legs of the robot-limited rest-to-rest time (lower bound)
 
     # -- helpers ------------------------------------------------------------------------------
@@ -381,6 +382,9 @@ class PredictorPlanner:
                 self._enter("intercept", now)
                 self._plan_initial(now, "initial1")
             return
+        if self.plan is not None and now - self.t_robot_log >= 0.2:  # the commanded path, for the report
+            self.t_robot_log = now
+            self.log("robot", t=now, p=self._flange_state(now)[0][0], planned=True)
         if self.stage in ("intercept", "initial", "standard") and self.pending is None and self.plan is not None:
             if now < self.plan.t_hit + self.plan_shift + 0.05:
                 self._replan(now)

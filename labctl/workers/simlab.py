@@ -157,6 +157,16 @@ class LiveSimLab:
     def truth(self) -> dict:
         return {"true_identity": self.object_name}
 
+    def device_state(self) -> dict:
+        """Whether the emulated robot and table are moving now, and the table's GRBL state."""
+        with self.robot_pty.lock:
+            robot_moving = bool(self.robot_emu.moving)
+        with self.table_pty.lock:
+            self.grbl.advance(self.clock.now())
+            table_moving, table_state = bool(self.grbl.moving), self.grbl.state_word
+        return {"t": self.clock.now(), "robot_moving": robot_moving, "table_moving": table_moving,
+                "table_state": table_state}
+
 
 def emergency_stop(lab: Lab, endpoints: dict, timeout_s: float = 0.3) -> list[str]:
     """Stop the table (GRBL feed hold, then soft reset) and the robot (its stop command) by writing

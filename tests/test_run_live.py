@@ -1,0 +1,87 @@
+"""The live run: two worker processes and a supervisor, in real time on the simulated lab."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from labctl.records import load_run
+from labctl.workspace import init_workspace
+
+
+@pytest.fixture(scope="module")
+def lab(tmp_path_factory) -> Path:
+    return init_workspace(tmp_path_factory.mktemp("live") / "lab")
+
+
+def _labctl(*args, **kw):
+    return subprocess.Popen([sys.executable, "-m", "labctl", *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, **kw)
+
+
+@pytest.mark.timeout(180)
+def test_live_run_identifies_with_two_worker_processes(lab):
+    p = _labctl("--lab", str(lab), "run", "--trajectory", "line", "--seed", "2", "--json")
+    out, err = p.communicate(timeout=170)
+    assert p.returncode == 0, err
+    res = json.loads(out)
+    assert res["correct"] is True and res["identity"] == res["true_identity"]
+    for key in ("identity", "true_identity", "correct", "time_to_identity_s", "views", "stages"):
+        assert key in res
+    run = load_run(res["record"])
+    started = run.of("worker_started")
+    assert {e["role"] for e in started} == {"predictor", "recognizer"}
+    pids = {e["pid"] for e in started}
+    assert len(pids) == 2 and p.pid not in pids  # two separate processes besides the supervisor
+    first_two = [json.loads(line)["event"] for line in (Path(res["record"]) / "events.jsonl").read_text().splitlines()[:2]]
+    assert first_two == ["worker_started", "worker_started"]
+
+
+def _wait_for(path_glob, predicate, timeout_s):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        for run_dir in sorted(path_glob()):
+            ev = run_dir / "events.jsonl"
+            if ev.is_file():
+                events = [json.loads(x) for x in ev.read_text().splitlines() if x.strip()]
+                if predicate(events):
+                    return run_dir, events
+        time.sleep(0.05)
+    raise AssertionError("the run never reached the awaited point")
+
+
+@pytest.mark.timeout(180)
+@pytest.mark.parametrize("role", ["predictor", "recognizer"])
+def test_killed_worker_stops_robot_and_table(lab, role):
+    before = set((lab / "runs").glob("*"))
+    p = _labctl("--lab", str(lab), "run", "--trajectory", "line", "--seed", "3")
+    try:
+        run_dir, events = _wait_for(
+            lambda: [d for d in (lab / "runs").glob("*") if d not in before],
+            lambda evs: any(e["event"] == "segment" for e in evs), 120)
+        pid = next(e["pid"] for e in events if e["event"] == "worker_started" and e["role"] == role)
+        os.kill(pid, signal.SIGKILL)
+        out, err = p.communicate(timeout=30)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert p.returncode != 0
+    lines = [x for x in err.strip().splitlines() if x.strip()]
+    assert len(lines) == 1 and role in lines[0] and "stopped" in lines[0], err
+    run = load_run(run_dir)
+    aborted = run.of("run_aborted")
+    assert aborted, "the record must say how the run ended"
+    a = aborted[-1]
+    assert set(a["devices_stopped"]) == {"robot", "table"}
+    after = a["devices_after_stop"]
+    assert after is not None and not after["robot_moving"] and not after["table_moving"]
+    assert after["still_after_s"] < 0.5
+    # the record is complete up to the failure: every line is valid JSON, the run's start is there
+    assert [e["event"] for e in run.events[:2]] == ["worker_started", "worker_started"]
