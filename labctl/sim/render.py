@@ -285,9 +285,12 @@ def _triangle_setup(camera: CameraModel, Pc: np.ndarray):
         coef[:, e, 2] = (ey * p0[:, 0] - ex * p0[:, 1]) * s
     coef[:, 3, :] = n / d[:, None]  # 1/z = n·(x, y, 1) / (n·A)
     # bounding box in distorted pixels from corners and edge points (edges bow under distortion)
-    ts = np.array([0.0, 0.25, 0.5, 0.75])
-    pts = np.concatenate([Pc[:, e:e + 1] * (1 - ts)[None, :, None] + Pc[:, (e + 1) % 3:(e + 1) % 3 + 1]
-                          * ts[None, :, None] for e in range(3)], axis=1)
+    if camera.kappa1 == 0.0:  # straight edges: the corners bound the triangle
+        pts = Pc
+    else:
+        ts = np.array([0.0, 0.25, 0.5, 0.75])
+        pts = np.concatenate([Pc[:, e:e + 1] * (1 - ts)[None, :, None] + Pc[:, (e + 1) % 3:(e + 1) % 3 + 1]
+                              * ts[None, :, None] for e in range(3)], axis=1)
     px = camera.project(pts)
     lo = np.floor(np.nanmin(px, axis=1)) - 1
     hi = np.ceil(np.nanmax(px, axis=1)) + 1
