@@ -38,7 +38,7 @@ def test_quintic_meets_its_six_boundary_conditions(p0, v0, a0, p1, v1, a1, T, t0
         np.testing.assert_allclose(got, want, rtol=1e-7, atol=1e-5)
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=120, deadline=None)
 @given(p0=v3, v0=v3, a0=v3, p1=v3, v1=v3, a1=v3, T=st.floats(0.1, 10.0))
 def test_exact_extrema_match_dense_sampling_and_bounds_never_underestimate(p0, v0, a0, p1, v1, a1, T):
     seg = QuinticSegment(0.0, T, p0, v0, a0, p1, v1, a1)

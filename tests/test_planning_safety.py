@@ -47,7 +47,7 @@ box_pos = st.tuples(*[st.floats(0.0, 1.0)] * 3).map(
 )
 
 
-@settings(max_examples=2000, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=1500, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(p0=box_pos, p1=box_pos, v0=vec, v1=vec, a0=vec, a1=vec, T=st.floats(0.05, 8.0), scale=st.floats(0.0, 1.2))
 def test_check_segment_passes_only_safe_segments_and_names_real_violations(p0, p1, v0, v1, a0, a1, T, scale):
     seg = QuinticSegment(0.0, T, p0, v0 * LIMITS.v_max * scale, a0 * LIMITS.a_max * scale,
