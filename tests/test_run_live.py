@@ -85,3 +85,19 @@ def test_killed_worker_stops_robot_and_table(lab, role):
     assert after["still_after_s"] < 0.5
     # the record is complete up to the failure: every line is valid JSON, the run's start is there
     assert [e["event"] for e in run.events[:2]] == ["worker_started", "worker_started"]
+
+
+@pytest.mark.timeout(180)
+def test_live_run_over_a_9600_bps_serial_host_link(tmp_path):
+    """The two workers talk over an RS-232 line at 9600 bps (a paced pty null modem), as in 1996."""
+    root = init_workspace(tmp_path / "lab")
+    cfg = root / "drivers" / "host_link.yaml"
+    cfg.write_text(cfg.read_text().replace("transport: local", "transport: serial"))
+    p = _labctl("--lab", str(root), "run", "--seed", "2", "--json")
+    out, err = p.communicate(timeout=170)
+    assert p.returncode == 0, err
+    res = json.loads(out)
+    assert res["correct"] is True
+    link = res["link"]
+    assert link["transport"] == "serial" and link["baud"] == 9600 and link["frames_dropped"] == 0
+    assert link["utilisation"] < 0.3  # heartbeats and every request and answer, with room to spare

@@ -111,15 +111,15 @@ class HostLinkConfig:
     transport: Literal["local", "tcp", "serial"] = "local"
     host: str = "127.0.0.1"
     tcp_port: int = 5757
-    port: str | None = None  # serial device or pyserial URL
+    port: str | None = None  # serial device or pyserial URL; null on one PC: a paced pty null modem
     baud: int = 9600
     heartbeat_s: float = 0.2
     dead_after_s: float = 0.5  # a worker process gone: robot and table stopped within this
     stall_after_s: float = 3.0  # a worker alive but silent this long counts as dead too
 
     def validate(self):
-        if self.transport == "serial" and not self.port:
-            return "port", "a serial host link needs a port"
+        if self.baud <= 0:
+            return "baud", f"expected a positive baud rate, got {self.baud}"
         return None
 
 

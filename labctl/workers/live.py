@@ -17,6 +17,7 @@ controllers' stop commands — ends the run with one clear line and keeps the re
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import multiprocessing as mp
 import os
 import time
@@ -159,6 +160,10 @@ def predictor_main(args: WorkerArgs, link_end, control) -> None:
                            "robot": planner.robot_path[-1][1] if planner.robot_path else None})
         result = planner.result(_now(args.origin))
         link.send(m.Stop(reason="run finished"))
+        result["link"] = {**link.stats(), "baud": lab.host_link.baud, "duration_s": _now(args.origin) - planner.t_start}
+        if lab.host_link.transport == "serial":
+            bits = 10.0 * max(link.bytes_sent, link.bytes_received)  # full duplex: the busier direction
+            result["link"]["utilisation"] = bits / lab.host_link.baud / max(result["link"]["duration_s"], 1e-9)
         ctl.send("result", result)
     except LinkClosed:
         ctl.send("error", "predictor: the host link to the recognizer closed")
@@ -272,8 +277,9 @@ class LiveRun:
 
     def run(self) -> dict:
         lab = load_lab(self.lab_root)
-        from .transport import local_pair
+        from .transport import local_pair, pty_null_modem
 
+        stack = contextlib.ExitStack()
         procs: dict[str, mp.Process] = {}
         controls = {}
         sim_conn = sim_proc = None
@@ -294,12 +300,18 @@ class LiveRun:
                 endpoints = payload
                 origin = endpoints["origin"]
             a_end, b_end = local_pair() if lab.host_link.transport == "local" else (None, None)
+            extra = {"predictor": {}, "recognizer": {}}
+            if lab.host_link.transport == "serial" and not lab.host_link.port:
+                # one PC, RS-232 as in 1996: a pty null modem paced at the link's baud rate
+                modem = stack.enter_context(pty_null_modem(lab.host_link.baud))
+                for role, port in (("predictor", modem.port_a), ("recognizer", modem.port_b)):
+                    extra[role]["host_link"] = dataclasses.asdict(dataclasses.replace(lab.host_link, port=port))
             base = dict(lab_root=str(lab.root), run_dir=str(self.run_dir) if self.run_dir else None,
                         spec=self.spec, origin=origin, table_port=endpoints.get("table"),
                         robot_port=endpoints.get("robot"), frame_server=endpoints.get("frame_server"))
             for role, target, end in (("predictor", predictor_main, a_end), ("recognizer", recognizer_main, b_end)):
                 parent, child = CTX.Pipe()
-                p = CTX.Process(target=target, args=(WorkerArgs(role=role, **base), end, child),
+                p = CTX.Process(target=target, args=(WorkerArgs(role=role, extra=extra[role], **base), end, child),
                                 name=f"labctl-{role}", daemon=True)
                 p.start()
                 child.close()
@@ -347,6 +359,7 @@ class LiveRun:
                 if p.is_alive():
                     p.terminate()
                 p.join(timeout=2)
+            stack.close()
             if sim_proc is not None:
                 if sim_proc.is_alive():
                     with contextlib.suppress(OSError):
