@@ -37,7 +37,7 @@ PROFILES = {
 
 def _teach(name, mesh, library_dir=None, **kw):
     return teach_object(name, mesh, radius_mm=8.0, view=VIEW, standoff_mm=600.0, scale_mm_per_px=mm_per_px(CAM, 600),
-                        render_factory=lambda m, mk: silhouette_renderer(CAM, m, mk), library_dir=library_dir,
+                        render_factory=lambda m, mk, *_: silhouette_renderer(CAM, m, mk), library_dir=library_dir,
                         sweep=False, **kw)
 
 
@@ -139,8 +139,8 @@ def test_bad_models_give_clear_errors_and_leave_library_untouched(tmp_path):
     with pytest.raises(ModelError, match="no marker can be made visible"):
         teach_object("bad", trimesh.creation.box((40, 40, 35)), radius_mm=8.0,
                      view=ViewingGeometry(angle_deg=63.0, max_obliquity_deg=15.0), standoff_mm=600.0,
-                     scale_mm_per_px=mm_per_px(CAM, 600), render_factory=lambda m, mk: silhouette_renderer(CAM, m, mk),
-                     library_dir=lib, sweep=False)
+                     scale_mm_per_px=mm_per_px(CAM, 600),
+                     render_factory=lambda m, mk, *_: silhouette_renderer(CAM, m, mk), library_dir=lib, sweep=False)
     assert _snapshot(lib) == before
     assert not (lib / "bad").exists()
 
@@ -174,3 +174,23 @@ def test_corrupt_library_folder_is_a_clear_error(tmp_path):
     (tmp_path / "cube" / "object.yaml").write_text(yaml.safe_dump({"name": "other", "format": 1}))
     with pytest.raises(LibraryError, match="names it"):
         load_library(tmp_path)
+
+
+def test_standard_views_are_taught_with_the_object_resting_in_the_pose_that_faces_the_marker_up():
+    """Each marker of a box has a stable pose with it on top: the taught view looks straight down on it,
+    the object resting on the table (lowest point z = 0) and the camera at the stand-off above it."""
+    import trimesh
+
+    from labctl.library.model import stable_poses
+    from labctl.library.placement import Marker
+    from labctl.library.views import resting_pose_for_view, standard_view_pose
+
+    box = trimesh.creation.box((50.0, 40.0, 30.0))
+    poses = stable_poses(box)
+    for n in np.vstack([np.eye(3), -np.eye(3)]):
+        m = Marker(0, n * box.extents / 2, n, 8.0)
+        T_o_c = standard_view_pose(m, 800.0)
+        T_w_o = resting_pose_for_view(poses, T_o_c)
+        assert np.allclose(T_w_o[:3, :3] @ n, [0, 0, 1], atol=1e-6)
+        assert abs(trimesh.transform_points(box.vertices, T_w_o)[:, 2].min()) < 1e-6
+        assert np.isclose((T_w_o @ T_o_c)[2, 3], 800.0 + (T_w_o[:3, :3] @ m.center + T_w_o[:3, 3])[2])

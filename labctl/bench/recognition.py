@@ -33,63 +33,89 @@ def _setup():
     return lab, camera_model(lab.mobile_camera)
 
 
-def _evaluate(library: dict, camera, standoff: float, trials: int, rng: np.random.Generator, *,
-              threshold: float = DEFAULT_THRESHOLD, max_views: int = 3) -> dict:
+def render_pool(library: dict, camera, standoff: float, per_view: int, rng: np.random.Generator) -> dict:
+    """Perturbed standard views, rendered once: ``{(name, marker_id): [ShapeFeatures | None, ...]}``.
+
+    Each view is rendered ``per_view`` times by the simulated lab's renderer (object resting on
+    the table, :func:`labctl.cli.library.sim_render_factory`) with a random in-plane rotation,
+    ±3 % stand-off, ≤ 2° axis tilt and σ = 2 sensor noise; None where no silhouette was found.
+    All matchers (and the extra views of :func:`evaluate`) draw on the same pool.
+    """
     from ..cli.library import sim_render_factory
 
-    index = LibraryIndex.from_library(library)
     scale = mm_per_px(camera, standoff)
     factory = sim_render_factory(camera, noise_sigma=2.0, rng=rng)
+    pool: dict = {}
+    for name, obj in sorted(library.items()):
+        render_view = factory(obj.mesh, obj.markers, obj.stable_poses)
+        for m in obj.markers:
+            feats = []
+            for _ in range(per_view):
+                T_o_c = perturbed_view_pose(standard_view_pose(m, standoff), m.center, rng)
+                try:
+                    feats.append(features_from_image(render_view(T_o_c), scale))
+                except ShapeError:
+                    feats.append(None)
+            pool[(name, m.id)] = feats
+    return pool
+
+
+def evaluate(library: dict, pool: dict, rng: np.random.Generator, *, threshold: float = DEFAULT_THRESHOLD,
+             max_views: int = 3, first_per_view: int | None = None, **match_kw) -> dict:
+    """Identification rates over the pool: every pooled view is a first view (or the first
+    ``first_per_view`` of each); extra views are other pooled renders of the marker reached."""
+    index = LibraryIndex.from_library(library)
     n = 0
     ok = {"aos_with_extra_views": 0, "aos_single_view": 0, "hu_single_view": 0, "fd_single_view": 0}
     ambiguous = extra_views = failures = unresolved = 0
     wrong: list[str] = []
-    for name, obj in sorted(library.items()):
-        render_view = factory(obj.mesh, obj.markers)
-        for m in obj.markers:
-            for _ in range(trials):
-                T_o_c = perturbed_view_pose(standard_view_pose(m, standoff), m.center, rng)
-                try:
-                    f = features_from_image(render_view(T_o_c), scale)
-                except ShapeError:
-                    failures += 1
-                    n += 1
-                    continue
-                n += 1
-                for method in ("aos", "hu", "fd"):
-                    r = match(f, index, threshold, method=method)
-                    ok[f"{method}_single_view"] += int(r.best is not None and r.best[0] == name)
-                first = match(f, index, threshold)
+    for (name, mid), feats in sorted(pool.items()):
+        obj = library[name]
+        m = obj.marker(mid)
+        for q, f in enumerate(feats[:first_per_view]):
+            n += 1
+            if f is None:
+                failures += 1
+                continue
+            for method in ("aos", "hu", "fd"):
+                r = match(f, index, threshold, method=method, **match_kw)
+                ok[f"{method}_single_view"] += int(r.best is not None and r.best[0] == name)
+            first = match(f, index, threshold, **match_kw)
 
-                def acquire(h: str, j: int, _m=m, _first=first, _obj=obj, _rv=render_view, _name=name):
-                    # the robot heads for where marker j would be if the object were h, then
-                    # takes the standard view of the marker of the true object it finds there
-                    hyp = library[h]
-                    mh = hyp.marker(_first.views[h])
-                    T_x_h = marker_frame(_m) @ make_T(rot_z(rng.uniform(-np.pi, np.pi))) @ invert(marker_frame(mh))
-                    want = T_x_h[:3, :3] @ hyp.marker(j).normal if h != _name else _obj.marker(j).normal
-                    mk = max(_obj.markers, key=lambda q: float(q.normal @ want))
-                    if float(mk.normal @ want) < np.cos(np.radians(60)):
-                        return None
-                    T = perturbed_view_pose(standard_view_pose(mk, standoff), mk.center, rng)
-                    try:
-                        return features_from_image(_rv(T), scale)
-                    except ShapeError:
-                        return None
+            def acquire(h: str, j: int, _m=m, _first=first, _obj=obj, _name=name, _q=q):
+                # the robot heads for where marker j would be if the object were h, then takes
+                # the standard view of the marker of the true object it finds there
+                hyp = library[h]
+                mh = hyp.marker(_first.views[h])
+                T_x_h = marker_frame(_m) @ make_T(rot_z(rng.uniform(-np.pi, np.pi))) @ invert(marker_frame(mh))
+                want = T_x_h[:3, :3] @ hyp.marker(j).normal if h != _name else _obj.marker(j).normal
+                mk = max(_obj.markers, key=lambda qm: float(qm.normal @ want))
+                if float(mk.normal @ want) < np.cos(np.radians(60)):
+                    return None
+                others = [g for k, g in enumerate(pool[(_name, mk.id)]) if g is not None and
+                          not (mk.id == _m.id and k == _q)]
+                return others[int(rng.integers(len(others)))] if others else None
 
-                res = identify(f, index, acquire, threshold=threshold, max_views=max_views)
-                ambiguous += int(first.ambiguous)
-                extra_views += res.views_used - 1
-                unresolved += int(not res.resolved)
-                if res.name == name:
-                    ok["aos_with_extra_views"] += 1
-                elif len(wrong) < 10:
-                    wrong.append(f"{name}#{m.id}->{res.name or 'unresolved'}")
+            res = identify(f, index, acquire, threshold=threshold, max_views=max_views, **match_kw)
+            ambiguous += int(first.ambiguous)
+            extra_views += res.views_used - 1
+            unresolved += int(not res.resolved)
+            if res.name == name:
+                ok["aos_with_extra_views"] += 1
+            elif len(wrong) < 10:
+                wrong.append(f"{name}#{mid}->{res.name or 'unresolved'}")
     rates = {k: v / max(n, 1) for k, v in ok.items()}
     return {"objects": len(library), "views": len(index), "trials": n, "rates": rates,
             "ambiguous_first_views": ambiguous, "extra_views": extra_views,
             "unresolved_after_max_views": unresolved, "silhouette_failures": failures,
             "errors": wrong}
+
+
+def _evaluate(library: dict, camera, standoff: float, trials: int, rng: np.random.Generator, *,
+              threshold: float = DEFAULT_THRESHOLD, max_views: int = 3) -> dict:
+    """Render a pool with ``trials + 1`` renders per view; ``trials`` of them are first views."""
+    pool = render_pool(library, camera, standoff, trials + 1, rng)
+    return evaluate(library, pool, rng, threshold=threshold, max_views=max_views, first_per_view=trials)
 
 
 def generated_library(n_objects: int, camera, lab, rng: np.random.Generator) -> dict:
@@ -164,7 +190,8 @@ def run(quick: bool = False) -> dict:
     rng = np.random.default_rng(5)
     standoff = lab.config.viewing.standoff_mm
     sample = load_library(lab.library_dir)
-    run_cfg = {"threshold": lab.config.run.ambiguity_threshold, "max_views": lab.config.run.max_views}
+    run_cfg = {"threshold": lab.config.run.ambiguity_threshold or DEFAULT_THRESHOLD,
+               "max_views": lab.config.run.max_views}
     res_sample = _evaluate(sample, camera, standoff, trials=2 if quick else 4, rng=rng, **run_cfg)
     gen = generated_library(30, camera, lab, rng)
     res_gen = _evaluate(gen, camera, standoff, trials=1 if quick else 2, rng=rng, **run_cfg)

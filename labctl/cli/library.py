@@ -14,36 +14,47 @@ import numpy as np
 from ._common import emit, get_ctx, json_option
 
 
-def sim_render_factory(camera, *, noise_sigma: float = 2.0, rng=None, table_origin=(0.0, 0.0)):
-    """``(mesh_o, markers) -> render_view(T_o_c) -> BGR`` rendering with ``labctl.sim.render``.
+def sim_render_factory(camera, *, noise_sigma: float = 2.0, rng=None, table_origin=(0.0, 0.0),
+                       pose_choice: str = "upright", random_yaw: bool = False):
+    """``(mesh_o, markers, stable_poses=None) -> render_view(T_o_c) -> BGR`` with ``labctl.sim.render``.
 
-    For each requested camera pose the object is turned so that the optical axis points straight
-    down (−z of W) and set on the table plane z = 0 (lowest point), so the table is the
-    background of the standard view, as when the robot camera looks down a marker's normal.
+    Renders what the robot's mobile camera sees in the simulated lab: the object rests on the
+    table in a stable pose that puts the camera above the table
+    (:func:`labctl.library.views.resting_pose_for_view`, ``pose_choice`` "upright" when teaching,
+    "random" for benchmark queries; ``random_yaw`` turns it about the vertical), the camera at
+    ``T_o_c`` in the object frame, the textured table as background. If no stable pose puts the
+    camera above the table, the object is turned so that the view looks straight down and set
+    on the table by its lowest point (the only way to take that view).
     """
     from ..geometry import make_T, rotvec_to_matrix
+    from ..library.model import stable_poses as compute_stable_poses
+    from ..library.views import resting_pose_for_view
     from ..sim.render import MarkerDisc, Mesh, TableSurface, render
 
     rng = rng if rng is not None else np.random.default_rng(0)
+    table = TableSurface(origin_w=table_origin)
 
-    def factory(mesh_o, markers):
+    def factory(mesh_o, markers, stable_poses=None):
         V = np.asarray(mesh_o.vertices, float)
         F = np.asarray(mesh_o.faces)
+        poses = stable_poses if stable_poses is not None else compute_stable_poses(mesh_o)
 
         def render_view(T_o_c):
-            axis = T_o_c[:3, 2]  # optical axis in O
-            target = np.array([0.0, 0.0, -1.0])
-            v = np.cross(axis, target)
-            s, c = np.linalg.norm(v), float(axis @ target)
-            R = rotvec_to_matrix(v / s * np.arctan2(s, c)) if s > 1e-12 else (
-                np.eye(3) if c > 0 else np.diag([1.0, -1.0, -1.0]))
-            Vw = V @ R.T
-            T_w_o = make_T(R, [-Vw[:, 0].mean(), -Vw[:, 1].mean(), -Vw[:, 2].min()])
-            Vw = Vw + T_w_o[:3, 3]
+            yaw = float(rng.uniform(-np.pi, np.pi)) if random_yaw else 0.0
+            T_w_o = resting_pose_for_view(poses, T_o_c, yaw_rad=yaw, choice=pose_choice, rng=rng)
+            if T_w_o is None:
+                axis = T_o_c[:3, 2]  # optical axis in O, turned to −z of W
+                target = np.array([0.0, 0.0, -1.0])
+                v = np.cross(axis, target)
+                s, c = np.linalg.norm(v), float(axis @ target)
+                R = rotvec_to_matrix(v / s * np.arctan2(s, c)) if s > 1e-12 else (
+                    np.eye(3) if c > 0 else np.diag([1.0, -1.0, -1.0]))
+                Vr = V @ R.T
+                T_w_o = make_T(R, [-Vr[:, 0].mean(), -Vr[:, 1].mean(), -Vr[:, 2].min()])
+            Vw = V @ T_w_o[:3, :3].T + T_w_o[:3, 3]
             discs = [MarkerDisc(T_w_o[:3, :3] @ m.center + T_w_o[:3, 3], T_w_o[:3, :3] @ m.normal, m.radius)
                      for m in markers]
-            T_w_c = T_w_o @ T_o_c
-            return render(camera, T_w_c, [Mesh(Vw, F, markers=discs)], table=TableSurface(origin_w=table_origin),
+            return render(camera, T_w_o @ T_o_c, [Mesh(Vw, F, markers=discs)], table=table,
                           noise_sigma=noise_sigma, rng=rng).image
 
         return render_view
@@ -55,7 +66,8 @@ def _viewing(lab):
     from ..library.placement import ViewingGeometry
 
     v = lab.config.viewing
-    return ViewingGeometry(angle_deg=v.initial_angle_deg, distance_mm=v.initial_distance_mm)
+    return ViewingGeometry(angle_deg=v.initial_angle_deg, distance_mm=v.initial_distance_mm,
+                           max_obliquity_deg=v.max_obliquity_deg)
 
 
 @click.command("teach-object")

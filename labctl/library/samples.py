@@ -1,7 +1,7 @@
 """The sample lab's seven objects and a generator of random machined parts (for benchmarks and tests).
 
 Paper §5.3: seven objects from 40×40×35 mm (object 2) to 90×90×70 mm (object 5). Ours are
-prismatic machined parts of that size range: a block, two L profiles that share their end
+prismatic machined parts spanning that size range: a block, two L profiles that share their end
 view (so the extra-view path is exercised), a T profile, a hexagonal prism, a stepped block
 and a trapezoidal wedge. Meshes are built by hand (ear-clipped extrusions), no triangulation
 engine needed.
@@ -64,15 +64,19 @@ def trapezoid(bottom: float, top: float, h: float) -> list:
 
 
 def sample_objects() -> dict[str, trimesh.Trimesh]:
-    """The seven sample objects (mm, centred on their bounding box)."""
+    """The seven sample objects (mm, centred on their bounding box), 40×40×35 to 90×90×70 mm.
+
+    ``block`` is the paper's smallest size (object 2, 40×40×35), ``stepped_block`` its largest
+    (object 5, 90×90×70); ``angle_short`` and ``angle_long`` share their L-shaped end view.
+    """
     return {
         "block": trimesh.creation.box((40.0, 40.0, 35.0)),
         "angle_short": _profile(l_profile(60, 50, 25, 0), 45, lay_flat=True),
         "angle_long": _profile(l_profile(60, 50, 25, 0), 65, lay_flat=True),
-        "tee": _profile(t_profile(70, 60, 25, 30), 40, lay_flat=True),
-        "hex_nut": _profile(regular_polygon(6, 60), 40),
-        "stepped_block": _profile(stepped(64, [60, 35]), 55, lay_flat=True),
-        "wedge": _profile(trapezoid(80, 40, 40), 50, lay_flat=True),
+        "tee": _profile(t_profile(75, 60, 25, 30), 45, lay_flat=True),
+        "hex_nut": _profile(regular_polygon(6, 66), 40),
+        "stepped_block": _profile(stepped(90, [70, 40]), 90, lay_flat=True),
+        "wedge": _profile(trapezoid(85, 45, 45), 55, lay_flat=True),
     }
 
 

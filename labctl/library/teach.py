@@ -21,7 +21,7 @@ from .placement import Marker, ViewingGeometry, check_coverage, optimal_viewing_
 from .storage import LibraryError, LibraryObject, check_name, save_object
 from .views import RenderView, build_standard_views
 
-RenderFactory = Callable[[trimesh.Trimesh, list[Marker]], RenderView]
+RenderFactory = Callable[..., RenderView]  # (mesh, markers, stable_poses) -> render_view
 
 
 def read_markers_file(path: Path | str, default_radius_mm: float) -> list[Marker]:
@@ -82,7 +82,7 @@ def teach_object(name: str, model: Path | str | trimesh.Trimesh, *, radius_mm: f
                          f"{int((counts[p] == 0).sum())} of {counts.shape[1]} yaw angles")
     sweep = optimal_viewing_angle(mesh, poses, radius_mm, view) if sweep else None
     step("standard views", 0, len(markers))
-    render_view = render_factory(mesh, markers)
+    render_view = render_factory(mesh, markers, poses)
     done = [0]
 
     def tick(k):

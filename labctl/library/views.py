@@ -78,6 +78,44 @@ def perturbed_view_pose(T_o_c: np.ndarray, target_o: np.ndarray, rng: np.random.
     return T
 
 
+def resting_pose_for_view(stable_poses: list[tuple[np.ndarray, float]], T_o_c: np.ndarray, *, yaw_rad: float = 0.0,
+                          choice: str = "upright", rng: np.random.Generator | None = None,
+                          min_camera_height_mm: float = 1.0) -> np.ndarray | None:
+    """``T_w_o``: the object resting on the table (z = 0 of W) in a stable pose that shows the view.
+
+    The standard view of a marker is taken of the object lying on the table (paper §3.4, §5.2),
+    so the object is put in one of its stable poses ``(T_s_o, p)`` (lowest point on z = 0, centre
+    of mass over the origin), turned by ``yaw_rad`` about the vertical, and the camera at
+    ``T_o_c`` must then be at least ``min_camera_height_mm`` above the table. ``choice``:
+    ``"upright"`` — the pose in which the camera looks down most steeply (the marker faces up
+    as much as possible; ties to the most probable pose), used when teaching; ``"random"`` —
+    a pose drawn with its probability among those that put the camera above the table (what a
+    run meets). Returns None when no stable pose puts the camera above the table.
+    """
+    T_o_c = np.asarray(T_o_c, float)
+    ok, elev, prob = [], [], []
+    for T_s_o, p in stable_poses:
+        cam_w = T_s_o[:3, :3] @ T_o_c[:3, 3] + T_s_o[:3, 3]
+        ok.append(cam_w[2] >= min_camera_height_mm)
+        elev.append(float(-(T_s_o[:3, :3] @ T_o_c[:3, 2])[2]))  # upward component of the view-to-camera axis
+        prob.append(float(p))
+    ok, elev, prob = np.array(ok), np.array(elev), np.array(prob)
+    if not ok.any():
+        return None
+    idx = np.flatnonzero(ok)
+    if choice == "upright":
+        top = elev[idx].max()
+        tied = idx[elev[idx] >= top - 1e-6]
+        k = int(tied[np.argmax(prob[tied])])
+    elif choice == "random":
+        rng = rng if rng is not None else np.random.default_rng(0)
+        w = prob[idx] + 1e-9
+        k = int(rng.choice(idx, p=w / w.sum()))
+    else:
+        raise ValueError(f"unknown pose choice {choice!r} (upright, random)")
+    return make_T(rotvec_to_matrix([0.0, 0.0, yaw_rad])) @ np.asarray(stable_poses[k][0], float)
+
+
 def mm_per_px(camera: CameraModel, standoff_mm: float) -> float:
     """Metric scale (mm per pixel) in the plane at the stand-off distance: ``Z / f_x``."""
     return float(standoff_mm / camera.K[0, 0])

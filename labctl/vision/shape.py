@@ -61,13 +61,17 @@ class ShapeError(ValueError):
 
 
 # --- silhouette ------------------------------------------------------------------------
-def silhouette_mask(image: np.ndarray, *, min_area_px: int = 200, red_is_object: bool = True) -> np.ndarray:
-    """Object silhouette (bool H×W) of a standard-view image against the darker table.
+def silhouette_mask(image: np.ndarray, *, min_area_px: int = 200, red_is_object: bool = True,
+                    max_levels: int = 3) -> np.ndarray:
+    """Object silhouette (bool H×W) of a standard-view image against the darker background.
 
     Otsu threshold on grey level (objects are lighter than the table), red marker pixels
-    counted as object, largest connected component kept and its holes filled. Raises
-    :class:`ShapeError` if nothing object-like is found or it touches the image border
-    (part of the object outside the view).
+    counted as object, largest connected component kept and its holes filled. A view taken
+    nearly horizontally (a marker on a side face) shows a dark void above the table's horizon;
+    Otsu then separates void from table+object and the component touches the border, so the
+    threshold is recomputed (Otsu again) on the pixels above it, up to ``max_levels`` times.
+    Raises :class:`ShapeError` if nothing object-like is found or it touches the image border
+    at every level (part of the object outside the view).
     """
     img = np.asarray(image)
     if img.ndim == 2:
@@ -78,9 +82,19 @@ def silhouette_mask(image: np.ndarray, *, min_area_px: int = 200, red_is_object:
         b, g, r = (img[..., i].astype(np.int16) for i in range(3))
         red = (r > g + 50) & (r > b + 50) if red_is_object else np.zeros(gray.shape, bool)
     blur = cv2.GaussianBlur(gray, (5, 5), 0)
-    _, fg = cv2.threshold(blur, 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
-    fg = (fg > 0) | red
-    return _largest_filled(fg, min_area_px)
+    values = blur.ravel()
+    error = ShapeError("no silhouette found in the image")
+    for _ in range(max(1, max_levels)):
+        if values.size < min_area_px:
+            break
+        t, _ = cv2.threshold(values.reshape(1, -1), 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
+        fg = (blur > t) | red
+        try:
+            return _largest_filled(fg, min_area_px)
+        except ShapeError as exc:
+            error = exc
+        values = values[values > t]
+    raise error
 
 
 def _largest_filled(fg: np.ndarray, min_area_px: int) -> np.ndarray:
