@@ -107,6 +107,15 @@ class RobotEmulator:
         self._overlong = False
         self._write(f"@BOOT {IDENT}\n")
 
+    def power_cycle(self) -> None:
+        """Controller reset: the brakes stop the arm where it is; queue, fault and line are lost."""
+        self.advance(max(self.now, self.clock()))
+        if self._moving_at(self.now):
+            self._stop_at(self.now)
+        self.fault = None
+        self._line.clear()
+        self._write(f"@BOOT {IDENT}\n")
+
     # --- wire -------------------------------------------------------------------------------
     def _write(self, text: str) -> None:
         self.out += text.encode("ascii")
@@ -265,7 +274,7 @@ class RobotEmulator:
         self._write(f"${seq} ok{(' ' + fields) if fields else ''}\n")
 
     def _error(self, seq: int, code: int) -> None:
-        self._write(f"${seq} E{code} {ERROR_CODES.get(code, 'error')}\n")
+        self._write(f"${seq} E{code:02d} {ERROR_CODES.get(code, 'error')}\n")
 
     def _handle(self, line: str) -> None:
         req = parse_request(line)
