@@ -46,8 +46,8 @@ def _brute_force_T(p0, v0, a0, G, limits, horizon, dt=0.01, fine=0.0005, samples
         V = (k * u ** np.maximum(k - 1, 0)) @ b / Ts[:, None, None]
         A = (k * (k - 1) * u ** np.maximum(k - 2, 0)) @ b / Ts[:, None, None] ** 2
         ok = np.all((P >= limits.box_min) & (P <= limits.box_max), axis=(1, 2))
-        ok &= np.abs(V).max(axis=(1, 2)) <= limits.v_max
-        ok &= np.abs(A).max(axis=(1, 2)) <= limits.a_max
+        ok &= np.linalg.norm(V, axis=2).max(axis=1) <= limits.v_max  # speed and acceleration are norms
+        ok &= np.linalg.norm(A, axis=2).max(axis=1) <= limits.a_max
         return ok
 
     Ts = np.arange(dt, horizon + 1e-9, dt)

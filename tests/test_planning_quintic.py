@@ -50,7 +50,7 @@ def test_exact_extrema_match_dense_sampling_and_bounds_never_underestimate(p0, v
     scale = 1 + np.abs(P).max()
     assert np.all(lo <= P.min(axis=0) + 1e-9 * scale) and np.all(hi >= P.max(axis=0) - 1e-9 * scale)
     assert np.all(lo >= P.min(axis=0) - 1e-5 * scale) and np.all(hi <= P.max(axis=0) + 1e-5 * scale)
-    vmax, amax = np.abs(V).max(), np.abs(A).max()
+    vmax, amax = np.linalg.norm(V, axis=1).max(), np.linalg.norm(A, axis=1).max()  # speed and acceleration are norms
     assert vmax - 1e-9 * (1 + vmax) <= seg.max_speed() <= vmax * (1 + 1e-5) + 1e-9
     assert amax - 1e-9 * (1 + amax) <= seg.max_accel() <= amax * (1 + 1e-4) + 1e-9
     b = seg.limit_bounds()

@@ -30,7 +30,7 @@ def dense_extremes(seg: QuinticSegment):
     """Independent of the exact/bounded maxima under test: 2001 samples of the segment's polynomial."""
     T = seg.duration
     P, V, A = POW @ seg.coeffs, DPOW @ seg.coeffs / T, D2POW @ seg.coeffs / T**2
-    return P.min(axis=0), P.max(axis=0), np.abs(V).max(), np.abs(A).max()
+    return P.min(axis=0), P.max(axis=0), np.linalg.norm(V, axis=1).max(), np.linalg.norm(A, axis=1).max()
 
 
 def assert_within_limits(seg: QuinticSegment, limits: Limits):

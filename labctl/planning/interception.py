@@ -88,7 +88,7 @@ def _score(p0, v0, a0, gp, gv, ga, Ts, limits: Limits, rot=None) -> tuple[np.nda
     low, high = P.min(axis=2) - slack, P.max(axis=2) + slack
     box_excess = np.maximum(limits.box_min - low, high - limits.box_max).max(axis=1)
     g_excess = np.maximum(limits.box_min - gp, gp - limits.box_max).max(axis=1)
-    D = np.abs(X[:, :, S:]).max(axis=1).reshape(len(Ts), 2, S)  # (K, 2, S): max over axes of |p'|, |p''|
+    D = np.sqrt(np.einsum("kds,kds->ks", X[:, :, S:], X[:, :, S:])).reshape(len(Ts), 2, S)  # (K, 2, S): |p'|, |p''|
     v_excess = (D[:, 0] / (limits.v_max * Ts)[:, None] + _TAPER).max(axis=1) - 1
     a_excess = (D[:, 1] / (limits.a_max * Ts * Ts)[:, None] + _TAPER).max(axis=1) - 1
     score = np.maximum(np.maximum(box_excess, g_excess) / 100.0, np.maximum(v_excess, a_excess))

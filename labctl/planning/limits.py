@@ -35,7 +35,10 @@ class LimitViolation(PlanningError):
 
 @dataclass(frozen=True)
 class Limits:
-    """Workspace box (mm, world frame), per-axis speed (mm/s) and acceleration (mm/s²), rotation rate (rad/s)."""
+    """Workspace box (mm, world frame), speed ‖v‖ (mm/s) and acceleration ‖a‖ (mm/s²), rotation rate (rad/s).
+
+    Speed and acceleration are Euclidean norms of the task-space vectors, as the robot controller
+    (docs/protocols/robot.md) checks them."""
 
     box_min: np.ndarray
     box_max: np.ndarray

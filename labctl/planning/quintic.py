@@ -104,6 +104,15 @@ def _abs_max(c: np.ndarray) -> float:
     return float(max(np.max(-lo), np.max(hi)))
 
 
+def _norm_max(c: np.ndarray) -> float:
+    """max over u ∈ [0, 1] of the Euclidean norm of the vector polynomial ``c`` (n, D), exact:
+    the extrema of ‖c(u)‖² (a polynomial of degree 2n − 2) from its critical points."""
+    sq = np.zeros(2 * c.shape[0] - 1)
+    for d in range(c.shape[1]):
+        sq += np.convolve(c[:, d], c[:, d])
+    return float(np.sqrt(max(_abs_max(sq[:, None]), 0.0)))
+
+
 def _derivative(b: np.ndarray) -> np.ndarray:
     """Ascending coefficients (n, D) → coefficients of d/du, (n-1, D)."""
     return b[1:] * np.arange(1, b.shape[0])[:, None]
@@ -196,12 +205,12 @@ class QuinticSegment:
         return right_jacobian(r) @ ((Bv @ self.rot_coeffs)[0] / self.duration)
 
     def max_speed(self) -> float:
-        """Largest |velocity| of any single axis over the segment (mm/s), exact (polynomial roots)."""
-        return _abs_max(_derivative(self.coeffs)) / self.duration
+        """Largest speed ‖v‖ over the segment (mm/s), exact (critical points of ‖p'(u)‖²)."""
+        return _norm_max(_derivative(self.coeffs)) / self.duration
 
     def max_accel(self) -> float:
-        """Largest |acceleration| of any single axis over the segment (mm/s²), exact."""
-        return _abs_max(_derivative(_derivative(self.coeffs))) / self.duration**2
+        """Largest acceleration ‖a‖ over the segment (mm/s²), exact."""
+        return _norm_max(_derivative(_derivative(self.coeffs))) / self.duration**2
 
     def position_range(self) -> tuple[np.ndarray, np.ndarray]:
         """Per-axis (min, max) position over the segment (mm), exact."""
@@ -213,7 +222,7 @@ class QuinticSegment:
         Between samples ``h`` apart, a polynomial's extremum exceeds the best sample by at most
         ``h²/8 · max|f''|`` and ``max|f''| ≤ Σ|coefficients of f''|`` on [0, 1]; so these bounds
         never under-estimate (they over-estimate by ~1e-4 relative). Keys: ``p_min``, ``p_max``
-        (mm, per axis), ``v`` (mm/s), ``a`` (mm/s²) per axis maxima, ``w`` (rad/s) rotation rate.
+        (mm, per axis), ``v`` (mm/s) and ``a`` (mm/s²) maxima of the vector norms, ``w`` (rad/s) rotation rate.
         """
         T = self.duration
         b = self.coeffs
@@ -226,8 +235,9 @@ class QuinticSegment:
         out = {
             "p_min": X[:n].min(axis=0) - p_slack,
             "p_max": X[:n].max(axis=0) + p_slack,
-            "v": float((np.abs(X[n : 2 * n]).max(axis=0) + _H2_8 * _abs_coeff_sum(d3)).max()) / T,
-            "a": float((np.abs(X[2 * n :]).max(axis=0) + _H2_8 * _abs_coeff_sum(d4)).max()) / (T * T),
+            # ‖f‖ between samples ≤ the larger end sample's norm + h²/8·‖(max|f_d''|)_d‖
+            "v": float(np.linalg.norm(X[n : 2 * n], axis=1).max() + _H2_8 * np.linalg.norm(_abs_coeff_sum(d3))) / T,
+            "a": float(np.linalg.norm(X[2 * n :], axis=1).max() + _H2_8 * np.linalg.norm(_abs_coeff_sum(d4))) / (T * T),
             "w": 0.0,
         }
         out["w"] = self.max_rotation_rate()  # exact (critical points of |dr/du|²)
@@ -240,11 +250,7 @@ class QuinticSegment:
         """
         if self.rot_coeffs is None:
             return 0.0
-        dr = _derivative(self.rot_coeffs)  # (5, 3): dr/du
-        sq = np.zeros(9)
-        for d in range(3):
-            sq += np.convolve(dr[:, d], dr[:, d])
-        return float(np.sqrt(max(_abs_max(sq[:, None]), 0.0))) / self.duration
+        return _norm_max(_derivative(self.rot_coeffs)) / self.duration
 
 
 @dataclass(frozen=True)

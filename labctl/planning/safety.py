@@ -1,7 +1,7 @@
 """The last gate before a segment leaves the planner (DESIGN §3, issue 6 "Safety").
 
 Every segment the planners return has passed :func:`check_segment`: its whole position range
-inside the workspace box, and its per-axis speed, per-axis acceleration and rotation rate within
+inside the workspace box, and its speed, acceleration (Euclidean norms) and rotation rate within
 the limits. First rigorous upper bounds (dense samples plus the largest possible overshoot
 between samples, :meth:`QuinticSegment.limit_bounds`); where a bound touches a limit, the exact
 maxima from the polynomial's critical points decide. A violation is never missed.

@@ -26,7 +26,7 @@ LIMIT_MARGIN = 0.95
 def planning_limits(robot_cfg) -> Limits:
     """The limits the planner plans to: the controller's, with a margin."""
     lim = Limits.from_config(robot_cfg)
-    return Limits(lim.box_min, lim.box_max, lim.v_max * LIMIT_MARGIN / 3**0.5, lim.a_max * LIMIT_MARGIN / 3**0.5,
+    return Limits(lim.box_min, lim.box_max, lim.v_max * LIMIT_MARGIN, lim.a_max * LIMIT_MARGIN,
                   lim.w_max * LIMIT_MARGIN)
 
 

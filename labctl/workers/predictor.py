@@ -179,7 +179,7 @@ class PredictorPlanner:
     def _rest_to_rest_time(self, p0, p1) -> float:
         """Robot-limited minimum time of a straight rest-to-rest move (trapezoidal v/a profile)."""
         d = float(np.linalg.norm(np.asarray(p1) - np.asarray(p0)))
-        v, a = self.ctx.limits.v_max, self.ctx.limits.a_max
+        v, a = self.ctx.lab.robot.v_max_mm_s, self.ctx.lab.robot.a_max_mm_s2  # the controller's, no margin
         return 2 * math.sqrt(d / a) if d < v * v / a else d / v + v / a
 
     # -- planning ----------------------------------------------------------------------------
