@@ -18,7 +18,7 @@ ERROR_CODES = {
     40: "stopped by the watchdog: send CLEAR", 41: "stopped: send CLEAR",
 }
 
-MAX_LINE = 160
+MAX_LINE = 240
 MAX_SEQ = 65535
 
 
@@ -80,10 +80,14 @@ def parse_reply(line: str | bytes) -> RobotReply:
 
 
 def format_request(seq: int, command: str, *args) -> str:
-    """``#<seq> COMMAND arg…`` with floats printed to 4 decimals (mm, rad, s)."""
+    """``#<seq> COMMAND arg…`` with floats to 6 decimals, trailing zeros dropped (mm, rad, s)."""
     parts = [f"#{seq}", command]
     for a in args:
-        parts.append(f"{a:.4f}" if isinstance(a, float) else str(a))
+        if isinstance(a, float):
+            text = f"{a:.6f}".rstrip("0").rstrip(".")
+            parts.append("0" if text in ("", "-0") else text)
+        else:
+            parts.append(str(a))
     return " ".join(parts)
 
 
