@@ -40,7 +40,8 @@ def test_live_run_identifies_with_two_worker_processes(lab):
     assert {e["role"] for e in started} == {"predictor", "recognizer"}
     pids = {e["pid"] for e in started}
     assert len(pids) == 2 and p.pid not in pids  # two separate processes besides the supervisor
-    first_two = [json.loads(line)["event"] for line in (Path(res["record"]) / "events.jsonl").read_text().splitlines()[:2]]
+    lines = (Path(res["record"]) / "events.jsonl").read_text().splitlines()
+    first_two = [json.loads(line)["event"] for line in lines[:2]]
     assert first_two == ["worker_started", "worker_started"]
 
 

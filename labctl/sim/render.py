@@ -40,7 +40,7 @@ from ..geometry import CameraModel, invert
 
 _NEAR_MM = 1.0
 _EDGE_EPS = 1e-7  # normalised units (~0.0002 px): closes cracks on shared edges
-_AMBIENT = 0.38
+_AMBIENT = 0.55  # faces turned from the light stay well above the dark table (silhouettes)
 DEFAULT_LIGHT_DIR_W = (0.35, -0.25, 1.0)  # from the scene towards the light
 
 
