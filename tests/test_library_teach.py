@@ -16,6 +16,8 @@ from labctl.library.placement import (
     ViewingGeometry,
     candidate_sites,
     check_coverage,
+    check_overhead_coverage,
+    overhead_directions_o,
     plan_markers,
     segments_blocked,
     set_cover,
@@ -81,25 +83,85 @@ def test_box_stable_poses_and_marker_sites():
 def test_teaching_extruded_profiles_covers_every_pose_and_yaw(profile):
     mesh = extrude_polygon(np.array(PROFILES[profile], float), 45.0)
     obj = _teach(profile, mesh)
-    counts = check_coverage(obj.mesh, [T for T, _ in obj.stable_poses], obj.markers, VIEW, n_yaw=360)
+    Ts = [T for T, _ in obj.stable_poses]
+    counts = check_coverage(obj.mesh, Ts, obj.markers, VIEW, n_yaw=360)
     assert counts.min() >= 1  # brute force over stable poses × 360 yaw steps
+    assert check_overhead_coverage(obj.mesh, Ts, obj.markers, VIEW).min() >= 1  # and the overhead camera's cone
+    assert obj.info["placement"]["overhead"]["min_tracked_markers"] >= 1
     assert obj.info["placement"]["method"] == "exact"
     assert len(obj.views) == len(obj.markers)
 
 
-def test_exact_marker_count_is_minimal_over_candidates():
-    mesh = validate_model(samples.sample_objects()["wedge"], marker_radius_mm=8)
+def _brute_force_minimum(mesh, poses, view, candidates):
+    """Smallest subset of the candidate sites meeting both requirements, by enumeration (72 yaws
+    with the planner's obliquity margin for the initial view; 1 + 4×72 directions of the overhead cone)."""
+    from labctl.library.placement import overhead_visibility, view_directions_o, visibility_matrix
+
+    Ts = [T for T, _ in poses]
+    init = visibility_matrix(mesh, candidates, view_directions_o(Ts, view.angle_deg, 72),  # the planner's margin
+                             distance_mm=view.distance_mm, max_obliquity_deg=view.max_obliquity_deg - 2.0)
+    over = overhead_visibility(mesh, candidates, Ts, view, n_azimuth=72, n_rings=4)
+    rows = np.vstack([init, over])
+    for k in range(1, len(candidates) + 1):
+        for c in itertools.combinations(range(len(candidates)), k):
+            if rows[:, c].any(axis=1).all():
+                return k
+    return None
+
+
+@pytest.mark.parametrize("name", ["wedge", "tee"])
+def test_exact_marker_count_is_minimal_over_candidates(name):
+    """Both requirement families: (a) initial view at every pose × yaw, (b) overhead tracking in every pose."""
+    mesh = validate_model(samples.sample_objects()[name], marker_radius_mm=8)
     poses = stable_poses(mesh)
     view = ViewingGeometry(n_yaw=72)
     r = plan_markers(mesh, poses, 8.0, view)
-    vis = r.coverage  # noqa: F841 - the chosen markers' coverage; check no smaller subset of candidates works
-    from labctl.library.placement import view_directions_o, visibility_matrix
+    assert r.method == "exact" and r.min_overhead_visible >= 1
+    assert len(r.markers) == _brute_force_minimum(mesh, poses, view, r.candidates)
+    # and the chosen markers pass the fine brute-force checks of both requirements
+    Ts = [T for T, _ in poses]
+    assert check_coverage(mesh, Ts, r.markers, view).min() >= 1
+    assert check_overhead_coverage(mesh, Ts, r.markers, view).min() >= 1
 
-    full = visibility_matrix(mesh, r.candidates, view_directions_o([T for T, _ in poses], view.angle_deg, view.n_yaw),
-                             distance_mm=view.distance_mm, max_obliquity_deg=view.max_obliquity_deg - 2.0)
-    k = len(r.markers)
-    smaller = [c for c in itertools.combinations(range(len(r.candidates)), k - 1) if full[:, c].any(axis=1).all()]
-    assert smaller == []
+
+def test_overhead_cone_directions_are_within_the_cone_of_the_vertical():
+    rng = np.random.default_rng(1)
+    from labctl.geometry import rotvec_to_matrix
+
+    Ts = [np.eye(4)] + [np.block([[rotvec_to_matrix(rng.normal(size=3)), np.zeros((3, 1))], [np.zeros((1, 3)), 1]])
+                        for _ in range(5)]
+    d = overhead_directions_o(Ts, 10.0, n_azimuth=36, n_rings=3)
+    assert d.shape == (6, 1 + 3 * 36, 3) and np.allclose(np.linalg.norm(d, axis=2), 1.0)
+    for T, dd in zip(Ts, d, strict=True):
+        up = dd @ T[:3, :3].T  # back to W
+        tilt = np.degrees(np.arccos(np.clip(up[:, 2], -1, 1)))
+        assert tilt.max() == pytest.approx(10.0) and tilt.min() == pytest.approx(0.0, abs=1e-4)
+
+
+def test_overhead_camera_on_a_box_needs_the_top_face_of_every_resting_pose():
+    """Ground truth: looking down within 10°, the overhead camera can track only the marker on the
+    upward face (the side faces are 80–100° off its view), so a box needs one marker per face,
+    whereas the initial-view requirement alone needs fewer and leaves some resting pose untracked."""
+    box = validate_model(trimesh.creation.box((40, 40, 35)), marker_radius_mm=8)
+    poses = stable_poses(box)
+    Ts = [T for T, _ in poses]
+    without = plan_markers(box, poses, 8.0, ViewingGeometry(n_yaw=72, overhead_distance_mm=None))
+    assert len(without.markers) < 6 and check_overhead_coverage(box, Ts, without.markers, VIEW).min() == 0
+    r = plan_markers(box, poses, 8.0, ViewingGeometry(n_yaw=72))
+    assert len(r.markers) == 6
+    for T in Ts:  # in each pose, the tracked marker is the one facing up
+        tracked = check_overhead_coverage(box, [T], r.markers, VIEW)
+        up = [m for m in r.markers if (T[:3, :3] @ m.normal)[2] > 0.99]
+        assert tracked.tolist() == [1] and len(up) == 1
+
+
+def test_no_trackable_marker_for_the_overhead_camera_is_a_clear_error():
+    """The wedge resting on a slanted side shows its steepest upward face 48.7° off vertical."""
+    mesh = validate_model(samples.sample_objects()["wedge"], marker_radius_mm=8)
+    poses = stable_poses(mesh)
+    with pytest.raises(ModelError, match="overhead camera"):
+        plan_markers(mesh, poses, 8.0, ViewingGeometry(n_yaw=72, overhead_max_tilt_deg=40.0))
+    assert len(plan_markers(mesh, poses, 8.0, ViewingGeometry(n_yaw=72, overhead_max_tilt_deg=50.0)).markers) >= 1
 
 
 def test_saved_object_round_trips(tmp_path):

@@ -66,8 +66,12 @@ def _viewing(lab):
     from ..library.placement import ViewingGeometry
 
     v = lab.config.viewing
+    cam = lab.fixed_camera
+    height = 1800.0  # paper §5.2: the fixed camera 1.8 m above the table
+    if getattr(cam, "eye_w_mm", None) is not None:
+        height = float(cam.eye_w_mm[2]) - float(lab.table.origin_w_mm[2])
     return ViewingGeometry(angle_deg=v.initial_angle_deg, distance_mm=v.initial_distance_mm,
-                           max_obliquity_deg=v.max_obliquity_deg)
+                           max_obliquity_deg=v.max_obliquity_deg, overhead_distance_mm=height)
 
 
 @click.command("teach-object")

@@ -23,6 +23,18 @@ Formulation used here:
   covering every row. Exact 0/1 ILP with ``scipy.optimize.milp`` up to ``exact_max_sites``
   sites (ties broken towards more redundant coverage); greedy beyond, whose count is within
   ``H(m) ≤ ln m + 1`` of the optimum (m = the largest number of rows one site covers).
+* **Overhead tracking** (paper §5.2) — the fixed camera C1 looks straight down from
+  ``overhead_distance_mm`` (1.8 m) and tracks one marker's centroid through a red filter while
+  the object crosses its field, so it sees the object up to ``overhead_cone_deg`` off vertical
+  in any direction (the field's half-diagonal over the height, ≈ 11° in the sample lab).
+  Requirement (b): for every stable pose, some single marker has its normal within
+  ``overhead_max_tilt_deg`` = 60° of the vertical (so its image through the red filter is a
+  usable blob: foreshortened at most to cos 70° ≈ 0.34 at the cone's rim) and is unoccluded and
+  front-facing from every sampled direction of that cone (same ray casting) — one row per
+  stable pose; site s covers it iff so. Yaw needs no sampling: the cone is symmetric about the
+  vertical and the tilt does not depend on yaw.
+* **Set cover** rows are the initial-view rows (a) followed by the overhead rows (b); one
+  cover satisfies both.
 * **Viewing angle** — the cover size as a function of α over a range; the optimal angles are
   those with the smallest count; the reported one has the largest worst-case number of
   visible chosen markers and, among those, is the steepest (top faces seen most frontally).
@@ -30,7 +42,7 @@ Formulation used here:
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -66,12 +78,17 @@ class Marker:
 
 @dataclass(frozen=True)
 class ViewingGeometry:
-    """Initial-view geometry (paper §5.3: ~1 m, 63°) and the visibility limits."""
+    """Initial-view geometry (paper §5.3: ~1 m, 63°), the overhead fixed camera (§5.2: 1.8 m,
+    straight down, up to ``overhead_cone_deg`` off vertical over its field) and the visibility
+    limits. ``overhead_distance_mm=None`` drops the overhead requirement."""
 
     angle_deg: float = 63.0
     distance_mm: float = 1000.0
     max_obliquity_deg: float = 75.0
     n_yaw: int = 360
+    overhead_distance_mm: float | None = 1800.0
+    overhead_cone_deg: float = 10.0
+    overhead_max_tilt_deg: float = 60.0
 
 
 @dataclass
@@ -82,7 +99,14 @@ class PlacementResult:
     bound: float  # greedy approximation factor bound (1.0 when exact)
     n_rows: int
     min_visible: int  # worst case over the sampled (pose, yaw) of visible chosen markers
-    coverage: np.ndarray = field(repr=False)  # (rows, chosen) bool
+    coverage: np.ndarray = field(repr=False)  # (rows, chosen) bool, initial-view rows
+    # (poses, chosen) bool: chosen marker visible to the overhead camera over the whole cone; None if not required
+    overhead_coverage: np.ndarray | None = field(default=None, repr=False)
+
+    @property
+    def min_overhead_visible(self) -> int | None:
+        """Worst case over the stable poses of chosen markers the overhead camera sees over its whole cone."""
+        return None if self.overhead_coverage is None else int(self.overhead_coverage.sum(axis=1).min())
 
 
 # --- ray casting ------------------------------------------------------------------------
@@ -184,6 +208,24 @@ def view_directions_o(poses: list[np.ndarray], angle_deg: float, n_yaw: int, yaw
     return np.array(out)
 
 
+def overhead_directions_o(poses: list[np.ndarray], cone_deg: float, n_azimuth: int = 24,
+                          n_rings: int = 2, azimuth_offset: float = 0.0) -> np.ndarray:
+    """Unit directions (P, K, 3) from the object towards the overhead camera, in the object frame O.
+
+    World directions ``(sin β cos φ, sin β sin φ, cos β)``: the vertical (β = 0) and ``n_rings``
+    rings β = cone·i/n_rings (i = 1…n_rings) of ``n_azimuth`` azimuths φ = (j + azimuth_offset)·360°/n_azimuth
+    — the off-vertical views of a camera looking straight down at an object anywhere in its
+    field (paper §5.2). ``d_O = R_Tᵀ d`` for the stable pose T (yaw is absorbed by φ).
+    """
+    dirs = [np.array([0.0, 0.0, 1.0])]
+    phi = 2 * np.pi * (np.arange(n_azimuth) + azimuth_offset) / n_azimuth
+    for i in range(1, n_rings + 1):
+        b = np.radians(cone_deg) * i / n_rings
+        dirs += list(np.stack([np.sin(b) * np.cos(phi), np.sin(b) * np.sin(phi), np.full_like(phi, np.cos(b))], 1))
+    d = np.array(dirs)
+    return np.stack([d @ T[:3, :3] for T in poses])  # row-vector form of R_Tᵀ d
+
+
 def visibility_matrix(mesh: trimesh.Trimesh, sites: list[Marker], dirs_o: np.ndarray, *,
                       distance_mm: float, max_obliquity_deg: float) -> np.ndarray:
     """Bool (rows, sites): is site s visible from camera direction row r (see module docstring)."""
@@ -242,14 +284,35 @@ def set_cover(cover: np.ndarray, *, exact_max_sites: int = 60) -> tuple[np.ndarr
     return np.array(sorted(chosen)), "greedy", float(np.sum(1.0 / np.arange(1, m + 1)))
 
 
+def overhead_visibility(mesh: trimesh.Trimesh, sites: list[Marker], poses: list[np.ndarray], view: ViewingGeometry,
+                        *, n_azimuth: int = 24, n_rings: int = 2, azimuth_offset: float = 0.0) -> np.ndarray:
+    """Bool (P, sites): in stable pose p, site s can be tracked by the overhead camera (paper §5.2):
+    its normal is within ``overhead_max_tilt_deg`` of the vertical and it is front-facing and
+    unoccluded from EVERY sampled direction of the ``overhead_cone_deg`` cone (camera at
+    ``overhead_distance_mm`` from the object's centre) — one marker the fixed camera can follow
+    while the object crosses its field."""
+    dirs = overhead_directions_o(poses, view.overhead_cone_deg, n_azimuth, n_rings, azimuth_offset)
+    P, K = dirs.shape[:2]
+    # the obliquity to any cone direction is at most tilt + cone: the tilt test below is the binding one
+    seen = visibility_matrix(mesh, sites, dirs.reshape(-1, 3), distance_mm=float(view.overhead_distance_mm),
+                             max_obliquity_deg=min(89.0, view.overhead_max_tilt_deg + view.overhead_cone_deg + 1.0))
+    normals = np.array([m.normal for m in sites]).reshape(-1, 3)
+    up_z = np.stack([T[2, :3] for T in poses]) @ normals.T  # (P, sites): z of the normal in W
+    tilt_ok = up_z >= np.cos(np.radians(view.overhead_max_tilt_deg)) - 1e-9
+    return seen.reshape(P, K, len(sites)).all(axis=1) & tilt_ok
+
+
 def plan_markers(mesh: trimesh.Trimesh, poses: list[tuple[np.ndarray, float]], radius_mm: float,
                  view: ViewingGeometry, *, planning_margin_deg: float = 2.0,
                  candidates: list[Marker] | None = None) -> PlacementResult:
-    """Minimum marker set for ``mesh`` (paper §4.1). Raises :class:`ModelError` if some stable
-    pose has a yaw from which no candidate site can be seen (no placement can work).
+    """Minimum marker set for ``mesh`` (paper §4.1) meeting (a) the initial-view requirement and,
+    unless ``view.overhead_distance_mm`` is None, (b) the overhead-tracking requirement (module
+    docstring). Raises :class:`ModelError` if some stable pose has a yaw from which no candidate
+    site can be seen, or no candidate the overhead camera can track (no placement can work).
 
-    Planning uses an obliquity limit ``planning_margin_deg`` tighter than the check's, so the
-    result holds between the sampled yaws too.
+    Planning (a) uses an obliquity limit ``planning_margin_deg`` tighter than the check's, so the
+    result holds between the sampled yaws too; (b)'s tilt test is exact (no sampling) and its
+    occlusion test is re-checked on a finer cone grid by :func:`check_overhead_coverage`.
     """
     sites = candidates if candidates is not None else candidate_sites(mesh, radius_mm)
     if not sites:
@@ -267,11 +330,24 @@ def plan_markers(mesh: trimesh.Trimesh, poses: list[tuple[np.ndarray, float]], r
             f"no marker can be made visible in stable pose {p} (probability {poses[p][1]:.3f}) at "
             f"{n_bad} of {view.n_yaw} yaw angles, e.g. {360.0 * j / view.n_yaw:.0f}° (viewing angle "
             f"{view.angle_deg:g}°, max obliquity {view.max_obliquity_deg:g}°)")
-    chosen, method, bound = set_cover(vis)
+    rows = vis
+    over = None
+    if view.overhead_distance_mm is not None:
+        over = overhead_visibility(mesh, sites, Ts, view)
+        bad = np.flatnonzero(~over.any(axis=1))
+        if bad.size:
+            p = int(bad[0])
+            raise ModelError(
+                f"no marker can be made visible to the overhead camera in stable pose {p} (probability "
+                f"{poses[p][1]:.3f}): no face that can hold a marker is within {view.overhead_max_tilt_deg:g}° of "
+                f"the vertical and in view over the whole {view.overhead_cone_deg:g}° field cone")
+        rows = np.vstack([vis, over])
+    chosen, method, bound = set_cover(rows)
     markers = [Marker(i, sites[k].center, sites[k].normal, sites[k].radius) for i, k in enumerate(chosen)]
     cov = vis[:, chosen]
     return PlacementResult(markers=markers, candidates=sites, method=method, bound=bound,
-                           n_rows=len(dirs), min_visible=int(cov.sum(axis=1).min()), coverage=cov)
+                           n_rows=len(rows), min_visible=int(cov.sum(axis=1).min()), coverage=cov,
+                           overhead_coverage=None if over is None else over[:, chosen])
 
 
 def check_coverage(mesh: trimesh.Trimesh, poses: list[np.ndarray], markers: list[Marker],
@@ -286,18 +362,31 @@ def check_coverage(mesh: trimesh.Trimesh, poses: list[np.ndarray], markers: list
     return vis.sum(axis=1).reshape(len(poses), n_yaw)
 
 
+def check_overhead_coverage(mesh: trimesh.Trimesh, poses: list[np.ndarray], markers: list[Marker],
+                            view: ViewingGeometry, n_azimuth: int = 72, n_rings: int = 4,
+                            azimuth_offset: float = 0.5) -> np.ndarray:
+    """Brute force for the overhead requirement (b): per stable pose (P,), the number of markers the
+    overhead camera sees from every one of ``1 + n_rings·n_azimuth`` directions of its cone
+    (rings at cone·i/n_rings, azimuths offset from the planning grid), with the check's limits."""
+    if view.overhead_distance_mm is None:
+        raise ValueError("this viewing geometry has no overhead camera")
+    return overhead_visibility(mesh, markers, poses, view, n_azimuth=n_azimuth, n_rings=n_rings,
+                               azimuth_offset=azimuth_offset).sum(axis=1)
+
+
 def optimal_viewing_angle(mesh: trimesh.Trimesh, poses: list[tuple[np.ndarray, float]], radius_mm: float,
                           view: ViewingGeometry, angles_deg=None, n_yaw: int = 72) -> dict:
     """Minimum marker count versus viewing angle; the optimal initial viewing angle (paper §4.1).
 
     Returns ``{"angles_deg", "counts", "min_visible", "optimal_deg", "optimal_range_deg"}``;
-    angles where some pose cannot be covered get count ``None``.
+    angles where some pose cannot be covered get count ``None``. The counts are for the
+    initial-view requirement alone (the paper's quantity); the overhead rows do not depend on α.
     """
     angles = np.arange(30.0, 90.01, 3.0) if angles_deg is None else np.asarray(angles_deg, float)
     sites = candidate_sites(mesh, radius_mm)
     counts, worst = [], []
     for a in angles:
-        v = ViewingGeometry(float(a), view.distance_mm, view.max_obliquity_deg, n_yaw)
+        v = replace(view, angle_deg=float(a), n_yaw=n_yaw, overhead_distance_mm=None)
         try:
             r = plan_markers(mesh, poses, radius_mm, v, candidates=sites)
             counts.append(len(r.markers))

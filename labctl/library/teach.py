@@ -1,10 +1,11 @@
 """Teaching an object (``labctl teach-object``): model → stable poses → markers → standard views.
 
-Runs paper §4.1 (marker placement and the optimal initial viewing angle) and §3.4 (standard
-views and their features) on a CAD model. The images come from an injected
-``render_view_factory(mesh, markers) -> render_view(T_o_c) -> BGR image`` (the simulated lab's
-renderer, or the robot camera on hardware), so nothing here touches a device or the simulator.
-"""
+Runs paper §4.1 (marker placement: visible to the initial viewing camera at every pose and yaw,
+and trackable by the overhead fixed camera of §5.2 in every pose; the optimal initial viewing
+angle) and §3.4 (standard views and their features) on a CAD model. The images come from an
+injected ``render_view_factory(mesh, markers) -> render_view(T_o_c) -> BGR image`` (the
+simulated lab's renderer, or the robot camera on hardware), so nothing here touches a device
+or the simulator."""
 
 from __future__ import annotations
 
@@ -17,7 +18,14 @@ import yaml
 
 from ..vision.shape import ShapeError
 from .model import ModelError, load_model, stable_poses, validate_model
-from .placement import Marker, ViewingGeometry, check_coverage, optimal_viewing_angle, plan_markers
+from .placement import (
+    Marker,
+    ViewingGeometry,
+    check_coverage,
+    check_overhead_coverage,
+    optimal_viewing_angle,
+    plan_markers,
+)
 from .storage import LibraryError, LibraryObject, check_name, save_object
 from .views import RenderView, build_standard_views
 
@@ -80,6 +88,14 @@ def teach_object(name: str, model: Path | str | trimesh.Trimesh, *, radius_mm: f
         p = int(np.argmin(counts.min(axis=1)))
         raise ModelError(f"{name}: in stable pose {p} (probability {poses[p][1]:.3f}) no marker is visible at "
                          f"{int((counts[p] == 0).sum())} of {counts.shape[1]} yaw angles")
+    overhead = None
+    if view.overhead_distance_mm is not None:
+        overhead = check_overhead_coverage(mesh, [T for T, _ in poses], markers, view)
+        if overhead.min() == 0:
+            p = int(np.argmin(overhead))
+            raise ModelError(f"{name}: in stable pose {p} (probability {poses[p][1]:.3f}) the overhead camera can "
+                             f"track no marker (none within {view.overhead_max_tilt_deg:g}° of the vertical and in "
+                             f"view over its {view.overhead_cone_deg:g}° field cone)")
     sweep = optimal_viewing_angle(mesh, poses, radius_mm, view) if sweep else None
     step("standard views", 0, len(markers))
     render_view = render_factory(mesh, markers, poses)
@@ -101,7 +117,12 @@ def teach_object(name: str, model: Path | str | trimesh.Trimesh, *, radius_mm: f
         "placement": {"method": method, "greedy_bound": bound, "candidate_sites": n_candidates,
                       "markers": len(markers), "viewing_angle_deg": view.angle_deg,
                       "distance_mm": view.distance_mm, "max_obliquity_deg": view.max_obliquity_deg,
-                      "min_visible_markers": int(counts.min()), "checked_yaw_steps": int(counts.shape[1])},
+                      "min_visible_markers": int(counts.min()), "checked_yaw_steps": int(counts.shape[1]),
+                      "overhead": None if overhead is None else {
+                          "distance_mm": float(view.overhead_distance_mm), "cone_deg": float(view.overhead_cone_deg),
+                          "max_tilt_deg": float(view.overhead_max_tilt_deg),
+                          "min_tracked_markers": int(overhead.min()),
+                          "tracked_markers_per_pose": [int(v) for v in overhead]}},
         "viewing_angle_sweep": sweep if sweep is not None else {},
         "standoff_mm": float(standoff_mm), "mm_per_px": float(scale_mm_per_px),
     }
