@@ -42,16 +42,19 @@ class Ellipse:
         """Ellipse from conic coefficients (a, b, c, d, e, f); raises EllipseFitError if the
         conic is not a real, non-degenerate ellipse."""
         try:
-            q = [float(v) for v in (conic.tolist() if isinstance(conic, np.ndarray) else conic)]
+            q = conic.tolist() if isinstance(conic, np.ndarray) else [float(v) for v in conic]
+            if len(q) != 6:
+                raise ValueError
+            a, b, c, d, e, f = q
+            norm2 = float(a * a + b * b + c * c + d * d + e * e + f * f)
         except (TypeError, ValueError):
             raise EllipseFitError("conic must be 6 finite coefficients") from None
-        if len(q) != 6 or not all(math.isfinite(v) for v in q):
+        if not math.isfinite(norm2):
             raise EllipseFitError("conic must be 6 finite coefficients")
-        norm = math.sqrt(sum(v * v for v in q))
-        if norm == 0.0:
+        if norm2 == 0.0:
             raise EllipseFitError("conic is all zero")
-        sign = 1.0 if q[0] + q[2] >= 0 else -1.0
-        a, b, c, d, e, f = (sign * v / norm for v in q)
+        r = (1.0 if a + c >= 0 else -1.0) / math.sqrt(norm2)
+        a, b, c, d, e, f = a * r, b * r, c * r, d * r, e * r, f * r
         det2 = 4.0 * a * c - b * b
         if not det2 > 1e-14 * (a * a + c * c + b * b):
             raise EllipseFitError("conic is not an ellipse (4ac − b² ≤ 0)")
@@ -219,12 +222,20 @@ def _null_vector3(m: list[list[float]], lam: float) -> list[float]:
 _DEGREE = np.add.outer([2, 2, 2, 1, 1, 0], [2, 2, 2, 1, 1, 0]).astype(float)
 
 
-def _moment_matrix(p: np.ndarray, wk: np.ndarray) -> tuple[list[list[float]], float, float, float]:
-    """Weighted scatter matrix S = Σ wkᵢ Dᵢ Dᵢᵀ of the design rows Dᵢ = [x², xy, y², x, y, 1]
-    in Hartley-normalised coordinates (weighted centroid at the origin, RMS distance √2).
-    Returns (S as nested lists, mean x, mean y, scale s) with normalised = s·(p − mean)."""
-    mean = wk @ p
-    c = (p - mean).T
+def _moment_matrix(p: np.ndarray, w: np.ndarray, origin=None) -> tuple[list[list[float]], float, float, float]:
+    """Weighted scatter matrix S = Σ wkᵢ Dᵢ Dᵢᵀ (wk = w / Σw) of the design rows
+    Dᵢ = [x², xy, y², x, y, 1] in Hartley-style normalised coordinates s·(p − origin): origin at
+    the weighted centroid (default) or any given point near the centre (the fit is translation
+    invariant; this only conditions the numbers), scaled so that the RMS distance is √2.
+    Returns (S as nested lists, origin x, origin y, s)."""
+    wsum = float(w.sum())
+    if not wsum > 0:
+        raise EllipseFitError("weights sum to zero")
+    if origin is None:
+        mx, my = ((w @ p) * (1.0 / wsum)).tolist()
+    else:
+        mx, my = origin
+    c = (p - (mx, my)).T
     x, y = c[0], c[1]
     rows = np.empty((6, x.shape[0]))
     np.multiply(x, x, out=rows[0])
@@ -232,19 +243,19 @@ def _moment_matrix(p: np.ndarray, wk: np.ndarray) -> tuple[list[list[float]], fl
     np.multiply(y, y, out=rows[2])
     rows[3:5] = c
     rows[5] = 1.0
-    S = (rows * wk) @ rows.T
-    var = float(S[0, 5] + S[2, 5])  # weighted mean squared distance from the centroid
+    S = (rows * w) @ rows.T
+    var = float(S[0, 5] + S[2, 5]) / wsum  # weighted mean squared distance from the origin
     if not (var > 0 and math.isfinite(var)):
         raise EllipseFitError("all points coincide (or are not finite)")
     s = math.sqrt(2.0 / var)
-    mx, my = mean.tolist()
-    # scale S to the normalised coordinates: entry (i, j) scales with s^(deg_i + deg_j)
-    return (S * np.power(s, _DEGREE)).tolist(), mx, my, s
+    # normalise: entry (i, j) scales with s^(deg_i + deg_j), and the weights to sum 1
+    return (S * (np.power(s, _DEGREE) * (1.0 / wsum))).tolist(), mx, my, s
 
 
-def _direct_fit(S: list[list[float]]) -> list[float]:
+def _direct_fit(S: list[list[float]]) -> tuple[list[float], float]:
     """Halíř–Flusser direct ellipse fit (constraint 4ac − b² = 1) from the 6×6 weighted scatter
-    matrix ``S`` of the design rows [x², xy, y², x, y, 1]; unit-norm conic in S's coordinates.
+    matrix ``S`` of the design rows [x², xy, y², x, y, 1]: the unit-norm conic θ in S's
+    coordinates and its objective θᵀSθ (the weighted mean squared algebraic residual).
     Unrolled float algebra: at 3×3 it is cheaper than array calls."""
     (s00, s01, s02, s03, s04, s05), (_, s11, s12, s13, s14, s15), (_, _, s22, s23, s24, s25), \
         (_, _, _, s33, s34, s35), (_, _, _, _, s44, s45), (_, _, _, _, _, s55) = S
@@ -275,7 +286,7 @@ def _direct_fit(S: list[list[float]]) -> list[float]:
     m22 = s22 + s23 * t02 + s24 * t12 + s25 * t22
     # C1⁻¹ M with C1 = [[0, 0, 2], [0, −1, 0], [2, 0, 0]]
     Mc = [[0.5 * m02, 0.5 * m12, 0.5 * m22], [-m01, -m11, -m12], [0.5 * m00, 0.5 * m01, 0.5 * m02]]
-    best = None
+    best, best_lam = None, 0.0
     # the ellipse is the eigenvector with 4ac − b² > 0; in exact arithmetic it belongs to the
     # only non-negative eigenvalue, so try the largest first
     lams = sorted(_real_eigenvalues3(Mc), reverse=True)
@@ -283,7 +294,7 @@ def _direct_fit(S: list[list[float]]) -> list[float]:
     for lam in lams:
         v = _null_vector3(Mc, lam)
         if 4.0 * v[0] * v[2] - v[1] * v[1] > 0 and abs(lam) < best_abs:
-            best, best_abs = v, abs(lam)
+            best, best_abs, best_lam = v, abs(lam), lam
             if lam >= 0:
                 break
     if best is None:
@@ -292,11 +303,13 @@ def _direct_fit(S: list[list[float]]) -> list[float]:
     d = t00 * a + t01 * b + t02 * c
     e = t10 * a + t11 * b + t12 * c
     f = t20 * a + t21 * b + t22 * c
-    norm = math.sqrt(a * a + b * b + c * c + d * d + e * e + f * f)
-    if not (norm > 0 and math.isfinite(norm)):
+    norm2 = a * a + b * b + c * c + d * d + e * e + f * f
+    if not (norm2 > 0 and math.isfinite(norm2)):
         raise EllipseFitError("no ellipse fits these points (degenerate set)")
-    r = 1.0 / norm
-    return [a * r, b * r, c * r, d * r, e * r, f * r]
+    # objective θᵀSθ = λ (4ac − b²) for the eigenvector (Schur complement: vᵀMv = λ vᵀC1v)
+    objective = max(best_lam * (4.0 * a * c - b * b), 0.0) / norm2
+    r = 1.0 / math.sqrt(norm2)
+    return [a * r, b * r, c * r, d * r, e * r, f * r], objective
 
 
 def _is_ellipse(th: np.ndarray) -> bool:
@@ -304,15 +317,18 @@ def _is_ellipse(th: np.ndarray) -> bool:
     return bool(np.all(np.isfinite(th)) and 4.0 * a * c - b * b > 1e-12 * float(th @ th))
 
 
-def _is_arc(th) -> bool:
-    """True if the points (centred at their weighted mean, RMS radius √2) are an arc rather than
-    a closed boundary: on a closed, evenly weighted boundary the mean is the ellipse's centre
-    (central symmetry); a missing sector of 2π/16 already moves it by ≈ 0.065 of the radius."""
+def _is_arc(th, S: list[list[float]]) -> bool:
+    """True if the points are an arc rather than a closed boundary: on a closed, evenly weighted
+    boundary the weighted mean is the ellipse's centre (central symmetry); a missing sector of
+    2π/16 already moves it by ≈ 0.065 of the RMS radius. ``th`` and the scatter matrix ``S``
+    in the same normalised coordinates (S[3][5], S[4][5] are the weighted mean)."""
     a, b, c, d, e, _ = th
     det2 = 4.0 * a * c - b * b
-    x0 = (b * e - 2.0 * c * d) / det2
-    y0 = (b * d - 2.0 * a * e) / det2
-    return x0 * x0 + y0 * y0 > 0.03**2 * 2.0
+    mx, my = S[3][5], S[4][5]
+    dx = (b * e - 2.0 * c * d) / det2 - mx
+    dy = (b * d - 2.0 * a * e) / det2 - my
+    rms2 = S[0][5] + S[2][5] - mx * mx - my * my  # mean squared distance from the mean
+    return dx * dx + dy * dy > 0.03**2 * rms2
 
 
 def _sampson_refine(p: np.ndarray, wk: np.ndarray, mx: float, my: float, s: float, th: list[float],
@@ -363,27 +379,41 @@ def _sampson_refine(p: np.ndarray, wk: np.ndarray, mx: float, my: float, s: floa
     return th.tolist()
 
 
-def _fit_conic(p: np.ndarray, w: np.ndarray, refine_iterations: int | None = None) -> list[float]:
+def _fit(p: np.ndarray, w: np.ndarray, refine_iterations: int | None = None,
+         origin=None) -> tuple[list[float], float]:
     """Core of :func:`fit_ellipse` on already validated float arrays (N×2 points, N weights
-    with a positive sum): conic (a, b, c, d, e, f) of the fitted ellipse in ``p``'s
-    coordinates, not normalised. Raises :class:`EllipseFitError` for degenerate sets."""
-    wsum = float(w.sum())
-    if not wsum > 0:
-        raise EllipseFitError("weights sum to zero")
-    wk = w * (1.0 / wsum)
-    S, mx, my, s = _moment_matrix(p, wk)
-    th = _direct_fit(S)
+    with a positive sum; ``origin``: optional point near the centre to normalise about).
+    Returns the conic (a, b, c, d, e, f) of the fitted ellipse in ``p``'s coordinates (not
+    normalised) and, for the direct fit, the first-order RMS distance of the points to it,
+    √(Σ wᵢQᵢ² / Σ wᵢ|∇Qᵢ|²) (same units as ``p``; NaN after a Sampson refinement). Raises
+    :class:`EllipseFitError` for degenerate sets."""
+    S, mx, my, s = _moment_matrix(p, w, origin)
+    th, objective = _direct_fit(S)
     if refine_iterations is None:
-        refine_iterations = 3 if _is_arc(th) else 0
+        refine_iterations = 3 if _is_arc(th, S) else 0
     if refine_iterations > 0:
+        wk = w * (1.0 / float(w.sum()))
         th = _sampson_refine(p, wk, mx, my, s, th, refine_iterations)
+        a, b, c, d, e, f = th
+        rms = math.nan
+    else:
+        a, b, c, d, e, f = th
+        # mean |∇Q|² from the moments up to second order
+        sxx, sxy, syy, sx, sy = S[0][5], S[1][5], S[2][5], S[3][5], S[4][5]
+        grad2 = ((4 * a * a + b * b) * sxx + 4 * b * (a + c) * sxy + (b * b + 4 * c * c) * syy + d * d + e * e
+                 + 2 * d * (2 * a * sx + b * sy) + 2 * e * (b * sx + 2 * c * sy))
+        rms = math.sqrt(objective / grad2) / s if grad2 > 0 else math.inf
     # back to input coordinates: Q_n(s(x − mx), s(y − my)) expanded symbolically
-    a, b, c, d, e, f = th
     A2, B2, C2 = a * s * s, b * s * s, c * s * s
     D2 = -2 * A2 * mx - B2 * my + d * s
     E2 = -B2 * mx - 2 * C2 * my + e * s
     F2 = A2 * mx * mx + B2 * mx * my + C2 * my * my - d * s * mx - e * s * my + f
-    return [A2, B2, C2, D2, E2, F2]
+    return [A2, B2, C2, D2, E2, F2], rms
+
+
+def _fit_conic(p: np.ndarray, w: np.ndarray, refine_iterations: int | None = None) -> list[float]:
+    """Conic (a, b, c, d, e, f) of :func:`_fit`, for validated arrays."""
+    return _fit(p, w, refine_iterations)[0]
 
 
 def fit_ellipse(points, weights=None, *, refine_iterations: int | None = None) -> Ellipse:

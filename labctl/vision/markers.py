@@ -26,12 +26,14 @@ one-step-ahead window, paper §4.1) and falls back to the full frame when nothin
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
+from functools import lru_cache
 
 import cv2
 import numpy as np
 
-from .ellipse import Ellipse, EllipseFitError, fit_ellipse
+from .ellipse import Ellipse, EllipseFitError, _fit
 
 
 class MarkerImageError(ValueError):
@@ -76,197 +78,240 @@ def _as_bgr(image) -> np.ndarray:
     return img
 
 
+@lru_cache(maxsize=32)
+def _hsv_ranges(hue_range_deg: tuple[float, float], min_saturation: float, min_value: float):
+    """(cvtColor code, [(lower, upper) inRange bounds]) for an HSV colour window; cached, since
+    the same window is used frame after frame."""
+    lo, hi = hue_range_deg
+    s_min = int(math.ceil(255.0 * min_saturation))
+    v_min = int(math.ceil(255.0 * min_value))
+    if hi - lo >= 360.0:
+        return cv2.COLOR_BGR2HSV_FULL, [((0, s_min, v_min), (255, 255, 255))]
+    lo, hi = lo % 360.0, (lo % 360.0) + (hi - lo)
+    code = cv2.COLOR_BGR2HSV_FULL
+    if hi >= 360.0:
+        # the window wraps through 0° (red): read the BGR image as RGB, which maps hue h to
+        # 240° − h and moves the window away from the wrap, so one inRange suffices
+        code = cv2.COLOR_RGB2HSV_FULL
+        lo, hi = 240.0 - hi, 240.0 - lo
+        lo, hi = lo % 360.0, (lo % 360.0) + (hi - lo)
+    h_lo = int(math.ceil(lo * 256.0 / 360.0))
+    h_hi = int(math.floor(hi * 256.0 / 360.0))
+    if h_hi <= 255:
+        return code, [((h_lo, s_min, v_min), (h_hi, 255, 255))]
+    return code, [((h_lo, s_min, v_min), (255, 255, 255)), ((0, s_min, v_min), (h_hi - 256, 255, 255))]
+
+
+def _red_mask(img: np.ndarray, hue_range_deg, min_saturation: float, min_value: float) -> np.ndarray:
+    lo, hi = (float(v) for v in hue_range_deg)
+    code, bounds = _hsv_ranges((lo, hi), float(min_saturation), float(min_value))
+    hsv = cv2.cvtColor(img, code)
+    mask = cv2.inRange(hsv, *bounds[0])
+    if len(bounds) > 1:
+        mask = cv2.bitwise_or(mask, cv2.inRange(hsv, *bounds[1]))
+    return mask
+
+
 def red_mask(image_bgr: np.ndarray, hue_range_deg=(-15.0, 15.0), min_saturation: float = 0.45,
              min_value: float = 0.15) -> np.ndarray:
     """Binary mask (uint8 0/255) of pixels whose HSV hue lies in ``hue_range_deg`` (degrees,
     may straddle 0°, e.g. (−15, 15) for red), saturation ≥ ``min_saturation`` and value ≥
     ``min_value`` (both 0–1). Hue and saturation do not change under shading."""
-    img = _as_bgr(image_bgr)
-    lo, hi = (float(v) for v in hue_range_deg)
-    s_min = int(np.ceil(255.0 * float(min_saturation)))
-    v_min = int(np.ceil(255.0 * float(min_value)))
-    if hi - lo >= 360.0:
-        hsv = cv2.cvtColor(img, cv2.COLOR_BGR2HSV_FULL)
-        return cv2.inRange(hsv, (0, s_min, v_min), (255, 255, 255))
-    lo, hi = lo % 360.0, (lo % 360.0) + (hi - lo)
-    if hi >= 360.0:
-        # the window wraps through 0° (red): read the BGR image as RGB, which maps hue h to
-        # 240° − h and moves the window away from the wrap, so one inRange suffices
-        hsv = cv2.cvtColor(img, cv2.COLOR_RGB2HSV_FULL)
-        lo, hi = 240.0 - hi, 240.0 - lo
-        lo, hi = lo % 360.0, (lo % 360.0) + (hi - lo)
-    else:
-        hsv = cv2.cvtColor(img, cv2.COLOR_BGR2HSV_FULL)
-    h_lo = int(np.ceil(lo * 256.0 / 360.0))
-    h_hi = int(np.floor(hi * 256.0 / 360.0))
-    if h_hi <= 255:
-        return cv2.inRange(hsv, (h_lo, s_min, v_min), (h_hi, 255, 255))
-    a = cv2.inRange(hsv, (h_lo, s_min, v_min), (255, 255, 255))
-    b = cv2.inRange(hsv, (0, s_min, v_min), (h_hi - 256, 255, 255))
-    return cv2.bitwise_or(a, b)
+    return _red_mask(_as_bgr(image_bgr), hue_range_deg, min_saturation, min_value)
 
 
 _SCAN = 6  # pixels per area-rule scan across an edge (3 on each side of the crossing)
+_SCAN_OFFSETS = np.arange(_SCAN) - (_SCAN // 2 - 1)  # a scan's pixels from the crossing's first
+_SCAN_SUMS = np.zeros((_SCAN, 3), np.float32)  # profile → (sum, first − last, first + last)
+_SCAN_SUMS[:, 0] = 1.0
+_SCAN_SUMS[0, 1:] = 1.0
+_SCAN_SUMS[-1, 1:] = (-1.0, 1.0)
+_K5 = np.ones((5, 5), np.uint8)  # 3×3 dilated twice
+_K9 = np.ones((9, 9), np.uint8)  # 3×3 dilated four times
+_K_NEAR = np.ones((2 * _SCAN + 1, 2 * _SCAN + 1), np.uint8)  # 3×3 dilated _SCAN times
 
 
-def _edge_points(c: np.ndarray, axis: int):
-    """Sub-pixel 50 % crossings of coverage image ``c`` along ``axis`` (1: rows, 0: columns)
-    by the area rule. Returns (positions N×2 as (x, y) in ``c``'s pixels, clean N bool)."""
-    if axis == 0:
-        pts, ok = _edge_points(c.T, 1)
-        return pts[:, ::-1], ok
-    inside = c > 0.5
-    rows, cols = np.nonzero(inside[:, 1:] != inside[:, :-1])  # crossing between cols j and j+1
-    if rows.size == 0:
-        return np.empty((0, 2)), np.empty(0, bool)
-    width = c.shape[1]
-    start = cols - (_SCAN // 2 - 1)
-    ok = (start >= 0) & (start + _SCAN <= width)
-    start = np.clip(start, 0, max(width - _SCAN, 0))
-    idx = start[:, None] + np.arange(_SCAN)[None, :]
-    idx = np.minimum(idx, width - 1)
-    prof = c[rows[:, None], idx]
-    total = prof.sum(axis=1)
-    falling = inside[rows, cols]  # marker on the left of the crossing
-    pos = np.where(falling, start - 0.5 + total, start + _SCAN - 0.5 - total)
-    # the scan must run from plateau to plateau (else another edge or a tip is inside it)
-    first, last = prof[:, 0], prof[:, -1]
-    ok &= np.where(falling, (first > 0.8) & (last < 0.2), (first < 0.2) & (last > 0.8))
-    return np.column_stack([pos, rows.astype(float)]), ok
+def _boundary(c: np.ndarray, center: tuple[float, float], quad: np.ndarray):
+    """Weighted sub-pixel boundary points of the blob in coverage image ``c`` (float32, ROI
+    pixels), paper §3.1: every row and column crossing the 50 % level gives one point by the
+    area rule over a 6-px scan, (start − ½) + Σc, kept only where the scan runs from plateau
+    (> 0.8) to plateau (< 0.2). Rows take the edge where it is closer to vertical, columns where
+    it is closer to horizontal, judged by the normal of a rough ellipse (``center``, symmetric
+    2×2 matrix ``quad`` of its quadratic form in (x − x0, y − y0)). Weight wᵢ = arc length
+    per point = 1/|cos(scan, normal)| ∈ [1, √2] (the paper's non-uniform sampling weights, eq. 2).
+
+    Vectorised over rows and columns at once on the flat image, with a zero margin so that
+    every scan stays inside it. Returns (points N×2 as (x, y) relative to ``center``, weights N)."""
+    half = _SCAN // 2
+    cp = cv2.copyMakeBorder(c, half, half, half, half, cv2.BORDER_CONSTANT, value=0.0)
+    w = cp.shape[1]
+    flat = cp.ravel()
+    inside = flat > 0.5
+    # crossings between flat k and k + 1 (rows) and k and k + w (columns); the margin keeps
+    # every scan (starting half − 1 pixels before the crossing) in its own row / column
+    kr = np.flatnonzero(inside[1:] != inside[:-1])
+    kc = np.flatnonzero(inside[w:] != inside[:-w])
+    nr = kr.shape[0]
+    n = nr + kc.shape[0]
+    if n == 0:
+        return np.empty((0, 2)), np.empty((0, 2)), np.empty(0)
+    prof = flat[np.concatenate((kr[:, None] + _SCAN_OFFSETS, kc[:, None] + w * _SCAN_OFFSETS))] @ _SCAN_SUMS
+    total, drop, ends = prof[:, 0], prof[:, 1], prof[:, 2]
+    # the edge's position along the scan from the crossing's first pixel: Σc − ½ − (half − 1)
+    # for a falling edge (marker first), half + ½ − Σc for a rising one
+    offset = (total - 0.5 * _SCAN) * np.sign(drop) + 0.5
+    # plateau to plateau, max(first, last) > 0.8 and min(first, last) < 0.2, else another edge
+    # or a tip is inside the scan
+    clean = np.abs(drop) - np.abs(ends - 1.0) > 0.6
+    pts = np.empty((n, 2))
+    pts[:nr, 1], pts[:nr, 0] = np.divmod(kr, w)
+    pts[nr:, 1], pts[nr:, 0] = np.divmod(kc, w)
+    pts[:nr, 0] += offset[:nr]
+    pts[nr:, 1] += offset[nr:]
+    pts -= (half + center[0], half + center[1])  # relative to the rough centre, unpadded
+    # rough normal ∝ ∇Q; rows keep |nx| > |ny|, columns |ny| > |nx|
+    normal2 = np.square(pts @ quad)
+    norm2 = normal2[:, 0] + normal2[:, 1]
+    along2 = np.concatenate((normal2[:nr, 0], normal2[nr:, 1]))
+    keep = clean & (along2 + along2 > norm2)
+    return pts[keep], np.sqrt(norm2[keep] / along2[keep])
 
 
-def _boundary(c: np.ndarray, ellipse0: Ellipse) -> tuple[np.ndarray, np.ndarray]:
-    """Weighted sub-pixel boundary points of the blob in coverage image ``c`` (ROI pixels)."""
-    A = ellipse0.matrix[:2, :2]
-    ctr = ellipse0.center
-    out_p, out_w = [], []
-    for axis in (1, 0):
-        pts, ok = _edge_points(c, axis)
-        if not np.any(ok):
-            continue
-        pts = pts[ok]
-        normal = (pts - ctr) @ A  # ∝ ∇Q of the rough ellipse
-        nn = np.hypot(normal[:, 0], normal[:, 1])
-        along = np.abs(normal[:, 0 if axis == 1 else 1]) / np.maximum(nn, 1e-12)
-        # rows take the edge where it is closer to vertical, columns where closer to horizontal
-        keep = along > np.sqrt(0.5) if axis == 1 else along >= np.sqrt(0.5)
-        out_p.append(pts[keep])
-        out_w.append(1.0 / along[keep])
-    if not out_p:
-        return np.empty((0, 2)), np.empty(0)
-    return np.concatenate(out_p), np.concatenate(out_w)
-
-
-def _levels(roi: np.ndarray, blob: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-    """Inside and outside colours (BGR means) of one blob: its core and a ring around it."""
-    core = cv2.erode(blob, _K3, iterations=2)
-    if np.count_nonzero(core) < 3:
-        core = cv2.erode(blob, _K3, iterations=1)
-    if np.count_nonzero(core) < 3:
-        core = blob
-    ring = cv2.dilate(blob, _K3, iterations=4) & ~cv2.dilate(blob, _K3, iterations=2)
-    if not (np.count_nonzero(core) and np.count_nonzero(ring)):
+def _levels(roi: np.ndarray, blob: np.ndarray, near: np.ndarray) -> tuple[tuple, tuple] | None:
+    """Inside and outside colours (BGR means) of one blob (uint8 0/1): over its core (eroded
+    twice by 3×3) and over the ring 3…``_SCAN`` px around it (``near`` minus the blob dilated
+    twice), i.e. over clean pixels well inside and well outside the anti-aliased edge."""
+    core = cv2.erode(blob, _K5)
+    if cv2.countNonZero(core) < 3:
+        core = cv2.erode(blob, _K3)
+        if cv2.countNonZero(core) < 3:
+            core = blob
+    ring = cv2.subtract(near, cv2.dilate(blob, _K5))
+    if not cv2.countNonZero(ring):
         return None
-    # means over clean pixels (core well inside, ring well outside); cv2.mean is fast
-    return np.array(cv2.mean(roi, mask=core)[:3]), np.array(cv2.mean(roi, mask=ring)[:3])
+    return cv2.mean(roi, mask=core)[:3], cv2.mean(roi, mask=ring)[:3]
+
+
+def _sampson_rms(conic: list[float], pts: np.ndarray, weights: np.ndarray) -> float:
+    """Weighted RMS first-order geometric distance |Q|/|∇Q| of ``pts`` to ``conic`` (px)."""
+    a, b, c, d, e, f = conic
+    x, y = pts[:, 0], pts[:, 1]
+    gx = (2.0 * a) * x + b * y + d
+    gy = b * x + (2.0 * c) * y + e
+    q = 0.5 * (gx * x + gy * y + d * x + e * y) + f  # Q = ½ (x·∇Q + d x + e y) + f
+    d2 = q * q / np.maximum(gx * gx + gy * gy, 1e-300)
+    return math.sqrt(float(weights @ d2) / float(weights.sum()))
 
 
 def _analyse_blob(img: np.ndarray, labels: np.ndarray, label: int, bbox, label_origin,
                   max_fit_rms_px: float, refine: bool) -> Marker | None:
     """Measure one connected component: ``bbox`` (x, y, w, h) in ``labels``' pixels, whose
-    top-left pixel is ``label_origin`` in the full image ``img``."""
+    top-left pixel is ``label_origin`` in the full image ``img``. All work is on a small crop
+    (the blob's bounding box plus the scan length)."""
     x, y, w, h = bbox
     lx, ly = label_origin
     H, W = img.shape[:2]
     pad = _SCAN
     gx, gy = x + lx, y + ly  # blob bbox in image pixels
-    x0, y0 = max(gx - pad, 0), max(gy - pad, 0)
-    x1, y1 = min(gx + w + pad, W), min(gy + h + pad, H)
-    blob = np.zeros((y1 - y0, x1 - x0), np.uint8)
-    blob[gy - y0:gy - y0 + h, gx - x0:gx - x0 + w] = labels[y:y + h, x:x + w] == label
     touches = bool(gx <= 0 or gy <= 0 or gx + w >= W or gy + h >= H)
     bbox_img = (int(gx), int(gy), int(gx + w), int(gy + h))
-    mb = cv2.moments(blob, binaryImage=True)
     if not refine:  # tracker mode (paper §4.1): centroid and moment ellipse of the thresholded blob
-        rough = _moment_ellipse(mb)
+        blob = (labels[y:y + h, x:x + w] == label).view(np.uint8)
+        mb = cv2.moments(blob)  # 0/1 values: the binary moments, without binaryImage's cost
+        rough = _moment_conic(mb, gx, gy)
         if rough is None:
             return None
-        centroid = (mb["m10"] / mb["m00"] + x0, mb["m01"] / mb["m00"] + y0)
-        ell = Ellipse.from_conic(_shift_conic(rough.conic, x0, y0))
+        try:
+            ell = Ellipse.from_conic(rough)
+        except EllipseFitError:
+            return None
+        centroid = (mb["m10"] / mb["m00"] + gx, mb["m01"] / mb["m00"] + gy)
         return Marker(centroid, ell, float(mb["m00"]), np.empty((0, 2)), np.empty(0), bbox_img, touches, float("nan"))
-    roi = img[y0:y1, x0:x1].astype(np.float32)
-    levels = _levels(roi, blob)
+    x0, y0 = max(gx - pad, 0), max(gy - pad, 0)
+    x1, y1 = min(gx + w + pad, W), min(gy + h + pad, H)
+    part = labels[y:y + h, x:x + w]
+    if part.dtype != np.uint8:  # a label image: this label's pixels as 0/255
+        part = cv2.compare(part, label, cv2.CMP_EQ)
+    blob = cv2.copyMakeBorder(part, gy - y0, y1 - gy - h, gx - x0, x1 - gx - w, cv2.BORDER_CONSTANT, value=0)
+    roi = img[y0:y1, x0:x1]
+    near = cv2.dilate(blob, _K_NEAR)  # the blob's neighbourhood: other blobs in the crop must not add edges
+    levels = _levels(roi, blob, near)
     if levels is None:
         return None
-    col_in, col_out = levels
-    contrast = col_in - col_out
-    c2 = float(contrast @ contrast)
+    (bi, gi, ri), (bo, go, ro) = levels
+    contrast = (bi - bo, gi - go, ri - ro)
+    c2 = contrast[0] ** 2 + contrast[1] ** 2 + contrast[2] ** 2
     if not c2 >= 100.0:  # under 10 grey levels of colour contrast: no measurable edge
         return None
     # coverage: each pixel's colour projected on the outside→inside colour difference
-    c = (roi - col_out.astype(np.float32)) @ (contrast / c2).astype(np.float32)
-    # keep only this blob's neighbourhood (other blobs in the ROI must not add edges)
-    near = cv2.dilate(blob, _K3, iterations=pad)
-    c[near == 0] = 0.0
-    cc = np.clip(c, 0.0, 1.0)
-    m = cv2.moments(cc)
-    if m["m00"] < 3:
+    g0, g1, g2 = contrast[0] / c2, contrast[1] / c2, contrast[2] / c2
+    # ÷ 255: the neighbourhood mask it is multiplied by is 0/255
+    project = np.array([[g0, g1, g2, -(g0 * bo + g1 * go + g2 * ro)]], np.float32) * np.float32(1.0 / 255.0)
+    c = cv2.transform(roi.astype(np.float32), project)
+    np.multiply(c, near, out=c)
+    m = cv2.moments(cv2.threshold(cv2.threshold(c, 1.0, 1.0, cv2.THRESH_TRUNC)[1], 0.0, 0.0, cv2.THRESH_TOZERO)[1])
+    area = m["m00"]
+    if area < 3:
         return None
-    area = float(m["m00"])
-    centroid = (m["m10"] / area + x0, m["m01"] / area + y0)
-    rough = _moment_ellipse(mb)
-    if rough is None:
+    cx, cy = m["m10"] / area, m["m01"] / area
+    # rough ellipse: the coverage's second moments; its quadratic form ∝ covariance⁻¹
+    mu20, mu11, mu02 = m["mu20"], m["mu11"], m["mu02"]
+    if not mu20 * mu02 - mu11 * mu11 > 1e-12 * (mu20 * mu20 + mu02 * mu02):
         return None
-    pts, wts = _boundary(c, rough)
+    rel, wts = _boundary(c, (cx, cy), np.array([[mu02, -mu11], [-mu11, mu20]]))
+    ox, oy = cx + x0, cy + y0  # the rough centre in image pixels
     if touches:  # drop points near the image edge: the boundary there is the frame, not the marker
-        g = pts + (x0, y0)
-        inner = (g[:, 0] > 1.5) & (g[:, 1] > 1.5) & (g[:, 0] < W - 2.5) & (g[:, 1] < H - 2.5)
-        pts, wts = pts[inner], wts[inner]
-    if len(pts) < 6:
+        gp = rel + (ox, oy)
+        inner = (gp[:, 0] > 1.5) & (gp[:, 1] > 1.5) & (gp[:, 0] < W - 2.5) & (gp[:, 1] < H - 2.5)
+        rel, wts = rel[inner], wts[inner]
+    if len(rel) < 6:
         return None
-    try:
-        ell_roi = fit_ellipse(pts, wts, refine_iterations=3 if touches else 0)
+    try:  # fit relative to the rough centre (well conditioned), then move to image pixels
+        conic, rms = _fit(rel, wts, 3 if touches else 0, origin=(0.0, 0.0))
     except EllipseFitError:
         return None
-    d = ell_roi.sampson_distances(pts)
-    rms = float(np.sqrt((wts @ (d * d)) / wts.sum()))
+    if touches:  # after the Sampson refinement the fit's own first-order residual is not available
+        rms = _sampson_rms(conic, rel, wts)
     if not (rms <= max_fit_rms_px):
         return None
+    try:
+        ell = Ellipse.from_conic(_shift_conic(conic, ox, oy))
+    except EllipseFitError:
+        return None
     if not touches:  # the blob must look like its ellipse (not two touching discs, not a bar)
-        ratio = area / ell_roi.area
+        ratio = area / ell.area
         if not 0.8 < ratio < 1.2:
             return None
-    ell = Ellipse.from_conic(_shift_conic(ell_roi.conic, x0, y0))
-    return Marker(centroid, ell, area, pts + (x0, y0), wts, bbox_img, touches, rms)
+    rel += (ox, oy)
+    return Marker((ox, oy), ell, area, rel, wts, bbox_img, touches, rms)
 
 
 _K3 = np.ones((3, 3), np.uint8)
 
 
-def _moment_ellipse(m: dict) -> Ellipse | None:
-    """Ellipse with the same area, centroid and second moments as a region (cv2.moments)."""
-    if not m["m00"] > 0:
+def _moment_conic(m: dict, dx: float, dy: float) -> list[float] | None:
+    """Conic of the ellipse with the same area, centroid and second moments as a region
+    (cv2.moments), shifted by (dx, dy): (p − μ)ᵀ Σ⁻¹ (p − μ) = 4 for a uniform ellipse."""
+    m00 = m["m00"]
+    if not m00 > 0:
         return None
-    mu = (m["m10"] / m["m00"], m["m01"] / m["m00"])
-    a, b, c = m["mu20"] / m["m00"], m["mu11"] / m["m00"], m["mu02"] / m["m00"]
-    half_tr, rad = 0.5 * (a + c), float(np.hypot(0.5 * (a - c), b))
-    lo, hi = half_tr - rad, half_tr + rad
-    if not lo > 1e-6:
+    sxx, sxy, syy = m["mu20"] / m00, m["mu11"] / m00, m["mu02"] / m00
+    det = sxx * syy - sxy * sxy
+    if not det > 1e-6 * max(sxx, syy, 1e-300) ** 2 or not det > 1e-12:
         return None
-    angle = 0.5 * float(np.arctan2(2.0 * b, a - c))
-    try:
-        return Ellipse.from_params(mu, (2.0 * np.sqrt(hi), 2.0 * np.sqrt(lo)), angle)
-    except EllipseFitError:
-        return None
+    a, b, c = syy / det, -2.0 * sxy / det, sxx / det
+    mx, my = m["m10"] / m00 + dx, m["m01"] / m00 + dy
+    return [a, b, c, -2.0 * a * mx - b * my, -b * mx - 2.0 * c * my,
+            a * mx * mx + b * mx * my + c * my * my - 4.0]
 
 
-def _shift_conic(q: np.ndarray, dx: float, dy: float) -> np.ndarray:
+def _shift_conic(q, dx: float, dy: float) -> list[float]:
     """Conic of the same curve after translating coordinates by (dx, dy): Q'(x) = Q(x − d)."""
-    a, b, c, d, e, f = q.tolist()
+    a, b, c, d, e, f = q
     d2 = d - 2 * a * dx - b * dy
     e2 = e - b * dx - 2 * c * dy
     f2 = a * dx * dx + b * dx * dy + c * dy * dy - d * dx - e * dy + f
-    return np.array([a, b, c, d2, e2, f2])
+    return [a, b, c, d2, e2, f2]
 
 
 def detect_markers(image_bgr, *, hue_range_deg=(-15.0, 15.0), min_saturation: float = 0.45,
@@ -302,15 +347,21 @@ def detect_markers(image_bgr, *, hue_range_deg=(-15.0, 15.0), min_saturation: fl
             return []
         sub = img[wy0:wy1, wx0:wx1]
         ox, oy = wx0, wy0
-    mask = red_mask(sub, hue_range_deg, min_saturation, min_value)
+    mask = _red_mask(sub, hue_range_deg, min_saturation, min_value)
     sh, sw = mask.shape
     # label only the bounding box of all red pixels: labelling costs per pixel, markers are small
     bx, by, bw, bh = cv2.boundingRect(mask)
     if bw == 0 or bh == 0:
         return []
     ox, oy = ox + bx, oy + by
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask[by:by + bh, bx:bx + bw], connectivity=8)
-    order = np.argsort(-stats[1:, cv2.CC_STAT_AREA]) + 1 if n > 1 else []
+    crop = mask[by:by + bh, bx:bx + bw]
+    if len(cv2.findContours(crop, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)[0]) == 1:
+        # one 8-connected blob (the usual tracking window): it is the whole crop, no labelling needed
+        labels, order = crop, [255]
+        stats = {255: (0, 0, bw, bh, cv2.countNonZero(crop))}
+    else:
+        n, labels, stats, _ = cv2.connectedComponentsWithStats(crop, connectivity=8)
+        order = (np.argsort(-stats[1:, cv2.CC_STAT_AREA]) + 1).tolist() if n > 1 else []
     found: list[Marker] = []
     for label in order:
         x, y, w, h, area = (int(v) for v in stats[label])
