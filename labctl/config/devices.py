@@ -45,8 +45,8 @@ class RobotConfig:
     timeout_s: float = 2.0
     heartbeat_s: float = 0.2  # controller stops if no heartbeat for watchdog_s
     watchdog_s: float = 0.5
-    workspace_min_mm: tuple[float, float, float] = (-600.0, -700.0, 10.0)
-    workspace_max_mm: tuple[float, float, float] = (1200.0, 1100.0, 1300.0)
+    workspace_min_mm: tuple[float, float, float] = (-800.0, -900.0, -150.0)
+    workspace_max_mm: tuple[float, float, float] = (1400.0, 1300.0, 1300.0)
     v_max_mm_s: float = 500.0
     a_max_mm_s2: float = 1500.0
     w_max_deg_s: float = 120.0

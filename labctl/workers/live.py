@@ -135,7 +135,7 @@ def predictor_main(args: WorkerArgs, link_end, control) -> None:
             dev.open()
         link.send(m.Hello(role="predictor", pid=os.getpid()))
         now = _now(args.origin)
-        planner = PredictorPlanner(ctx, robot, link.send, log, t_start=now)
+        planner = PredictorPlanner(ctx, robot, link.send, log, t_start=now, clock=lambda: _now(args.origin))
         table.stream(trajectory_program(args.spec["trajectory"], args.spec["speed_mm_s"], lab)[1])
         log("table_program", t=now, trajectory=args.spec["trajectory"], speed_mm_s=args.spec["speed_mm_s"])
         t_beat = 0.0

@@ -22,6 +22,7 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 
 from ..drivers.interfaces import Frame, Robot
@@ -30,7 +31,7 @@ from ..geometry import make_T, matrix_to_rotvec
 from ..planning import Interception, camera_placement_trajectory, plan_interception
 from ..planning.targets import standard_view_path
 from ..tracking.tracker import MarkerTracker
-from ..vision import detect_markers, detect_markers_windowed
+from ..vision import detect_markers, detect_markers_windowed, red_mask
 from . import messages as m
 from .context import RunContext
 
@@ -75,12 +76,33 @@ class _Scaled:
         return self.s * p, self.s * v, self.s * a
 
 
+def red_blob_centroid(image, near_px=None, *, hue_range_deg=(-15.0, 15.0), min_saturation: float = 0.45,
+                      min_area_px: int = 4, max_jump_px: float = 60.0):
+    """Centroid (px) of the red blob nearest ``near_px`` (or the largest), or None.
+
+    The paper's fixed-camera front end (§5.2): a red filter, then the blob's centroid. Used when
+    no blob passes as an ellipse — a marker on a vertical face is a thin sliver from overhead.
+    """
+    mask = red_mask(image, hue_range_deg, min_saturation)
+    n, _, stats, centroids = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    ok = [i for i in range(1, n) if stats[i, cv2.CC_STAT_AREA] >= min_area_px]
+    if not ok:
+        return None
+    if near_px is None:
+        return centroids[max(ok, key=lambda i: stats[i, cv2.CC_STAT_AREA])]
+    near = np.asarray(near_px, dtype=float)
+    best = min(ok, key=lambda i: float(np.hypot(*(centroids[i] - near))))
+    return centroids[best] if np.hypot(*(centroids[best] - near)) <= max_jump_px else None
+
+
 class PredictorPlanner:
     """Host 1's logic. ``send(msg)`` goes to the recognizer; ``log(event, **fields)`` to the record."""
 
     def __init__(self, ctx: RunContext, robot: Robot, send: Callable[[m.Message], None],
-                 log: Callable[..., None], *, t_start: float = 0.0):
+                 log: Callable[..., None], *, t_start: float = 0.0, clock: Callable[[], float] | None = None):
         self.ctx, self.robot, self.send, self.log = ctx, robot, send, log
+        # the runtime's clock: device round trips take time, so a command leaves later than the frame's time
+        self.clock_fn = clock
         cfg = ctx.lab.config
         self.cfg = cfg
         self.tracker = MarkerTracker.from_config(cfg.tracking)
@@ -105,6 +127,11 @@ class PredictorPlanner:
         self.image_azimuths: list[float] = []
         self.marker_pose: m.MarkerPose | None = None
         self.R_w_c_ref = np.eye(3)
+        self.t_requested: dict[int, float] = {}
+        self.pose_view_id: int | None = None
+        self.spare_poses: list[m.MarkerPose] = []
+        self.used_normals: list[np.ndarray] = []
+        self.coasting = False
         self.t_marker_pose: float | None = None
         self.identity: m.Identity | None = None
         self.failure: str | None = None
@@ -165,6 +192,7 @@ class PredictorPlanner:
         T_end = make_T(end.orientation(end.t1) if end.rot_coeffs is not None else plan.target.rotation,
                        end.state(end.t1)[0])
         self.segment_id += 1
+        now = self._now(now)
         t0c, _ = self.robot.segment(T_end, end.t1 - end.t0, self.segment_id, replace=True)
         # The controller reports when it started the segment; on the same clock (the simulated lab)
         # that measures the command latency, and the plan is re-timed to what the robot really does.
@@ -189,9 +217,12 @@ class PredictorPlanner:
                                         marker_z_mm=self.ctx.plane_height_mm, T_f_c=self.ctx.T_f_c2)
         return _RestAt(G)
 
+    def _now(self, now: float) -> float:
+        return max(now, self.clock_fn()) if self.clock_fn is not None else now
+
     def _plan(self, now: float, kind: str, target) -> Interception:
         """Plan from where the robot will be when the command reaches the controller."""
-        t0 = now + self.latency_s
+        t0 = self._now(now) + self.latency_s
         state, R = self._flange_state(t0)
         return plan_interception(state, t0, target, self.ctx.limits, horizon_s=15.0, R0=R)
 
@@ -271,9 +302,29 @@ class PredictorPlanner:
         self.robot_path.append((now, T_w_f[:3, 3].tolist()))
         self.view_id += 1
         self.pending = self.view_id
+        self.t_requested[self.view_id] = now
         self.send(m.CaptureRequest(view_id=self.view_id, kind=kind, t_capture=now,
                                    position=tuple(T_w_c2[:3, 3]), rotvec=tuple(matrix_to_rotvec(T_w_c2[:3, :3]))))
         self.log("capture_request", t=now, view_id=self.view_id, kind=kind, T_w_c2=T_w_c2)
+
+    def _use_pose(self, msg: m.MarkerPose, now: float) -> bool:
+        """Go for the standard view of this resolved marker; False if the robot cannot reach it."""
+        self.marker_pose, self.t_marker_pose = msg, self.t_requested.get(msg.view_id, now)
+        self.pose_view_id = msg.view_id
+        self.used_normals.append(np.asarray(msg.normal_w, dtype=float))
+        self._enter("standard", now)
+        return self._plan_standard(now)
+
+    def _try_spare(self, now: float) -> bool:
+        """Another marker already resolved from the last two images, if one faces a new way."""
+        while self.spare_poses:
+            pose = self.spare_poses.pop(0)
+            n = np.asarray(pose.normal_w, dtype=float)
+            if any(float(n @ u) > np.cos(np.radians(20.0)) for u in self.used_normals):
+                continue  # the same face (or a parallel one): its view would tell nothing new
+            if self._use_pose(pose, now):
+                return True
+        return False
 
     def _next_marker(self, now: float) -> None:
         """Look at the object from another side to pick up another marker (ambiguity or no pose)."""
@@ -294,23 +345,26 @@ class PredictorPlanner:
             return
         cam_cfg = self.ctx.lab.fixed_camera
         kw = dict(hue_range_deg=cam_cfg.marker_hue_deg, min_saturation=cam_cfg.marker_min_saturation)
-        if self.tracker.initialized and self.t_last_seen is not None and now - self.t_last_seen < 1.0:
-            pred_xy, _ = self.tracker.predict(now)
-            pred_px = self.ctx.plane_to_fixed_pixel(pred_xy)
-            if not self.ctx.fixed_camera.contains(pred_px, margin=-5):
-                self.fail(now, "the object left the fixed camera's field of view")
-                return
-            markers = detect_markers_windowed(frame.image, pred_px, self.cfg.tracking.window_px, **kw)
+        pred_px = self._predicted_px(now) if self.tracker.initialized else None
+        if pred_px is not None and not self.ctx.fixed_camera.contains(pred_px, margin=-5):
+            self.fail(now, "the object left the fixed camera's field of view")
+            return
+        if pred_px is not None and now - self.t_last_seen < 1.0:
+            # the one-step-ahead window (§5.2); centroids only: the fixed camera needs no ellipse
+            markers = detect_markers_windowed(frame.image, pred_px, self.cfg.tracking.window_px, refine=False, **kw)
             if markers:
                 markers.sort(key=lambda mk: float(np.hypot(*(np.asarray(mk.centroid) - pred_px))))
         else:
-            markers = detect_markers(frame.image, **kw)
+            markers = detect_markers(frame.image, refine=False, **kw)
             if markers and self.last_px is not None:
                 markers.sort(key=lambda mk: float(np.hypot(*(np.asarray(mk.centroid) - self.last_px))))
             elif markers:
                 markers.sort(key=lambda mk: -mk.area)
         if markers:
             px = np.asarray(markers[0].centroid, dtype=float)
+        else:  # a marker seen edge-on is no ellipse, but its red pixels still locate the object (§5.2)
+            px = red_blob_centroid(frame.image, pred_px if pred_px is not None else self.last_px, **kw)
+        if px is not None:
             xy = self.ctx.fixed_pixel_to_plane(px)
             if self.tracker.update(now, xy):
                 self.n_updates += 1
@@ -319,17 +373,30 @@ class PredictorPlanner:
                     self.t_first_seen = now
                     self._enter("track", now)
                 self.log("track", t=now, x=float(xy[0]), y=float(xy[1]), px=px)
-        elif self.stage == "track" and self.t_last_seen is not None and now - self.t_last_seen > 2.0:
-            self.log("marker_lost", t=now)
-            self.tracker.reset()
-            self.t_first_seen = None
-            self._enter("wait", now)
+        if self.t_last_seen is not None and now - self.t_last_seen > 2.0:
+            if self.stage == "track":  # lost before any plan: start again
+                self.log("marker_lost", t=now)
+                self.tracker.reset()
+                self.t_first_seen = self.t_last_seen = None
+                self._enter("wait", now)
+            elif not self.coasting:  # later stages coast on the prediction (the object moves predictably)
+                self.coasting = True
+                self.log("marker_lost", t=now, coasting=True)
+        elif self.t_last_seen == now:
+            self.coasting = False
         self.tick(now)
+
+    def _predicted_px(self, now: float):
+        if not self.tracker.initialized:
+            return self.last_px
+        return self.ctx.plane_to_fixed_pixel(self.tracker.predict(now)[0])
 
     def on_message(self, msg: m.Message, now: float) -> None:
         if self.finished:
             return
-        if isinstance(msg, m.FrameTaken) and msg.view_id == self.pending:
+        if isinstance(msg, m.FrameTaken):
+            self.t_requested[msg.view_id] = msg.t  # the image's own time
+        if isinstance(msg, m.FrameTaken) and msg.view_id == self.pending and self.plan_kind == "initial1":
             self.pending = None
             self.image_azimuths.append(self.azimuth_deg)
             self.azimuth_deg += self.cfg.run.second_image_azimuth_deg
@@ -343,10 +410,11 @@ class PredictorPlanner:
                 self.azimuth_deg += self.cfg.run.second_image_azimuth_deg
                 self._plan_initial(now, "initial2")
                 return
-            self.marker_pose, self.t_marker_pose = msg, now
-            self._enter("standard", now)
-            if not self._plan_standard(now):
+            self.spare_poses = []
+            if not self._use_pose(msg, now) and not self._try_spare(now):
                 self._next_marker(now)
+        elif isinstance(msg, m.MarkerPose) and msg.view_id == self.pose_view_id and not msg.ambiguous:
+            self.spare_poses.append(msg)  # another marker resolved from the same two images
         elif isinstance(msg, m.Identity):
             self.pending = None
             self.identity = msg
@@ -360,12 +428,14 @@ class PredictorPlanner:
             if self.views_used >= self.cfg.run.max_views:
                 self.fail(now, f"still ambiguous after {self.views_used} standard views")
                 return
-            self._next_marker(now)
+            if not self._try_spare(now):
+                self._next_marker(now)
         elif isinstance(msg, m.Failure):
             self.pending = None
             self.log("recognizer_failure", t=now, code=msg.code, text=msg.text)
-            if msg.code in (m.FailureCode.NO_MARKER_FOUND, m.FailureCode.MARKER_LOST):
-                self._next_marker(now)
+            if msg.code in (m.FailureCode.NO_MARKER_FOUND, m.FailureCode.MARKER_LOST, m.FailureCode.NO_MATCH):
+                if not self._try_spare(now):
+                    self._next_marker(now)
             else:
                 self.fail(now, f"recognizer: {msg.text}")
 

@@ -28,6 +28,10 @@ from ..vision.shape import ShapeError, features_from_image, silhouette_mask
 from . import messages as m
 from .context import RunContext
 
+#: a marker of the second image pairs with one of the first if their centres lie this close (mm, W);
+#: the object moves ~10 mm between the images, the two candidate centres differ by a few mm
+PAIR_MAX_MM = 30.0
+
 
 def _to_world(T_w_c: np.ndarray, pose: CirclePose) -> CirclePose:
     return CirclePose(T_w_c[:3, :3] @ pose.center + T_w_c[:3, 3], T_w_c[:3, :3] @ pose.normal)
@@ -51,9 +55,7 @@ class Recognizer:
         self.save_image = save_image or (lambda name, image: None)
         self.radius = ctx.lab.config.marker.radius_mm
         self.threshold = ctx.lab.config.run.ambiguity_threshold or DEFAULT_THRESHOLD
-        self.first: tuple[CirclePose, CirclePose] | None = None  # world frame
-        self.first_px: np.ndarray | None = None
-        self.first_ellipse = None
+        self.first: list | None = None  # (marker, (pose, pose) in W) of the first image, preferred first
         self.resolved_normals: list[np.ndarray] = []
         self.remaining: list[str] | None = None
         self.n_standard = 0
@@ -68,7 +70,7 @@ class Recognizer:
         T_w_c2 = make_T(rotvec_to_matrix(msg.rotvec), msg.position)
         if msg.kind == "standard":
             return [self._standard(msg, frame)]
-        return [self._initial(msg, frame, T_w_c2)]
+        return self._initial(msg, frame, T_w_c2)
 
     # -- marker pose (paper §3.1–3.3) -------------------------------------------------------------
     def _candidates(self, frame: Frame, T_w_c2: np.ndarray):
@@ -82,11 +84,11 @@ class Recognizer:
             out.append((mk, (_to_world(T_w_c2, a), _to_world(T_w_c2, b))))
         return out
 
-    def _initial(self, msg: m.CaptureRequest, frame: Frame, T_w_c2: np.ndarray) -> m.Message:
+    def _initial(self, msg: m.CaptureRequest, frame: Frame, T_w_c2: np.ndarray) -> list[m.Message]:
         found = self._candidates(frame, T_w_c2)
         if not found:
             self.log("no_marker", t=frame.t, view_id=msg.view_id, kind=msg.kind)
-            return m.Failure(code=m.FailureCode.NO_MARKER_FOUND, text=f"no marker in mobile image {msg.view_id}")
+            return [m.Failure(code=m.FailureCode.NO_MARKER_FOUND, text=f"no marker in mobile image {msg.view_id}")]
         if msg.kind == "initial1" or self.first is None:
             centre = np.array([self.ctx.mobile_camera.width, self.ctx.mobile_camera.height]) / 2.0
 
@@ -96,29 +98,44 @@ class Recognizer:
                     return 0.0
                 return -min(_angle(p.normal, n) for p in poses for n in self.resolved_normals)
 
-            found.sort(key=lambda it: (round(novelty(it), 1), float(np.hypot(*(np.asarray(it[0].centroid) - centre)))))
-            marker, poses = found[0]
-            self.first, self.first_px = poses, np.asarray(marker.centroid)
-            self.first_ellipse = marker.ellipse
+            def upness(item):  # a marker facing up has a standard view the robot can reach
+                return -round(min(float(p.normal[2]) for p in item[1]), 1)
+
+            found.sort(key=lambda it: (round(novelty(it), 1), upness(it),
+                                       float(np.hypot(*(np.asarray(it[0].centroid) - centre)))))
+            self.first = found  # every marker of the first image, the preferred one first
             self.save_image("initial1", frame.image)
+            marker, poses = found[0]
             self.log("marker_candidates", t=frame.t, view_id=msg.view_id, ellipse=marker.ellipse.to_dict(),
-                     candidates=[p.to_dict() for p in poses])
-            return m.FrameTaken(view_id=msg.view_id, t=frame.t)
-        # initial2: the same marker is the one whose centre lies nearest the first image's centres
-        ref = 0.5 * (self.first[0].center + self.first[1].center)
-        found.sort(key=lambda it: float(np.linalg.norm(0.5 * (it[1][0].center + it[1][1].center) - ref)))
-        marker, poses = found[0]
-        res = resolve_duality_detailed(self.first, poses, motion="translation")
+                     candidates=[p.to_dict() for p in poses], markers=len(found))
+            return [m.FrameTaken(view_id=msg.view_id, t=frame.t)]
+        # initial2: pair each marker of the first image with the second image's marker nearest its centre
         self.save_image("initial2", frame.image)
-        pose = res.best
-        ellipses = {"initial1": _ellipse_row(self.first_ellipse), "initial2": _ellipse_row(marker.ellipse)}
-        self.log("marker_pose", t=frame.t, view_id=msg.view_id, ellipses=ellipses, center_w=pose.center,
-                 normal_w=pose.normal, **res.to_dict())
-        if not res.ambiguous:
-            self.resolved_normals.append(np.asarray(pose.normal))
-        # outward normal of the marker (away from the object) = towards the camera that saw it
-        return m.MarkerPose(view_id=msg.view_id, center_w=tuple(pose.center), normal_w=tuple(pose.normal),
-                            ambiguous=bool(res.ambiguous), margin=float(res.margin_rad))
+        replies: list[m.Message] = [m.FrameTaken(view_id=msg.view_id, t=frame.t)]
+        used: set[int] = set()
+        for k, (mk1, poses1) in enumerate(self.first):
+            ref = 0.5 * (poses1[0].center + poses1[1].center)
+            dist = [float(np.linalg.norm(0.5 * (p[0].center + p[1].center) - ref)) for _, p in found]
+            j = int(np.argmin(dist))
+            if j in used or dist[j] > PAIR_MAX_MM:
+                continue
+            used.add(j)
+            mk2, poses2 = found[j]
+            res = resolve_duality_detailed(poses1, poses2, motion="translation")
+            pose = res.best
+            ellipses = {"initial1": _ellipse_row(mk1.ellipse), "initial2": _ellipse_row(mk2.ellipse)}
+            self.log("marker_pose", t=frame.t, view_id=msg.view_id, marker=k, ellipses=ellipses,
+                     center_w=pose.center, normal_w=pose.normal, **res.to_dict())
+            if not res.ambiguous:
+                self.resolved_normals.append(np.asarray(pose.normal))
+            elif k > 0:
+                continue  # only the preferred marker is worth reporting unresolved
+            replies.append(m.MarkerPose(view_id=msg.view_id, center_w=tuple(pose.center),
+                                        normal_w=tuple(pose.normal), ambiguous=bool(res.ambiguous),
+                                        margin=float(res.margin_rad)))
+        if len(replies) == 1:
+            return [m.Failure(code=m.FailureCode.MARKER_LOST, text=f"marker not found again in image {msg.view_id}")]
+        return replies
 
     # -- standard view (paper §3.4) -----------------------------------------------------------------
     def _standard(self, msg: m.CaptureRequest, frame: Frame) -> m.Message:

@@ -80,7 +80,7 @@ def simulate_run(lab: Lab, ctx: RunContext, spec: TrialSpec, record=None, *, hea
     save = record.save_image if record is not None else None
     meter = LinkMeter()
     outbox: list[m.Message] = []
-    predictor = PredictorPlanner(ctx, bench.robot, outbox.append, log, t_start=t0)
+    predictor = PredictorPlanner(ctx, bench.robot, outbox.append, log, t_start=t0, clock=clock.now)
     seq = {"mobile": 0}
 
     def grab_mobile() -> Frame:
