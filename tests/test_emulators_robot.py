@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from fakes import robot_test_limits
 
+from labctl.drivers.robot_protocol import add_checksum, strip_checksum
 from labctl.geometry import make_T, matrix_to_rotvec, rot_x, rot_z
 from labctl.sim.emulators.link import ManualClock
 from labctl.sim.emulators.robot import RobotEmulator, poly_eval, quintic_coeffs
@@ -21,8 +22,17 @@ def make():
 
 
 def req(emu, line: str) -> list[str]:
+    """Send a request; the reply lines with their (verified) checksums removed."""
     emu.receive((line + "\n").encode())
-    return [ln for ln in emu.read_output().decode().split("\n") if ln]
+    lines = [strip_checksum(ln) for ln in emu.read_output().decode().split("\n") if ln]
+    assert None not in lines
+    return lines
+
+
+def test_checksums_catch_damaged_requests():
+    _, emu = make()
+    assert req(emu, add_checksum("#4 HB")) == ["$4 ok"]
+    assert req(emu, "#4 HB*00")[0].startswith("$4 E05")
 
 
 def seg_line(seq, sid, p, R, T, extra=""):
@@ -60,7 +70,7 @@ def test_segment_reaches_target_at_its_duration():
     req(emu, "#5 HB")
     clk.sleep(0.5)
     out = emu.read_output().decode()
-    assert "@DONE 7" in out
+    assert "@DONE 7*" in out
     T = emu.flange_pose_at(t1 + 0.1)
     assert np.allclose(T[:3, 3], [400, -300, 700], atol=1e-6)
     assert np.allclose(T[:3, :3], R, atol=1e-6)
@@ -93,7 +103,7 @@ def test_watchdog_stops_the_robot_when_heartbeats_stop():
     req(emu, seg_line(1, 3, (600.0, -100.0, 700.0), rot_x(math.pi), 4.0))
     clk.sleep(1.0)  # no heartbeat for 1 s > watchdog 0.5 s
     out = emu.read_output().decode()
-    assert "@WATCHDOG" in out and emu.fault == "watchdog"
+    assert "@WATCHDOG 0.5*" in out and emu.fault == "watchdog"
     clk.sleep(1.0)
     assert not emu.moving
     p_stop = emu.flange_pose_at(clk.t)[:3, 3]

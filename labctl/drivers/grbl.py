@@ -342,8 +342,7 @@ class GrblTable:
         sent = 0
         first_error: GrblError | None = None
         self._reset_seen = False
-        last_alive = self.clock()
-        idle_since: float | None = None
+        last_alive = last_progress = self.clock()
         while sent < len(program) or in_flight:
             while sent < len(program) and first_error is None:
                 data = (program[sent] + "\n").encode("ascii")
@@ -358,33 +357,36 @@ class GrblTable:
                 break
             self._maybe_poll()
             msgs = self._read(0.01)
-            if msgs:
-                last_alive = self.clock()
+            now = self.clock()
+            if any(m.kind != "unknown" for m in msgs):
+                last_alive = now
             for msg in msgs:
                 if msg.is_response:
                     if not in_flight:
                         raise ProtocolError(f"{self.link.name}: a reply {msg.raw!r} with no line in flight")
                     idx, n = in_flight.popleft()
                     used -= n
-                    idle_since = None
+                    last_progress = now
                     if msg.kind == "error" and first_error is None:
                         first_error = GrblError(msg.code, program[idx], idx)
                 elif msg.kind == "banner" or self._reset_seen:
                     raise GrblReset(f"{self.link.name}: controller reset while streaming "
                                     f"({len(in_flight)} lines lost, {sent}/{len(program)} sent)")
-                elif msg.kind == "status" and on_progress is not None:
-                    on_progress(sent - len(in_flight), self._table_status())
-            st = self.last_status
-            if in_flight and st is not None and st.state == "Idle" and self.last_status_t > self._last_query_t - 1e-9:
-                idle_since = idle_since if idle_since is not None else self.clock()
-                if self.clock() - idle_since > self.timeout_s + sum(dwell_s(program[i]) for i, _ in in_flight):
-                    raise ProtocolError(f"{self.link.name}: GRBL is idle but {len(in_flight)} lines have no reply "
-                                        "(replies lost on the line?)")
-            elif st is not None and st.state != "Idle":
-                idle_since = None
-            if self.clock() - last_alive > self.timeout_s:
+                elif msg.kind == "status":
+                    if msg.status.state in ("Run", "Hold", "Home", "Jog", "Door"):
+                        last_progress = now  # busy executing: replies come as the planner drains
+                    elif msg.status.state == "Alarm" and in_flight:
+                        raise GrblAlarm(None, f"the controller entered Alarm while streaming "
+                                              f"({sent}/{len(program)} lines sent)")
+                    if on_progress is not None:
+                        on_progress(sent - len(in_flight), self._table_status())
+            if now - last_alive > self.timeout_s:
                 raise DeviceTimeout(f"{self.link.name}: GRBL went silent while streaming "
                                     f"({sent}/{len(program)} lines sent)")
+            if (in_flight and now - last_alive < self.timeout_s / 2
+                    and now - last_progress > self.timeout_s + sum(dwell_s(program[i]) for i, _ in in_flight)):
+                raise ProtocolError(f"{self.link.name}: {len(in_flight)} lines got no reply although GRBL is not "
+                                    "busy (replies lost on the line?)")
         if first_error is not None:
             raise first_error
         return sent

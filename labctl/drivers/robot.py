@@ -23,7 +23,7 @@ from .serial_link import DeviceTimeout, LinkError, SerialLink
 
 log = logging.getLogger(__name__)
 
-STOP_LINE = b"#0 STOP\n"  # what a supervisor writes straight to the port in an emergency
+STOP_LINE = (format_request(0, "STOP") + "\n").encode("ascii")  # what a supervisor writes straight to the port in an emergency
 
 
 class RobotError(DeviceError):
@@ -119,6 +119,9 @@ class SerialRobot:
                 continue
             self._last_sent = self.clock()
             msg = parse_reply(got)
+            if not msg.ok and msg.code == 5:  # damaged on the way: send it again
+                last_exc = RobotError(5, msg.text, command)
+                continue
             if not msg.ok:
                 raise RobotError(msg.code or 0, msg.text, command)
             return msg

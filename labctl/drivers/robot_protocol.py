@@ -15,7 +15,7 @@ ERROR_CODES = {
     1: "unknown command", 2: "bad arguments", 3: "malformed request", 4: "line too long",
     10: "target outside the workspace", 11: "bad duration", 12: "too fast (linear speed limit)",
     13: "acceleration limit exceeded", 14: "too fast (angular speed limit)", 20: "segment queue full",
-    40: "stopped by the watchdog: send CLEAR", 41: "stopped: send CLEAR",
+    5: "checksum mismatch", 40: "stopped by the watchdog: send CLEAR", 41: "stopped: send CLEAR",
 }
 
 MAX_LINE = 240
@@ -51,12 +51,37 @@ class RobotReply:
         return tuple(out)
 
 
+def checksum(body: str) -> str:
+    """NMEA-style check: XOR of the body's bytes as two hex digits."""
+    x = 0
+    for b in body.encode("ascii", errors="replace"):
+        x ^= b
+    return f"{x:02X}"
+
+
+def add_checksum(line: str) -> str:
+    return f"{line}*{checksum(line)}"
+
+
+def strip_checksum(line: str) -> str | None:
+    """The line without its ``*HH`` suffix; None if the suffix is present and wrong."""
+    body, star, tail = line.rpartition("*")
+    if not star or len(tail) != 2:
+        return line
+    return body if tail.upper() == checksum(body) else None
+
+
 def parse_reply(line: str | bytes) -> RobotReply:
-    """Classify one line from the controller (without its line end). Never raises."""
+    """Classify one line from the controller (without its line end). Never raises.
+
+    A line with a wrong ``*HH`` checksum is ``unknown`` (corrupted on the wire)."""
     if isinstance(line, bytes | bytearray):
         line = bytes(line).decode("ascii", errors="replace")
     raw = line
-    s = line.strip()
+    checked = strip_checksum(line.strip())
+    if checked is None:
+        return RobotReply("unknown", raw)
+    s = checked
     if s.startswith("$"):
         head, _, rest = s[1:].partition(" ")
         if not head.isdigit() or len(head) > 5:
@@ -79,8 +104,8 @@ def parse_reply(line: str | bytes) -> RobotReply:
     return RobotReply("unknown", raw)
 
 
-def format_request(seq: int, command: str, *args) -> str:
-    """``#<seq> COMMAND arg…`` with floats to 6 decimals, trailing zeros dropped (mm, rad, s)."""
+def format_request(seq: int, command: str, *args, check: bool = True) -> str:
+    """``#<seq> COMMAND arg…*HH`` with floats to 6 decimals, trailing zeros dropped (mm, rad, s)."""
     parts = [f"#{seq}", command]
     for a in args:
         if isinstance(a, float):
@@ -88,7 +113,8 @@ def format_request(seq: int, command: str, *args) -> str:
             parts.append("0" if text in ("", "-0") else text)
         else:
             parts.append(str(a))
-    return " ".join(parts)
+    line = " ".join(parts)
+    return add_checksum(line) if check else line
 
 
 @dataclass(frozen=True)
@@ -99,8 +125,11 @@ class Request:
 
 
 def parse_request(line: str) -> Request | int:
-    """A request line as the controller reads it; an error code (3 malformed) if it is not one."""
-    s = line.strip()
+    """A request line as the controller reads it; an error code (3 malformed, 5 checksum) if not one."""
+    checked = strip_checksum(line.strip())
+    if checked is None:
+        return 5
+    s = checked
     if not s.startswith("#"):
         return 3
     parts = s[1:].split()

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ...drivers.robot_protocol import ERROR_CODES, MAX_LINE, Request, parse_request
+from ...drivers.robot_protocol import ERROR_CODES, MAX_LINE, Request, add_checksum, parse_request
 from ...geometry import make_T, matrix_to_rotvec, rotvec_to_matrix
 
 IDENT = "labctl-robot 1.0"
@@ -118,7 +118,9 @@ class RobotEmulator:
 
     # --- wire -------------------------------------------------------------------------------
     def _write(self, text: str) -> None:
-        self.out += text.encode("ascii")
+        """Send lines, each with its ``*HH`` checksum."""
+        for line in text.splitlines():
+            self.out += (add_checksum(line) + "\n").encode("ascii")
 
     def read_output(self) -> bytes:
         self.advance(max(self.now, self.clock()))
@@ -279,7 +281,11 @@ class RobotEmulator:
     def _handle(self, line: str) -> None:
         req = parse_request(line)
         if isinstance(req, int):
-            self._write(f"@ERR E{req:02d} {ERROR_CODES[req]}\n")
+            seq = line.strip()[1:].split(" ", 1)[0]
+            if req == 5 and seq.isdigit() and len(seq) <= 5:
+                self._error(int(seq), 5)  # the sender learns at once that its line was damaged
+            else:
+                self._write(f"@ERR E{req:02d} {ERROR_CODES[req]}\n")
             return
         self.last_request_t = self.now
         handler = getattr(self, "_cmd_" + req.command.lower(), None) if req.command.isalpha() else None
