@@ -23,7 +23,8 @@ from .serial_link import DeviceTimeout, LinkError, SerialLink
 
 log = logging.getLogger(__name__)
 
-STOP_LINE = (format_request(0, "STOP") + "\n").encode("ascii")  # what a supervisor writes straight to the port in an emergency
+# what a supervisor writes straight to the port in an emergency
+STOP_LINE = (format_request(0, "STOP") + "\n").encode("ascii")
 
 
 class RobotError(DeviceError):
