@@ -298,7 +298,8 @@ def overhead_visibility(mesh: trimesh.Trimesh, sites: list[Marker], poses: list[
                              max_obliquity_deg=min(89.0, view.overhead_max_tilt_deg + view.overhead_cone_deg + 1.0))
     normals = np.array([m.normal for m in sites]).reshape(-1, 3)
     up_z = np.stack([T[2, :3] for T in poses]) @ normals.T  # (P, sites): z of the normal in W
-    tilt_ok = up_z >= np.cos(np.radians(view.overhead_max_tilt_deg)) - 1e-9
+    # 0.01° slack: a triangular prism lying on a side shows its upper faces at exactly 60°
+    tilt_ok = up_z >= np.cos(np.radians(view.overhead_max_tilt_deg + 0.01))
     return seen.reshape(P, K, len(sites)).all(axis=1) & tilt_ok
 
 
