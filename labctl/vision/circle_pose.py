@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .ellipse import Ellipse, _fit_conic, _null_vector3, _validate
+from .ellipse import Ellipse, _fit, _null_vector3, _validate
 
 
 class CirclePoseError(ValueError):
@@ -207,11 +207,14 @@ def marker_pose_candidates(marker, camera, radius: float) -> tuple[CirclePose, C
     K = camera.K.tolist()
     kappa1 = camera.kappa1
     if kappa1 != 0.0:
-        # Tsai: x_u − c = (x_d − c)(1 + κ1 r²), r² in mm on the sensor (camera.undistort_pixels)
-        c = (K[0][2], K[1][2])
-        offset = boundary - c
-        mm = offset * (camera.dpx / camera.sx, camera.dpy)
-        factor = 1.0 + kappa1 * np.einsum("ij,ij->i", mm, mm)
-        boundary = offset * factor[:, None] + c
-    conic = _fit_conic(boundary, weights)
+        # Tsai: x_u − c = (x_d − c)(1 + κ1 r²), r² in mm on the sensor (camera.undistort_pixels);
+        # fitted relative to the principal point c (the fit is translation invariant), so K
+        # loses its c
+        sx, sy = camera.dpx / camera.sx, camera.dpy
+        boundary = boundary - (K[0][2], K[1][2])
+        boundary *= (1.0 + np.square(boundary) @ (kappa1 * sx * sx, kappa1 * sy * sy))[:, None]
+        K = [[K[0][0], K[0][1], 0.0], [K[1][0], K[1][1], 0.0], K[2]]
+    # normalise about a boundary point (one radius off the centre: well conditioned, and cheaper
+    # than the weighted centroid)
+    conic = _fit(boundary, weights, None, origin=boundary[0].tolist())[0]
     return _poses_from_cone(_cone(conic, K), radius)

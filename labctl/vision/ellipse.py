@@ -222,34 +222,42 @@ def _null_vector3(m: list[list[float]], lam: float) -> list[float]:
 _DEGREE = np.add.outer([2, 2, 2, 1, 1, 0], [2, 2, 2, 1, 1, 0]).astype(float)
 
 
-def _moment_matrix(p: np.ndarray, w: np.ndarray, origin=None) -> tuple[list[list[float]], float, float, float]:
-    """Weighted scatter matrix S = Σ wkᵢ Dᵢ Dᵢᵀ (wk = w / Σw) of the design rows
-    Dᵢ = [x², xy, y², x, y, 1] in Hartley-style normalised coordinates s·(p − origin): origin at
-    the weighted centroid (default) or any given point near the centre (the fit is translation
-    invariant; this only conditions the numbers), scaled so that the RMS distance is √2.
-    Returns (S as nested lists, origin x, origin y, s)."""
-    wsum = float(w.sum())
-    if not wsum > 0:
-        raise EllipseFitError("weights sum to zero")
+def _moment_matrix(p: np.ndarray, w: np.ndarray, origin=None,
+                   scale: float | None = None) -> tuple[list[list[float]], float, float, float]:
+    """Weighted scatter matrix S = Σ wᵢ Dᵢ Dᵢᵀ of the design rows Dᵢ = [x², xy, y², x, y, 1] in
+    Hartley-style normalised coordinates s·(p − origin). ``origin``: the weighted centroid
+    (default) or any point near the centre; ``scale`` s: by default such that the RMS distance
+    from the origin is √2, or a given value of about √2 / radius. The fit is invariant to both
+    (and to the overall weight scale, so S is not divided by Σw); they only condition the
+    numbers. Returns (S as nested lists, origin x, origin y, s)."""
     if origin is None:
+        wsum = float(w.sum())
+        if not wsum > 0:
+            raise EllipseFitError("weights sum to zero")
         mx, my = ((w @ p) * (1.0 / wsum)).tolist()
     else:
         mx, my = origin
-    c = (p - (mx, my)).T
-    x, y = c[0], c[1]
-    rows = np.empty((6, x.shape[0]))
+    rows = np.empty((6, p.shape[0]))
+    c = rows[3:5]
+    np.subtract(p.T, ((mx,), (my,)), out=c)
+    if scale is not None:
+        c *= scale
+    x, y = c
     np.multiply(x, x, out=rows[0])
     np.multiply(x, y, out=rows[1])
     np.multiply(y, y, out=rows[2])
-    rows[3:5] = c
     rows[5] = 1.0
     S = (rows * w) @ rows.T
-    var = float(S[0, 5] + S[2, 5]) / wsum  # weighted mean squared distance from the origin
-    if not (var > 0 and math.isfinite(var)):
-        raise EllipseFitError("all points coincide (or are not finite)")
-    s = math.sqrt(2.0 / var)
-    # normalise: entry (i, j) scales with s^(deg_i + deg_j), and the weights to sum 1
-    return (S * (np.power(s, _DEGREE) * (1.0 / wsum))).tolist(), mx, my, s
+    if scale is None:
+        var = float(S[0, 5] + S[2, 5]) / float(S[5, 5])  # weighted mean squared distance from the origin
+        if not (var > 0 and math.isfinite(var)):
+            raise EllipseFitError("all points coincide (or are not finite)")
+        scale = math.sqrt(2.0 / var)
+        S *= np.power(scale, _DEGREE)  # entry (i, j) scales with s^(deg_i + deg_j)
+    S = S.tolist()
+    if not (S[5][5] > 0 and math.isfinite(S[0][5] + S[2][5]) and S[0][5] + S[2][5] > 0):
+        raise EllipseFitError("all points coincide, are not finite or have no weight")
+    return S, mx, my, scale
 
 
 def _direct_fit(S: list[list[float]]) -> tuple[list[float], float]:
@@ -321,13 +329,15 @@ def _is_arc(th, S: list[list[float]]) -> bool:
     """True if the points are an arc rather than a closed boundary: on a closed, evenly weighted
     boundary the weighted mean is the ellipse's centre (central symmetry); a missing sector of
     2π/16 already moves it by ≈ 0.065 of the RMS radius. ``th`` and the scatter matrix ``S``
-    in the same normalised coordinates (S[3][5], S[4][5] are the weighted mean)."""
+    in the same normalised coordinates (S[3][5] / S[5][5], S[4][5] / S[5][5] are the weighted
+    mean)."""
     a, b, c, d, e, _ = th
     det2 = 4.0 * a * c - b * b
-    mx, my = S[3][5], S[4][5]
+    wsum = S[5][5]
+    mx, my = S[3][5] / wsum, S[4][5] / wsum
     dx = (b * e - 2.0 * c * d) / det2 - mx
     dy = (b * d - 2.0 * a * e) / det2 - my
-    rms2 = S[0][5] + S[2][5] - mx * mx - my * my  # mean squared distance from the mean
+    rms2 = (S[0][5] + S[2][5]) / wsum - mx * mx - my * my  # mean squared distance from the mean
     return dx * dx + dy * dy > 0.03**2 * rms2
 
 
@@ -379,15 +389,15 @@ def _sampson_refine(p: np.ndarray, wk: np.ndarray, mx: float, my: float, s: floa
     return th.tolist()
 
 
-def _fit(p: np.ndarray, w: np.ndarray, refine_iterations: int | None = None,
-         origin=None) -> tuple[list[float], float]:
+def _fit(p: np.ndarray, w: np.ndarray, refine_iterations: int | None = None, origin=None,
+         scale: float | None = None) -> tuple[list[float], float]:
     """Core of :func:`fit_ellipse` on already validated float arrays (N×2 points, N weights
-    with a positive sum; ``origin``: optional point near the centre to normalise about).
-    Returns the conic (a, b, c, d, e, f) of the fitted ellipse in ``p``'s coordinates (not
-    normalised) and, for the direct fit, the first-order RMS distance of the points to it,
-    √(Σ wᵢQᵢ² / Σ wᵢ|∇Qᵢ|²) (same units as ``p``; NaN after a Sampson refinement). Raises
-    :class:`EllipseFitError` for degenerate sets."""
-    S, mx, my, s = _moment_matrix(p, w, origin)
+    with a positive sum; ``origin``/``scale``: optional normalisation, see
+    :func:`_moment_matrix`). Returns the conic (a, b, c, d, e, f) of the fitted ellipse in
+    ``p``'s coordinates (not normalised) and, for the direct fit, the first-order RMS distance
+    of the points to it, √(Σ wᵢQᵢ² / Σ wᵢ|∇Qᵢ|²) (same units as ``p``; NaN after a Sampson
+    refinement). Raises :class:`EllipseFitError` for degenerate sets."""
+    S, mx, my, s = _moment_matrix(p, w, origin, scale)
     th, objective = _direct_fit(S)
     if refine_iterations is None:
         refine_iterations = 3 if _is_arc(th, S) else 0
@@ -398,10 +408,10 @@ def _fit(p: np.ndarray, w: np.ndarray, refine_iterations: int | None = None,
         rms = math.nan
     else:
         a, b, c, d, e, f = th
-        # mean |∇Q|² from the moments up to second order
-        sxx, sxy, syy, sx, sy = S[0][5], S[1][5], S[2][5], S[3][5], S[4][5]
-        grad2 = ((4 * a * a + b * b) * sxx + 4 * b * (a + c) * sxy + (b * b + 4 * c * c) * syy + d * d + e * e
-                 + 2 * d * (2 * a * sx + b * sy) + 2 * e * (b * sx + 2 * c * sy))
+        # Σ wᵢ|∇Qᵢ|² from the moments up to second order
+        sxx, sxy, syy, sx, sy, s1 = S[0][5], S[1][5], S[2][5], S[3][5], S[4][5], S[5][5]
+        grad2 = ((4 * a * a + b * b) * sxx + 4 * b * (a + c) * sxy + (b * b + 4 * c * c) * syy
+                 + (d * d + e * e) * s1 + 2 * d * (2 * a * sx + b * sy) + 2 * e * (b * sx + 2 * c * sy))
         rms = math.sqrt(objective / grad2) / s if grad2 > 0 else math.inf
     # back to input coordinates: Q_n(s(x − mx), s(y − my)) expanded symbolically
     A2, B2, C2 = a * s * s, b * s * s, c * s * s

@@ -121,17 +121,17 @@ def red_mask(image_bgr: np.ndarray, hue_range_deg=(-15.0, 15.0), min_saturation:
 
 
 _SCAN = 6  # pixels per area-rule scan across an edge (3 on each side of the crossing)
-_SCAN_OFFSETS = np.arange(_SCAN) - (_SCAN // 2 - 1)  # a scan's pixels from the crossing's first
 _SCAN_SUMS = np.zeros((_SCAN, 3), np.float32)  # profile → (sum, first − last, first + last)
 _SCAN_SUMS[:, 0] = 1.0
 _SCAN_SUMS[0, 1:] = 1.0
 _SCAN_SUMS[-1, 1:] = (-1.0, 1.0)
 _K5 = np.ones((5, 5), np.uint8)  # 3×3 dilated twice
-_K9 = np.ones((9, 9), np.uint8)  # 3×3 dilated four times
-_K_NEAR = np.ones((2 * _SCAN + 1, 2 * _SCAN + 1), np.uint8)  # 3×3 dilated _SCAN times
+_NEAR_PX = 4  # a blob's neighbourhood: its pixels dilated by 4 (covers every scan's outer plateau)
+_K_NEAR = np.ones((2 * _NEAR_PX + 1, 2 * _NEAR_PX + 1), np.uint8)
+_PAD = _NEAR_PX + _SCAN // 2  # crop margin: the coverage is zero in its outer _SCAN // 2 pixels
 
 
-def _boundary(c: np.ndarray, center: tuple[float, float], quad: np.ndarray):
+def _boundary(c: np.ndarray, center: tuple[float, float], quad: np.ndarray, padded: bool = False):
     """Weighted sub-pixel boundary points of the blob in coverage image ``c`` (float32, ROI
     pixels), paper §3.1: every row and column crossing the 50 % level gives one point by the
     area rule over a 6-px scan, (start − ½) + Σc, kept only where the scan runs from plateau
@@ -140,35 +140,43 @@ def _boundary(c: np.ndarray, center: tuple[float, float], quad: np.ndarray):
     2×2 matrix ``quad`` of its quadratic form in (x − x0, y − y0)). Weight wᵢ = arc length
     per point = 1/|cos(scan, normal)| ∈ [1, √2] (the paper's non-uniform sampling weights, eq. 2).
 
-    Vectorised over rows and columns at once on the flat image, with a zero margin so that
-    every scan stays inside it. Returns (points N×2 as (x, y) relative to ``center``, weights N)."""
+    Vectorised over rows and columns at once on the flat image. ``c`` must be zero in its outer
+    ``_SCAN // 2`` pixels (then every scan stays in its own row / column) unless ``padded`` is
+    False, when such a margin is added here. Returns (points N×2 as (x, y) relative to
+    ``center``, weights N)."""
     half = _SCAN // 2
-    cp = cv2.copyMakeBorder(c, half, half, half, half, cv2.BORDER_CONSTANT, value=0.0)
+    cp = c if padded else cv2.copyMakeBorder(c, half, half, half, half, cv2.BORDER_CONSTANT, value=0.0)
+    margin = 0 if padded else half
     w = cp.shape[1]
+    size = cp.size
     flat = cp.ravel()
     inside = flat > 0.5
-    # crossings between flat k and k + 1 (rows) and k and k + w (columns); the margin keeps
-    # every scan (starting half − 1 pixels before the crossing) in its own row / column
-    kr = np.flatnonzero(inside[1:] != inside[:-1])
-    kc = np.flatnonzero(inside[w:] != inside[:-w])
+    # flat index t of each scan's first pixel: a row scan covers t … t + 5 and crosses 50 %
+    # between t + 2 and t + 3; a column scan covers t, t + w, … t + 5w. The zero margin keeps
+    # every scan inside its own row / column.
+    kr = np.flatnonzero(inside[half:] != inside[half - 1:-1])
+    kc = np.flatnonzero(inside[half * w:] != inside[(half - 1) * w:-w])
     nr = kr.shape[0]
     n = nr + kc.shape[0]
     if n == 0:
-        return np.empty((0, 2)), np.empty((0, 2)), np.empty(0)
-    prof = flat[np.concatenate((kr[:, None] + _SCAN_OFFSETS, kc[:, None] + w * _SCAN_OFFSETS))] @ _SCAN_SUMS
+        return np.empty((0, 2)), np.empty(0)
+    # all row scans / column scans as strided views of the flat image (no copies)
+    item = flat.itemsize
+    row_scans = np.ndarray((size - _SCAN + 1, _SCAN), flat.dtype, flat, 0, (item, item))
+    col_scans = np.ndarray((size - (_SCAN - 1) * w, _SCAN), flat.dtype, flat, 0, (item, item * w))
+    prof = np.concatenate((row_scans[kr], col_scans[kc])) @ _SCAN_SUMS  # per scan: Σc, first − last, first + last
     total, drop, ends = prof[:, 0], prof[:, 1], prof[:, 2]
-    # the edge's position along the scan from the crossing's first pixel: Σc − ½ − (half − 1)
-    # for a falling edge (marker first), half + ½ − Σc for a rising one
-    offset = (total - 0.5 * _SCAN) * np.sign(drop) + 0.5
+    # the edge's position along the scan from its first pixel: Σc − ½ for a falling edge
+    # (marker first), _SCAN − ½ − Σc for a rising one
+    offset = (total - 0.5 * _SCAN) * np.sign(drop) + 0.5 * (_SCAN - 1)
     # plateau to plateau, max(first, last) > 0.8 and min(first, last) < 0.2, else another edge
     # or a tip is inside the scan
     clean = np.abs(drop) - np.abs(ends - 1.0) > 0.6
     pts = np.empty((n, 2))
-    pts[:nr, 1], pts[:nr, 0] = np.divmod(kr, w)
-    pts[nr:, 1], pts[nr:, 0] = np.divmod(kc, w)
+    pts[:, 1], pts[:, 0] = np.divmod(np.concatenate((kr, kc)), w)
     pts[:nr, 0] += offset[:nr]
     pts[nr:, 1] += offset[nr:]
-    pts -= (half + center[0], half + center[1])  # relative to the rough centre, unpadded
+    pts -= (margin + center[0], margin + center[1])  # relative to the rough centre
     # rough normal ∝ ∇Q; rows keep |nx| > |ny|, columns |ny| > |nx|
     normal2 = np.square(pts @ quad)
     norm2 = normal2[:, 0] + normal2[:, 1]
@@ -178,9 +186,9 @@ def _boundary(c: np.ndarray, center: tuple[float, float], quad: np.ndarray):
 
 
 def _levels(roi: np.ndarray, blob: np.ndarray, near: np.ndarray) -> tuple[tuple, tuple] | None:
-    """Inside and outside colours (BGR means) of one blob (uint8 0/1): over its core (eroded
-    twice by 3×3) and over the ring 3…``_SCAN`` px around it (``near`` minus the blob dilated
-    twice), i.e. over clean pixels well inside and well outside the anti-aliased edge."""
+    """Inside and outside colours (BGR means) of one blob (uint8 mask): over its core (eroded
+    twice by 3×3) and over the ring 3…4 px around it (``near`` minus the blob dilated twice),
+    i.e. over clean pixels well inside and well outside the anti-aliased edge."""
     core = cv2.erode(blob, _K5)
     if cv2.countNonZero(core) < 3:
         core = cv2.erode(blob, _K3)
@@ -211,7 +219,7 @@ def _analyse_blob(img: np.ndarray, labels: np.ndarray, label: int, bbox, label_o
     x, y, w, h = bbox
     lx, ly = label_origin
     H, W = img.shape[:2]
-    pad = _SCAN
+    pad = _PAD
     gx, gy = x + lx, y + ly  # blob bbox in image pixels
     touches = bool(gx <= 0 or gy <= 0 or gx + w >= W or gy + h >= H)
     bbox_img = (int(gx), int(gy), int(gx + w), int(gy + h))
@@ -244,9 +252,10 @@ def _analyse_blob(img: np.ndarray, labels: np.ndarray, label: int, bbox, label_o
     if not c2 >= 100.0:  # under 10 grey levels of colour contrast: no measurable edge
         return None
     # coverage: each pixel's colour projected on the outside→inside colour difference
-    g0, g1, g2 = contrast[0] / c2, contrast[1] / c2, contrast[2] / c2
     # ÷ 255: the neighbourhood mask it is multiplied by is 0/255
-    project = np.array([[g0, g1, g2, -(g0 * bo + g1 * go + g2 * ro)]], np.float32) * np.float32(1.0 / 255.0)
+    k = 1.0 / (255.0 * c2)
+    g0, g1, g2 = contrast[0] * k, contrast[1] * k, contrast[2] * k
+    project = np.array([[g0, g1, g2, -(g0 * bo + g1 * go + g2 * ro)]], np.float32)
     c = cv2.transform(roi.astype(np.float32), project)
     np.multiply(c, near, out=c)
     m = cv2.moments(cv2.threshold(cv2.threshold(c, 1.0, 1.0, cv2.THRESH_TRUNC)[1], 0.0, 0.0, cv2.THRESH_TOZERO)[1])
@@ -258,7 +267,8 @@ def _analyse_blob(img: np.ndarray, labels: np.ndarray, label: int, bbox, label_o
     mu20, mu11, mu02 = m["mu20"], m["mu11"], m["mu02"]
     if not mu20 * mu02 - mu11 * mu11 > 1e-12 * (mu20 * mu20 + mu02 * mu02):
         return None
-    rel, wts = _boundary(c, (cx, cy), np.array([[mu02, -mu11], [-mu11, mu20]]))
+    unclipped = x0 == gx - pad and y0 == gy - pad and x1 == gx + w + pad and y1 == gy + h + pad
+    rel, wts = _boundary(c, (cx, cy), np.array([[mu02, -mu11], [-mu11, mu20]]), padded=unclipped)
     ox, oy = cx + x0, cy + y0  # the rough centre in image pixels
     if touches:  # drop points near the image edge: the boundary there is the frame, not the marker
         gp = rel + (ox, oy)
@@ -267,7 +277,8 @@ def _analyse_blob(img: np.ndarray, labels: np.ndarray, label: int, bbox, label_o
     if len(rel) < 6:
         return None
     try:  # fit relative to the rough centre (well conditioned), then move to image pixels
-        conic, rms = _fit(rel, wts, 3 if touches else 0, origin=(0.0, 0.0))
+        # RMS boundary radius of the rough ellipse ≈ √(2 (μ20 + μ02) / m00)
+        conic, rms = _fit(rel, wts, 3 if touches else 0, origin=(0.0, 0.0), scale=math.sqrt(area / (mu20 + mu02)))
     except EllipseFitError:
         return None
     if touches:  # after the Sampson refinement the fit's own first-order residual is not available
