@@ -3,10 +3,27 @@ baselines in the same run (medians). Synthetic 640×480 images of the issue's te
 
 from __future__ import annotations
 
+import statistics
+import time
+
 import cv2
 import numpy as np
 
 from ._timing import median_time, row
+
+
+def _interleaved(cases: dict, repeat: int, warmup: int = 3) -> dict:
+    """Median wall time (s) of each case, timed round-robin (one call of each per round)."""
+    for fn in cases.values():
+        for _ in range(warmup):
+            fn()
+    samples = {name: [] for name in cases}
+    for _ in range(repeat):
+        for name, fn in cases.items():
+            t0 = time.perf_counter()
+            fn()
+            samples[name].append(time.perf_counter() - t0)
+    return {name: statistics.median(s) for name, s in samples.items()}
 
 
 def run(quick: bool = False) -> dict:
@@ -35,22 +52,35 @@ def run(quick: bool = False) -> dict:
     half = 48.0
     rows = []
 
-    t_base = median_time(lambda: centroid_inrange_moments(img), repeat)
-    t_full = median_time(lambda: detect_markers(img), repeat)
-    t_full_c = median_time(lambda: detect_markers(img, refine=False), repeat)
-    t_win = median_time(lambda: detect_markers_windowed(img, predicted, half), repeat)
-    t_win_c = median_time(lambda: detect_markers_windowed(img, predicted, half, refine=False), repeat)
-    rows.append(row("detect full frame (sub-pixel boundary + fit)", t_full, "cv2.inRange+cv2.moments", t_base))
-    rows.append(row("detect full frame, centroid only", t_full_c, "cv2.inRange+cv2.moments", t_base))
-    rows.append(row(f"detect windowed ±{half:.0f} px (sub-pixel + fit)", t_win, "same, full frame", t_full))
-    rows.append(row(f"detect windowed ±{half:.0f} px, centroid only", t_win_c, "same, full frame", t_full_c))
-
+    # interleaved: each round times every case once, so load on the shared machine hits the
+    # numerator and denominator of each ratio alike
+    cam_distorted = issue_camera(kappa1=2e-3)
     boundary32 = marker.boundary.astype(np.float32)
-    t_pose = median_time(lambda: marker_pose_candidates(marker, cam, 10.0), repeat * 5)
-    t_pose_cv = median_time(lambda: circle_poses(ellipse_from_cv_box(cv2.fitEllipse(boundary32)), 10.0, cam.K),
-                            repeat * 5)
-    rows.append(row(f"fit + pose of one marker ({len(marker.boundary)} pts)", t_pose, "cv2.fitEllipse + same pose",
-                    t_pose_cv))
+    K = cam.K
+    cases = {
+        "base": lambda: centroid_inrange_moments(img),
+        "full": lambda: detect_markers(img),
+        "full_c": lambda: detect_markers(img, refine=False),
+        "win": lambda: detect_markers_windowed(img, predicted, half),
+        "win_c": lambda: detect_markers_windowed(img, predicted, half, refine=False),
+    }
+    tm = _interleaved(cases, repeat)
+    pose_cases = {
+        "pose": lambda: marker_pose_candidates(marker, cam, 10.0),
+        "pose_k": lambda: marker_pose_candidates(marker, cam_distorted, 10.0),
+        "pose_cv": lambda: circle_poses(ellipse_from_cv_box(cv2.fitEllipse(boundary32)), 10.0, K),
+        "cv_fit": lambda: cv2.fitEllipse(boundary32),
+    }
+    tm.update(_interleaved(pose_cases, repeat * 5))
+    n_pts = len(marker.boundary)
+    rows.append(row("detect full frame (sub-pixel boundary + fit)", tm["full"], "cv2.inRange+cv2.moments", tm["base"]))
+    rows.append(row("detect full frame, centroid only", tm["full_c"], "cv2.inRange+cv2.moments", tm["base"]))
+    rows.append(row(f"detect windowed ±{half:.0f} px (sub-pixel + fit)", tm["win"], "same, full frame", tm["full"]))
+    rows.append(row(f"detect windowed ±{half:.0f} px, centroid only", tm["win_c"], "same, full frame", tm["full_c"]))
+    rows.append(row(f"fit + pose of one marker ({n_pts} pts)", tm["pose"], "cv2.fitEllipse + same pose", tm["pose_cv"]))
+    rows.append(row(f"fit + pose of one marker ({n_pts} pts), κ1 ≠ 0 (undistortion)", tm["pose_k"],
+                    "cv2.fitEllipse + same pose", tm["pose_cv"]))
+    rows.append(row(f"cv2.fitEllipse alone ({n_pts} pts)", tm["cv_fit"], "fit + pose (ours)", tm["pose"]))
 
     # the ellipse fitters on 360 noisy points (σ = 0.5 px): full boundary and half arc
     accuracy = {}
@@ -80,8 +110,9 @@ def run(quick: bool = False) -> dict:
             rows.append(row(f"ellipse fit {name}, 360 pts: {fname}", t, "cv2.fitEllipse", t_cv))
     return {
         "rows": rows,
-        "windowed_speedup": t_full / t_win,
-        "windowed_speedup_centroid_only": t_full_c / t_win_c,
-        "fit_pose_median_us": t_pose * 1e6,
+        "windowed_speedup": tm["full"] / tm["win"],
+        "windowed_speedup_centroid_only": tm["full_c"] / tm["win_c"],
+        "fit_pose_median_us": tm["pose"] * 1e6,
+        "fit_pose_distorted_median_us": tm["pose_k"] * 1e6,
         "ellipse_fit_centre_rms_px": accuracy,
     }

@@ -1,0 +1,135 @@
+"""The hot-path shortcuts of labctl.vision agree with the plain formulations they replace:
+closed-form cone eigen-frame vs numpy.linalg.eigh, the fit's moment-based residual vs the
+Sampson RMS, normalisation invariance of the fit, padded vs margin crops for the boundary
+scans, the single-blob labelling shortcut vs connected components, and the inline Tsai
+undistortion of marker_pose_candidates vs CameraModel.undistort_pixels."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from labctl.vision import CirclePose, Ellipse, circle_poses, detect_markers, fit_ellipse, marker_pose_candidates
+from labctl.vision.circle_pose import _cone_frame
+from labctl.vision.ellipse import _fit
+from labctl.vision.markers import _boundary, _sampson_rms
+from labctl.vision.synthetic import issue_camera, render_disc
+
+CAM = issue_camera()
+
+
+def _rotation(rng):
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    return q
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.floats(0.05, 1.0), st.floats(0.02, 0.95), st.floats(1e-4, 1.0))
+def test_cone_frame_matches_eigh(seed, l1, l2_frac, l3):
+    """λ1 ≥ λ2 > 0 > λ3 and the eigenvectors of e1, e3 agree with LAPACK (up to sign)."""
+    rng = np.random.default_rng(seed)
+    lam = np.array([l1, l1 * l2_frac, -l3])
+    R = _rotation(rng)
+    Q = R @ np.diag(lam) @ R.T * rng.choice([-1.0, 1.0]) * rng.uniform(0.1, 100)
+    got_l1, got_l2, got_l3, e1, e3 = _cone_frame(Q.tolist())
+    scale = np.linalg.norm(lam)
+    np.testing.assert_allclose(np.array([got_l1, got_l2, got_l3]) * scale, lam, atol=1e-9 * scale)
+    assert abs(abs(np.dot(e3, R[:, 2])) - 1.0) < 1e-9
+    if l1 - l1 * l2_frac > 1e-3 * l1:  # e1 is only defined when λ1 and λ2 differ
+        assert abs(abs(np.dot(e1, R[:, 0])) - 1.0) < 1e-6
+
+
+def test_frontal_circle_gives_one_finite_pose():
+    """λ1 = λ2 (the marker squarely facing the camera): both candidates equal the truth."""
+    center = np.array([0.0, 0.0, 500.0])
+    K = CAM.K
+    r_px = 10.0 * K[0, 0] / 500.0
+    ell = Ellipse.from_params((K[0, 2], K[1, 2]), (r_px, r_px), 0.0)
+    for pose in circle_poses(ell, 10.0, K):
+        np.testing.assert_allclose(pose.center, center, atol=1e-6)
+        np.testing.assert_allclose(pose.normal, [0.0, 0.0, -1.0], atol=1e-6)
+
+
+def test_moment_residual_tracks_the_sampson_rms():
+    rng = np.random.default_rng(3)
+    for axes in ((30.0, 20.0), (50.0, 12.0), (20.0, 19.0)):
+        e = Ellipse.from_params((300.0, 200.0), axes, 0.4)
+        pts = e.points(200) + rng.normal(0, 0.3, (200, 2))
+        w = rng.uniform(1.0, 1.4, 200)
+        conic, rms = _fit(pts, w, 0)
+        exact = _sampson_rms(conic, pts, w)
+        assert abs(rms - exact) < 0.1 * exact
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.floats(-50, 50), st.floats(-50, 50), st.floats(0.01, 1.0))
+def test_fit_is_invariant_to_its_normalisation(seed, ox, oy, scale):
+    rng = np.random.default_rng(seed)
+    e = Ellipse.from_params(rng.uniform(100, 500, 2), (rng.uniform(10, 60), rng.uniform(5, 40)), rng.uniform(0, 3))
+    pts = e.points(120) + rng.normal(0, 0.2, (120, 2))
+    w = rng.uniform(1.0, 1.4, 120)
+    base = Ellipse.from_conic(_fit(pts, w, 0)[0])
+    other = Ellipse.from_conic(_fit(pts, w, 0, origin=(float(e.center[0]) + ox, float(e.center[1]) + oy),
+                                    scale=scale)[0])
+    np.testing.assert_allclose(other.conic, base.conic, atol=1e-8)
+
+
+def test_boundary_on_a_margin_crop_equals_the_padded_path():
+    rng = np.random.default_rng(4)
+    e = Ellipse.from_params((30.3, 25.6), (20.0, 12.0), 0.4)
+    ss = 8
+    Y, X = np.mgrid[0:60 * ss, 0:70 * ss]
+    a, b, c, d, f_, g = e.conic
+    xs, ys = (X + 0.5) / ss - 0.5, (Y + 0.5) / ss - 0.5
+    disc = (a * xs * xs + b * xs * ys + c * ys * ys + d * xs + f_ * ys + g) < 0
+    cov = disc.reshape(60, ss, 70, ss).mean(axis=(1, 3))
+    cov = (cov + rng.normal(0, 0.01, cov.shape)).astype(np.float32)
+    quad = e.matrix[:2, :2]
+    p_pad, w_pad = _boundary(cov, tuple(e.center), quad, padded=False)
+    framed = cv2.copyMakeBorder(cov, 3, 3, 3, 3, cv2.BORDER_CONSTANT, value=0.0)
+    p_margin, w_margin = _boundary(framed, (e.center[0] + 3, e.center[1] + 3), quad, padded=True)
+    np.testing.assert_allclose(p_margin, p_pad, atol=1e-9)
+    np.testing.assert_allclose(w_margin, w_pad, atol=1e-12)
+    # the points lie on the true ellipse (8× supersampled coverage, σ = 0.01 noise)
+    dist = e.sampson_distances(p_pad + e.center)
+    assert len(dist) > 60 and np.sqrt(np.mean(dist**2)) < 0.05 and dist.max() < 0.2
+
+
+def test_single_blob_shortcut_matches_connected_components():
+    rng = np.random.default_rng(5)
+    center = np.array([20.0, 10.0, 700.0])
+    normal = -center / np.linalg.norm(center) + np.array([0.3, 0.0, 0.0])
+    normal /= np.linalg.norm(normal)
+    img = render_disc(CAM, center, normal, 10.0, rng=rng)
+    one = detect_markers(img)
+    speck = img.copy()
+    speck[5:7, 5:7] = (30, 30, 200)  # a second, tiny red blob: the labelling path runs
+    two = detect_markers(speck)
+    assert len(one) == len(two) == 1
+    np.testing.assert_allclose(two[0].centroid, one[0].centroid, atol=1e-9)
+    np.testing.assert_allclose(two[0].boundary, one[0].boundary, atol=1e-9)
+    np.testing.assert_allclose(two[0].ellipse.conic, one[0].ellipse.conic, atol=1e-9)
+
+
+def test_inline_undistortion_matches_the_camera_model():
+    cam = issue_camera(kappa1=2e-3)
+    rng = np.random.default_rng(6)
+    center = np.array([60.0, -40.0, 650.0])
+    normal = -center / np.linalg.norm(center) + np.array([0.0, 0.5, 0.0])
+    normal /= np.linalg.norm(normal)
+    marker = detect_markers(render_disc(cam, center, normal, 10.0, rng=rng))[0]
+    fast = marker_pose_candidates(marker, cam, 10.0)
+    plain = circle_poses(fit_ellipse(cam.undistort_pixels(marker.boundary), marker.weights), 10.0, cam.K)
+    for pose in fast:
+        match = min(plain, key=lambda p: np.linalg.norm(p.normal - pose.normal))
+        np.testing.assert_allclose(pose.normal, match.normal, atol=1e-9)
+        np.testing.assert_allclose(pose.center, match.center, rtol=1e-9)
+
+
+def test_circle_pose_compares_by_value():
+    a = CirclePose(np.array([1.0, 2.0, 3.0]), np.array([0.0, 0.0, -1.0]))
+    assert a == CirclePose(np.array([1.0, 2.0, 3.0]), np.array([0.0, 0.0, -1.0]))
+    assert a != CirclePose(np.array([1.0, 2.0, 3.5]), np.array([0.0, 0.0, -1.0]))
+    assert a in (CirclePose(np.zeros(3), np.array([0.0, 0.0, -1.0])), a)
