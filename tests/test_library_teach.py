@@ -256,3 +256,21 @@ def test_standard_views_are_taught_with_the_object_resting_in_the_pose_that_face
         assert np.allclose(T_w_o[:3, :3] @ n, [0, 0, 1], atol=1e-6)
         assert abs(trimesh.transform_points(box.vertices, T_w_o)[:, 2].min()) < 1e-6
         assert np.isclose((T_w_o @ T_o_c)[2, 3], 800.0 + (T_w_o[:3, :3] @ m.center + T_w_o[:3, 3])[2])
+
+
+def test_shipped_sample_library_meets_both_marker_requirements_by_brute_force():
+    """The sample lab's object_library/: every stable pose × 360 yaws shows a marker to the initial
+    viewing camera, and every stable pose has a marker the overhead camera tracks over its cone."""
+    from labctl.cli.library import _viewing
+    from labctl.config import load_lab
+    from labctl.workspace import sample_lab_path
+
+    lab = load_lab(sample_lab_path())
+    view = _viewing(lab)
+    lib = load_library(lab.library_dir)
+    assert len(lib) == 7
+    for name, obj in lib.items():
+        Ts = [T for T, _ in obj.stable_poses]
+        assert check_coverage(obj.mesh, Ts, obj.markers, view).min() >= 1, name
+        assert check_overhead_coverage(obj.mesh, Ts, obj.markers, view).min() >= 1, name
+        assert obj.info["placement"]["overhead"]["min_tracked_markers"] >= 1
