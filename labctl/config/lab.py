@@ -48,7 +48,7 @@ class ViewingConfig:
 @dataclass(frozen=True)
 class TrackingConfig:
     model: Literal["cv", "ca", "imm"] = "cv"
-    process_noise: float = 5.0  # mm/s² (white-acceleration spectral density, sqrt)
+    process_noise: float = 0.5  # sqrt of the white-acceleration spectral density (mm/s^1.5)
     measurement_noise_mm: float = 0.7
     gate_sigma: float = 4.0
     window_px: int = 48
