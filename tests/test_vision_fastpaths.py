@@ -133,3 +133,29 @@ def test_circle_pose_compares_by_value():
     assert a == CirclePose(np.array([1.0, 2.0, 3.0]), np.array([0.0, 0.0, -1.0]))
     assert a != CirclePose(np.array([1.0, 2.0, 3.5]), np.array([0.0, 0.0, -1.0]))
     assert a in (CirclePose(np.zeros(3), np.array([0.0, 0.0, -1.0])), a)
+
+
+def test_pose_of_a_bad_marker_is_a_typed_error():
+    """marker_pose_candidates skips re-validating arrays; bad data still ends in EllipseFitError."""
+    import pytest
+
+    from labctl.vision import EllipseFitError
+    from labctl.vision.markers import Marker
+
+    e = Ellipse.from_params((320, 240), (30, 20), 0.2)
+    pts = e.points(50)
+    bad = {
+        "zero weights": (pts, np.zeros(50)),
+        "NaN point": (np.vstack([[np.nan, 1.0], pts]), np.ones(51)),
+        "inf points": (pts * np.inf, np.ones(50)),
+        "one point repeated": (np.tile([[3.0, 4.0]], (50, 1)), np.ones(50)),
+        "collinear": (np.column_stack([np.arange(50.0), np.arange(50.0)]), np.ones(50)),
+        "four points": (pts[:4], np.ones(4)),
+        "weights of the wrong length": (pts, np.ones(49)),
+    }
+    for cam in (CAM, issue_camera(kappa1=2e-3)):
+        for name, (boundary, weights) in bad.items():
+            marker = Marker((0.0, 0.0), e, 1.0, boundary, weights, (0, 0, 1, 1))
+            with pytest.raises(EllipseFitError):
+                marker_pose_candidates(marker, cam, 10.0)
+                pytest.fail(name)

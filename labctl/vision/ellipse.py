@@ -237,6 +237,8 @@ def _moment_matrix(p: np.ndarray, w: np.ndarray, origin=None,
         mx, my = ((w @ p) * (1.0 / wsum)).tolist()
     else:
         mx, my = origin
+        if not (math.isfinite(mx) and math.isfinite(my)):
+            raise EllipseFitError("points contain NaN or infinity")
     rows = np.empty((6, p.shape[0]))
     c = rows[3:5]
     np.subtract(p.T, ((mx,), (my,)), out=c)
@@ -249,7 +251,8 @@ def _moment_matrix(p: np.ndarray, w: np.ndarray, origin=None,
     rows[5] = 1.0
     S = (rows * w) @ rows.T
     if scale is None:
-        var = float(S[0, 5] + S[2, 5]) / float(S[5, 5])  # weighted mean squared distance from the origin
+        wsum = float(S[5, 5])
+        var = float(S[0, 5] + S[2, 5]) / wsum if wsum > 0 else math.nan  # mean squared distance from the origin
         if not (var > 0 and math.isfinite(var)):
             raise EllipseFitError("all points coincide (or are not finite)")
         scale = math.sqrt(2.0 / var)
