@@ -183,16 +183,19 @@ def trials_cmd(n, trajectory, speed, objects, seed, record) -> None:
     emit(summary, lambda con: _print_trials(con, summary))
 
 
+def _num(value, unit: str = "") -> str:
+    return "-" if value is None else f"{value:.2f}{unit}"
+
+
 def _print_trials(console, s: dict) -> None:
     from rich.table import Table
 
-    t = Table("speed mm/s", "n", "success", "time to identity (median)", "×lower bound (median)", "views (mean)",
-              title="trials")
+    t = Table("speed mm/s", "n", "success", "time to identity (median)", "×lower bound", "×quintic bound",
+              "views (mean)", title="trials")
     for row in s["by_speed"]:
         t.add_row(f"{row['speed_mm_s']:g}", str(row["n"]), f"{100 * row['success_rate']:.1f} %",
-                  "-" if row["time_to_identity_s_median"] is None else f"{row['time_to_identity_s_median']:.2f} s",
-                  "-" if row["ratio_to_lower_bound_median"] is None else f"{row['ratio_to_lower_bound_median']:.2f}",
-                  f"{row['views_mean']:.2f}")
+                  _num(row["time_to_identity_s_median"], " s"), _num(row["ratio_to_lower_bound_median"]),
+                  _num(row["ratio_to_quintic_bound_median"]), f"{row['views_mean']:.2f}")
     console.print(t)
     st = Table("stage", "median s", title="stage timings")
     for k, v in s["stage_medians_s"].items():

@@ -141,6 +141,7 @@ class PredictorPlanner:
         self.plan_shift = 0.0  # controller time − plan time of the segment being executed
         self.t_robot_log = -math.inf
         self.min_motion_s = 0.0  # sum over legs of the robot-limited rest-to-rest time (lower bound)
+        self.min_quintic_s = 0.0  # the same with the paper's quintic profile
 
     # -- helpers ------------------------------------------------------------------------------
     @property
@@ -204,11 +205,14 @@ class PredictorPlanner:
         self.log("segment", t=now, id=self.segment_id, kind=self.plan_kind, t_end=end.t1,
                  p=T_end[:3, 3], rotvec=matrix_to_rotvec(T_end[:3, :3]))
 
-    def _rest_to_rest_time(self, p0, p1) -> float:
-        """Robot-limited minimum time of a straight rest-to-rest move (trapezoidal v/a profile)."""
+    def _rest_to_rest_times(self, p0, p1) -> tuple[float, float]:
+        """Minimum times of a straight rest-to-rest move under the controller's own limits (no margin):
+        any profile (bang-bang / trapezoidal: the physical bound) and a quintic (peak speed 1.875·D/T,
+        peak acceleration 10/√3·D/T², the paper's motion primitive)."""
         d = float(np.linalg.norm(np.asarray(p1) - np.asarray(p0)))
-        v, a = self.ctx.lab.robot.v_max_mm_s, self.ctx.lab.robot.a_max_mm_s2  # the controller's, no margin
-        return 2 * math.sqrt(d / a) if d < v * v / a else d / v + v / a
+        v, a = self.ctx.lab.robot.v_max_mm_s, self.ctx.lab.robot.a_max_mm_s2
+        any_profile = 2 * math.sqrt(d / a) if d < v * v / a else d / v + v / a
+        return any_profile, max(1.875 * d / v, math.sqrt(10 / math.sqrt(3) * d / a))
 
     # -- planning ----------------------------------------------------------------------------
     def _initial_view_target(self, azimuth_deg: float):
@@ -229,7 +233,9 @@ class PredictorPlanner:
     def _start_move(self, now: float, kind: str, plan: Interception) -> None:
         state, _ = self._flange_state(now)
         self.plan, self.plan_kind, self.t_last_plan = plan, kind, now
-        self.min_motion_s += self._rest_to_rest_time(state[0], plan.trajectory.state(plan.t_hit)[0])
+        bound, quintic = self._rest_to_rest_times(state[0], plan.trajectory.state(plan.t_hit)[0])
+        self.min_motion_s += bound
+        self.min_quintic_s += quintic
         self._send_segment(now, plan)
         self.log("plan", t=now, kind=kind, t_hit=plan.t_hit)
         horizon = np.linspace(now, max(plan.t_hit, now + 1.0), 12)
@@ -482,15 +488,17 @@ class PredictorPlanner:
             self.clock.enter(self.clock.current, now)
         ident = self.identity
         t_id = (self.clock.started.get("done") - self.t_start) if ident is not None else None
-        lower = None
+        lower = lower_q = None
         if t_id is not None and self.t_first_seen is not None:
-            lower = (self.t_first_seen - self.t_start) + self.cfg.tracking.min_track_s + self.min_motion_s
+            fixed = (self.t_first_seen - self.t_start) + self.cfg.tracking.min_track_s
+            lower, lower_q = fixed + self.min_motion_s, fixed + self.min_quintic_s
         return {
             "identity": self.ctx.names[ident.object_id] if ident is not None else None,
             "score": ident.score if ident is not None else None,
             "candidates": [self.ctx.names[i] for i in ident.candidates] if ident is not None else [],
             "time_to_identity_s": t_id,
             "lower_bound_s": lower,
+            "lower_bound_quintic_s": lower_q,
             "views": self.views_used,
             "stages": {k: round(v, 4) for k, v in self.clock.durations.items()},
             "failure": self.failure,

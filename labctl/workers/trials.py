@@ -61,11 +61,13 @@ def summarize(results: list[dict]) -> dict:
         rs = [r for r in results if r["speed_mm_s"] == v]
         ok = [r for r in rs if r["correct"]]
         ratios = [r["time_to_identity_s"] / r["lower_bound_s"] for r in ok if r.get("lower_bound_s")]
+        ratios_q = [r["time_to_identity_s"] / r["lower_bound_quintic_s"] for r in ok if r.get("lower_bound_quintic_s")]
         by_speed.append({
             "speed_mm_s": v, "n": len(rs), "success_rate": len(ok) / len(rs),
             "time_to_identity_s_median": _median([r["time_to_identity_s"] for r in ok]),
             "lower_bound_s_median": _median([r.get("lower_bound_s") for r in ok]),
             "ratio_to_lower_bound_median": _median(ratios),
+            "ratio_to_quintic_bound_median": _median(ratios_q),
             "views_mean": statistics.fmean([r["views"] for r in rs]) if rs else 0.0,
         })
     stages = sorted({k for r in results for k in r.get("stages", {})})
