@@ -16,7 +16,8 @@ ALLOWED = {
     "planning": {"geometry", "tracking", "errors"},
     "calibration": {"geometry", "vision", "config", "fsutil", "errors"},
     "library": {"geometry", "vision", "fsutil", "errors"},
-    "drivers": {"geometry", "config", "errors"},
+    "drivers": {"geometry", "config", "errors", "fsutil"},
+    "sim": {"geometry", "config", "drivers", "library", "errors", "fsutil"},
     "records": {"fsutil", "errors"},
 }
 
