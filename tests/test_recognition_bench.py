@@ -54,10 +54,11 @@ def test_new_cad_models_are_recognised_alongside_the_sample_objects(lab_cam_lib,
     """Issue 5: extruded L, T, hexagonal, triangular and trapezoidal profiles taught from STL files
     with teach-object's pipeline (simulated lab renderer) join the seven sample objects; every
     standard view of the mixed library is identified (extra views where ambiguous)."""
-    from labctl.cli.library import _viewing, sim_render_factory
+    from labctl.library.placement import viewing_geometry
     from labctl.library.samples import _profile, l_profile, regular_polygon, t_profile, trapezoid
     from labctl.library.teach import teach_object
     from labctl.library.views import mm_per_px
+    from labctl.sim.rigs import standard_view_renderer
 
     lab, cam, lib = lab_cam_lib
     standoff = lab.config.viewing.standoff_mm
@@ -70,9 +71,9 @@ def test_new_cad_models_are_recognised_alongside_the_sample_objects(lab_cam_lib,
     for name, mesh in models.items():
         path = tmp_path / f"{name}.stl"
         mesh.export(path)
-        mixed[name] = teach_object(name, path, radius_mm=lab.config.marker.radius_mm, view=_viewing(lab),
+        mixed[name] = teach_object(name, path, radius_mm=lab.config.marker.radius_mm, view=viewing_geometry(lab),
                                    standoff_mm=standoff, scale_mm_per_px=mm_per_px(cam, standoff),
-                                   render_factory=sim_render_factory(cam, noise_sigma=0.0),
+                                   render_factory=standard_view_renderer(cam, noise_sigma=0.0),
                                    library_dir=tmp_path / "lib", sweep=False)
     res = _evaluate(mixed, cam, standoff, trials=1, rng=np.random.default_rng(3), max_views=lab.config.run.max_views)
     assert res["objects"] == 12 and res["silhouette_failures"] == 0

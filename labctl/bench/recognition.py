@@ -37,14 +37,14 @@ def render_pool(library: dict, camera, standoff: float, per_view: int, rng: np.r
     """Perturbed standard views, rendered once: ``{(name, marker_id): [ShapeFeatures | None, ...]}``.
 
     Each view is rendered ``per_view`` times by the simulated lab's renderer (object resting on
-    the table, :func:`labctl.cli.library.sim_render_factory`) with a random in-plane rotation,
+    the table, :func:`labctl.sim.rigs.standard_view_renderer`) with a random in-plane rotation,
     ±3 % stand-off, ≤ 2° axis tilt and σ = 2 sensor noise; None where no silhouette was found.
     All matchers (and the extra views of :func:`evaluate`) draw on the same pool.
     """
-    from ..cli.library import sim_render_factory
+    from ..sim.rigs import standard_view_renderer
 
     scale = mm_per_px(camera, standoff)
-    factory = sim_render_factory(camera, noise_sigma=2.0, rng=rng)
+    factory = standard_view_renderer(camera, noise_sigma=2.0, rng=rng)
     pool: dict = {}
     for name, obj in sorted(library.items()):
         render_view = factory(obj.mesh, obj.markers, obj.stable_poses)
@@ -120,10 +120,11 @@ def _evaluate(library: dict, camera, standoff: float, trials: int, rng: np.rando
 
 def generated_library(n_objects: int, camera, lab, rng: np.random.Generator) -> dict:
     """Teach ``n_objects`` random machined parts (skipping ones the lab cannot take)."""
-    from ..cli.library import _viewing, sim_render_factory
     from ..library.model import ModelError
+    from ..library.placement import viewing_geometry
     from ..library.samples import random_object
     from ..library.teach import teach_object
+    from ..sim.rigs import standard_view_renderer
 
     standoff = lab.config.viewing.standoff_mm
     out = {}
@@ -133,9 +134,9 @@ def generated_library(n_objects: int, camera, lab, rng: np.random.Generator) -> 
         name = f"gen{len(out):02d}"
         try:
             obj = teach_object(name, random_object(rng), radius_mm=lab.config.marker.radius_mm,
-                               view=_viewing(lab), standoff_mm=standoff,
+                               view=viewing_geometry(lab), standoff_mm=standoff,
                                scale_mm_per_px=mm_per_px(camera, standoff),
-                               render_factory=sim_render_factory(camera, noise_sigma=0.0), sweep=False)
+                               render_factory=standard_view_renderer(camera, noise_sigma=0.0), sweep=False)
         except ModelError:
             continue
         if out and _indistinguishable(obj, out):

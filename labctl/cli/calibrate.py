@@ -11,53 +11,6 @@ import numpy as np
 from ._common import emit, get_ctx, json_option
 
 
-class _SimRig:
-    """The simulated lab as a calibration rig: renders the target/plate with the true cameras.
-
-    Adapter between :mod:`labctl.calibration.procedure` (which may not import the simulator) and
-    :mod:`labctl.sim.render`; the robot reports exactly the commanded flange pose.
-    """
-
-    def __init__(self, lab, target, seed: int = 0):
-        from ..geometry import make_T
-        from ..sim import truth
-
-        self.lab, self.target = lab, target
-        self.rng = np.random.default_rng(seed)
-        self.c1, self.T_w_c1 = truth.camera_model(lab.fixed_camera), truth.fixed_camera_pose(lab.fixed_camera)
-        self.c2, self.X = truth.camera_model(lab.mobile_camera), truth.hand_eye(lab.mobile_camera)
-        self.T_w_table = make_T(None, lab.table.origin_w_mm)
-
-    def _mesh(self, solid, T, colours):
-        from ..sim.render import MarkerDisc, Mesh
-
-        s = solid.transformed(T)
-        marks = [MarkerDisc(c, n, r, col) for c, n, r, col in zip(s.dots, s.normals, s.radii, colours)]
-        return Mesh(s.vertices, s.faces, tuple(self.target.plate_colour_bgr), marks)
-
-    def fixed_image(self, T_w_t):
-        from ..sim.render import render
-
-        mesh = self._mesh(self.target.solid(), T_w_t, self.target.dot_colours())
-        return render(self.c1, self.T_w_c1, [mesh], noise_sigma=self.lab.fixed_camera.noise_sigma, rng=self.rng).image
-
-    def mobile_image(self, T_b_f):
-        from ..sim.render import render
-
-        mesh = self._mesh(self.target.solid(), self.target.T_w_t, self.target.dot_colours())
-        img = render(self.c2, T_b_f @ self.X, [mesh], noise_sigma=self.lab.mobile_camera.noise_sigma, rng=self.rng)
-        return img.image, T_b_f
-
-    def table_image(self, xy):
-        from ..geometry import make_T
-        from ..sim.render import TableSurface, render
-
-        T = self.T_w_table @ make_T(None, [xy[0], xy[1], 0.0])
-        mesh = self._mesh(self.target.plate_solid(), T, [tuple(self.target.dot_colour_bgr)])
-        return render(self.c1, self.T_w_c1, [mesh], table=TableSurface(origin_w=(float(T[0, 3]), float(T[1, 3]))),
-                      noise_sigma=self.lab.fixed_camera.noise_sigma, rng=self.rng).image
-
-
 def _human_report(rep: dict):
     def show(c):
         for key in ("fixed_camera", "table", "mobile_camera"):
@@ -102,6 +55,7 @@ def calibrate_group(ctx: click.Context, camera: str, ros: bool, full: bool, seed
     from ..errors import LabctlError
     from ..geometry import make_T
     from ..sim import truth
+    from ..sim.rigs import CalibrationRig
 
     c = get_ctx()
     lab = c.lab()
@@ -109,7 +63,7 @@ def calibrate_group(ctx: click.Context, camera: str, ros: bool, full: bool, seed
         raise LabctlError("image capture for calibration on hardware is not built yet: capture the dot target, "
                           "then use `labctl calibrate points FILE`")
     target = lab_target(lab.calibration_dir)
-    rig = _SimRig(lab, target, seed=seed)
+    rig = CalibrationRig(lab, target, seed=seed)
     tr = Truth(rig.c1, rig.T_w_c1, rig.c2, rig.X, make_T(None, lab.table.origin_w_mm))
     with Progress(console=c.console, transient=c.json) as bar:
         task = bar.add_task("calibrating", total=steps_for(camera, target, 10))

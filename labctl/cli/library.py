@@ -1,7 +1,7 @@
 """``labctl teach-object`` and ``labctl library list|show``: parse, call, print.
 
-The only glue here is :func:`sim_render_factory`, which wires the simulated lab's renderer into
-the library's injected ``render_view(T_o_c)`` (the library itself never imports the simulator).
+Teaching renders standard views with :func:`labctl.sim.rigs.standard_view_renderer`, injected as the
+library's ``render_view(T_o_c)`` (the library itself never imports the simulator).
 """
 
 from __future__ import annotations
@@ -12,66 +12,6 @@ import click
 import numpy as np
 
 from ._common import emit, get_ctx, json_option
-
-
-def sim_render_factory(camera, *, noise_sigma: float = 2.0, rng=None, table_origin=(0.0, 0.0),
-                       pose_choice: str = "upright", random_yaw: bool = False):
-    """``(mesh_o, markers, stable_poses=None) -> render_view(T_o_c) -> BGR`` with ``labctl.sim.render``.
-
-    Renders what the robot's mobile camera sees in the simulated lab: the object rests on the
-    table in a stable pose that puts the camera above the table
-    (:func:`labctl.library.views.resting_pose_for_view`, ``pose_choice`` "upright" when teaching,
-    "random" for benchmark queries; ``random_yaw`` turns it about the vertical), the camera at
-    ``T_o_c`` in the object frame, the textured table as background. If no stable pose puts the
-    camera above the table, the object is turned so that the view looks straight down and set
-    on the table by its lowest point (the only way to take that view).
-    """
-    from ..geometry import make_T, rotvec_to_matrix
-    from ..library.model import stable_poses as compute_stable_poses
-    from ..library.views import resting_pose_for_view
-    from ..sim.render import MarkerDisc, Mesh, TableSurface, render
-
-    rng = rng if rng is not None else np.random.default_rng(0)
-    table = TableSurface(origin_w=table_origin)
-
-    def factory(mesh_o, markers, stable_poses=None):
-        V = np.asarray(mesh_o.vertices, float)
-        F = np.asarray(mesh_o.faces)
-        poses = stable_poses if stable_poses is not None else compute_stable_poses(mesh_o)
-
-        def render_view(T_o_c):
-            yaw = float(rng.uniform(-np.pi, np.pi)) if random_yaw else 0.0
-            T_w_o = resting_pose_for_view(poses, T_o_c, yaw_rad=yaw, choice=pose_choice, rng=rng)
-            if T_w_o is None:
-                axis = T_o_c[:3, 2]  # optical axis in O, turned to −z of W
-                target = np.array([0.0, 0.0, -1.0])
-                v = np.cross(axis, target)
-                s, c = np.linalg.norm(v), float(axis @ target)
-                R = rotvec_to_matrix(v / s * np.arctan2(s, c)) if s > 1e-12 else (
-                    np.eye(3) if c > 0 else np.diag([1.0, -1.0, -1.0]))
-                Vr = V @ R.T
-                T_w_o = make_T(R, [-Vr[:, 0].mean(), -Vr[:, 1].mean(), -Vr[:, 2].min()])
-            Vw = V @ T_w_o[:3, :3].T + T_w_o[:3, 3]
-            discs = [MarkerDisc(T_w_o[:3, :3] @ m.center + T_w_o[:3, 3], T_w_o[:3, :3] @ m.normal, m.radius)
-                     for m in markers]
-            return render(camera, T_w_o @ T_o_c, [Mesh(Vw, F, markers=discs)], table=table,
-                          noise_sigma=noise_sigma, rng=rng).image
-
-        return render_view
-
-    return factory
-
-
-def _viewing(lab):
-    from ..library.placement import ViewingGeometry
-
-    v = lab.config.viewing
-    cam = lab.fixed_camera
-    height = 1800.0  # paper §5.2: the fixed camera 1.8 m above the table
-    if getattr(cam, "eye_w_mm", None) is not None:
-        height = float(cam.eye_w_mm[2]) - float(lab.table.origin_w_mm[2])
-    return ViewingGeometry(angle_deg=v.initial_angle_deg, distance_mm=v.initial_distance_mm,
-                           max_obliquity_deg=v.max_obliquity_deg, overhead_distance_mm=height)
 
 
 @click.command("teach-object")
@@ -85,8 +25,10 @@ def teach_object_cmd(name: str, model: Path, markers: str) -> None:
     """Plan markers for a CAD model and build its standard views into the object library."""
     from rich.progress import Progress
 
+    from ..library.placement import viewing_geometry
     from ..library.teach import read_markers_file, teach_object
     from ..library.views import mm_per_px
+    from ..sim.rigs import standard_view_renderer
     from ..sim.truth import camera_model
 
     c = get_ctx()
@@ -101,9 +43,9 @@ def teach_object_cmd(name: str, model: Path, markers: str) -> None:
         def progress(stage, done, total):
             bar.update(task, description=stage, completed=done, total=max(total, 1))
 
-        obj = teach_object(name, model, radius_mm=radius, view=_viewing(lab), standoff_mm=standoff,
+        obj = teach_object(name, model, radius_mm=radius, view=viewing_geometry(lab), standoff_mm=standoff,
                            scale_mm_per_px=mm_per_px(camera, standoff),
-                           render_factory=sim_render_factory(camera, noise_sigma=0.0),
+                           render_factory=standard_view_renderer(camera, noise_sigma=0.0),
                            markers=given, library_dir=lab.library_dir, progress=progress)
     data = _summary(obj)
 

@@ -406,3 +406,14 @@ def optimal_viewing_angle(mesh: trimesh.Trimesh, poses: list[tuple[np.ndarray, f
     return {"angles_deg": angles.tolist(), "counts": counts, "min_visible": worst,
             "optimal_deg": float(angles[pick]),
             "optimal_range_deg": [float(angles[tied].min()), float(angles[tied].max())]}
+
+
+def viewing_geometry(lab):
+    """The marker-placement viewing geometry of a lab (lab.yaml ``viewing`` and the fixed camera's height)."""
+    v = lab.config.viewing
+    cam = lab.fixed_camera
+    height = 1800.0  # paper §5.2: the fixed camera 1.8 m above the table
+    if getattr(cam, "eye_w_mm", None) is not None:
+        height = float(cam.eye_w_mm[2]) - float(lab.table.origin_w_mm[2])
+    return ViewingGeometry(angle_deg=v.initial_angle_deg, distance_mm=v.initial_distance_mm,
+                           max_obliquity_deg=v.max_obliquity_deg, overhead_distance_mm=height)
