@@ -33,7 +33,8 @@ def test_devices_in_the_sample_lab_checks_in_process_emulators(capsys):
 
 def test_table_move_status_stream(capsys, tmp_path):
     prog = tmp_path / "prog.nc"
-    prog.write_text("G21\nG90\nG1 F3000\n" + "".join(f"G1 X{50 + i * 0.5:.1f} Y{40 + i * 0.1:.1f}\n" for i in range(200)))
+    moves = "".join(f"G1 X{50 + i * 0.5:.1f} Y{40 + i * 0.1:.1f}\n" for i in range(200))
+    prog.write_text("G21\nG90\nG1 F3000\n" + moves)
     with fake_grbl(homing=True) as dev:
         code, out, err = run(capsys, "table", "move", "100", "50", "--feed", "3000", "--port", dev.path,
                              "--baud", "115200")
