@@ -261,12 +261,12 @@ def test_standard_views_are_taught_with_the_object_resting_in_the_pose_that_face
 def test_shipped_sample_library_meets_both_marker_requirements_by_brute_force():
     """The sample lab's object_library/: every stable pose × 360 yaws shows a marker to the initial
     viewing camera, and every stable pose has a marker the overhead camera tracks over its cone."""
-    from labctl.cli.library import _viewing
     from labctl.config import load_lab
+    from labctl.library.placement import viewing_geometry
     from labctl.workspace import sample_lab_path
 
     lab = load_lab(sample_lab_path())
-    view = _viewing(lab)
+    view = viewing_geometry(lab)
     lib = load_library(lab.library_dir)
     assert len(lib) == 7
     for name, obj in lib.items():
