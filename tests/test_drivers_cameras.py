@@ -10,6 +10,7 @@ import pytest
 from labctl.drivers.cameras import CameraError, ReplayCamera, V4L2Camera, open_camera, save_stamped_frame
 from labctl.drivers.interfaces import Camera, Frame
 from labctl.sim.emulators.link import ManualClock
+from labctl.workspace import sample_lab_path
 
 
 def frames(n=5):
@@ -73,7 +74,7 @@ def test_v4l2_missing_device_is_a_camera_error():
 def test_factory_builds_replay_camera_from_lab(tmp_path):
     from labctl.config import load_lab
 
-    lab = load_lab(".")
+    lab = load_lab(sample_lab_path())
     for f in frames(2):
         save_stamped_frame(tmp_path, f)
     cfg = dataclasses.replace(lab.fixed_camera, kind="replay", folder=str(tmp_path))

@@ -9,10 +9,11 @@ from labctl.drivers.grbl import GrblTable
 from labctl.drivers.interfaces import Robot, Table
 from labctl.drivers.robot import SerialRobot
 from labctl.sim.emulators.serve import serve_forever
+from labctl.workspace import sample_lab_path
 
 
 def test_serve_forever_exposes_table_and_robot():
-    lab = load_lab(".")
+    lab = load_lab(sample_lab_path())
     ports: dict = {}
     ready = threading.Event()
     stop = threading.Event()

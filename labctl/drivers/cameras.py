@@ -8,7 +8,8 @@
 * :class:`ReplayCamera` serves a folder of images named by capture time (``<t_seconds>.png``,
   e.g. ``12.345678.png``), or listed in ``index.csv`` (``t,file`` rows); ``grab()`` returns the
   frames in order (or, with a clock, the newest frame at or before the clock's time).
-* :func:`open_camera(role, lab)` builds the camera a lab's driver file names (sim, v4l2, replay).
+* :func:`open_camera(role, lab)` builds the camera a lab's driver file names (v4l2, replay; simulated
+  cameras come from the simulated lab: :func:`labctl.workers.devices.open_device`).
 """
 
 from __future__ import annotations
@@ -263,8 +264,5 @@ def open_camera(role: str, lab, **kw):
     if cfg.kind == "replay":
         return ReplayCamera.from_config(cfg, root=getattr(lab, "root", None), name=role, **kw)
     if cfg.kind == "sim":
-        from ..sim.virtual import build_virtual_lab
-
-        vlab = build_virtual_lab(lab)
-        return vlab.cameras["fixed" if role.startswith("fixed") else "mobile"]
+        raise CameraError(f"{role} is simulated: the simulated lab serves it (labctl.workers.devices.open_device)")
     raise CameraError(f"{role}: unknown camera kind {cfg.kind!r}")

@@ -91,23 +91,23 @@ def _open_record(args: WorkerArgs):
 
 
 def _fixed_camera(args: WorkerArgs, lab):
-    from ..drivers.cameras import open_camera
+    from .devices import open_device
 
     if args.frame_server is not None:
         from ..sim.camera import FrameClient
 
         return FrameClient(args.frame_server[0], "fixed", args.frame_server[1])
-    return open_camera("fixed_camera", lab)
+    return open_device("fixed_camera", lab)
 
 
 def _mobile_camera(args: WorkerArgs, lab):
-    from ..drivers.cameras import open_camera
+    from .devices import open_device
 
     if args.frame_server is not None:
         from ..sim.camera import FrameClient
 
         return FrameClient(args.frame_server[0], "mobile", args.frame_server[1])
-    return open_camera("mobile_camera", lab)
+    return open_device("mobile_camera", lab)
 
 
 def predictor_main(args: WorkerArgs, link_end, control) -> None:

@@ -1,5 +1,7 @@
 """Build the device a lab's driver file names, and check devices (``labctl devices``).
 
+This is where drivers and the simulator meet (hence it lives above both, in ``workers``).
+
 ``open_device(role, lab)`` returns an unopened device for ``table``, ``robot``,
 ``fixed_camera`` or ``mobile_camera``: the real driver for real kinds; for ``kind: sim`` the
 same driver wired to an in-process emulator on a virtual clock (tables and robots) or the
@@ -11,8 +13,8 @@ from __future__ import annotations
 
 import time
 
+from ..drivers.cameras import open_camera
 from ..errors import LabctlError
-from .cameras import open_camera
 
 ROLES = ("table", "robot", "fixed_camera", "mobile_camera")
 
@@ -20,7 +22,7 @@ ROLES = ("table", "robot", "fixed_camera", "mobile_camera")
 def open_device(role: str, lab, *, port: str | None = None, baud: int | None = None):
     """The (unopened) device serving ``role`` in ``lab``; ``port``/``baud`` override the driver file."""
     if role == "table":
-        from .grbl import GrblTable
+        from ..drivers.grbl import GrblTable
 
         cfg = lab.table
         if cfg.kind == "sim" and port is None:
@@ -36,7 +38,7 @@ def open_device(role: str, lab, *, port: str | None = None, baud: int | None = N
             return dev
         return GrblTable.from_config(cfg, port=port or cfg.port, baud=baud or cfg.baud)
     if role == "robot":
-        from .robot import SerialRobot
+        from ..drivers.robot import SerialRobot
 
         cfg = lab.robot
         if cfg.kind == "sim" and port is None:
@@ -51,6 +53,11 @@ def open_device(role: str, lab, *, port: str | None = None, baud: int | None = N
             return dev
         return SerialRobot.from_config(cfg, port=port or cfg.port, baud=baud or cfg.baud)
     if role in ("fixed_camera", "mobile_camera", "fixed", "mobile"):
+        role = role if role.endswith("_camera") else f"{role}_camera"
+        if getattr(lab, role).kind == "sim":
+            from ..sim.virtual import build_virtual_lab
+
+            return build_virtual_lab(lab).cameras[role.removesuffix("_camera")]
         return open_camera(role, lab)
     raise LabctlError(f"unknown device role {role!r} (have: {', '.join(ROLES)})")
 
