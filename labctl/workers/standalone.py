@@ -44,6 +44,10 @@ def link_config(lab: Lab, link: str | None):
 
 
 def run_worker(lab: Lab, role: str, spec: dict, link: str | None) -> None:
+    own = ("table", "robot", "fixed_camera") if role == "predictor" else ("mobile_camera",)
+    if any(getattr(lab, r).kind == "sim" for r in own):
+        raise UserInputError(f"labctl worker {role} drives this host's real devices; the lab's driver files say "
+                             "'sim' (the simulated lab runs both workers with `labctl run`, any host link)")
     cfg = link_config(lab, link)
     lab = dataclasses.replace(lab, host_link=cfg)
     args = WorkerArgs(role=role, lab_root=str(lab.root), run_dir=None, spec=spec, origin=time.monotonic(),
