@@ -82,6 +82,14 @@ def _load_lab(args: WorkerArgs):
     return lab
 
 
+def _release(stop=(), close=()) -> None:
+    """Stop the moving devices, then close everything; a worker's exit path must never raise."""
+    for dev, method in [(d, "stop") for d in stop] + [(d, "close") for d in close]:
+        if dev is not None:
+            with contextlib.suppress(Exception):
+                getattr(dev, method)()
+
+
 def _open_record(args: WorkerArgs):
     if args.run_dir is None:
         return None
@@ -171,14 +179,7 @@ def predictor_main(args: WorkerArgs, link_end, control) -> None:
         log("worker_error", role="predictor", error=f"{type(exc).__name__}: {exc}", traceback=traceback.format_exc())
         ctl.send("error", f"predictor: {type(exc).__name__}: {exc}")
     finally:
-        for dev in (robot, table):
-            if dev is not None:
-                with contextlib.suppress(Exception):
-                    dev.stop()
-        for dev in (camera, robot, table, link):
-            if dev is not None:
-                with contextlib.suppress(Exception):
-                    dev.close()
+        _release(stop=(robot, table), close=(camera, robot, table, link))
 
 
 def recognizer_main(args: WorkerArgs, link_end, control) -> None:
@@ -221,10 +222,7 @@ def recognizer_main(args: WorkerArgs, link_end, control) -> None:
             traceback=traceback.format_exc())
         ctl.send("error", f"recognizer: {type(exc).__name__}: {exc}")
     finally:
-        for dev in (camera, link):
-            if dev is not None:
-                with contextlib.suppress(Exception):
-                    dev.close()
+        _release(close=(camera, link))
 
 
 def sim_server_main(lab_root: str, spec: dict, conn) -> None:
