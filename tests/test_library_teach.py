@@ -155,13 +155,21 @@ def test_overhead_camera_on_a_box_needs_the_top_face_of_every_resting_pose():
         assert tracked.tolist() == [1] and len(up) == 1
 
 
-def test_no_trackable_marker_for_the_overhead_camera_is_a_clear_error():
-    """The wedge resting on a slanted side shows its steepest upward face 48.7° off vertical."""
+def test_a_pose_no_face_can_serve_overhead_is_reported_untracked():
+    """The wedge resting on a slanted side shows its steepest upward face 48.7° off vertical: with a 40°
+    tracking limit that pose cannot be served overhead. Placement still covers the initial view and
+    every other pose overhead, and names the untracked pose (the tracker then follows red pixels)."""
     mesh = validate_model(samples.sample_objects()["wedge"], marker_radius_mm=8)
     poses = stable_poses(mesh)
-    with pytest.raises(ModelError, match="overhead camera"):
-        plan_markers(mesh, poses, 8.0, ViewingGeometry(n_yaw=72, overhead_max_tilt_deg=40.0))
-    assert len(plan_markers(mesh, poses, 8.0, ViewingGeometry(n_yaw=72, overhead_max_tilt_deg=50.0)).markers) >= 1
+    Ts = [T for T, _ in poses]
+    strict = ViewingGeometry(n_yaw=72, overhead_max_tilt_deg=40.0)
+    r = plan_markers(mesh, poses, 8.0, strict)
+    assert r.untracked_poses, "the slanted pose cannot be tracked at 40°"
+    over = check_overhead_coverage(mesh, Ts, r.markers, strict)
+    assert set(np.flatnonzero(over == 0)) == set(r.untracked_poses)
+    assert check_coverage(mesh, Ts, r.markers, strict, n_yaw=72).min() >= 1
+    loose = plan_markers(mesh, poses, 8.0, ViewingGeometry(n_yaw=72, overhead_max_tilt_deg=50.0))
+    assert loose.untracked_poses == [] and loose.min_overhead_visible >= 1
 
 
 def test_saved_object_round_trips(tmp_path):

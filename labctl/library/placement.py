@@ -102,11 +102,17 @@ class PlacementResult:
     coverage: np.ndarray = field(repr=False)  # (rows, chosen) bool, initial-view rows
     # (poses, chosen) bool: chosen marker visible to the overhead camera over the whole cone; None if not required
     overhead_coverage: np.ndarray | None = field(default=None, repr=False)
+    # stable poses in which no face at all can carry a marker the overhead camera tracks (best effort:
+    # there the fixed camera follows the red pixels of markers seen edge-on)
+    untracked_poses: list[int] = field(default_factory=list)
 
     @property
     def min_overhead_visible(self) -> int | None:
-        """Worst case over the stable poses of chosen markers the overhead camera sees over its whole cone."""
-        return None if self.overhead_coverage is None else int(self.overhead_coverage.sum(axis=1).min())
+        """Worst case over the trackable stable poses of chosen markers the overhead camera sees over its cone."""
+        if self.overhead_coverage is None:
+            return None
+        keep = np.setdiff1d(np.arange(len(self.overhead_coverage)), self.untracked_poses)
+        return int(self.overhead_coverage[keep].sum(axis=1).min()) if keep.size else 0
 
 
 # --- ray casting ------------------------------------------------------------------------
@@ -333,22 +339,18 @@ def plan_markers(mesh: trimesh.Trimesh, poses: list[tuple[np.ndarray, float]], r
             f"{view.angle_deg:g}°, max obliquity {view.max_obliquity_deg:g}°)")
     rows = vis
     over = None
+    untracked: list[int] = []
     if view.overhead_distance_mm is not None:
         over = overhead_visibility(mesh, sites, Ts, view)
-        bad = np.flatnonzero(~over.any(axis=1))
-        if bad.size:
-            p = int(bad[0])
-            raise ModelError(
-                f"no marker can be made visible to the overhead camera in stable pose {p} (probability "
-                f"{poses[p][1]:.3f}): no face that can hold a marker is within {view.overhead_max_tilt_deg:g}° of "
-                f"the vertical and in view over the whole {view.overhead_cone_deg:g}° field cone")
-        rows = np.vstack([vis, over])
+        trackable = over.any(axis=1)  # a pose no face can serve stays uncovered (reported, not fatal)
+        untracked = np.flatnonzero(~trackable).tolist()
+        rows = np.vstack([vis, over[trackable]])
     chosen, method, bound = set_cover(rows)
     markers = [Marker(i, sites[k].center, sites[k].normal, sites[k].radius) for i, k in enumerate(chosen)]
     cov = vis[:, chosen]
     return PlacementResult(markers=markers, candidates=sites, method=method, bound=bound,
                            n_rows=len(rows), min_visible=int(cov.sum(axis=1).min()), coverage=cov,
-                           overhead_coverage=None if over is None else over[:, chosen])
+                           overhead_coverage=None if over is None else over[:, chosen], untracked_poses=untracked)
 
 
 def check_coverage(mesh: trimesh.Trimesh, poses: list[np.ndarray], markers: list[Marker],

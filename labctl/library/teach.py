@@ -88,11 +88,14 @@ def teach_object(name: str, model: Path | str | trimesh.Trimesh, *, radius_mm: f
         p = int(np.argmin(counts.min(axis=1)))
         raise ModelError(f"{name}: in stable pose {p} (probability {poses[p][1]:.3f}) no marker is visible at "
                          f"{int((counts[p] == 0).sum())} of {counts.shape[1]} yaw angles")
-    overhead = None
+    overhead, untracked = None, []
     if view.overhead_distance_mm is not None:
         overhead = check_overhead_coverage(mesh, [T for T, _ in poses], markers, view)
-        if overhead.min() == 0:
-            p = int(np.argmin(overhead))
+        untracked = [int(p) for p in np.flatnonzero(overhead == 0)]
+        possible = set(untracked) if method == "given" else set(placement.untracked_poses)
+        missed = [p for p in untracked if p not in possible]
+        if missed:
+            p = missed[0]
             raise ModelError(f"{name}: in stable pose {p} (probability {poses[p][1]:.3f}) the overhead camera can "
                              f"track no marker (none within {view.overhead_max_tilt_deg:g}° of the vertical and in "
                              f"view over its {view.overhead_cone_deg:g}° field cone)")
@@ -122,6 +125,8 @@ def teach_object(name: str, model: Path | str | trimesh.Trimesh, *, radius_mm: f
                           "distance_mm": float(view.overhead_distance_mm), "cone_deg": float(view.overhead_cone_deg),
                           "max_tilt_deg": float(view.overhead_max_tilt_deg),
                           "min_tracked_markers": int(overhead.min()),
+                          "untracked_poses": untracked,
+                          "untracked_probability": round(sum(poses[p][1] for p in untracked), 4),
                           "tracked_markers_per_pose": [int(v) for v in overhead]}},
         "viewing_angle_sweep": sweep if sweep is not None else {},
         "standoff_mm": float(standoff_mm), "mm_per_px": float(scale_mm_per_px),
