@@ -102,3 +102,23 @@ def test_live_run_over_a_9600_bps_serial_host_link(tmp_path):
     link = res["link"]
     assert link["transport"] == "serial" and link["baud"] == 9600 and link["frames_dropped"] == 0
     assert link["utilisation"] < 0.3  # heartbeats and every request and answer, with room to spare
+
+
+@pytest.mark.timeout(180)
+def test_ctrl_c_stops_robot_and_table_and_keeps_the_record(lab):
+    before = set((lab / "runs").glob("*"))
+    p = _labctl("--lab", str(lab), "run", "--seed", "3")
+    try:
+        run_dir, _ = _wait_for(lambda: [d for d in (lab / "runs").glob("*") if d not in before],
+                               lambda evs: any(e["event"] == "segment" for e in evs), 120)
+        p.send_signal(signal.SIGINT)
+        out, err = p.communicate(timeout=30)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert p.returncode != 0 and "interrupted" in err and "record kept" in err
+    run = load_run(run_dir)
+    a = run.of("run_aborted")[-1]
+    assert set(a["devices_stopped"]) == {"robot", "table"}
+    assert not a["devices_after_stop"]["robot_moving"] and not a["devices_after_stop"]["table_moving"]
+    assert run.result["identity"] is None and "interrupted" in run.result["failure"]
