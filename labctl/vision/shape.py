@@ -56,6 +56,10 @@ _FREEMAN_STEPS = np.array([(1, 0), (1, -1), (0, -1), (-1, -1), (-1, 0), (-1, 1),
 _STEP_TO_CODE = {tuple(s): i for i, s in enumerate(_FREEMAN_STEPS)}
 
 
+BORDER_PX = 6  # width of the image border taken as background
+BACKGROUND_MARGIN = 12.0  # grey levels above the background's 99.5th percentile that count as object
+
+
 class ShapeError(ValueError):
     """No usable silhouette in an image (empty, touching the border, too small)."""
 
@@ -65,7 +69,8 @@ def silhouette_mask(image: np.ndarray, *, min_area_px: int = 200, red_is_object:
                     max_levels: int = 3) -> np.ndarray:
     """Object silhouette (bool H×W) of a standard-view image against the darker background.
 
-    Otsu threshold on grey level (objects are lighter than the table), red marker pixels
+    Otsu threshold on grey level (objects are lighter than the table), lowered to just above the
+    background seen at the image border when that is lower (faces in shadow), red marker pixels
     counted as object, largest connected component kept and its holes filled. A view taken
     nearly horizontally (a marker on a side face) shows a dark void above the table's horizon;
     Otsu then separates void from table+object and the component touches the border, so the
@@ -81,14 +86,20 @@ def silhouette_mask(image: np.ndarray, *, min_area_px: int = 200, red_is_object:
         gray = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
         b, g, r = (img[..., i].astype(np.int16) for i in range(3))
         red = (r > g + 50) & (r > b + 50) if red_is_object else np.zeros(gray.shape, bool)
-    blur = cv2.GaussianBlur(gray, (5, 5), 0)
+    blur = cv2.medianBlur(gray, 5)  # kills sensor noise without moving edges (a Gaussian would spread them)
     values = blur.ravel()
+    # The image border is background (the object is centred and must be wholly in view): anything
+    # clearly brighter than the brightest background there is object, even a face in shadow that
+    # Otsu would put with the table.
+    ring = np.concatenate([blur[:BORDER_PX].ravel(), blur[-BORDER_PX:].ravel(),
+                           blur[:, :BORDER_PX].ravel(), blur[:, -BORDER_PX:].ravel()])
+    t_background = float(np.percentile(ring, 99.5)) + BACKGROUND_MARGIN
     error = ShapeError("no silhouette found in the image")
     for _ in range(max(1, max_levels)):
         if values.size < min_area_px:
             break
         t, _ = cv2.threshold(values.reshape(1, -1), 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
-        fg = (blur > t) | red
+        fg = (blur > min(t, t_background)) | red
         try:
             return _largest_filled(fg, min_area_px)
         except ShapeError as exc:
