@@ -323,11 +323,15 @@ class PredictorPlanner:
 
     def _try_spare(self, now: float) -> bool:
         """Another marker already resolved from the last two images, if one faces a new way."""
-        while self.spare_poses:
-            pose = self.spare_poses.pop(0)
+        def novelty(pose):  # the face turned furthest from every face already viewed shows most that is new
             n = np.asarray(pose.normal_w, dtype=float)
-            if any(float(n @ u) > np.cos(np.radians(20.0)) for u in self.used_normals):
-                continue  # the same face (or a parallel one): its view would tell nothing new
+            return min((float(np.arccos(np.clip(n @ u, -1.0, 1.0))) for u in self.used_normals), default=np.pi)
+
+        while self.spare_poses:
+            self.spare_poses.sort(key=novelty, reverse=True)
+            pose = self.spare_poses.pop(0)
+            if novelty(pose) < np.radians(20.0):
+                return False  # only faces parallel to viewed ones are left: their views would tell nothing new
             if self._use_pose(pose, now):
                 return True
         return False
