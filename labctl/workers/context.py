@@ -20,7 +20,7 @@ from ..library.storage import load_library
 from ..planning import Limits
 
 #: the planner keeps this fraction of the controller's limits in hand (latency, sampling, round-off)
-LIMIT_MARGIN = 0.95
+LIMIT_MARGIN = 0.98
 
 
 def planning_limits(robot_cfg) -> Limits:

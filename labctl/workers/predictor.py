@@ -302,10 +302,9 @@ class PredictorPlanner:
         return True
 
     # -- capture ---------------------------------------------------------------------------------
-    def _request_capture(self, now: float, kind: str) -> None:
-        T_w_f = self.robot.status().T_base_flange  # robot base = world
+    def _request_capture(self, now: float, kind: str, T_w_f: np.ndarray) -> None:
+        """Ask the recognizer for an image now; the camera pose comes from the robot's reported flange."""
         T_w_c2 = T_w_f @ self.ctx.T_f_c2
-        self.robot_path.append((now, T_w_f[:3, 3].tolist()))
         self.view_id += 1
         self.pending = self.view_id
         self.t_requested[self.view_id] = now
@@ -466,7 +465,7 @@ class PredictorPlanner:
             self.t_robot_log = now
             self.log("robot", t=now, p=self._flange_state(now)[0][0], planned=True)
         if self.stage in ("intercept", "initial", "standard") and self.pending is None and self.plan is not None:
-            if now < self.plan.t_hit + self.plan_shift + 0.05:
+            if now < self.plan.t_hit + self.plan_shift:
                 self._replan(now)
                 return
             st = self.robot.status()
@@ -482,7 +481,7 @@ class PredictorPlanner:
                 self._enter("match", now)
             else:
                 self._enter("initial", now)
-            self._request_capture(now, kind)
+            self._request_capture(now, kind, st.T_base_flange)  # robot base = world
         if self.pending is not None and now - self.clock.started[self.stage] > 10.0:
             self.fail(now, f"the recognizer did not answer within 10 s (stage {self.stage})")
 
