@@ -28,9 +28,39 @@ from ..vision.shape import ShapeError, features_from_image, silhouette_mask
 from . import messages as m
 from .context import RunContext
 
-#: a marker of the second image pairs with one of the first if their centres lie this close (mm, W);
-#: the object moves ~10 mm between the images, the two candidate centres differ by a few mm
-PAIR_MAX_MM = 30.0
+#: after the common shift, a marker of the second image pairs with one of the first if their centres lie
+#: this close (mm, W); the two candidate centres of one marker differ by a few mm
+PAIR_MAX_MM = 12.0
+
+
+def _mid(poses) -> np.ndarray:
+    return 0.5 * (np.asarray(poses[0].center) + np.asarray(poses[1].center))
+
+
+def pair_markers(first: list, second: list, tol_mm: float = PAIR_MAX_MM) -> list[tuple[int, int]]:
+    """Pairs (k, j) of the same markers seen in two images of an object that translated between them.
+
+    Every pairing of a first-image marker with a second-image one proposes the shift; the shift that
+    pairs the most markers within ``tol_mm`` (then the smallest residual) wins; pairs are one-to-one
+    and ordered as ``first``. Works for any speed of the table (the shift is not assumed small).
+    """
+    if not first or not second:
+        return []
+    a, b = np.asarray(first, float), np.asarray(second, float)
+    best, best_key = [], None
+    for d in (b[None, :, :] - a[:, None, :]).reshape(-1, 3):
+        dist = np.linalg.norm(a[:, None, :] + d - b[None, :, :], axis=2)
+        pairs, used, cost = [], set(), 0.0
+        for k in range(len(a)):
+            j = int(np.argmin(dist[k]))
+            if dist[k, j] <= tol_mm and j not in used:
+                pairs.append((k, j))
+                used.add(j)
+                cost += float(dist[k, j])
+        key = (-len(pairs), cost, float(np.linalg.norm(d)))
+        if best_key is None or key < best_key:
+            best, best_key = pairs, key
+    return best
 
 
 def _to_world(T_w_c: np.ndarray, pose: CirclePose) -> CirclePose:
@@ -109,17 +139,11 @@ class Recognizer:
             self.log("marker_candidates", t=frame.t, view_id=msg.view_id, ellipse=marker.ellipse.to_dict(),
                      candidates=[p.to_dict() for p in poses], markers=len(found))
             return [m.FrameTaken(view_id=msg.view_id, t=frame.t)]
-        # initial2: pair each marker of the first image with the second image's marker nearest its centre
+        # initial2: the object translated between the images; pair the markers under one common shift
         self.save_image("initial2", frame.image)
         replies: list[m.Message] = [m.FrameTaken(view_id=msg.view_id, t=frame.t)]
-        used: set[int] = set()
-        for k, (mk1, poses1) in enumerate(self.first):
-            ref = 0.5 * (poses1[0].center + poses1[1].center)
-            dist = [float(np.linalg.norm(0.5 * (p[0].center + p[1].center) - ref)) for _, p in found]
-            j = int(np.argmin(dist))
-            if j in used or dist[j] > PAIR_MAX_MM:
-                continue
-            used.add(j)
+        for k, j in pair_markers([_mid(p) for _, p in self.first], [_mid(p) for _, p in found]):
+            mk1, poses1 = self.first[k]
             mk2, poses2 = found[j]
             res = resolve_duality_detailed(poses1, poses2, motion="translation")
             pose = res.best
@@ -138,10 +162,31 @@ class Recognizer:
         return replies
 
     # -- standard view (paper §3.4) -----------------------------------------------------------------
+    def _misaligned(self, image: np.ndarray) -> str | None:
+        """Why this is no standard view, or None: along the marker's normal the marker is a circle
+        (axis ratio ≥ 0.85) at the image centre (within 15 % of the width)."""
+        cam = self.ctx.mobile_camera
+        centre = np.array([cam.width, cam.height]) / 2.0
+        markers = detect_markers(image, **self.detect_kw)
+        if not markers:
+            return "no marker in view"
+        mk = min(markers, key=lambda mk: float(np.hypot(*(np.asarray(mk.centroid) - centre))))
+        off = float(np.hypot(*(np.asarray(mk.centroid) - centre)))
+        ratio = float(mk.ellipse.axes[1] / mk.ellipse.axes[0])
+        if off > 0.15 * cam.width:
+            return f"marker {off:.0f} px from the image centre"
+        if ratio < 0.85:
+            return f"marker seen obliquely (axis ratio {ratio:.2f})"
+        return None
+
     def _standard(self, msg: m.CaptureRequest, frame: Frame) -> m.Message:
         self.n_standard += 1
         k = self.n_standard
         self.save_image(f"standard_{k}", frame.image)
+        problem = self._misaligned(frame.image)
+        if problem:  # a view not along the normal would be matched against the wrong standard view
+            self.log("standard_view_misaligned", t=frame.t, view_id=msg.view_id, view=k, problem=problem)
+            return m.Failure(code=m.FailureCode.NO_MATCH, text=f"standard view {k} is not along the marker normal")
         scale = mm_per_px(self.ctx.mobile_camera, self.ctx.lab.config.viewing.standoff_mm)
         try:
             mask = silhouette_mask(frame.image)
