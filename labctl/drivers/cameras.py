@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import DeviceError
-from .interfaces import Frame
+from .interfaces import Frame, OpenClose
 from .serial_link import DeviceTimeout
 
 log = logging.getLogger(__name__)
@@ -37,7 +37,7 @@ class CameraError(DeviceError):
     """The camera could not be opened or stopped delivering frames."""
 
 
-class V4L2Camera:
+class V4L2Camera(OpenClose):
     """A V4L2 camera through OpenCV with latest-frame semantics."""
 
     def __init__(self, device, width: int = 640, height: int = 480, fps: float = 30.0,
@@ -134,13 +134,6 @@ class V4L2Camera:
             self._cap.release()
             self._cap = None
 
-    def __enter__(self):
-        self.open()
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
-
 
 def list_stamped_frames(folder: str | Path) -> list[tuple[float, Path]]:
     """(t, path) of the frames in a replay folder, by time: ``index.csv`` if present, else the names."""
@@ -169,7 +162,7 @@ def list_stamped_frames(folder: str | Path) -> list[tuple[float, Path]]:
     return frames
 
 
-class ReplayCamera:
+class ReplayCamera(OpenClose):
     """Frames from a folder, each stamped with its recorded capture time (s)."""
 
     def __init__(self, folder: str | Path, clock: Callable[[], float] | None = None, loop: bool = False,
@@ -228,13 +221,6 @@ class ReplayCamera:
         if self._frames:
             d.update(t_first=self._frames[0][0], t_last=self._frames[-1][0])
         return d
-
-    def __enter__(self):
-        self.open()
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
 
 
 def save_stamped_frame(folder: str | Path, frame: Frame) -> Path:

@@ -30,7 +30,7 @@ from .grbl_protocol import (
     parse_line,
     parse_version,
 )
-from .interfaces import TableStatus
+from .interfaces import OpenClose, TableStatus
 from .serial_link import DeviceTimeout, ProtocolError, SerialLink
 
 log = logging.getLogger(__name__)
@@ -73,7 +73,7 @@ def clean_line(line: str) -> str:
     return "".join(line.split())
 
 
-class GrblTable:
+class GrblTable(OpenClose):
     """:class:`labctl.drivers.interfaces.Table` for a GRBL 1.1 controller."""
 
     def __init__(self, port: str | None = None, baud: int = 9600, *, timeout_s: float = 5.0,
@@ -121,13 +121,6 @@ class GrblTable:
 
     def close(self) -> None:
         self.link.close()
-
-    def __enter__(self):
-        self.open()
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
 
     def _connect(self) -> None:
         """Find the controller alive: banner (board reset on open) or a status report (no reset)."""

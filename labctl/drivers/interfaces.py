@@ -12,6 +12,17 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 
+class OpenClose:
+    """``with device:`` opens the device and closes it again (every device has ``open``/``close``)."""
+
+    def __enter__(self):
+        self.open()
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
 @dataclass(frozen=True)
 class Frame:
     """One camera image with its capture time (s, on the runtime's clock) and sequence number."""

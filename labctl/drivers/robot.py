@@ -17,7 +17,7 @@ import numpy as np
 
 from ..errors import DeviceError
 from ..geometry import make_T, matrix_to_rotvec, rotvec_to_matrix
-from .interfaces import RobotStatus
+from .interfaces import OpenClose, RobotStatus
 from .robot_protocol import ERROR_CODES, MAX_SEQ, RobotReply, format_request, parse_reply
 from .serial_link import DeviceTimeout, LinkError, SerialLink
 
@@ -40,7 +40,7 @@ class RobotFault(DeviceError):
     """The controller stopped on its own (watchdog) and needs CLEAR."""
 
 
-class SerialRobot:
+class SerialRobot(OpenClose):
     """:class:`labctl.drivers.interfaces.Robot` over a serial port or pyserial URL."""
 
     def __init__(self, port: str | None = None, baud: int = 9600, *, timeout_s: float = 2.0,
@@ -76,13 +76,6 @@ class SerialRobot:
 
     def close(self) -> None:
         self.link.close()
-
-    def __enter__(self):
-        self.open()
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
 
     # --- requests ---------------------------------------------------------------------------
     def _on_async(self, line: str) -> None:

@@ -23,6 +23,7 @@ import time
 from collections.abc import Callable
 
 from ..errors import DeviceError
+from .interfaces import OpenClose
 
 log = logging.getLogger(__name__)
 
@@ -39,7 +40,7 @@ class ProtocolError(DeviceError):
     """The device answered something the protocol does not allow (lost or garbled replies)."""
 
 
-class SerialLink:
+class SerialLink(OpenClose):
     """A polled line link over a pyserial port (or anything pyserial-like passed as ``port``)."""
 
     def __init__(self, url: str | None = None, baud: int = 9600, timeout_s: float = 2.0, *, port=None,
@@ -108,13 +109,6 @@ class SerialLink:
             except LinkError as exc:
                 last = exc
         raise LinkError(f"{self.name}: reconnect failed after {attempts} attempts: {last}")
-
-    def __enter__(self):
-        self.open()
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
 
     # --- bytes ------------------------------------------------------------------------------
     def write(self, data: bytes) -> None:

@@ -22,14 +22,14 @@ from multiprocessing.connection import Client, Listener
 
 import numpy as np
 
-from ..drivers.interfaces import Camera, Frame
+from ..drivers.interfaces import Camera, Frame, OpenClose
 from ..errors import DeviceError
 from .world import CAMERA_ROLES, SimWorld, WorldError
 
 _ROLE_CODE = {"fixed": 1, "mobile": 2}
 
 
-class SimCamera:
+class SimCamera(OpenClose):
     """A camera of the simulated world (``role`` ``fixed`` or ``mobile``) on ``clock``."""
 
     def __init__(self, world: SimWorld, role: str, clock, *, fps: float = 30.0, seed: int = 0,
@@ -53,13 +53,6 @@ class SimCamera:
 
     def close(self) -> None:
         self._open = False
-
-    def __enter__(self) -> SimCamera:
-        self.open()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
 
     def frame_time(self, seq: int) -> float:
         return seq / self.fps
@@ -197,7 +190,7 @@ class FrameServer:
                         return
 
 
-class FrameClient:
+class FrameClient(OpenClose):
     """A Camera served by a :class:`FrameServer` (in another process or on another host)."""
 
     def __init__(self, address, role: str, authkey: bytes, *, timeout_s: float = 5.0):
@@ -249,10 +242,3 @@ class FrameClient:
 
     def info(self) -> dict:
         return self._ask(("info", self.role))
-
-    def __enter__(self) -> FrameClient:
-        self.open()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
