@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 
 import click
@@ -79,26 +80,16 @@ def run_cmd(trajectory, speed, object_name, seed, virtual) -> None:
         raise LabctlError(f"interrupted: robot and table stopped; record kept in {record.path}") from None
     except LabctlError as exc:
         record.finish({"identity": None, "failure": str(exc)})
-        with _quiet():
+        with contextlib.suppress(Exception):  # a report that cannot be drawn must not hide the error
             write_report(record.path)
         raise LabctlError(f"{exc} (record: {record.path})") from None
     result["record"] = str(record.path)
     record.finish(result)
-    with _quiet():
+    with contextlib.suppress(Exception):  # nor the run's own result
         result["report"] = str(write_report(record.path))
     emit(result, lambda con: _print_result(con, result, record.path))
     if not result.get("identity"):
         return 1
-
-
-class _quiet:
-    """A report that cannot be drawn must not hide the run's own result."""
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, exc_type, exc, tb):
-        return exc_type is not None and issubclass(exc_type, Exception)
 
 
 def _run_live(c, lab, spec, record) -> dict:
