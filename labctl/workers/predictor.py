@@ -107,8 +107,8 @@ class PredictorPlanner:
         self.cfg = cfg
         self.tracker = MarkerTracker.from_config(cfg.tracking)
         self.stage = "wait"
-        self.clock = StageClock()
-        self.clock.enter("wait", t_start)
+        self.stage_times = StageClock()
+        self.stage_times.enter("wait", t_start)
         self.t_start = t_start
         self.deadline = t_start + cfg.run.timeout_s
         self.n_updates = 0
@@ -124,7 +124,6 @@ class PredictorPlanner:
         self.views_used = 0
         self.markers_tried = 0
         self.azimuth_deg: float | None = None
-        self.image_azimuths: list[float] = []
         self.marker_pose: m.MarkerPose | None = None
         self.R_w_c_ref = np.eye(3)
         self.t_requested: dict[int, float] = {}
@@ -149,7 +148,7 @@ class PredictorPlanner:
         return self.stage in ("done", "failed")
 
     def _enter(self, stage: str, now: float) -> None:
-        self.clock.enter(stage, now)
+        self.stage_times.enter(stage, now)
         self.stage = stage
         self.log("stage", t=now, stage=stage)
 
@@ -407,7 +406,6 @@ class PredictorPlanner:
             self.t_requested[msg.view_id] = msg.t  # the image's own time
         if isinstance(msg, m.FrameTaken) and msg.view_id == self.pending and self.plan_kind == "initial1":
             self.pending = None
-            self.image_azimuths.append(self.azimuth_deg)
             self.azimuth_deg += self.cfg.run.second_image_azimuth_deg
             self._plan_initial(now, "initial2")
         elif isinstance(msg, m.MarkerPose) and msg.view_id == self.pending:
@@ -482,15 +480,15 @@ class PredictorPlanner:
             else:
                 self._enter("initial", now)
             self._request_capture(now, kind, st.T_base_flange)  # robot base = world
-        if self.pending is not None and now - self.clock.started[self.stage] > 10.0:
+        if self.pending is not None and now - self.stage_times.started[self.stage] > 10.0:
             self.fail(now, f"the recognizer did not answer within 10 s (stage {self.stage})")
 
     # -- result ------------------------------------------------------------------------------------
     def result(self, now: float) -> dict:
-        if self.clock.current is not None and self.clock.current not in ("done", "failed"):
-            self.clock.enter(self.clock.current, now)
+        if self.stage_times.current is not None and self.stage_times.current not in ("done", "failed"):
+            self.stage_times.enter(self.stage_times.current, now)
         ident = self.identity
-        t_id = (self.clock.started.get("done") - self.t_start) if ident is not None else None
+        t_id = (self.stage_times.started.get("done") - self.t_start) if ident is not None else None
         lower = lower_q = None
         if t_id is not None and self.t_first_seen is not None:
             fixed = (self.t_first_seen - self.t_start) + self.cfg.tracking.min_track_s
@@ -503,6 +501,6 @@ class PredictorPlanner:
             "lower_bound_s": lower,
             "lower_bound_quintic_s": lower_q,
             "views": self.views_used,
-            "stages": {k: round(v, 4) for k, v in self.clock.durations.items()},
+            "stages": {k: round(v, 4) for k, v in self.stage_times.durations.items()},
             "failure": self.failure,
         }
