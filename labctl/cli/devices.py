@@ -36,6 +36,7 @@ _timeout = click.option("--timeout", "timeout_s", type=float, default=None, help
 
 
 def _open_table(port: str | None, baud: int | None, timeout_s: float | None):
+    """The table named by --port/--baud (else the lab's), unopened: use it as ``with _open_table(...) as t``."""
     from ..drivers.grbl import GrblTable
     from ..errors import UserInputError
 
@@ -45,10 +46,8 @@ def _open_table(port: str | None, baud: int | None, timeout_s: float | None):
         raise UserInputError("no table port: pass --port PORT (the lab's table is simulated; "
                              "`labctl sim serve` prints a port to use)")
     kw = {"timeout_s": timeout_s} if timeout_s else {}
-    table = GrblTable(port, baud or cfg.baud, reset_on_open=cfg.reset_on_open, status_hz=cfg.status_hz,
-                      **({"timeout_s": cfg.timeout_s} | kw))
-    table.open()
-    return table
+    return GrblTable(port, baud or cfg.baud, reset_on_open=cfg.reset_on_open, status_hz=cfg.status_hz,
+                     **({"timeout_s": cfg.timeout_s} | kw))
 
 
 def _status_dict(table, st) -> dict:
@@ -79,11 +78,8 @@ def table_group() -> None:
 @json_option
 def table_status(port, baud, timeout_s) -> None:
     """The table's state and machine position (mm)."""
-    table = _open_table(port, baud, timeout_s)
-    try:
+    with _open_table(port, baud, timeout_s) as table:
         d = _status_dict(table, table.status())
-    finally:
-        table.close()
     emit(d, _print_status(d))
 
 
@@ -94,12 +90,9 @@ def table_status(port, baud, timeout_s) -> None:
 @json_option
 def table_home(port, baud, timeout_s) -> None:
     """Run the homing cycle ($H)."""
-    table = _open_table(port, baud, timeout_s)
-    try:
+    with _open_table(port, baud, timeout_s) as table:
         table.home()
         d = _status_dict(table, table.status())
-    finally:
-        table.close()
     emit(d, _print_status(d))
 
 
@@ -111,14 +104,11 @@ def table_home(port, baud, timeout_s) -> None:
 @json_option
 def table_reset(unlock, port, baud, timeout_s) -> None:
     """Soft reset (Ctrl-X): stop at once and clear a locked alarm; then optionally unlock."""
-    table = _open_table(port, baud, timeout_s)
-    try:
+    with _open_table(port, baud, timeout_s) as table:
         table.reset()
         if unlock and table.status().state == "Alarm":
             table.unlock()
         d = _status_dict(table, table.status())
-    finally:
-        table.close()
     emit(d, _print_status(d))
 
 
@@ -136,13 +126,10 @@ def table_move(x, y, feed, port, baud, timeout_s) -> None:
 
     if feed is not None and feed <= 0:
         raise UserInputError(f"--feed must be positive (mm/min), got {feed}")
-    table = _open_table(port, baud, timeout_s)
-    try:
+    with _open_table(port, baud, timeout_s) as table:
         table.ensure_ready()
         st = table.move_to(x, y, feed)
         d = _status_dict(table, st)
-    finally:
-        table.close()
     emit(d, _print_status(d))
 
 
@@ -160,8 +147,7 @@ def table_stream(file, no_wait, port, baud, timeout_s) -> None:
     from ..drivers.programs import load_gcode
 
     lines = load_gcode(file)
-    table = _open_table(port, baud, timeout_s)
-    try:
+    with _open_table(port, baud, timeout_s) as table:
         table.ensure_ready()
         t0 = time.monotonic()
         sent = table.stream(lines)
@@ -170,8 +156,6 @@ def table_stream(file, no_wait, port, baud, timeout_s) -> None:
         d = _status_dict(table, st) | {"lines": sent, "accepted_s": round(t_accepted, 3),
                                        "total_s": round(time.monotonic() - t0, 3),
                                        "status_reports": table.status_reports}
-    finally:
-        table.close()
 
     def human(console):
         _print_status(d)(console)
