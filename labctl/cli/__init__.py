@@ -27,7 +27,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "teach-object": ("labctl.cli.library", "teach_object_cmd"),
     "library": ("labctl.cli.library", "library_group"),
     "run": ("labctl.cli.run", "run_cmd"),
-    "trials": ("labctl.cli.run", "trials_cmd"),
+    "trials": ("labctl.cli.trials", "trials_cmd"),
     "replay": ("labctl.cli.run", "replay_cmd"),
     "worker": ("labctl.cli.run", "worker_cmd"),
     "bench": ("labctl.cli.bench", "bench_group"),

@@ -1,4 +1,4 @@
-"""``labctl run``, ``labctl trials``, ``labctl replay`` and ``labctl worker``: the main job."""
+"""``labctl run``, ``labctl replay`` and ``labctl worker``: the main job."""
 
 from __future__ import annotations
 
@@ -140,62 +140,6 @@ class _LiveView:
 
     def __exit__(self, *exc):
         return self.live.__exit__(*exc)
-
-
-@click.command("trials")
-@click.option("--n", "n", type=int, default=20, show_default=True, help="Number of simulated runs.")
-@click.option("--trajectory", default=None, help="line, arc, circle or zigzag (default: lab.yaml).")
-@click.option("--speed", default=None, help="Table speed mm/s, or a comma-separated list to sweep.")
-@click.option("--objects", default=None, help="Comma-separated objects to cycle through (default: all).")
-@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the first trial.")
-@click.option("--record/--no-record", default=True, show_default=True, help="Keep a run record per trial.")
-@json_option
-def trials_cmd(n, trajectory, speed, objects, seed, record) -> None:
-    """Many simulated runs in virtual time with deterministic seeds: success and timing tables."""
-    from ..workers.trials import run_trials
-
-    c = get_ctx()
-    lab = c.lab()
-    if n < 1:
-        raise UserInputError(f"--n must be at least 1, got {n}")
-    try:
-        speeds = [float(s) for s in speed.split(",")] if speed else [lab.config.run.speed_mm_s]
-    except ValueError:
-        raise UserInputError(f"--speed must be numbers separated by commas, got {speed!r}") from None
-    for s in speeds:
-        _speed(s, lab)
-    names = [o.strip() for o in objects.split(",") if o.strip()] if objects else None
-    traj = trajectory or lab.config.run.trajectory
-    if traj not in TRAJECTORIES:
-        raise UserInputError(f"--trajectory must be one of {', '.join(TRAJECTORIES)}, got {traj!r}")
-    progress = None if c.json else c.console
-    summary = run_trials(lab, n=n, trajectory=traj, speeds=speeds, objects=names, seed=seed, record=record,
-                         console=progress)
-    emit(summary, lambda con: _print_trials(con, summary))
-
-
-def _num(value, unit: str = "") -> str:
-    return "-" if value is None else f"{value:.2f}{unit}"
-
-
-def _print_trials(console, s: dict) -> None:
-    from rich.table import Table
-
-    t = Table("speed mm/s", "n", "success", "time to identity (median)", "×lower bound", "×quintic bound",
-              "views (mean)", title="trials")
-    for row in s["by_speed"]:
-        t.add_row(f"{row['speed_mm_s']:g}", str(row["n"]), f"{100 * row['success_rate']:.1f} %",
-                  _num(row["time_to_identity_s_median"], " s"), _num(row["ratio_to_lower_bound_median"]),
-                  _num(row["ratio_to_quintic_bound_median"]), f"{row['views_mean']:.2f}")
-    console.print(t)
-    st = Table("stage", "median s", title="stage timings")
-    for k, v in s["stage_medians_s"].items():
-        st.add_row(k, f"{v:.2f}")
-    console.print(st)
-    console.print(f"success rate {100 * s['success_rate']:.1f} % of {s['n']} trials")
-    for f in s["failed"]:
-        console.print(f"[red]failed[/] seed {f['seed']} {f['true_identity']} @ {f['speed_mm_s']} mm/s: "
-                      f"{f.get('failure') or 'identified as ' + str(f.get('identity'))}  {f.get('record') or ''}")
 
 
 @click.command("replay")

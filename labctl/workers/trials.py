@@ -1,61 +1,275 @@
-"""Many simulated runs in virtual time (``labctl trials``): success rates and timing tables."""
+"""Many simulated runs in virtual time (``labctl trials``): a sweep, its executors and its summary.
+
+A sweep is one folder, ``runs/trials-<UTC timestamp>/``:
+
+* ``spec.json``: what was asked (trajectory, speeds, objects, seeds, lab) — enough to resume;
+* ``results.jsonl``: one line per finished trial, appended as trials finish (any order);
+* ``trials/<index>-seed<seed>/``: each trial's run record (unless records are off);
+* ``summary.json`` and ``report.html`` (+ ``report.png``) once the sweep ends or is interrupted.
+
+Each trial is a pure function of (lab, spec): the virtual runtime is deterministic per seed, so the
+executors — in process, a local process pool (``--jobs``) or a Dask cluster (``--scheduler``) —
+give identical results, and the summary is computed from results sorted by trial index.
+"""
 
 from __future__ import annotations
 
+import json
+import os
+import shutil
 import statistics
-from collections.abc import Sequence
+import time
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from dataclasses import asdict
+from datetime import UTC, datetime
+from pathlib import Path
 
-from ..config import Lab
-from .context import RunContext
-from .virtual import TrialSpec, simulate_run
+from ..errors import UserInputError
+from .virtual import TrialSpec
+
+SPEC = "spec.json"
+RESULTS = "results.jsonl"
+SUMMARY = "summary.json"
+
+# Per-process cache of loaded labs and run contexts: a pool worker loads the library once.
+_CONTEXTS: dict[str, tuple] = {}
 
 
-def _median(values):
+def _context(lab_root: str):
+    if lab_root not in _CONTEXTS:
+        from ..config import load_lab
+        from .context import RunContext
+
+        lab = load_lab(Path(lab_root))
+        _CONTEXTS[lab_root] = (lab, RunContext.load(lab))
+    return _CONTEXTS[lab_root]
+
+
+def run_one(lab_root: str, index: int, spec: dict, records_dir: str | None) -> dict:
+    """Run trial ``index`` (a :class:`TrialSpec` as a dict) and return its JSON-able result.
+
+    Top-level and argument-only so that process pools and Dask workers can call it."""
+    from ..records import RunRecord
+    from ..records.record import to_jsonable
+    from .virtual import simulate_run
+
+    lab, ctx = _context(lab_root)
+    trial = TrialSpec(**spec)
+    rec = None
+    if records_dir is not None:
+        rec = RunRecord.create(records_dir, {"command": "trials", "index": index, **spec}, durable=False)
+        # Rename to a stable, sortable name: the record of trial k is trials/<k>-seed<seed>/.
+        stable = Path(records_dir) / f"{index:05d}-seed{trial.seed}"
+        if stable.exists():  # a trial cut off by an interrupted sweep: run it again from scratch
+            shutil.rmtree(stable)
+        rec.path.rename(stable)
+        rec = RunRecord.open(stable, durable=False)
+    res = simulate_run(lab, ctx, trial, rec)
+    res["index"] = index
+    if rec is not None:
+        res["record"] = str(rec.path)
+        rec.finish(res)
+        rec.close()
+    return to_jsonable(res)
+
+
+def plan_specs(n: int, trajectory: str, speeds: Sequence[float], objects: Sequence[str], seed: int) -> list[dict]:
+    """``n`` trials per speed with seeds ``seed, seed+1, …``; objects cycle through ``objects``."""
+    return [asdict(TrialSpec(trajectory, float(v), objects[i % len(objects)], seed + i))
+            for v in speeds for i in range(n)]
+
+
+# ---- executors: each yields results as they finish -------------------------------------------------
+
+Job = tuple[int, dict]
+
+
+def _serial(lab_root: str, jobs: list[Job], records_dir: str | None) -> Iterator[dict]:
+    for index, spec in jobs:
+        yield run_one(lab_root, index, spec, records_dir)
+
+
+def _pool(lab_root: str, jobs: list[Job], records_dir: str | None, n_jobs: int) -> Iterator[dict]:
+    import multiprocessing as mp
+    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+
+    # forkserver: a clean interpreter per worker (no inherited threads or open ports), imports paid once.
+    with ProcessPoolExecutor(max_workers=n_jobs, mp_context=mp.get_context("forkserver"),
+                             initializer=_ignore_sigint) as pool:
+        pending = {pool.submit(run_one, lab_root, i, s, records_dir) for i, s in jobs}
+        try:
+            while pending:
+                done, pending = wait(pending, return_when=FIRST_COMPLETED)
+                for f in done:
+                    yield f.result()
+        finally:
+            for f in pending:
+                f.cancel()
+
+
+def _ignore_sigint() -> None:
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent handles Ctrl-C and cancels the rest
+
+
+def _dask(lab_root: str, jobs: list[Job], records_dir: str | None, address: str) -> Iterator[dict]:
+    try:
+        from distributed import Client, as_completed
+    except ImportError:
+        raise UserInputError("--scheduler needs Dask: pip install 'labctl[cluster]'") from None
+    with Client(address) as client:
+        futures = [client.submit(run_one, lab_root, i, s, records_dir, pure=False, key=f"trial-{i}")
+                   for i, s in jobs]
+        try:
+            for f in as_completed(futures):
+                yield f.result()
+        finally:
+            client.cancel(futures)
+
+
+def execute(lab_root: str, jobs: list[Job], records_dir: str | None, *, n_jobs: int = 1,
+            scheduler: str | None = None) -> Iterator[dict]:
+    """Run ``jobs`` with the chosen executor, yielding each result when it finishes."""
+    if scheduler:
+        return _dask(lab_root, jobs, records_dir, scheduler)
+    if n_jobs > 1 and len(jobs) > 1:
+        return _pool(lab_root, jobs, records_dir, min(n_jobs, len(jobs)))
+    return _serial(lab_root, jobs, records_dir)
+
+
+# ---- the sweep folder ---------------------------------------------------------------------------------
+
+class Sweep:
+    """One sweep's folder: its spec, the results so far (append-only) and the summary."""
+
+    def __init__(self, path: Path):
+        self.path = Path(path)
+
+    @classmethod
+    def create(cls, runs_dir: Path, spec: dict) -> Sweep:
+        from ..fsutil import atomic_write_text
+
+        runs_dir.mkdir(parents=True, exist_ok=True)
+        stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
+        for k in range(1000):
+            path = runs_dir / (f"trials-{stamp}" if k == 0 else f"trials-{stamp}-{k:03d}")
+            try:
+                path.mkdir()
+                break
+            except FileExistsError:
+                continue
+        else:
+            raise UserInputError(f"more than 1000 sweeps started at {stamp} in {runs_dir}")
+        atomic_write_text(path / SPEC, json.dumps(spec, indent=2) + "\n")
+        (path / RESULTS).touch()
+        return cls(path)
+
+    @classmethod
+    def open(cls, path: Path) -> Sweep:
+        path = Path(path)
+        if not (path / SPEC).is_file():
+            raise UserInputError(f"{path} is not a trials sweep (no {SPEC})")
+        return cls(path)
+
+    @property
+    def spec(self) -> dict:
+        try:
+            return json.loads((self.path / SPEC).read_text())
+        except (OSError, ValueError) as exc:
+            raise UserInputError(f"{self.path / SPEC}: unreadable sweep spec ({exc})") from None
+
+    def results(self) -> dict[int, dict]:
+        """Finished results by trial index; a torn last line (a crash mid-write) is ignored."""
+        out: dict[int, dict] = {}
+        try:
+            lines = (self.path / RESULTS).read_text().splitlines()
+        except FileNotFoundError:
+            return out
+        for line in lines:
+            try:
+                r = json.loads(line)
+            except ValueError:
+                continue
+            out[int(r["index"])] = r
+        return out
+
+    def append(self, result: dict) -> None:
+        line = (json.dumps(result, allow_nan=False) + "\n").encode()
+        fd = os.open(self.path / RESULTS, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+        try:
+            os.write(fd, line)
+        finally:
+            os.close(fd)
+
+    def finish(self, summary: dict) -> None:
+        from ..fsutil import atomic_write_text
+        from ..records.sweep_report import write_sweep_report
+
+        atomic_write_text(self.path / SUMMARY, json.dumps(summary, indent=2, allow_nan=False) + "\n")
+        write_sweep_report(self.path, summary)
+
+
+def run_sweep(lab, *, n: int, trajectory: str, speeds: Sequence[float], objects: Sequence[str] | None,
+              seed: int = 0, record: bool = True, n_jobs: int = 1, scheduler: str | None = None,
+              resume: Path | None = None, on_result: Callable[[dict, int, int], None] | None = None) -> dict:
+    """Run (or resume) a sweep and return its summary; the summary is also written to the folder.
+
+    ``on_result(result, done, total)`` is called after each finished trial (progress). On
+    KeyboardInterrupt the partial summary is written and attached to the exception as ``.summary``."""
+    if resume is not None:
+        sweep = Sweep.open(resume)
+        spec = sweep.spec
+    else:
+        from .context import RunContext
+
+        names = list(objects) if objects else list(RunContext.load(lab).names)
+        library = RunContext.load(lab).library if objects else None
+        if library is not None:
+            missing = [o for o in names if o not in library]
+            if missing:
+                raise UserInputError(f"no object {missing[0]!r} in the library (have: {', '.join(sorted(library))})")
+        spec = {"lab": str(lab.root), "trajectory": trajectory, "speeds": [float(v) for v in speeds],
+                "objects": names, "n": n, "seed": seed, "record": record,
+                "trials": plan_specs(n, trajectory, speeds, names, seed)}
+        sweep = Sweep.create(Path(lab.runs_dir), spec)
+    done = sweep.results()
+    jobs = [(i, s) for i, s in enumerate(spec["trials"]) if i not in done]
+    records_dir = str(sweep.path / "trials") if spec.get("record", True) else None
+    total = len(spec["trials"])
+    t0 = time.monotonic()
+    try:
+        for res in execute(spec["lab"], jobs, records_dir, n_jobs=n_jobs, scheduler=scheduler):
+            sweep.append(res)
+            done[res["index"]] = res
+            if on_result is not None:
+                on_result(res, len(done), total)
+    except KeyboardInterrupt as exc:
+        summary = _finish(sweep, done, total, time.monotonic() - t0, interrupted=True)
+        exc.summary = summary  # type: ignore[attr-defined]
+        raise
+    return _finish(sweep, done, total, time.monotonic() - t0, interrupted=False)
+
+
+def _finish(sweep: Sweep, done: dict[int, dict], total: int, wall_s: float, *, interrupted: bool) -> dict:
+    summary = summarize([done[i] for i in sorted(done)])
+    summary.update({"sweep": str(sweep.path), "planned": total, "interrupted": interrupted, "wall_s": wall_s})
+    sweep.finish(summary)
+    return summary
+
+
+# ---- the summary ----------------------------------------------------------------------------------------
+
+STAGE_ORDER = ("wait", "track", "intercept", "initial", "standard", "match", "done", "failed")
+
+
+def _median(values: Iterable) -> float | None:
     values = [v for v in values if v is not None]
     return statistics.median(values) if values else None
 
 
-def run_trials(lab: Lab, *, n: int, trajectory: str, speeds: Sequence[float], objects: Sequence[str] | None,
-               seed: int = 0, record: bool = True, console=None) -> dict:
-    """Run ``n`` trials per speed with seeds ``seed, seed+1, …``; objects cycle through ``objects``
-    (all of the library if None). Each trial keeps a run record (unless ``record`` is False)."""
-    from ..errors import UserInputError
-    from ..records import RunRecord
-
-    ctx = RunContext.load(lab)
-    names = list(objects) if objects else list(ctx.names)
-    missing = [o for o in names if o not in ctx.library]
-    if missing:
-        raise UserInputError(f"no object {missing[0]!r} in the library (have: {', '.join(ctx.names)})")
-    specs = [TrialSpec(trajectory, float(v), names[i % len(names)], seed + i) for v in speeds for i in range(n)]
-    results = []
-    progress = None
-    if console is not None:
-        from rich.progress import Progress
-
-        progress = Progress(console=console, transient=True)
-        progress.start()
-        task = progress.add_task("trials", total=len(specs))
-    try:
-        for spec in specs:
-            rec = None
-            if record:
-                rec = RunRecord.create(lab.runs_dir, {"command": "trials", **spec.__dict__}, durable=False)
-            res = simulate_run(lab, ctx, spec, rec)
-            if rec is not None:
-                res["record"] = str(rec.path)
-                rec.finish(res)
-                rec.close()
-            results.append(res)
-            if progress is not None:
-                progress.advance(task)
-    finally:
-        if progress is not None:
-            progress.stop()
-    return summarize(results)
-
-
 def summarize(results: list[dict]) -> dict:
+    """Success, time to identity and stage medians per speed; failures with their records."""
     by_speed = []
     for v in sorted({r["speed_mm_s"] for r in results}):
         rs = [r for r in results if r["speed_mm_s"] == v]
@@ -70,7 +284,8 @@ def summarize(results: list[dict]) -> dict:
             "ratio_to_quintic_bound_median": _median(ratios_q),
             "views_mean": statistics.fmean([r["views"] for r in rs]) if rs else 0.0,
         })
-    stages = sorted({k for r in results for k in r.get("stages", {})})
+    seen = {k for r in results for k in r.get("stages", {})}
+    stages = [k for k in STAGE_ORDER if k in seen] + sorted(seen - set(STAGE_ORDER))
     stage_medians = {k: _median([r["stages"].get(k) for r in results if r["correct"]]) for k in stages}
     link_util = [r["link"]["utilisation"] for r in results if "link" in r]
     return {
@@ -79,7 +294,8 @@ def summarize(results: list[dict]) -> dict:
         "by_speed": by_speed,
         "stage_medians_s": {k: v for k, v in stage_medians.items() if v is not None},
         "link_utilisation_median": _median(link_util),
-        "failed": [{k: r.get(k) for k in ("seed", "true_identity", "identity", "speed_mm_s", "failure", "record")}
+        "failed": [{k: r.get(k) for k in ("index", "seed", "true_identity", "identity", "speed_mm_s", "failure",
+                                          "record")}
                    for r in results if not r["correct"]],
         "trials": results,
     }

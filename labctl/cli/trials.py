@@ -1,0 +1,133 @@
+"""``labctl trials``: many simulated runs in virtual time, on this machine's cores or a Dask cluster."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import click
+
+from ..errors import UserInputError
+from ._common import emit, get_ctx, json_option
+from .run import TRAJECTORIES, _speed
+
+
+@click.command("trials")
+@click.option("--n", "n", type=int, default=20, show_default=True, help="Number of simulated runs per speed.")
+@click.option("--trajectory", default=None, help="line, arc, circle or zigzag (default: lab.yaml).")
+@click.option("--speed", default=None, help="Table speed mm/s, or a comma-separated list to sweep.")
+@click.option("--objects", default=None, help="Comma-separated objects to cycle through (default: all).")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the first trial.")
+@click.option("--record/--no-record", default=True, show_default=True, help="Keep a run record per trial.")
+@click.option("--jobs", "-j", type=int, default=None, help="Worker processes (default: all cores).")
+@click.option("--scheduler", default=None, metavar="ADDRESS",
+              help="Run on a Dask distributed cluster at ADDRESS (tcp://host:8786) instead of local processes.")
+@click.option("--resume", type=click.Path(path_type=Path), default=None,
+              help="Continue an interrupted sweep folder (runs/trials-…); other options are ignored.")
+@json_option
+def trials_cmd(n, trajectory, speed, objects, seed, record, jobs, scheduler, resume) -> None:
+    """Many simulated runs in virtual time with deterministic seeds, in parallel.
+
+    Writes one folder, runs/trials-<time>/: spec, per-trial results and records, summary.json and
+    report.html. Results do not depend on --jobs or --scheduler. Ctrl-C keeps and prints the partial summary."""
+    from ..workers.trials import run_sweep
+
+    c = get_ctx()
+    lab = c.lab()
+    if n < 1:
+        raise UserInputError(f"--n must be at least 1, got {n}")
+    n_jobs = (os.cpu_count() or 1) if jobs is None else jobs
+    if n_jobs < 1:
+        raise UserInputError(f"--jobs must be at least 1, got {jobs}")
+    try:
+        speeds = [float(s) for s in speed.split(",")] if speed else [lab.config.run.speed_mm_s]
+    except ValueError:
+        raise UserInputError(f"--speed must be numbers separated by commas, got {speed!r}") from None
+    for s in speeds:
+        _speed(s, lab)
+    names = [o.strip() for o in objects.split(",") if o.strip()] if objects else None
+    traj = trajectory or lab.config.run.trajectory
+    if traj not in TRAJECTORIES:
+        raise UserInputError(f"--trajectory must be one of {', '.join(TRAJECTORIES)}, got {traj!r}")
+    if resume is not None and not resume.is_dir():
+        raise UserInputError(f"--resume: no sweep folder at {resume}")
+
+    progress = None if c.json else _Progress(c.console)
+    try:
+        with progress or _nothing():
+            summary = run_sweep(lab, n=n, trajectory=traj, speeds=speeds, objects=names, seed=seed, record=record,
+                                n_jobs=n_jobs, scheduler=scheduler, resume=resume,
+                                on_result=progress.update if progress else None)
+    except KeyboardInterrupt as exc:
+        partial = getattr(exc, "summary", None)
+        if partial is not None:
+            emit(partial, lambda con: _print_trials(con, partial))
+        raise
+    emit(summary, lambda con: _print_trials(con, summary))
+
+
+class _nothing:
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+
+class _Progress:
+    """Completed trials, the success rate so far and the time left (rich)."""
+
+    def __init__(self, console):
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+        self.bar = Progress(TextColumn("trials"), BarColumn(), MofNCompleteColumn(),
+                            TextColumn("{task.fields[ok]}"), TimeRemainingColumn(), console=console, transient=True)
+        self.task = None
+        self.correct = 0
+        self.seen = 0
+
+    def __enter__(self):
+        self.bar.start()
+        return self
+
+    def __exit__(self, *exc):
+        self.bar.stop()
+        return False
+
+    def update(self, result: dict, done: int, total: int) -> None:
+        self.seen += 1
+        self.correct += bool(result.get("correct"))
+        ok = f"success {100 * self.correct / self.seen:.1f} %"
+        if self.task is None:
+            self.task = self.bar.add_task("trials", total=total, completed=done, ok=ok)
+        else:
+            self.bar.update(self.task, completed=done, ok=ok)
+
+
+def _num(value, unit: str = "") -> str:
+    return "-" if value is None else f"{value:.2f}{unit}"
+
+
+def _print_trials(console, s: dict) -> None:
+    from rich.table import Table
+
+    t = Table("speed mm/s", "n", "success", "time to identity (median)", "×lower bound", "×quintic bound",
+              "views (mean)", title="trials")
+    for row in s["by_speed"]:
+        t.add_row(f"{row['speed_mm_s']:g}", str(row["n"]), f"{100 * row['success_rate']:.1f} %",
+                  _num(row["time_to_identity_s_median"], " s"), _num(row["ratio_to_lower_bound_median"]),
+                  _num(row["ratio_to_quintic_bound_median"]), f"{row['views_mean']:.2f}")
+    console.print(t)
+    st = Table("stage", "median s", title="stage timings (pipeline order)")
+    for k, v in s["stage_medians_s"].items():
+        st.add_row(k, f"{v:.2f}")
+    console.print(st)
+    head = f"success rate {100 * s['success_rate']:.1f} % of {s['n']} trials"
+    if s.get("interrupted"):
+        head += f" (interrupted: {s['n']} of {s.get('planned')} done; --resume {s['sweep']} continues)"
+    console.print(head)
+    for f in s["failed"]:
+        console.print(f"[red]failed[/] seed {f['seed']} {f['true_identity']} @ {f['speed_mm_s']} mm/s: "
+                      f"{f.get('failure') or 'identified as ' + str(f.get('identity'))}  {f.get('record') or ''}")
+    if s.get("sweep"):
+        console.print(f"sweep: {s['sweep']}  (report.html, summary.json)")
