@@ -33,6 +33,16 @@ class Ctx:
             self._lab = load_lab(self.lab_root)
         return self._lab
 
+    def writable_lab(self, what: str):
+        """The lab, refusing the sample lab inside the installed package (never written to)."""
+        lab = self.lab()
+        if lab.is_packaged:
+            from ..errors import UserInputError
+
+            raise UserInputError(f"no lab workspace here, and {what} is never written into the installed sample lab: "
+                                 "run `labctl init DIR`, then work inside DIR (or pass --lab DIR)")
+        return lab
+
     @property
     def console(self):
         from rich.console import Console

@@ -99,7 +99,16 @@ class Lab:
         return self.root / "object_library"
 
     @property
+    def is_packaged(self) -> bool:
+        """True for the sample lab inside an installed labctl (never written to)."""
+        return self.root.name == "sample_lab" and (self.root.parent / "__init__.py").is_file()
+
+    @property
     def runs_dir(self) -> Path:
+        """``runs/`` of the workspace; for the packaged sample lab, the per-user data folder
+        (``$XDG_DATA_HOME/labctl/runs``, default ``~/.local/share/labctl/runs``)."""
+        if self.is_packaged:
+            return user_data_dir() / "runs"
         return self.root / "runs"
 
     @property
@@ -107,6 +116,14 @@ class Lab:
         return all(
             c.kind == "sim" for c in (self.table, self.robot, self.fixed_camera, self.mobile_camera)
         )
+
+
+def user_data_dir() -> Path:
+    """labctl's per-user data folder (XDG base directories): records of runs outside any workspace."""
+    import os
+
+    base = os.environ.get("XDG_DATA_HOME") or str(Path.home() / ".local" / "share")
+    return Path(base) / "labctl"
 
 
 def load_lab(root: Path | str) -> Lab:
