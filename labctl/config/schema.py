@@ -7,10 +7,12 @@ what was expected; unknown keys are errors, never silently ignored.
 from __future__ import annotations
 
 import dataclasses
+import math
+import re
 import types
 import typing
 from pathlib import Path
-from typing import Any, Literal, Union, get_args, get_origin
+from typing import Annotated, Any, Literal, Union, get_args, get_origin
 
 import yaml
 
@@ -39,8 +41,39 @@ def read_yaml(path: Path) -> Any:
         raise ConfigError(path, None, f"YAML does not parse: {where}{problem}") from None
 
 
+@dataclasses.dataclass(frozen=True)
+class Range:
+    """A numeric field's bounds, as ``Annotated[float, Range(gt=0)]``; checked at load time."""
+
+    gt: float | None = None
+    ge: float | None = None
+    le: float | None = None
+    lt: float | None = None
+
+    def problem(self, value: float) -> str | None:
+        for bound, ok, word in ((self.gt, lambda b: value > b, ">"), (self.ge, lambda b: value >= b, "≥"),
+                                (self.le, lambda b: value <= b, "≤"), (self.lt, lambda b: value < b, "<")):
+            if bound is not None and not ok(bound):
+                return f"{word} {bound:g}"
+        return None
+
+
+Positive = Annotated[float, Range(gt=0)]
+PositiveInt = Annotated[int, Range(gt=0)]
+NonNegative = Annotated[float, Range(ge=0)]
+
+# YAML 1.2 numbers that PyYAML (YAML 1.1) leaves as strings: 1e9, 1E-3, +2.5e3
+_YAML12_FLOAT = re.compile(r"^[-+]?(\d+\.?\d*|\.\d+)[eE][-+]?\d+$")
+
+
 def _type_name(tp) -> str:
     origin = get_origin(tp)
+    if origin is Annotated:
+        base, *meta = get_args(tp)
+        rng = next((m for m in meta if isinstance(m, Range)), None)
+        bounds = [f"{w} {b:g}" for b, w in ((rng.gt, ">"), (rng.ge, "≥"), (rng.le, "≤"), (rng.lt, "<"))
+                  if b is not None] if rng else []
+        return _type_name(base) + (f" {' and '.join(bounds)}" if bounds else "")
     if origin is Literal:
         return "one of " + ", ".join(repr(a) for a in get_args(tp))
     if origin in (Union, types.UnionType):
@@ -65,6 +98,18 @@ def convert(tp, value, file, key: str):
     fail = lambda: ConfigError(file, key, f"expected {_type_name(tp)}, got {value!r}")  # noqa: E731
     if tp is Any:
         return value
+    if origin is Annotated:
+        base, *meta = get_args(tp)
+        out = convert(base, value, file, key)
+        for m in meta:
+            problem = m.problem(out) if isinstance(m, Range) else None
+            if problem:
+                raise ConfigError(file, key, f"expected {_type_name(tp)}, got {value!r}")
+        return out
+    if isinstance(value, str) and tp in (float, int) and _YAML12_FLOAT.match(value.strip()):
+        value = float(value)
+        if tp is int and value.is_integer():
+            value = int(value)
     if origin in (Union, types.UnionType):
         args = get_args(tp)
         if value is None and type(None) in args:
@@ -91,6 +136,8 @@ def convert(tp, value, file, key: str):
         raise fail()
     if tp is float:
         if isinstance(value, int | float) and not isinstance(value, bool):
+            if not math.isfinite(value):
+                raise ConfigError(file, key, f"expected a finite number, got {value!r}")
             return float(value)
         raise fail()
     if tp is str:
@@ -125,7 +172,7 @@ def from_mapping(cls, data, file, key: str = ""):
         data = {}
     if not isinstance(data, dict):
         raise ConfigError(file, key or None, f"expected a mapping, got {data!r}")
-    hints = typing.get_type_hints(cls)
+    hints = typing.get_type_hints(cls, include_extras=True)
     fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
     unknown = sorted(set(map(str, data)) - set(fields))
     if unknown:
