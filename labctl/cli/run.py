@@ -219,6 +219,7 @@ def replay_cmd(run: Path) -> None:
 @click.option("--link", "link", default=None, help="tcp://HOST:PORT or a serial port (default: host_link.yaml).")
 @click.option("--trajectory", default=None)
 @click.option("--speed", type=float, default=None)
+@json_option
 def worker_cmd(role, link, trajectory, speed) -> None:
     """Run one worker on this host (two PCs: start one of each, linked by TCP or RS-232)."""
     from ..workers.standalone import run_worker
@@ -226,4 +227,7 @@ def worker_cmd(role, link, trajectory, speed) -> None:
     lab = get_ctx().lab()
     spec = {"trajectory": _trajectory(trajectory or lab.config.run.trajectory), "speed_mm_s": _speed(speed, lab),
             "object_name": None, "seed": 0}
-    run_worker(lab, role, spec, link)
+    result = run_worker(lab, role, spec, link)
+    emit(result, lambda con: _print_result(con, result, None) if role == "predictor" else con.print(result["ended"]))
+    if role == "predictor" and not result.get("identity"):
+        return 1

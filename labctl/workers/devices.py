@@ -19,8 +19,10 @@ from ..errors import LabctlError
 ROLES = ("table", "robot", "fixed_camera", "mobile_camera")
 
 
-def open_device(role: str, lab, *, port: str | None = None, baud: int | None = None):
-    """The (unopened) device serving ``role`` in ``lab``; ``port``/``baud`` override the driver file."""
+def open_device(role: str, lab, *, port: str | None = None, baud: int | None = None, clock=None):
+    """The (unopened) device serving ``role`` in ``lab``; ``port``/``baud`` override the driver file.
+
+    ``clock`` (cameras): the clock frames are stamped on (default ``time.monotonic``)."""
     if role == "table":
         from ..drivers.grbl import GrblTable
 
@@ -58,7 +60,7 @@ def open_device(role: str, lab, *, port: str | None = None, baud: int | None = N
             from ..sim.virtual import build_virtual_lab
 
             return build_virtual_lab(lab).cameras[role.removesuffix("_camera")]
-        return open_camera(role, lab)
+        return open_camera(role, lab, **({"clock": clock} if clock is not None else {}))
     raise LabctlError(f"unknown device role {role!r} (have: {', '.join(ROLES)})")
 
 
@@ -71,6 +73,8 @@ def _where(role: str, lab) -> tuple[str, str]:
         return kind, str(cfg.device)
     if kind == "replay":
         return kind, str(cfg.folder)
+    if kind == "stream":
+        return kind, str(cfg.url)
     return kind, "simulated camera (in-process world)"
 
 
