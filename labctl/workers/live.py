@@ -136,13 +136,16 @@ def predictor_main(args: WorkerArgs, link_end, control) -> None:
     table = robot = camera = link = None
     try:
         ctx = RunContext.load(lab)
+        ctl.beat(_now(args.origin))  # alive while starting: real devices take seconds to open
         link = open_link(lab.host_link, "predictor", local_end=link_end)
+        ctl.beat(_now(args.origin))
         # the sim lab's ports when it serves them, else the driver files' (None keeps the file's port)
         table = GrblTable.from_config(lab.table, port=args.table_port)
         robot = SerialRobot.from_config(lab.robot, port=args.robot_port)
         camera = _fixed_camera(args, lab)
         for dev in (table, robot, camera):
             dev.open()
+            ctl.beat(_now(args.origin))
         link.send(m.Hello(role="predictor", pid=os.getpid()))
         now = _now(args.origin)
         planner = PredictorPlanner(ctx, robot, link.send, log, t_start=now, clock=lambda: _now(args.origin))
@@ -199,6 +202,7 @@ def recognizer_main(args: WorkerArgs, link_end, control) -> None:
     camera = link = None
     try:
         ctx = RunContext.load(lab)
+        ctl.beat(_now(args.origin))
         link = open_link(lab.host_link, "recognizer", local_end=link_end)
         camera = _mobile_camera(args, lab)
         camera.open()
