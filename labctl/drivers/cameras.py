@@ -84,6 +84,7 @@ class GrabberCamera(OpenClose):
         self._delivered = 0  # seq of the last frame grab() returned
         self._error: str | None = None
         self.dropped = 0  # frames overwritten before anyone grabbed them
+        self.close_timeout_s = 2.0  # how long close() waits for the grabber to leave a blocked read
 
     def _open_source(self) -> CaptureSource:
         raise NotImplementedError
@@ -164,7 +165,7 @@ class GrabberCamera(OpenClose):
             if interrupt is not None:  # unblock a read waiting on the network
                 with contextlib.suppress(Exception):
                     interrupt()
-            th.join(timeout=max(2.0, self.timeout_s))
+            th.join(timeout=self.close_timeout_s)
             if th.is_alive():
                 log.warning("camera %s: the grabber is still blocked in a read; it releases the source when "
                             "the read returns", self.name)
