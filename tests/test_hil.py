@@ -117,6 +117,37 @@ def test_hil_run_with_serial_host_link_over_pty_null_modem_and_devices_on_tcp(tm
         assert result["link"]["transport"] == "serial" and 0 < result["link"]["utilisation"] < 1
 
 
+def test_hil_external_motion_no_table_two_labctl_worker_processes(tmp_path):
+    """Build 8: parts on a conveyor labctl does not drive (the served world moves them), a lab with no
+    table, ``--trajectory external``; the two hosts' workers started as two ``labctl worker`` processes."""
+    import socket
+
+    lab = tmp_path / "served"
+    with Served(lab, "--conveyor", "line", "--object", "wedge", "--seed", "2") as served:
+        assert yaml.safe_load((lab / "lab.yaml").read_text())["drivers"]["table"] is None
+        assert not (lab / "drivers" / "table.yaml").exists()
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            port = s.getsockname()[1]
+        link = f"tcp://127.0.0.1:{port}"
+        cmd = [sys.executable, "-m", "labctl", "--lab", str(lab), "--json", "worker"]
+        pred = subprocess.Popen(cmd + ["predictor", "--link", link], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                text=True)
+        rec = subprocess.Popen(cmd + ["recognizer", "--link", link], stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, text=True)
+        try:
+            out, err = pred.communicate(timeout=150)
+            rec.wait(timeout=30)
+        finally:
+            for p in (pred, rec):
+                if p.poll() is None:
+                    p.kill()
+        assert pred.returncode == 0, err[-2000:]
+        result = json.loads(out)
+        assert result["identity"] == served.truth["true_identity"], result
+        assert served.truth["conveyor"]["program"] and rec.returncode == 0
+
+
 def test_worker_with_a_failing_device_exits_3_with_the_devices_message(tmp_path):
     import os
 

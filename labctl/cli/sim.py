@@ -25,11 +25,19 @@ def sim_group() -> None:
 @click.option("--object", "object_name", default=None, help="Object on the table (default: random from the library).")
 @click.option("--trajectory", default="line", show_default=True,
               help="Start the table where this trajectory starts (line, arc, circle, zigzag).")
+@click.option("--conveyor", type=click.Choice(["line", "arc", "circle", "zigzag"]), default=None,
+              help="Move the parts by the simulator itself (a conveyor labctl does not drive); with --lab-out "
+                   "the lab has no table and runs --trajectory external.")
+@click.option("--conveyor-delay", type=click.FloatRange(min=0), default=1.0, show_default=True,
+              help="The conveyor starts once the fixed camera has been watched this long without a pause (s).")
+@click.option("--speed", type=click.FloatRange(min=0.1, max=200), default=None,
+              help="Conveyor speed, mm/s (default: lab.yaml run.speed_mm_s).")
 @click.option("--http-port", type=click.IntRange(0, 65535), default=0, show_default=True,
               help="Port of the MJPEG streams (0: any free port).")
 @click.option("--jpeg-quality", type=click.IntRange(1, 100), default=90, show_default=True)
 @json_option
-def sim_serve(baud, tcp, lab_out, force, seed, object_name, trajectory, http_port, jpeg_quality) -> None:
+def sim_serve(baud, tcp, lab_out, force, seed, object_name, trajectory, conveyor, conveyor_delay, speed, http_port,
+              jpeg_quality) -> None:
     """Serve the simulated lab out of process in real time, from one world, until Ctrl-C.
 
     The GRBL table and robot controller emulators on pseudo-terminals (or TCP ports), and both
@@ -55,9 +63,9 @@ def sim_serve(baud, tcp, lab_out, force, seed, object_name, trajectory, http_por
     if lab_out is not None and lab_out.exists() and any(lab_out.iterdir()) and not (
             force and (lab_out / "served_truth.json").is_file()):
         raise UserInputError(f"--lab-out {lab_out} is not empty; not overwriting it")
-    spec = {"seed": seed, "object_name": object_name, "trajectory": trajectory,
-            "speed_mm_s": lab.config.run.speed_mm_s, "tcp": tcp, "baud": baud, "http_port": http_port,
-            "jpeg_quality": jpeg_quality}
+    spec = {"seed": seed, "object_name": object_name, "trajectory": conveyor or trajectory,
+            "speed_mm_s": speed or lab.config.run.speed_mm_s, "tcp": tcp, "baud": baud, "http_port": http_port,
+            "jpeg_quality": jpeg_quality, "conveyor": conveyor, "conveyor_delay_s": conveyor_delay}
 
     def stop(signum, _frame):
         raise KeyboardInterrupt

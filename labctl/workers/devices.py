@@ -27,6 +27,8 @@ def open_device(role: str, lab, *, port: str | None = None, baud: int | None = N
         from ..drivers.grbl import GrblTable
 
         cfg = lab.table
+        if cfg is None:
+            raise LabctlError("this lab has no table (lab.yaml drivers.table: null)")
         if cfg.kind == "sim" and port is None:
             from ..sim.emulators.grbl import GrblEmulator
             from ..sim.emulators.link import EmulatorPort, ManualClock
@@ -119,4 +121,5 @@ def check_device(role: str, lab) -> dict:
 
 
 def check_devices(lab) -> list[dict]:
-    return [check_device(role, lab) for role in ROLES]
+    """Check every device the lab has (a lab without a table has three)."""
+    return [check_device(role, lab) for role in ROLES if getattr(lab, role) is not None]

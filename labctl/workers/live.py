@@ -139,17 +139,21 @@ def predictor_main(args: WorkerArgs, link_end, control) -> None:
         ctl.beat(_now(args.origin))  # alive while starting: real devices take seconds to open
         link = open_link(lab.host_link, "predictor", local_end=link_end)
         ctl.beat(_now(args.origin))
-        # the sim lab's ports when it serves them, else the driver files' (None keeps the file's port)
-        table = GrblTable.from_config(lab.table, port=args.table_port)
+        # the sim lab's ports when it serves them, else the driver files' (None keeps the file's port);
+        # no table to drive when the parts move by something else (--trajectory external)
+        external = args.spec["trajectory"] == "external" or lab.table is None
+        table = None if external else GrblTable.from_config(lab.table, port=args.table_port)
         robot = SerialRobot.from_config(lab.robot, port=args.robot_port)
         camera = _fixed_camera(args, lab)
         for dev in (table, robot, camera):
-            dev.open()
-            ctl.beat(_now(args.origin))
+            if dev is not None:
+                dev.open()
+                ctl.beat(_now(args.origin))
         link.send(m.Hello(role="predictor", pid=os.getpid()))
         now = _now(args.origin)
         planner = PredictorPlanner(ctx, robot, link.send, log, t_start=now, clock=lambda: _now(args.origin))
-        table.stream(trajectory_program(args.spec["trajectory"], args.spec["speed_mm_s"], lab)[1])
+        if table is not None:
+            table.stream(trajectory_program(args.spec["trajectory"], args.spec["speed_mm_s"], lab)[1])
         log("table_program", t=now, trajectory=args.spec["trajectory"], speed_mm_s=args.spec["speed_mm_s"])
         t_beat = 0.0
         while not planner.finished:

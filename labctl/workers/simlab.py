@@ -28,18 +28,29 @@ TRAJECTORY_STARTS = {"line": (150.0, 200.0), "arc": (200.0, 200.0), "circle": (2
                      "zigzag": (150.0, 170.0)}
 
 
+def table_config(lab: Lab):
+    """The lab's table, or (no table: parts on a conveyor) the default table the simulator moves them on."""
+    from ..config import TableConfig
+
+    return lab.table if lab.table is not None else TableConfig()
+
+
 def trajectory_program(name: str, speed_mm_s: float, lab: Lab) -> tuple[tuple[float, float], list[str]]:
-    """``(start_xy, gcode_lines)`` of a named trajectory, or of a G-code file (started at the centre)."""
+    """``(start_xy, gcode_lines)`` of a named trajectory, or of a G-code file (started at the centre).
+
+    ``external`` (labctl does not drive the motion): where the simulator's conveyor starts, and no lines."""
+    if name == "external":
+        return TRAJECTORY_STARTS["line"], []
     if name in TRAJECTORY_STARTS:
         start = TRAJECTORY_STARTS[name]
-        return start, program(name, speed_mm_s, start=start, travel_mm=lab.table.travel_mm)
+        return start, program(name, speed_mm_s, start=start, travel_mm=table_config(lab).travel_mm)
     from ..drivers.programs import load_gcode
 
     try:
         lines = load_gcode(name)
     except OSError as exc:
         raise UserInputError(f"cannot read G-code file {name}: {exc}") from None
-    travel = lab.table.travel_mm
+    travel = table_config(lab).travel_mm
     return (travel[0] / 2, travel[1] / 2), lines
 
 
@@ -96,6 +107,47 @@ class SimBench:
                 dev.stop()
 
 
+class Conveyor:
+    """Moves the simulated table by itself — parts on a conveyor that labctl does not drive.
+
+    The program goes straight into the GRBL emulator (no client on its port) once the fixed
+    camera has been watched without a pause for ``delay_s``: the part arrives while a run looks,
+    and a single ``labctl devices`` grab does not set it off.
+    """
+
+    def __init__(self, grbl, lock, lines: list[str], delay_s: float = 1.0, gap_s: float = 0.5):
+        self.grbl, self.lock, self.lines = grbl, lock, lines
+        self.delay_s, self.gap_s = delay_s, gap_s
+        self.started_at: float | None = None
+        self._streak: tuple[float, float] | None = None  # (first, last) grab of the current streak
+
+    def watch(self, camera):
+        conveyor = self
+
+        class Watched:
+            def __getattr__(self, name):
+                return getattr(camera, name)
+
+            def grab(self):
+                frame = camera.grab()
+                conveyor.seen(frame.t)
+                return frame
+
+        return Watched()
+
+    def seen(self, t: float) -> None:
+        if self.started_at is not None:
+            return
+        first, last = self._streak or (t, t)
+        if t - last > self.gap_s:
+            first = t
+        self._streak = (first, t)
+        if t - first >= self.delay_s:
+            with self.lock:
+                self.grbl.receive(("\n".join(self.lines) + "\n").encode(), t=t)
+            self.started_at = t
+
+
 def _locked(lock, fn):
     def call(*args):
         with lock:
@@ -141,7 +193,7 @@ class LiveSimLab:
         self.origin = time.monotonic()
         clock = RealClock()
         clock._origin = self.origin
-        t = lab.table
+        t = table_config(lab)
         self.grbl = GrblEmulator(clock.now, travel_mm=t.travel_mm, max_feed_mm_min=t.max_feed_mm_min,
                                  accel_mm_s2=t.accel_mm_s2, start_mm=(start[0], start[1], 0.0))
         self.robot_emu = RobotEmulator(clock.now, lab.robot, start_pose=home_flange_pose(lab))
@@ -161,6 +213,14 @@ class LiveSimLab:
         for cam in cams.values():
             cam.open()
         self.clock = clock
+        self.conveyor = None
+        if self.spec.get("trajectory") == "external" or self.spec.get("conveyor"):
+            # parts on a conveyor labctl does not drive: the simulator runs the table itself
+            lines = program(self.spec.get("conveyor") or "line", self.spec["speed_mm_s"], start=start,
+                            travel_mm=t.travel_mm, rapid_to_start=False)
+            delay = float(self.spec.get("conveyor_delay_s", 1.0))
+            self.conveyor = Conveyor(self.grbl, self.table_pty.lock, lines, delay)
+            cams["fixed"] = self.conveyor.watch(cams["fixed"])
         return cams
 
     def __exit__(self, *exc) -> None:
@@ -238,7 +298,8 @@ class ServedLab(LiveSimLab):
             "placement": {"pose_index": self.placement.pose_index, "yaw_rad": self.placement.yaw,
                           "offset_xy_mm": list(self.placement.offset_xy)},
             "T_t_o": self.placement.T_t_o(self.obj).tolist(),
-            "table_origin_w_mm": list(lab.table.origin_w_mm),
+            "table_origin_w_mm": list(table_config(lab).origin_w_mm),
+            "conveyor": None if self.conveyor is None else {"program": self.conveyor.lines},
             "fixed_camera": {"T_w_c": truth.fixed_camera_pose(lab.fixed_camera).tolist(),
                              "model": truth.camera_model(lab.fixed_camera).to_dict()},
             "mobile_camera": {"T_f_c": truth.hand_eye(lab.mobile_camera).tolist(),
@@ -291,11 +352,16 @@ def write_served_lab(lab: Lab, out, served: ServedLab, *, force: bool = False):
 
     ep = served.endpoints()
     try:
-        config = dataclasses.replace(lab.config, drivers=DriverFiles(), name=f"served lab ({lab.config.name})")
+        no_table = served.conveyor is not None  # the conveyor moves the parts: the lab has no table
+        drivers = DriverFiles(table=None) if no_table else DriverFiles()
+        config = dataclasses.replace(lab.config, drivers=drivers, name=f"served lab ({lab.config.name})")
+        if no_table:
+            config = dataclasses.replace(config, run=dataclasses.replace(config.run, trajectory="external"))
         dump(tmp / "lab.yaml", dataclasses.asdict(config), "written by `labctl sim serve --lab-out`")
         real = "written by `labctl sim serve --lab-out`: real driver kinds on the served endpoints"
-        table = dataclasses.replace(lab.table, kind="grbl", port=ep["table"], origin_w_mm=(0.0, 0.0, 0.0))
-        dump(tmp / "drivers/table.yaml", dataclasses.asdict(table), real)
+        if not no_table:
+            table = dataclasses.replace(lab.table, kind="grbl", port=ep["table"], origin_w_mm=(0.0, 0.0, 0.0))
+            dump(tmp / "drivers/table.yaml", dataclasses.asdict(table), real)
         robot = dataclasses.replace(lab.robot, kind="serial", port=ep["robot"])
         dump(tmp / "drivers/robot.yaml", dataclasses.asdict(robot), real)
         for role in ("fixed_camera", "mobile_camera"):
@@ -330,7 +396,9 @@ def emergency_stop(lab: Lab, endpoints: dict, timeout_s: float = 0.3) -> list[st
     from ..drivers.robot import STOP_LINE
 
     done = []
-    targets = (("table", endpoints.get("table") or lab.table.port, lab.table.baud, [b"!", b"\x18"]),
+    table = table_config(lab)
+    targets = (("table", endpoints.get("table") or (lab.table.port if lab.table is not None else None), table.baud,
+                [b"!", b"\x18"]),
                ("robot", endpoints.get("robot") or lab.robot.port, lab.robot.baud, [STOP_LINE]))
 
     def stop(role, port, baud, payloads):

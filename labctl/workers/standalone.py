@@ -65,7 +65,7 @@ def run_worker(lab: Lab, role: str, spec: dict, link: str | None) -> dict:
 
     Raises :class:`WorkerFailed` (exit code 3 for a device fault) when the worker stops on an error."""
     own = ("table", "robot", "fixed_camera") if role == "predictor" else ("mobile_camera",)
-    if any(getattr(lab, r).kind == "sim" for r in own):
+    if any(getattr(lab, r) is not None and getattr(lab, r).kind == "sim" for r in own):
         raise UserInputError(f"labctl worker {role} drives this host's real devices; the lab's driver files say "
                              "'sim' (the simulated lab runs both workers with `labctl run`, any host link)")
     cfg = link_config(lab, link)
