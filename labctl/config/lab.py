@@ -146,11 +146,9 @@ def load_lab(root: Path | str) -> Lab:
     devices, paths = {}, {}
     for role, cls in ROLE_TYPES.items():
         rel = getattr(config.drivers, role)
-        if rel is None and role == "table":
+        if rel is None:  # only the table may be null (its field alone is typed optional)
             devices[role] = None
             continue
-        if rel is None:
-            raise ConfigError(lab_file, f"drivers.{role}", "only the table may be null (no table)")
         path = (root / rel).resolve()
         if not path.is_file():
             raise ConfigError(lab_file, f"drivers.{role}", f"driver file not found: {rel}")
