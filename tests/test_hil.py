@@ -145,7 +145,11 @@ def test_hil_external_motion_no_table_two_labctl_worker_processes(tmp_path):
         assert pred.returncode == 0, err[-2000:]
         result = json.loads(out)
         assert result["identity"] == served.truth["true_identity"], result
-        assert served.truth["conveyor"]["program"] and rec.returncode == 0
+        assert rec.returncode == 0
+        # the part did move: ask the served conveyor's GRBL through the real driver (labctl drove none of it)
+        r = labctl("--json", "table", "status", "--port", served.info["table"], lab=lab, timeout=60)
+        assert r.returncode == 0, r.stderr
+        assert json.loads(r.stdout)["position"]["x"] > 150.0 + 8.0 * result["time_to_identity_s"] * 0.5
 
 
 def test_worker_with_a_failing_device_exits_3_with_the_devices_message(tmp_path):

@@ -133,6 +133,7 @@ def predictor_main(args: WorkerArgs, link_end, control) -> None:
     record = _open_record(args)
     log = record.event if record is not None else (lambda *a, **k: None)
     log("worker_started", role="predictor", pid=os.getpid())
+    ctl.beat(_now(args.origin))
     table = robot = camera = link = None
     try:
         ctx = RunContext.load(lab)
@@ -203,6 +204,7 @@ def recognizer_main(args: WorkerArgs, link_end, control) -> None:
     log = record.event if record is not None else (lambda *a, **k: None)
     save = record.save_image if record is not None else None
     log("worker_started", role="recognizer", pid=os.getpid())
+    ctl.beat(_now(args.origin))
     camera = link = None
     try:
         ctx = RunContext.load(lab)

@@ -212,12 +212,14 @@ class LiveSimLab:
                 for role in ("fixed", "mobile")}
         for cam in cams.values():
             cam.open()
+            cam.render_frame(0)  # the first render builds the scene (seconds): not in a client's wait
         self.clock = clock
         self.conveyor = None
         if self.spec.get("trajectory") == "external" or self.spec.get("conveyor"):
             # parts on a conveyor labctl does not drive: the simulator runs the table itself
-            lines = program(self.spec.get("conveyor") or "line", self.spec["speed_mm_s"], start=start,
-                            travel_mm=t.travel_mm, rapid_to_start=False)
+            # the conveyor is the simulator's own: it clears GRBL's power-up alarm itself ($X)
+            lines = ["$X"] + program(self.spec.get("conveyor") or "line", self.spec["speed_mm_s"], start=start,
+                                     travel_mm=t.travel_mm, rapid_to_start=False)
             delay = float(self.spec.get("conveyor_delay_s", 1.0))
             self.conveyor = Conveyor(self.grbl, self.table_pty.lock, lines, delay)
             cams["fixed"] = self.conveyor.watch(cams["fixed"])
@@ -261,8 +263,6 @@ class ServedLab(LiveSimLab):
 
         try:
             cams = self._start_world()
-            for cam in cams.values():  # the first render builds the scene (seconds): not in a client's wait
-                cam.render_frame(0)
             self.ports = {"table": self.table_pty.path, "robot": self.robot_pty.path}
             if self.spec.get("tcp"):
                 for role in ("table", "robot"):
