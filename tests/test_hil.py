@@ -26,6 +26,10 @@ from labctl.workspace import sample_lab_path
 
 pytestmark = pytest.mark.skipif(sys.platform != "linux", reason="ptys and the served lab need Linux")
 
+#: the served cameras' frame rate: both streams are rendered, encoded and decoded continuously for the
+#: whole run (a free-running network camera), so 15 rather than 30 frames/s halves the load this adds
+FPS = 15
+
 
 def labctl(*args, timeout=150, lab: Path | None = None) -> subprocess.CompletedProcess:
     cmd = [sys.executable, "-m", "labctl"] + (["--lab", str(lab)] if lab else []) + list(args)
@@ -39,7 +43,7 @@ class Served:
         self.out = out
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "labctl", "--lab", str(sample_lab_path()), "--json", "sim", "serve",
-             "--lab-out", str(out), *extra],
+             "--lab-out", str(out), "--fps", str(FPS), *extra],
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         lines: queue.Queue = queue.Queue()
         threading.Thread(target=lambda: [lines.put(x) for x in self.proc.stdout], daemon=True).start()

@@ -59,7 +59,7 @@ def test_served_fixed_stream_shows_the_table_where_the_served_grbl_put_it():
 
 
 class _FakeServed:
-    conveyor = None
+    spec: dict = {}
 
     def __init__(self, conveyor=None):
         self.conveyor = conveyor

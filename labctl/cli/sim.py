@@ -35,9 +35,11 @@ def sim_group() -> None:
 @click.option("--http-port", type=click.IntRange(0, 65535), default=0, show_default=True,
               help="Port of the MJPEG streams (0: any free port).")
 @click.option("--jpeg-quality", type=click.IntRange(1, 100), default=90, show_default=True)
+@click.option("--fps", type=click.FloatRange(min=1, max=120), default=None,
+              help="Frame rate of both served cameras (default: driver files).")
 @json_option
 def sim_serve(baud, tcp, lab_out, force, seed, object_name, trajectory, conveyor, conveyor_delay, speed, http_port,
-              jpeg_quality) -> None:
+              jpeg_quality, fps) -> None:
     """Serve the simulated lab out of process in real time, from one world, until Ctrl-C.
 
     The GRBL table and robot controller emulators on pseudo-terminals (or TCP ports), and both
@@ -65,7 +67,7 @@ def sim_serve(baud, tcp, lab_out, force, seed, object_name, trajectory, conveyor
         raise UserInputError(f"--lab-out {lab_out} is not empty; not overwriting it")
     spec = {"seed": seed, "object_name": object_name, "trajectory": conveyor or trajectory,
             "speed_mm_s": speed or lab.config.run.speed_mm_s, "tcp": tcp, "baud": baud, "http_port": http_port,
-            "jpeg_quality": jpeg_quality, "conveyor": conveyor, "conveyor_delay_s": conveyor_delay}
+            "jpeg_quality": jpeg_quality, "conveyor": conveyor, "conveyor_delay_s": conveyor_delay, "fps": fps}
 
     def stop(signum, _frame):
         raise KeyboardInterrupt

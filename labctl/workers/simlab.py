@@ -208,7 +208,8 @@ class LiveSimLab:
             table_position=_locked(self.table_pty.lock, self.grbl.position_at),
             flange_pose_at=_locked(self.robot_pty.lock, self.robot_emu.flange_pose_at))
         seed = int(self.spec.get("seed", 0))
-        cams = {role: SimCamera(self.world, role, clock, fps=getattr(lab, f"{role}_camera").fps, seed=seed)
+        cams = {role: SimCamera(self.world, role, clock, fps=self.spec.get("fps") or getattr(lab, f"{role}_camera").fps,
+                                seed=seed)
                 for role in ("fixed", "mobile")}
         for cam in cams.values():
             cam.open()
@@ -254,7 +255,7 @@ class ServedLab(LiveSimLab):
     (:class:`labctl.sim.mjpeg.MjpegServer`) rendering the world whose table and flange poses
     are read from those same emulators. Spec keys: ``seed``, ``object_name``, ``trajectory``
     and ``speed_mm_s`` (only where the table starts), ``table_start_mm``, ``tcp``, ``baud``,
-    ``http_port``, ``jpeg_quality``.
+    ``http_port``, ``jpeg_quality``, ``fps`` (both cameras; default the driver files').
     """
 
     def __enter__(self) -> ServedLab:
@@ -367,6 +368,8 @@ def write_served_lab(lab: Lab, out, served: ServedLab, *, force: bool = False):
         for role in ("fixed_camera", "mobile_camera"):
             cfg = dataclasses.replace(getattr(lab, role), kind="stream", url=ep[role], timestamps="header",
                                       eye_w_mm=None, target_w_mm=None)
+            if served.spec.get("fps"):
+                cfg = dataclasses.replace(cfg, fps=float(served.spec["fps"]))
             d = dataclasses.asdict(cfg)
             for sim_only in ("noise_sigma", "hand_eye_mm", "hand_eye_rpy_deg"):
                 d.pop(sim_only, None)
