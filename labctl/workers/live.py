@@ -133,13 +133,10 @@ def predictor_main(args: WorkerArgs, link_end, control) -> None:
     record = _open_record(args)
     log = record.event if record is not None else (lambda *a, **k: None)
     log("worker_started", role="predictor", pid=os.getpid())
-    ctl.beat(_now(args.origin))
     table = robot = camera = link = None
     try:
         ctx = RunContext.load(lab)
-        ctl.beat(_now(args.origin))  # alive while starting: real devices take seconds to open
         link = open_link(lab.host_link, "predictor", local_end=link_end)
-        ctl.beat(_now(args.origin))
         # the sim lab's ports when it serves them, else the driver files' (None keeps the file's port);
         # no table to drive when the parts move by something else (--trajectory external)
         external = args.spec["trajectory"] == "external" or lab.table is None
@@ -149,7 +146,6 @@ def predictor_main(args: WorkerArgs, link_end, control) -> None:
         for dev in (table, robot, camera):
             if dev is not None:
                 dev.open()
-                ctl.beat(_now(args.origin))
         link.send(m.Hello(role="predictor", pid=os.getpid()))
         now = _now(args.origin)
         planner = PredictorPlanner(ctx, robot, link.send, log, t_start=now, clock=lambda: _now(args.origin))
@@ -204,11 +200,9 @@ def recognizer_main(args: WorkerArgs, link_end, control) -> None:
     log = record.event if record is not None else (lambda *a, **k: None)
     save = record.save_image if record is not None else None
     log("worker_started", role="recognizer", pid=os.getpid())
-    ctl.beat(_now(args.origin))
     camera = link = None
     try:
         ctx = RunContext.load(lab)
-        ctl.beat(_now(args.origin))
         link = open_link(lab.host_link, "recognizer", local_end=link_end)
         camera = _mobile_camera(args, lab)
         camera.open()
