@@ -129,3 +129,49 @@ def test_conveyor_starts_only_when_the_fixed_camera_is_watched_without_a_pause()
     clock.advance(20.0 - clock.now())  # 100 mm at 10 mm/s from t = 3.05
     grbl.advance(clock.now())
     assert grbl.machine_position()[0] == pytest.approx(250.0, abs=0.01)  # it really moved the part
+
+
+def test_stream_timestamps_align_with_the_served_motion():
+    """While the served GRBL moves the table at 50 mm/s, each frame's object position (from the image)
+    against the emulator's position at the frame's time gives the timestamp error: about zero with the
+    X-Timestamp header, the pipeline's latency when frames are stamped on arrival."""
+    import threading
+
+    from labctl.drivers.cameras import StreamCamera
+    from labctl.drivers.grbl import GrblTable
+    from labctl.workers.simlab import ServedLab
+
+    lab = load_lab(sample_lab_path())
+    spec = {"seed": 1, "object_name": "block", "trajectory": "line", "speed_mm_s": 8.0, "baud": 115200}
+    with ServedLab(lab, spec) as served:
+        ep = served.endpoints()
+        clock = served.clock.now  # the served world's clock: frames and emulator on one time axis
+        header = StreamCamera(ep["fixed_camera"], timestamps="header", clock=clock, timeout_s=10.0)
+        arrival = StreamCamera(ep["fixed_camera"], timestamps="arrival", clock=clock, timeout_s=10.0)
+        table = GrblTable(ep["table"], 115200, reset_on_open=False, timeout_s=10.0)
+        with table, header, arrival:
+            table.ensure_ready()
+            table.move_to(150.0, 200.0)
+            header.grab()
+            c0 = _red_centroid(header.grab().image)
+            table.move_to(250.0, 200.0)
+            header.grab()
+            c1 = _red_centroid(header.grab().image)
+            px_per_mm = (c1 - c0) / 100.0  # straight down on a plane parallel to the image: linear
+            mover = threading.Thread(target=table.move_to, args=(150.0, 200.0, 3000.0))
+            mover.start()
+            errors = {"header": [], "arrival": []}
+            for _ in range(12):
+                for name, cam in (("header", header), ("arrival", arrival)):
+                    f = cam.grab()
+                    x_img = 250.0 + float((_red_centroid(f.image) - c1) @ px_per_mm / (px_per_mm @ px_per_mm))
+                    x_emu = float(served.grbl.position_at(f.t)[0])
+                    v = -50.0 if 152.0 < x_emu < 248.0 else None  # cruising back at F3000 (not accelerating)
+                    if v is not None:
+                        errors[name].append((x_emu - x_img) / v)  # > 0: the stamp is late
+            mover.join()
+    dt_header, dt_arrival = np.median(errors["header"]), np.median(errors["arrival"])
+    assert len(errors["header"]) >= 3 and len(errors["arrival"]) >= 3
+    assert abs(dt_header) < 0.012, errors  # within a third of a frame at 30 frames/s
+    assert dt_arrival > dt_header + 0.005, errors  # arrival stamps carry the render/encode/transfer delay
+    print(f"timestamp error: header {1e3 * dt_header:.1f} ms, arrival {1e3 * dt_arrival:.1f} ms (medians)")
