@@ -40,6 +40,14 @@ def test_a_sim_camera_watching_real_motion_or_the_reverse_is_refused(sample, rol
     assert problem is not None and all(w in problem for w in words), problem
 
 
+def test_devices_says_a_sim_camera_in_a_real_lab_shows_a_static_world(sample):
+    from labctl.workers.devices import check_device
+
+    row = check_device("fixed_camera", _with(sample, table={"kind": "grbl", "port": "/dev/labctl-none"}))
+    assert row["ok"] and "static world" in row["verdict"]
+    assert "static" not in check_device("fixed_camera", sample)["verdict"]
+
+
 def test_a_lab_without_a_table_loads_and_is_checked_without_it(tmp_path, sample):
     from labctl.workers.devices import check_devices
 

@@ -108,6 +108,8 @@ def check_device(role: str, lab) -> dict:
         out["ok"] = True
         out["verdict"] = "OK" + (" (simulated: checked against an in-process emulator)" if kind == "sim"
                                  and role in ("table", "robot") else " (simulated)" if kind == "sim" else "")
+        if kind == "sim" and not lab.is_simulated and (problem := lab.mixed_kinds_problem()) is not None:
+            out["verdict"] += f" — {problem}"  # it answers, but `labctl run` refuses this mix
     except Exception as exc:  # the verdict reports any failure; the command itself goes on
         out["verdict"] = f"FAIL: {type(exc).__name__}: {exc}"
     finally:
