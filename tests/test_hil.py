@@ -41,10 +41,11 @@ class Served:
 
     def __init__(self, out: Path, *extra: str):
         self.out = out
+        self.stderr = (out.parent / f"{out.name}.serve.log").open("w+")  # a file: a full pipe would block the serve
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "labctl", "--lab", str(sample_lab_path()), "--json", "sim", "serve",
              "--lab-out", str(out), "--fps", str(FPS), *extra],
-            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+            stdout=subprocess.PIPE, stderr=self.stderr, text=True)
         lines: queue.Queue = queue.Queue()
         threading.Thread(target=lambda: [lines.put(x) for x in self.proc.stdout], daemon=True).start()
         text, deadline = "", time.monotonic() + 90
@@ -54,7 +55,8 @@ class Served:
                 text += lines.get(timeout=max(0.1, deadline - time.monotonic()))
             except queue.Empty:
                 self.stop()
-                raise AssertionError(f"sim serve did not become ready: {self.proc.stderr.read()}") from None
+                self.stderr.seek(0)
+                raise AssertionError(f"sim serve did not become ready: {self.stderr.read()[-2000:]}") from None
             try:
                 self.info = json.loads(text)
             except json.JSONDecodeError:
@@ -68,6 +70,7 @@ class Served:
         except subprocess.TimeoutExpired:
             self.proc.kill()
             self.proc.wait(timeout=5)
+        self.stderr.close()
 
     def __enter__(self):
         return self
