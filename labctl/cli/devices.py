@@ -37,10 +37,11 @@ _timeout = click.option("--timeout", "timeout_s", type=float, default=None, help
 
 def _open_table(port: str | None, baud: int | None, timeout_s: float | None):
     """The table named by --port/--baud (else the lab's), unopened: use it as ``with _open_table(...) as t``."""
+    from ..config import TableConfig
     from ..drivers.grbl import GrblTable
     from ..errors import UserInputError
 
-    cfg = get_ctx().lab().table
+    cfg = get_ctx().lab().table or TableConfig()  # a lab without a table: --port names one
     port = port or cfg.port
     if not port:
         raise UserInputError("no table port: pass --port PORT (the lab's table is simulated; "

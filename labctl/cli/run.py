@@ -13,12 +13,16 @@ from ._common import emit, get_ctx, json_option
 TRAJECTORIES = ("line", "arc", "circle", "zigzag")
 
 
-def _trajectory(value: str) -> str:
-    if value in TRAJECTORIES:
+def _trajectory(value: str, lab=None) -> str:
+    if lab is not None and lab.table is None and value != "external":
+        raise UserInputError(f"this lab has no table (lab.yaml drivers.table: null): only --trajectory external "
+                             f"(parts moved by something labctl does not drive), not {value!r}")
+    if value in TRAJECTORIES or value == "external":
         return value
     if Path(value).is_file():
         return str(Path(value).resolve())
-    raise UserInputError(f"--trajectory must be one of {', '.join(TRAJECTORIES)} or a G-code file; got {value!r}")
+    raise UserInputError(f"--trajectory must be one of {', '.join(TRAJECTORIES)}, external or a G-code file; "
+                         f"got {value!r}")
 
 
 def _speed(value: float | None, lab) -> float:
@@ -44,7 +48,9 @@ def _print_result(console, result: dict, run_dir: Path | None) -> None:
 
 
 @click.command("run")
-@click.option("--trajectory", default=None, help="line, arc, circle, zigzag or a G-code FILE (default: lab.yaml).")
+@click.option("--trajectory", default=None,
+              help="line, arc, circle, zigzag, a G-code FILE, or external: wait for a part moved by something "
+                   "labctl does not drive (default: lab.yaml).")
 @click.option("--speed", type=float, default=None, help="Table speed, mm/s (default: lab.yaml).")
 @click.option("--object", "object_name", default=None, help="Object to place (sim; default: random from the library).")
 @click.option("--seed", type=int, default=None, help="Seed of the simulated lab (default: random).")
@@ -59,13 +65,18 @@ def run_cmd(trajectory, speed, object_name, seed, virtual) -> None:
 
     c = get_ctx()
     lab = c.lab()
-    spec = {"trajectory": _trajectory(trajectory or lab.config.run.trajectory), "speed_mm_s": _speed(speed, lab),
+    spec = {"trajectory": _trajectory(trajectory or lab.config.run.trajectory, lab),
+            "speed_mm_s": _speed(speed, lab),
             "object_name": object_name, "seed": secrets.randbelow(2**31) if seed is None else seed}
+    if (problem := lab.mixed_kinds_problem()) is not None:
+        raise UserInputError(problem)
     ctx = RunContext.load(lab)  # fails early, in one line, without a calibration or a library
     if object_name is not None and object_name not in ctx.library:
         raise UserInputError(f"no object {object_name!r} in the library (have: {', '.join(ctx.names)})")
     if virtual and not lab.is_simulated:
         raise UserInputError("--virtual needs the simulated lab (this lab's drivers point at hardware)")
+    if virtual and spec["trajectory"] == "external":
+        raise UserInputError("--virtual runs the table itself: --trajectory external needs a live run")
     record = RunRecord.create(lab.runs_dir, {"command": "run", "virtual": virtual, **spec})
     try:
         if virtual:
@@ -163,11 +174,15 @@ def replay_cmd(run: Path) -> None:
 @click.option("--link", "link", default=None, help="tcp://HOST:PORT or a serial port (default: host_link.yaml).")
 @click.option("--trajectory", default=None)
 @click.option("--speed", type=float, default=None)
+@json_option
 def worker_cmd(role, link, trajectory, speed) -> None:
     """Run one worker on this host (two PCs: start one of each, linked by TCP or RS-232)."""
     from ..workers.standalone import run_worker
 
     lab = get_ctx().lab()
-    spec = {"trajectory": _trajectory(trajectory or lab.config.run.trajectory), "speed_mm_s": _speed(speed, lab),
+    spec = {"trajectory": _trajectory(trajectory or lab.config.run.trajectory, lab), "speed_mm_s": _speed(speed, lab),
             "object_name": None, "seed": 0}
-    run_worker(lab, role, spec, link)
+    result = run_worker(lab, role, spec, link)
+    emit(result, lambda con: _print_result(con, result, None) if role == "predictor" else con.print(result["ended"]))
+    if role == "predictor" and not result.get("identity"):
+        return 1

@@ -15,17 +15,86 @@ def sim_group() -> None:
 
 
 @sim_group.command("serve")
-@click.option("--baud", type=int, default=None, help="Pace the emulators at this baud rate (default: driver files).")
+@click.option("--baud", type=click.IntRange(min=1), default=None,
+              help="Pace the emulators at this baud rate (default: driver files).")
+@click.option("--tcp", is_flag=True, help="Serve the table and robot on TCP ports as ser2net would (socket://).")
+@click.option("--lab-out", "lab_out", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Write a lab whose drivers are real kinds on the served endpoints, with the served truth.")
+@click.option("--force", is_flag=True, help="With --lab-out: replace an earlier served lab there.")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the world (object placement, noise).")
+@click.option("--object", "object_name", default=None, help="Object on the table (default: random from the library).")
+@click.option("--trajectory", default="line", show_default=True,
+              help="Start the table where this trajectory starts (line, arc, circle, zigzag).")
+@click.option("--conveyor", type=click.Choice(["line", "arc", "circle", "zigzag"]), default=None,
+              help="Move the parts by the simulator itself (a conveyor labctl does not drive); with --lab-out "
+                   "the lab has no table and runs --trajectory external.")
+@click.option("--conveyor-delay", type=click.FloatRange(min=0), default=1.0, show_default=True,
+              help="The conveyor starts once the fixed camera has been watched this long without a pause (s).")
+@click.option("--speed", type=click.FloatRange(min=0.1, max=200), default=None,
+              help="Conveyor speed, mm/s (default: lab.yaml run.speed_mm_s).")
+@click.option("--http-port", type=click.IntRange(0, 65535), default=0, show_default=True,
+              help="Port of the MJPEG streams (0: any free port).")
+@click.option("--jpeg-quality", type=click.IntRange(1, 100), default=90, show_default=True)
+@click.option("--fps", type=click.FloatRange(min=1, max=120), default=None,
+              help="Frame rate of both served cameras (default: driver files).")
 @json_option
-def sim_serve(baud: int | None) -> None:
-    """Start the GRBL table and robot emulators on pseudo-terminals and print their ports."""
-    from ..sim.emulators.serve import serve_forever
+def sim_serve(baud, tcp, lab_out, force, seed, object_name, trajectory, conveyor, conveyor_delay, speed, http_port,
+              jpeg_quality, fps) -> None:
+    """Serve the simulated lab out of process in real time, from one world, until Ctrl-C.
 
-    def ready(ports: dict) -> None:
-        emit(ports, lambda c: [c.print(f"[bold]{role}[/]: {port}") for role, port in ports.items()]
-             + [c.print("Ctrl-C to stop.")])
+    The GRBL table and robot controller emulators on pseudo-terminals (or TCP ports), and both
+    cameras as MJPEG-over-HTTP streams showing what the served table and robot do.
+    """
+    import signal
+    import time
 
-    serve_forever(get_ctx().lab(), baud=baud, on_ready=ready)
+    from ..errors import UserInputError
+    from ..workers.simlab import TRAJECTORY_STARTS, ServedLab, write_served_lab
+
+    lab = get_ctx().lab()
+    if not lab.is_simulated:
+        raise UserInputError("sim serve serves the simulated lab: every driver file of this lab must say kind: sim")
+    if trajectory not in TRAJECTORY_STARTS:
+        raise UserInputError(f"--trajectory must be one of {', '.join(TRAJECTORY_STARTS)}, got {trajectory!r}")
+    if object_name is not None:
+        from ..library.storage import load_library
+
+        names = sorted(load_library(lab.library_dir))
+        if object_name not in names:
+            raise UserInputError(f"no object {object_name!r} in the library (have: {', '.join(names)})")
+    if lab_out is not None and lab_out.exists() and any(lab_out.iterdir()) and not (
+            force and (lab_out / "served_truth.json").is_file()):
+        raise UserInputError(f"--lab-out {lab_out} is not empty; not overwriting it")
+    spec = {"seed": seed, "object_name": object_name, "trajectory": conveyor or trajectory,
+            "speed_mm_s": speed or lab.config.run.speed_mm_s, "tcp": tcp, "baud": baud, "http_port": http_port,
+            "jpeg_quality": jpeg_quality, "conveyor": conveyor, "conveyor_delay_s": conveyor_delay, "fps": fps}
+
+    def stop(signum, _frame):
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, stop)  # a supervisor's terminate: the same clean stop as Ctrl-C
+    try:
+        with ServedLab(lab, spec) as served:
+            info = served.endpoints()
+            if lab_out is not None:
+                info["lab_out"] = str(write_served_lab(lab, lab_out, served, force=force))
+            info["object"] = served.object_name
+
+            def human(c):
+                for role, where in info.items():
+                    c.print(f"[bold]{role}[/]: {where}")
+                c.print("Ctrl-C to stop.")
+
+            emit(info, human)
+            while True:
+                time.sleep(0.2)
+                served.check_alive()
+    except KeyboardInterrupt:
+        pass
+    except RuntimeError as exc:
+        from ..errors import LabctlError
+
+        raise LabctlError(str(exc)) from None
 
 
 @sim_group.command("snapshot")

@@ -77,8 +77,13 @@ class LensConfig:
 
 @dataclass(frozen=True)
 class CameraConfig:
-    kind: Literal["sim", "v4l2", "replay"] = "sim"
+    kind: Literal["sim", "v4l2", "stream", "replay"] = "sim"
     device: str | int | None = None  # v4l2: index or /dev/videoN
+    url: str | None = None  # stream: http://host:8080/?action=stream (MJPEG), rtsp://… (OpenCV/FFmpeg)
+    backend: Literal["auto", "http", "opencv"] = "auto"  # stream: http(s) read by labctl, others by OpenCV
+    timestamps: Literal["arrival", "header"] = "arrival"  # stream: capture time = arrival − latency, or X-Timestamp
+    latency_s: float = 0.0  # exposure-to-arrival delay subtracted from the arrival time (v4l2, stream)
+    timeout_s: float = 2.0  # no frame for this long: the camera has stalled
     folder: str | None = None  # replay: folder of stamped frames
     width: int = 640
     height: int = 480
@@ -97,6 +102,10 @@ class CameraConfig:
     def validate(self):
         if self.kind == "v4l2" and self.device is None:
             return "device", "a v4l2 camera needs a device (index or /dev/videoN)"
+        if self.kind == "stream" and not self.url:
+            return "url", "a stream camera needs a url (http://… MJPEG or rtsp://…)"
+        if self.latency_s < 0 or self.timeout_s <= 0:
+            return "latency_s", "latency_s must be >= 0 and timeout_s > 0"
         if self.kind == "replay" and not self.folder:
             return "folder", "a replay camera needs a folder of stamped frames"
         if self.width <= 0 or self.height <= 0:

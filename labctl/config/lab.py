@@ -18,7 +18,7 @@ LAB_FILE = "lab.yaml"
 
 @dataclass(frozen=True)
 class DriverFiles:
-    table: str = "drivers/table.yaml"
+    table: str | None = "drivers/table.yaml"  # null: no table (parts arrive on a conveyor labctl does not drive)
     robot: str = "drivers/robot.yaml"
     fixed_camera: str = "drivers/fixed_camera.yaml"
     mobile_camera: str = "drivers/mobile_camera.yaml"
@@ -83,7 +83,7 @@ class Lab:
 
     root: Path
     config: LabConfig
-    table: TableConfig
+    table: TableConfig | None  # None: the lab has no table (``--trajectory external`` only)
     robot: RobotConfig
     fixed_camera: CameraConfig
     mobile_camera: CameraConfig
@@ -112,10 +112,39 @@ class Lab:
         return self.root / "runs"
 
     @property
+    def kinds(self) -> dict[str, str]:
+        """The driver kind of each device role the lab has (no ``table`` key when it has none)."""
+        roles = ("table", "robot", "fixed_camera", "mobile_camera")
+        return {r: getattr(self, r).kind for r in roles if getattr(self, r) is not None}
+
+    @property
     def is_simulated(self) -> bool:
-        return all(
-            c.kind == "sim" for c in (self.table, self.robot, self.fixed_camera, self.mobile_camera)
-        )
+        """Every device is simulated (one simulated world serves them all)."""
+        return all(k == "sim" for k in self.kinds.values())
+
+    def mixed_kinds_problem(self) -> str | None:
+        """Why this lab's mix of simulated and real devices cannot run together, or None.
+
+        A simulated camera renders the simulated world, so what it watches must be simulated too:
+        the fixed camera watches the table, the mobile camera rides the robot and watches the
+        table. A real camera cannot see a simulated table or ride a simulated robot either."""
+        k = self.kinds
+        sim = {r for r, v in k.items() if v == "sim"}
+        if not sim or len(sim) == len(k):
+            return None
+        watched = {"fixed_camera": ("table",), "mobile_camera": ("robot", "table")}
+        for cam, needs in watched.items():
+            moving = [r for r in needs if r in k]
+            if cam in sim and any(r not in sim for r in moving):
+                real = [r for r in moving if r not in sim]
+                return (f"{cam} is simulated but the {' and '.join(real)} it watches "
+                        f"{'is' if len(real) == 1 else 'are'} real: a simulated camera would show a static "
+                        f"world (make every device kind: sim, or give {cam} a real kind)")
+            if cam not in sim and any(r in sim for r in moving):
+                fake = [r for r in moving if r in sim]
+                return (f"{cam} is real ({k[cam]}) but the {' and '.join(fake)} it watches "
+                        f"{'is' if len(fake) == 1 else 'are'} simulated: it would never see it move")
+        return None
 
 
 def user_data_dir() -> Path:
@@ -134,6 +163,9 @@ def load_lab(root: Path | str) -> Lab:
     devices, paths = {}, {}
     for role, cls in ROLE_TYPES.items():
         rel = getattr(config.drivers, role)
+        if rel is None:  # only the table may be null (its field alone is typed optional)
+            devices[role] = None
+            continue
         path = (root / rel).resolve()
         if not path.is_file():
             raise ConfigError(lab_file, f"drivers.{role}", f"driver file not found: {rel}")

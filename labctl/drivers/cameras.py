@@ -1,19 +1,29 @@
-"""Cameras: V4L2 through OpenCV, a replay camera over a folder of stamped frames, and the factory.
+"""Cameras: V4L2 and network streams behind one latest-frame grabber, a replay camera, the factory.
 
-* :class:`V4L2Camera` opens ``cv2.VideoCapture(device, cv2.CAP_V4L2)``, applies resolution,
-  fps and exposure from the camera's driver file, and runs a grabber thread that keeps only
-  the newest frame (``grab()`` never returns a stale buffered one: it waits for a frame captured
-  after the call began, unless ``wait_new=False``). Frames carry the capture time on the
-  caller's clock (``time.monotonic`` by default), taken when the driver dequeued the buffer.
+* :class:`GrabberCamera` — a grabber thread reads a :class:`CaptureSource` as fast as it
+  delivers and keeps only the newest frame, so ``grab()`` never returns a stale buffered one:
+  it waits for a frame captured after the call began (``wait_new=False``: the newest, even if
+  delivered before). Frame times are on the caller's clock (``time.monotonic`` by default):
+  the source's own capture time when it has one, else the time the frame arrived minus the
+  configured ``latency_s``. ``dropped`` counts frames overwritten before anyone grabbed them.
+  ``close()`` stops the grabber and joins it before the source is released (the thread owns
+  the source and releases it itself, so a read blocked past the join timeout cannot race).
+* :class:`V4L2Camera` — ``cv2.VideoCapture(device, cv2.CAP_V4L2)`` with resolution, fps and
+  exposure from the camera's driver file.
+* :class:`StreamCamera` (``kind: stream``) — a network camera by URL: MJPEG over HTTP as
+  mjpg-streamer or ustreamer serve it (read with the standard library, frames decoded with
+  ``cv2.imdecode``, the parts' ``X-Timestamp`` header usable as the capture time), or any URL
+  OpenCV's FFmpeg backend opens (RTSP; ``backend: opencv``).
 * :class:`ReplayCamera` serves a folder of images named by capture time (``<t_seconds>.png``,
   e.g. ``12.345678.png``), or listed in ``index.csv`` (``t,file`` rows); ``grab()`` returns the
   frames in order (or, with a clock, the newest frame at or before the clock's time).
-* :func:`open_camera(role, lab)` builds the camera a lab's driver file names (v4l2, replay; simulated
-  cameras come from the simulated lab: :func:`labctl.workers.devices.open_device`).
+* :func:`open_camera(role, lab)` builds the camera a lab's driver file names (v4l2, stream, replay;
+  simulated cameras come from the simulated lab: :func:`labctl.workers.devices.open_device`).
 """
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import logging
 import re
@@ -21,6 +31,7 @@ import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 
@@ -37,31 +48,168 @@ class CameraError(DeviceError):
     """The camera could not be opened or stopped delivering frames."""
 
 
-class V4L2Camera(OpenClose):
-    """A V4L2 camera through OpenCV with latest-frame semantics."""
+class CaptureSource(Protocol):
+    """Where a :class:`GrabberCamera`'s frames come from (a capture device, a stream, a test fake)."""
 
-    def __init__(self, device, width: int = 640, height: int = 480, fps: float = 30.0,
-                 exposure: float | None = None, timeout_s: float = 2.0,
-                 clock: Callable[[], float] = time.monotonic, name: str = ""):
-        self.device = int(device) if isinstance(device, str) and device.isdigit() else device
-        self.width, self.height, self.fps, self.exposure = width, height, fps, exposure
-        self.timeout_s = timeout_s
-        self.clock = clock
-        self.name = name or str(device)
-        self._cap = None
+    def read(self) -> tuple[np.ndarray | None, float | None]:
+        """Block until the next frame: ``(BGR image, capture time on the wall clock or None)``;
+        ``(None, None)`` for a frame that could not be decoded. Raises ``OSError``/``CameraError``
+        when the source ends."""
+        ...
+
+    def release(self) -> None: ...
+
+
+class GrabberCamera(OpenClose):
+    """Latest-frame semantics over any :class:`CaptureSource` (see the module docstring).
+
+    ``latency_s``: how long before its arrival a frame without its own capture time was exposed
+    (the camera's exposure-to-delivery delay; measure it and put it in the driver file).
+    """
+
+    kind = "grabber"
+
+    def __init__(self, *, timeout_s: float = 2.0, latency_s: float = 0.0,
+                 clock: Callable[[], float] = time.monotonic, name: str = "",
+                 wall_clock: Callable[[], float] = time.time):
+        self.timeout_s, self.latency_s = timeout_s, latency_s
+        self.clock, self.wall_clock = clock, wall_clock
+        self.name = name
+        self._source: CaptureSource | None = None
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
         self._cond = threading.Condition()
         self._latest: Frame | None = None
-        self._seq = 0
+        self._seq = 0  # frames captured
+        self._delivered = 0  # seq of the last frame grab() returned
         self._error: str | None = None
         self.dropped = 0  # frames overwritten before anyone grabbed them
+        self.close_timeout_s = 2.0  # how long close() waits for the grabber to leave a blocked read
+
+    def _open_source(self) -> CaptureSource:
+        raise NotImplementedError
+
+    def _meta(self) -> dict:
+        return {}
+
+    def open(self) -> None:
+        if self._thread is not None:
+            return
+        source = self._open_source()
+        with self._cond:
+            self._latest, self._seq, self._delivered, self._error, self.dropped = None, 0, 0, None, 0
+        self._source = source
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._grabber, args=(source,), name=f"grabber-{self.name}",
+                                        daemon=True)
+        self._thread.start()
+
+    def _grabber(self, source: CaptureSource) -> None:
+        meta = self._meta()
+        try:
+            while not self._stop.is_set():
+                try:
+                    image, t_wall = source.read()
+                except Exception as exc:  # the source ended or failed: grab() reports it
+                    if not self._stop.is_set():
+                        with self._cond:
+                            self._error = f"the camera stopped delivering frames ({exc})"
+                            self._cond.notify_all()
+                    return
+                t_arrived = self.clock()
+                if image is None or self._stop.is_set():
+                    continue
+                if image.ndim == 2:
+                    image = np.repeat(image[:, :, None], 3, axis=2)
+                # the source's own capture time (wall clock) mapped onto our clock, else arrival − latency
+                t = t_arrived - (self.wall_clock() - t_wall) if t_wall is not None else t_arrived - self.latency_s
+                with self._cond:
+                    if self._latest is not None and self._latest.seq > self._delivered:
+                        self.dropped += 1  # the previous frame was never grabbed
+                    self._seq += 1
+                    self._latest = Frame(image=image, t=t, seq=self._seq, meta={**meta, "t_arrived": t_arrived})
+                    self._cond.notify_all()
+        finally:
+            with contextlib.suppress(Exception):
+                source.release()
+
+    def grab(self, wait_new: bool = True) -> Frame:
+        """The newest frame; with ``wait_new`` one captured after this call began (never a stale one)."""
+        if self._thread is None:
+            raise CameraError(f"camera {self.name} is not open")
+        with self._cond:
+            start_seq = self._seq
+            ok = self._cond.wait_for(lambda: self._error is not None or (
+                self._latest is not None and (not wait_new or self._latest.seq > start_seq)), self.timeout_s)
+            if self._error is not None:
+                raise CameraError(f"camera {self.name}: {self._error}")
+            if not ok:
+                raise DeviceTimeout(f"camera {self.name}: no frame within {self.timeout_s:g} s")
+            self._delivered = max(self._delivered, self._latest.seq)
+            return self._latest
+
+    @property
+    def frames(self) -> int:
+        return self._seq
+
+    def info(self) -> dict:
+        return {"kind": self.kind, "name": self.name, "open": self._thread is not None, "frames": self._seq,
+                "dropped": self.dropped, "latency_s": self.latency_s}
+
+    def close(self) -> None:
+        """Stop the grabber and join it; the grabber releases the source as it leaves."""
+        self._stop.set()
+        th, source = self._thread, self._source
+        if th is not None:
+            interrupt = getattr(source, "interrupt", None)
+            if interrupt is not None:  # unblock a read waiting on the network
+                with contextlib.suppress(Exception):
+                    interrupt()
+            th.join(timeout=self.close_timeout_s)
+            if th.is_alive():
+                log.warning("camera %s: the grabber is still blocked in a read; it releases the source when "
+                            "the read returns", self.name)
+        self._thread = self._source = None
+
+
+class _CvSource:
+    """A ``cv2.VideoCapture`` as a :class:`CaptureSource` (no capture times of its own)."""
+
+    def __init__(self, cap):
+        self.cap = cap
+
+    def read(self):
+        if not self.cap.grab():
+            raise CameraError("no frame from the capture device")
+        ok, image = self.cap.retrieve()
+        return (image if ok else None), None
+
+    def release(self) -> None:
+        self.cap.release()
+
+
+class V4L2Camera(GrabberCamera):
+    """A V4L2 camera through OpenCV with latest-frame semantics."""
+
+    kind = "v4l2"
+
+    def __init__(self, device, width: int = 640, height: int = 480, fps: float = 30.0,
+                 exposure: float | None = None, timeout_s: float = 2.0, latency_s: float = 0.0,
+                 clock: Callable[[], float] = time.monotonic, name: str = ""):
+        super().__init__(timeout_s=timeout_s, latency_s=latency_s, clock=clock, name=name or str(device))
+        self.device = int(device) if isinstance(device, str) and device.isdigit() else device
+        self.width, self.height, self.fps, self.exposure = width, height, fps, exposure
+        self._size: tuple[int, int, float, str] | None = None
 
     @classmethod
     def from_config(cls, cfg, **kw) -> V4L2Camera:
-        return cls(cfg.device, cfg.width, cfg.height, cfg.fps, cfg.exposure, **kw)
+        return cls(cfg.device, cfg.width, cfg.height, cfg.fps, cfg.exposure,
+                   **({"timeout_s": cfg.timeout_s, "latency_s": cfg.latency_s} | kw))
 
-    def open(self) -> None:
+    def _meta(self) -> dict:
+        return {"device": str(self.device)}
+
+    def _open_source(self) -> CaptureSource:
         import cv2
 
         cap = cv2.VideoCapture(self.device, cv2.CAP_V4L2)
@@ -74,65 +222,151 @@ class V4L2Camera(OpenClose):
         if self.exposure is not None:
             cap.set(cv2.CAP_PROP_AUTO_EXPOSURE, 1)  # V4L2: 1 = manual
             cap.set(cv2.CAP_PROP_EXPOSURE, float(self.exposure))
-        self._cap = cap
-        self._stop.clear()
-        self._thread = threading.Thread(target=self._grabber, name=f"v4l2-{self.name}", daemon=True)
-        self._thread.start()
-
-    def _grabber(self) -> None:
-        while not self._stop.is_set():
-            ok = self._cap.grab()
-            t = self.clock()
-            if not ok:
-                with self._cond:
-                    self._error = "the camera stopped delivering frames"
-                    self._cond.notify_all()
-                return
-            ok, image = self._cap.retrieve()
-            if not ok or image is None:
-                continue
-            if image.ndim == 2:
-                image = np.repeat(image[:, :, None], 3, axis=2)
-            with self._cond:
-                if self._latest is not None and self._latest.seq == self._seq:
-                    self.dropped += 1
-                self._seq += 1
-                self._latest = Frame(image=image, t=t, seq=self._seq, meta={"device": str(self.device)})
-                self._cond.notify_all()
-
-    def grab(self, wait_new: bool = True) -> Frame:
-        """The newest frame; with ``wait_new`` one captured after this call began."""
-        if self._cap is None:
-            raise CameraError(f"camera {self.name} is not open")
-        with self._cond:
-            start_seq = self._seq
-            ok = self._cond.wait_for(lambda: self._error is not None or (
-                self._latest is not None and (not wait_new or self._latest.seq > start_seq)), self.timeout_s)
-            if self._error is not None:
-                raise CameraError(f"camera {self.name}: {self._error}")
-            if not ok:
-                raise DeviceTimeout(f"camera {self.name}: no frame within {self.timeout_s:g} s")
-            return self._latest
+        self._size = (int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT)),
+                      float(cap.get(cv2.CAP_PROP_FPS)), cap.getBackendName())
+        return _CvSource(cap)
 
     def info(self) -> dict:
+        d = super().info() | {"device": str(self.device)}
+        if self._size is not None and d["open"]:
+            d.update(zip(("width", "height", "fps", "backend"), self._size))
+        return d
+
+
+class MjpegHttpSource:
+    """An MJPEG-over-HTTP stream (``multipart/x-mixed-replace``) read with the standard library.
+
+    Each part's JPEG is decoded with ``cv2.imdecode``. ``use_header_time``: take a part's
+    ``X-Timestamp`` header (seconds on the server's wall clock, as mjpg-streamer and ustreamer
+    send it) as the capture time. Parts need a ``Content-Length`` (both servers send it); without
+    one the part runs to the next boundary.
+    """
+
+    def __init__(self, url: str, timeout_s: float = 5.0, use_header_time: bool = True):
+        import http.client
+        from urllib.parse import urlsplit
+
+        u = urlsplit(url)
+        if u.scheme not in ("http", "https") or not u.hostname:
+            raise CameraError(f"not an http(s) URL: {url!r}")
+        conn_cls = http.client.HTTPSConnection if u.scheme == "https" else http.client.HTTPConnection
+        self.url, self.use_header_time = url, use_header_time
+        self._conn = conn_cls(u.hostname, u.port, timeout=timeout_s)
+        try:
+            self._conn.request("GET", (u.path or "/") + (f"?{u.query}" if u.query else ""))
+            resp = self._conn.getresponse()
+        except (OSError, http.client.HTTPException) as exc:
+            self._conn.close()
+            raise CameraError(f"cannot open the stream {url}: {exc}") from None
+        ctype = resp.getheader("Content-Type", "")
+        if resp.status != 200:
+            self._conn.close()
+            raise CameraError(f"the stream {url} answered HTTP {resp.status} {resp.reason}")
+        m = re.search(r'boundary="?([^";]+)"?', ctype)
+        if "multipart" not in ctype or not m:
+            self._conn.close()
+            raise CameraError(f"{url} is not an MJPEG stream (Content-Type {ctype or 'missing'!r})")
+        b = m.group(1)
+        self._boundary = (b if b.startswith("--") else "--" + b).encode()
+        self._resp = resp
+        self._sock = self._conn.sock
+
+    def _line(self) -> bytes:
+        line = self._resp.fp.readline(65537)
+        if not line:
+            raise CameraError(f"the stream {self.url} ended")
+        return line.rstrip(b"\r\n")
+
+    def read(self) -> tuple[np.ndarray | None, float | None]:
         import cv2
 
-        if self._cap is None:
-            return {"kind": "v4l2", "device": str(self.device), "open": False}
-        c = self._cap
-        return {"kind": "v4l2", "device": str(self.device), "open": True,
-                "width": int(c.get(cv2.CAP_PROP_FRAME_WIDTH)), "height": int(c.get(cv2.CAP_PROP_FRAME_HEIGHT)),
-                "fps": float(c.get(cv2.CAP_PROP_FPS)), "backend": c.getBackendName(), "frames": self._seq,
-                "dropped": self.dropped}
+        while self._line().strip() != self._boundary:  # skip to the next part
+            pass
+        headers = {}
+        while (line := self._line()):
+            k, _, v = line.decode("latin-1").partition(":")
+            headers[k.strip().lower()] = v.strip()
+        if "content-length" in headers:
+            n = int(headers["content-length"])
+            data = self._resp.fp.read(n)
+            if len(data) < n:
+                raise CameraError(f"the stream {self.url} ended inside a frame")
+        else:
+            chunks = []
+            while (line := self._resp.fp.readline(1 << 20)) and line.rstrip(b"\r\n") != self._boundary:
+                chunks.append(line)
+            data = b"".join(chunks).rstrip(b"\r\n")
+        t_wall = None
+        if self.use_header_time and "x-timestamp" in headers:
+            with contextlib.suppress(ValueError):
+                t_wall = float(headers["x-timestamp"])
+        image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+        return image, t_wall
 
-    def close(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=2.0)
-            self._thread = None
-        if self._cap is not None:
-            self._cap.release()
-            self._cap = None
+    def interrupt(self) -> None:
+        """Unblock a read from another thread (the grabber then leaves and releases the source)."""
+        import socket
+
+        if self._sock is not None:
+            with contextlib.suppress(OSError):
+                self._sock.shutdown(socket.SHUT_RDWR)
+
+    def release(self) -> None:
+        with contextlib.suppress(Exception):
+            self._resp.close()
+        self._conn.close()
+
+
+class StreamCamera(GrabberCamera):
+    """A network camera (``kind: stream``): MJPEG over HTTP, or any URL OpenCV's FFmpeg opens (RTSP).
+
+    ``backend``: ``auto`` reads http(s) URLs with :class:`MjpegHttpSource` and anything else with
+    ``cv2.VideoCapture(url, cv2.CAP_FFMPEG)``; ``http`` or ``opencv`` force one. ``timestamps``:
+    ``header`` takes the capture time from the parts' ``X-Timestamp`` (server wall clock; hosts
+    kept in step by NTP), ``arrival`` stamps arrival minus ``latency_s``.
+    """
+
+    kind = "stream"
+
+    def __init__(self, url: str, *, backend: str = "auto", timestamps: str = "arrival", timeout_s: float = 2.0,
+                 latency_s: float = 0.0, clock: Callable[[], float] = time.monotonic, name: str = ""):
+        super().__init__(timeout_s=timeout_s, latency_s=latency_s, clock=clock, name=name or url)
+        if backend not in ("auto", "http", "opencv"):
+            raise CameraError(f"unknown stream backend {backend!r} (auto, http or opencv)")
+        if timestamps not in ("arrival", "header"):
+            raise CameraError(f"unknown timestamps {timestamps!r} (arrival or header)")
+        self.url, self.backend, self.timestamps = url, backend, timestamps
+        self._backend_used: str | None = None
+
+    @classmethod
+    def from_config(cls, cfg, **kw) -> StreamCamera:
+        return cls(cfg.url, **({"backend": cfg.backend, "timestamps": cfg.timestamps, "timeout_s": cfg.timeout_s,
+                                "latency_s": cfg.latency_s} | kw))
+
+    def _meta(self) -> dict:
+        return {"url": self.url}
+
+    def _open_source(self) -> CaptureSource:
+        http = self.url.lower().startswith(("http://", "https://"))
+        if self.backend == "http" or (self.backend == "auto" and http):
+            self._backend_used = "http"
+            return MjpegHttpSource(self.url, timeout_s=max(self.timeout_s, 1.0),
+                                   use_header_time=self.timestamps == "header")
+        import cv2
+
+        cap = cv2.VideoCapture(self.url, cv2.CAP_FFMPEG)
+        if not cap.isOpened():
+            raise CameraError(f"OpenCV (FFmpeg) cannot open the stream {self.url}")
+        self._backend_used = f"opencv-{cap.getBackendName()}"
+        return _CvSource(cap)
+
+    def info(self) -> dict:
+        d = super().info() | {"url": self.url, "backend": self._backend_used or self.backend,
+                              "timestamps": self.timestamps}
+        if self._latest is not None:
+            h, w = self._latest.image.shape[:2]
+            d.update(width=w, height=h)
+        return d
 
 
 def list_stamped_frames(folder: str | Path) -> list[tuple[float, Path]]:
@@ -247,6 +481,8 @@ def open_camera(role: str, lab, **kw):
         raise CameraError(f"the lab has no {role}")
     if cfg.kind == "v4l2":
         return V4L2Camera.from_config(cfg, name=role, **kw)
+    if cfg.kind == "stream":
+        return StreamCamera.from_config(cfg, name=role, **kw)
     if cfg.kind == "replay":
         return ReplayCamera.from_config(cfg, root=getattr(lab, "root", None), name=role, **kw)
     if cfg.kind == "sim":

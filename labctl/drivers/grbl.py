@@ -106,8 +106,11 @@ class GrblTable(OpenClose):
 
     @classmethod
     def from_config(cls, cfg, **kw) -> GrblTable:
-        """From a :class:`labctl.config.TableConfig` (port, baud, timeout, reset_on_open, status_hz)."""
-        return cls(kw.pop("port", cfg.port), kw.pop("baud", cfg.baud), timeout_s=cfg.timeout_s,
+        """From a :class:`labctl.config.TableConfig` (port, baud, timeout, reset_on_open, status_hz).
+
+        ``port``/``baud`` in ``kw`` override the driver file only when given (not None)."""
+        port, baud = kw.pop("port", None), kw.pop("baud", None)
+        return cls(port or cfg.port, baud or cfg.baud, timeout_s=cfg.timeout_s,
                    reset_on_open=cfg.reset_on_open, status_hz=cfg.status_hz, **kw)
 
     # --- connection -------------------------------------------------------------------------

@@ -60,7 +60,9 @@ class SerialRobot(OpenClose):
 
     @classmethod
     def from_config(cls, cfg, **kw) -> SerialRobot:
-        return cls(kw.pop("port", cfg.port), kw.pop("baud", cfg.baud), timeout_s=cfg.timeout_s,
+        """From a :class:`labctl.config.RobotConfig`; ``port``/``baud`` in ``kw`` override it only when not None."""
+        port, baud = kw.pop("port", None), kw.pop("baud", None)
+        return cls(port or cfg.port, baud or cfg.baud, timeout_s=cfg.timeout_s,
                    heartbeat_s=cfg.heartbeat_s, **kw)
 
     # --- connection -------------------------------------------------------------------------

@@ -19,12 +19,16 @@ from ..errors import LabctlError
 ROLES = ("table", "robot", "fixed_camera", "mobile_camera")
 
 
-def open_device(role: str, lab, *, port: str | None = None, baud: int | None = None):
-    """The (unopened) device serving ``role`` in ``lab``; ``port``/``baud`` override the driver file."""
+def open_device(role: str, lab, *, port: str | None = None, baud: int | None = None, clock=None):
+    """The (unopened) device serving ``role`` in ``lab``; ``port``/``baud`` override the driver file.
+
+    ``clock`` (cameras): the clock frames are stamped on (default ``time.monotonic``)."""
     if role == "table":
         from ..drivers.grbl import GrblTable
 
         cfg = lab.table
+        if cfg is None:
+            raise LabctlError("this lab has no table (lab.yaml drivers.table: null)")
         if cfg.kind == "sim" and port is None:
             from ..sim.emulators.grbl import GrblEmulator
             from ..sim.emulators.link import EmulatorPort, ManualClock
@@ -58,7 +62,7 @@ def open_device(role: str, lab, *, port: str | None = None, baud: int | None = N
             from ..sim.virtual import build_virtual_lab
 
             return build_virtual_lab(lab).cameras[role.removesuffix("_camera")]
-        return open_camera(role, lab)
+        return open_camera(role, lab, **({"clock": clock} if clock is not None else {}))
     raise LabctlError(f"unknown device role {role!r} (have: {', '.join(ROLES)})")
 
 
@@ -71,6 +75,8 @@ def _where(role: str, lab) -> tuple[str, str]:
         return kind, str(cfg.device)
     if kind == "replay":
         return kind, str(cfg.folder)
+    if kind == "stream":
+        return kind, str(cfg.url)
     return kind, "simulated camera (in-process world)"
 
 
@@ -102,6 +108,8 @@ def check_device(role: str, lab) -> dict:
         out["ok"] = True
         out["verdict"] = "OK" + (" (simulated: checked against an in-process emulator)" if kind == "sim"
                                  and role in ("table", "robot") else " (simulated)" if kind == "sim" else "")
+        if kind == "sim" and not lab.is_simulated and (problem := lab.mixed_kinds_problem()) is not None:
+            out["verdict"] += f" — {problem}"  # it answers, but `labctl run` refuses this mix
     except Exception as exc:  # the verdict reports any failure; the command itself goes on
         out["verdict"] = f"FAIL: {type(exc).__name__}: {exc}"
     finally:
@@ -115,4 +123,5 @@ def check_device(role: str, lab) -> dict:
 
 
 def check_devices(lab) -> list[dict]:
-    return [check_device(role, lab) for role in ROLES]
+    """Check every device the lab has (a lab without a table has three)."""
+    return [check_device(role, lab) for role in ROLES if getattr(lab, role) is not None]

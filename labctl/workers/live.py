@@ -98,24 +98,25 @@ def _open_record(args: WorkerArgs):
     return RunRecord.open(args.run_dir)
 
 
-def _fixed_camera(args: WorkerArgs, lab):
+def _camera(args: WorkerArgs, lab, role: str):
+    """The worker's camera: the sim lab's frame server, else the driver file's camera stamping
+    frames on the run's clock (s since ``args.origin``)."""
     from .devices import open_device
 
     if args.frame_server is not None:
         from ..sim.camera import FrameClient
 
-        return FrameClient(args.frame_server[0], "fixed", args.frame_server[1])
-    return open_device("fixed_camera", lab)
+        return FrameClient(args.frame_server[0], role, args.frame_server[1])
+    origin = args.origin
+    return open_device(f"{role}_camera", lab, clock=lambda: time.monotonic() - origin)
+
+
+def _fixed_camera(args: WorkerArgs, lab):
+    return _camera(args, lab, "fixed")
 
 
 def _mobile_camera(args: WorkerArgs, lab):
-    from .devices import open_device
-
-    if args.frame_server is not None:
-        from ..sim.camera import FrameClient
-
-        return FrameClient(args.frame_server[0], "mobile", args.frame_server[1])
-    return open_device("mobile_camera", lab)
+    return _camera(args, lab, "mobile")
 
 
 def predictor_main(args: WorkerArgs, link_end, control) -> None:
@@ -136,15 +137,20 @@ def predictor_main(args: WorkerArgs, link_end, control) -> None:
     try:
         ctx = RunContext.load(lab)
         link = open_link(lab.host_link, "predictor", local_end=link_end)
-        table = GrblTable.from_config(lab.table, port=args.table_port)
+        # the sim lab's ports when it serves them, else the driver files' (None keeps the file's port);
+        # no table to drive when the parts move by something else (--trajectory external)
+        external = args.spec["trajectory"] == "external" or lab.table is None
+        table = None if external else GrblTable.from_config(lab.table, port=args.table_port)
         robot = SerialRobot.from_config(lab.robot, port=args.robot_port)
         camera = _fixed_camera(args, lab)
         for dev in (table, robot, camera):
-            dev.open()
+            if dev is not None:
+                dev.open()
         link.send(m.Hello(role="predictor", pid=os.getpid()))
         now = _now(args.origin)
         planner = PredictorPlanner(ctx, robot, link.send, log, t_start=now, clock=lambda: _now(args.origin))
-        table.stream(trajectory_program(args.spec["trajectory"], args.spec["speed_mm_s"], lab)[1])
+        if table is not None:
+            table.stream(trajectory_program(args.spec["trajectory"], args.spec["speed_mm_s"], lab)[1])
         log("table_program", t=now, trajectory=args.spec["trajectory"], speed_mm_s=args.spec["speed_mm_s"])
         t_beat = 0.0
         while not planner.finished:
@@ -177,7 +183,7 @@ def predictor_main(args: WorkerArgs, link_end, control) -> None:
         ctl.send("error", "predictor: the host link to the recognizer closed")
     except Exception as exc:  # the supervisor reports it in one line; the record keeps the traceback
         log("worker_error", role="predictor", error=f"{type(exc).__name__}: {exc}", traceback=traceback.format_exc())
-        ctl.send("error", f"predictor: {type(exc).__name__}: {exc}")
+        ctl.send("error", f"predictor: {type(exc).__name__}: {exc}", getattr(exc, "exit_code", 1))
     finally:
         _release(stop=(robot, table), close=(camera, robot, table, link))
 
@@ -220,7 +226,7 @@ def recognizer_main(args: WorkerArgs, link_end, control) -> None:
     except Exception as exc:
         log("worker_error", role="recognizer", error=f"{type(exc).__name__}: {exc}",
             traceback=traceback.format_exc())
-        ctl.send("error", f"recognizer: {type(exc).__name__}: {exc}")
+        ctl.send("error", f"recognizer: {type(exc).__name__}: {exc}", getattr(exc, "exit_code", 1))
     finally:
         _release(close=(camera, link))
 

@@ -12,6 +12,7 @@
 from __future__ import annotations
 
 import contextlib
+import os
 import threading
 import time
 
@@ -27,18 +28,29 @@ TRAJECTORY_STARTS = {"line": (150.0, 200.0), "arc": (200.0, 200.0), "circle": (2
                      "zigzag": (150.0, 170.0)}
 
 
+def table_config(lab: Lab):
+    """The lab's table, or (no table: parts on a conveyor) the default table the simulator moves them on."""
+    from ..config import TableConfig
+
+    return lab.table if lab.table is not None else TableConfig()
+
+
 def trajectory_program(name: str, speed_mm_s: float, lab: Lab) -> tuple[tuple[float, float], list[str]]:
-    """``(start_xy, gcode_lines)`` of a named trajectory, or of a G-code file (started at the centre)."""
+    """``(start_xy, gcode_lines)`` of a named trajectory, or of a G-code file (started at the centre).
+
+    ``external`` (labctl does not drive the motion): where the simulator's conveyor starts, and no lines."""
+    if name == "external":
+        return TRAJECTORY_STARTS["line"], []
     if name in TRAJECTORY_STARTS:
         start = TRAJECTORY_STARTS[name]
-        return start, program(name, speed_mm_s, start=start, travel_mm=lab.table.travel_mm)
+        return start, program(name, speed_mm_s, start=start, travel_mm=table_config(lab).travel_mm)
     from ..drivers.programs import load_gcode
 
     try:
         lines = load_gcode(name)
     except OSError as exc:
         raise UserInputError(f"cannot read G-code file {name}: {exc}") from None
-    travel = lab.table.travel_mm
+    travel = table_config(lab).travel_mm
     return (travel[0] / 2, travel[1] / 2), lines
 
 
@@ -95,6 +107,47 @@ class SimBench:
                 dev.stop()
 
 
+class Conveyor:
+    """Moves the simulated table by itself — parts on a conveyor that labctl does not drive.
+
+    The program goes straight into the GRBL emulator (no client on its port) once the fixed
+    camera has been watched without a pause for ``delay_s``: the part arrives while a run looks,
+    and a single ``labctl devices`` grab does not set it off.
+    """
+
+    def __init__(self, grbl, lock, lines: list[str], delay_s: float = 1.0, gap_s: float = 0.5):
+        self.grbl, self.lock, self.lines = grbl, lock, lines
+        self.delay_s, self.gap_s = delay_s, gap_s
+        self.started_at: float | None = None
+        self._streak: tuple[float, float] | None = None  # (first, last) grab of the current streak
+
+    def watch(self, camera):
+        conveyor = self
+
+        class Watched:
+            def __getattr__(self, name):
+                return getattr(camera, name)
+
+            def grab(self):
+                frame = camera.grab()
+                conveyor.seen(frame.t)
+                return frame
+
+        return Watched()
+
+    def seen(self, t: float) -> None:
+        if self.started_at is not None:
+            return
+        first, last = self._streak or (t, t)
+        if t - last > self.gap_s:
+            first = t
+        self._streak = (first, t)
+        if t - first >= self.delay_s:
+            with self.lock:
+                self.grbl.receive(("\n".join(self.lines) + "\n").encode(), t=t)
+            self.started_at = t
+
+
 def _locked(lock, fn):
     def call(*args):
         with lock:
@@ -111,7 +164,20 @@ class LiveSimLab:
         self._stack = contextlib.ExitStack()
 
     def __enter__(self) -> LiveSimLab:
-        from ..sim.camera import FrameServer, SimCamera
+        from ..sim.camera import FrameServer
+
+        try:
+            cams = self._start_world()
+            self.server = FrameServer(cams).start()
+            self._stack.callback(self.server.stop)
+        except BaseException:
+            self._stack.close()
+            raise
+        return self
+
+    def _start_world(self) -> dict:
+        """The world, both emulators on ptys (real clock) and both (opened) sim cameras, by role."""
+        from ..sim.camera import SimCamera
         from ..sim.clock import RealClock
         from ..sim.emulators.grbl import GrblEmulator
         from ..sim.emulators.pty import run_on_pty
@@ -121,31 +187,44 @@ class LiveSimLab:
         lab = self.lab
         rng = np.random.default_rng(self.spec.get("seed", 0))
         self.object_name, obj, placement = _sim_object(lab, self.spec, rng)
-        start, _ = trajectory_program(self.spec["trajectory"], self.spec["speed_mm_s"], lab)
+        self.obj, self.placement = obj, placement
+        start = self.spec.get("table_start_mm") or trajectory_program(
+            self.spec["trajectory"], self.spec["speed_mm_s"], lab)[0]
         self.origin = time.monotonic()
         clock = RealClock()
         clock._origin = self.origin
-        t = lab.table
+        t = table_config(lab)
         self.grbl = GrblEmulator(clock.now, travel_mm=t.travel_mm, max_feed_mm_min=t.max_feed_mm_min,
                                  accel_mm_s2=t.accel_mm_s2, start_mm=(start[0], start[1], 0.0))
         self.robot_emu = RobotEmulator(clock.now, lab.robot, start_pose=home_flange_pose(lab))
-        self.table_pty = run_on_pty(self.grbl, t.baud, clock=clock.now)
+        baud = self.spec.get("baud")
+        self.table_pty = run_on_pty(self.grbl, baud or t.baud, clock=clock.now)
         self._stack.callback(self.table_pty.stop)
-        self.robot_pty = run_on_pty(self.robot_emu, lab.robot.baud, clock=clock.now)
+        self.robot_pty = run_on_pty(self.robot_emu, baud or lab.robot.baud, clock=clock.now)
         self._stack.callback(self.robot_pty.stop)
+        # the cameras see what the served controllers do: positions read from the emulators, under their locks
         self.world = SimWorld.from_lab(
             lab, obj=obj, placement=placement,
             table_position=_locked(self.table_pty.lock, self.grbl.position_at),
             flange_pose_at=_locked(self.robot_pty.lock, self.robot_emu.flange_pose_at))
         seed = int(self.spec.get("seed", 0))
-        cams = {role: SimCamera(self.world, role, clock, fps=getattr(lab, f"{role}_camera").fps, seed=seed)
+        cams = {role: SimCamera(self.world, role, clock, fps=self.spec.get("fps") or getattr(lab, f"{role}_camera").fps,
+                                seed=seed)
                 for role in ("fixed", "mobile")}
         for cam in cams.values():
             cam.open()
-        self.server = FrameServer(cams).start()
-        self._stack.callback(self.server.stop)
+            cam.render_frame(0)  # the first render builds the scene (seconds): not in a client's wait
         self.clock = clock
-        return self
+        self.conveyor = None
+        if self.spec.get("trajectory") == "external" or self.spec.get("conveyor"):
+            # parts on a conveyor labctl does not drive: the simulator runs the table itself
+            # the conveyor is the simulator's own: it clears GRBL's power-up alarm itself ($X)
+            lines = ["$X"] + program(self.spec.get("conveyor") or "line", self.spec["speed_mm_s"], start=start,
+                                     travel_mm=t.travel_mm, rapid_to_start=False)
+            delay = float(self.spec.get("conveyor_delay_s", 1.0))
+            self.conveyor = Conveyor(self.grbl, self.table_pty.lock, lines, delay)
+            cams["fixed"] = self.conveyor.watch(cams["fixed"])
+        return cams
 
     def __exit__(self, *exc) -> None:
         self._stack.close()
@@ -168,6 +247,149 @@ class LiveSimLab:
                 "table_state": table_state}
 
 
+class ServedLab(LiveSimLab):
+    """``labctl sim serve``: the whole simulated lab out of process, in real time, from one world.
+
+    The GRBL table and robot controller emulators on ptys (or, ``spec["tcp"]``, on TCP ports
+    bridged as ser2net would), and both cameras as MJPEG-over-HTTP streams on localhost
+    (:class:`labctl.sim.mjpeg.MjpegServer`) rendering the world whose table and flange poses
+    are read from those same emulators. Spec keys: ``seed``, ``object_name``, ``trajectory``
+    and ``speed_mm_s`` (only where the table starts), ``table_start_mm``, ``tcp``, ``baud``,
+    ``http_port``, ``jpeg_quality``, ``fps`` (both cameras; default the driver files').
+    """
+
+    def __enter__(self) -> ServedLab:
+        from ..sim.mjpeg import MjpegServer
+        from ..sim.tcpserial import TcpSerialBridge
+
+        try:
+            cams = self._start_world()
+            self.ports = {"table": self.table_pty.path, "robot": self.robot_pty.path}
+            if self.spec.get("tcp"):
+                for role in ("table", "robot"):
+                    bridge = TcpSerialBridge(self.ports[role])
+                    self._stack.callback(bridge.stop)
+                    self.ports[role] = bridge.url
+            self.mjpeg = MjpegServer(cams, self.clock.now, port=int(self.spec.get("http_port") or 0),
+                                     quality=int(self.spec.get("jpeg_quality") or 90)).start()
+            self._stack.callback(self.mjpeg.stop)
+        except BaseException:
+            self._stack.close()
+            raise
+        return self
+
+    def endpoints(self) -> dict:
+        return {"table": self.ports["table"], "robot": self.ports["robot"],
+                "fixed_camera": self.mjpeg.url("fixed"), "mobile_camera": self.mjpeg.url("mobile")}
+
+    def check_alive(self) -> None:
+        """Raise if an emulator's thread died (the served lab would silently stop answering)."""
+        for role, dev in (("table", self.table_pty), ("robot", self.robot_pty)):
+            if not dev._thread.is_alive():
+                raise RuntimeError(f"the {role} emulator stopped: {dev.errors[-1] if dev.errors else 'unknown'}")
+
+    def truth(self) -> dict:
+        """The served world's ground truth (mm, rad; 4×4 poses ``T_<to>_<from>``), for checks."""
+        from ..sim import truth
+
+        lab = self.lab
+        return {
+            "true_identity": self.object_name,
+            "seed": int(self.spec.get("seed", 0)),
+            "placement": {"pose_index": self.placement.pose_index, "yaw_rad": self.placement.yaw,
+                          "offset_xy_mm": list(self.placement.offset_xy)},
+            "T_t_o": self.placement.T_t_o(self.obj).tolist(),
+            "table_origin_w_mm": list(table_config(lab).origin_w_mm),
+            "conveyor": None if self.conveyor is None else {"program": self.conveyor.lines},
+            "fixed_camera": {"T_w_c": truth.fixed_camera_pose(lab.fixed_camera).tolist(),
+                             "model": truth.camera_model(lab.fixed_camera).to_dict()},
+            "mobile_camera": {"T_f_c": truth.hand_eye(lab.mobile_camera).tolist(),
+                              "model": truth.camera_model(lab.mobile_camera).to_dict()},
+            "T_w_b": np.eye(4).tolist(),
+            "endpoints": self.endpoints(),
+            "timestamps": "the cameras' X-Timestamp is the exposure time on the wall clock (time.time, s)",
+        }
+
+
+def write_served_lab(lab: Lab, out, served: ServedLab, *, force: bool = False):
+    """Write ``out``: a lab whose driver files use only real kinds (grbl, serial, stream) pointing
+    at ``served``'s endpoints, plus ``served_truth.json`` (the served world's ground truth).
+
+    Calibration and object library are copied from ``lab`` (the served world is rendered from
+    ``lab``'s driver files, so its calibration describes it; ``labctl calibrate`` on the written
+    lab measures it again through the devices). The sim-only ground-truth fields are left out
+    of the driver files. Written to a temporary folder and renamed: never half-written.
+    Refuses a non-empty ``out`` unless it is an earlier served lab and ``force``.
+    """
+    import dataclasses
+    import json
+    import shutil
+    from pathlib import Path
+
+    import yaml
+
+    from ..config.lab import DriverFiles
+
+    out = Path(out).resolve()
+    if out.exists() and any(out.iterdir()):
+        if not (force and (out / "served_truth.json").is_file()):
+            raise UserInputError(f"{out} is not empty; not overwriting it"
+                                 + (" (--force replaces an earlier served lab)" if force or
+                                    (out / "served_truth.json").is_file() else ""))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.parent / f".{out.name}.tmp-{os.getpid()}"
+    shutil.rmtree(tmp, ignore_errors=True)
+
+    def plain(o):
+        if isinstance(o, dict):
+            return {k: plain(v) for k, v in o.items()}
+        if isinstance(o, list | tuple):
+            return [plain(v) for v in o]
+        return o
+
+    def dump(path, data, comment):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(f"# {comment}\n" + yaml.safe_dump(plain(data), sort_keys=False))
+
+    ep = served.endpoints()
+    try:
+        no_table = served.conveyor is not None  # the conveyor moves the parts: the lab has no table
+        drivers = DriverFiles(table=None) if no_table else DriverFiles()
+        config = dataclasses.replace(lab.config, drivers=drivers, name=f"served lab ({lab.config.name})")
+        if no_table:
+            config = dataclasses.replace(config, run=dataclasses.replace(config.run, trajectory="external"))
+        dump(tmp / "lab.yaml", dataclasses.asdict(config), "written by `labctl sim serve --lab-out`")
+        real = "written by `labctl sim serve --lab-out`: real driver kinds on the served endpoints"
+        if not no_table:
+            table = dataclasses.replace(lab.table, kind="grbl", port=ep["table"], origin_w_mm=(0.0, 0.0, 0.0))
+            dump(tmp / "drivers/table.yaml", dataclasses.asdict(table), real)
+        robot = dataclasses.replace(lab.robot, kind="serial", port=ep["robot"])
+        dump(tmp / "drivers/robot.yaml", dataclasses.asdict(robot), real)
+        for role in ("fixed_camera", "mobile_camera"):
+            cfg = dataclasses.replace(getattr(lab, role), kind="stream", url=ep[role], timestamps="header",
+                                      eye_w_mm=None, target_w_mm=None)
+            if served.spec.get("fps"):
+                cfg = dataclasses.replace(cfg, fps=float(served.spec["fps"]))
+            d = dataclasses.asdict(cfg)
+            for sim_only in ("noise_sigma", "hand_eye_mm", "hand_eye_rpy_deg"):
+                d.pop(sim_only, None)
+            dump(tmp / f"drivers/{role}.yaml", d, real)
+        link = dataclasses.replace(lab.host_link, transport="tcp", port=None)
+        dump(tmp / "drivers/host_link.yaml", dataclasses.asdict(link), "written by `labctl sim serve --lab-out`")
+        for item in ("calibration", "object_library"):
+            if (lab.root / item).is_dir():
+                shutil.copytree(lab.root / item, tmp / item, ignore=shutil.ignore_patterns(".*", "__pycache__"))
+        (tmp / "runs").mkdir()
+        (tmp / "served_truth.json").write_text(json.dumps({**served.truth(), "pid": os.getpid()}, indent=2))
+        if out.exists():
+            shutil.rmtree(out)
+        os.replace(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return out
+
+
 def emergency_stop(lab: Lab, endpoints: dict, timeout_s: float = 0.3) -> list[str]:
     """Stop the table (GRBL feed hold, then soft reset) and the robot (its stop command) by writing
     straight to their ports — the supervisor's last resort when a worker died holding them.
@@ -177,7 +399,9 @@ def emergency_stop(lab: Lab, endpoints: dict, timeout_s: float = 0.3) -> list[st
     from ..drivers.robot import STOP_LINE
 
     done = []
-    targets = (("table", endpoints.get("table") or lab.table.port, lab.table.baud, [b"!", b"\x18"]),
+    table = table_config(lab)
+    targets = (("table", endpoints.get("table") or (lab.table.port if lab.table is not None else None), table.baud,
+                [b"!", b"\x18"]),
                ("robot", endpoints.get("robot") or lab.robot.port, lab.robot.baud, [STOP_LINE]))
 
     def stop(role, port, baud, payloads):
