@@ -38,7 +38,7 @@ import numpy as np
 from ..errors import DeviceError
 from ..geometry import CameraModel, apply, invert, look_at, make_T, rotation_angle
 from .dots import DotError, circle_centroid_bias, detect_dots, identify
-from .handeye import pose_error, refine_hand_eye, target_in_base, tsai_lenz
+from .handeye import MIN_AXIS_SPREAD_DEG, axis_spread_deg, pose_error, refine_hand_eye, target_in_base, tsai_lenz
 from .table import TableRegistration, fit_table_frame, pixel_to_plane
 from .target import PlaneTarget, Target
 from .tsai import Sensor, TsaiResult, calibrate, refine_pose
@@ -76,7 +76,7 @@ class Motion:
     settle_s: float = 0.3
     table_timeout_s: float = 120.0
     robot_timeout_s: float = 60.0
-    poll_s: float = 0.05
+    poll_s: float = 0.2  # status polls while moving; every robot request also feeds its watchdog
     position_tol_mm: float = 0.02
 
 
@@ -187,6 +187,12 @@ def plan_calibration(target: Target, *, cameras: str, travel_mm, workspace, T_w_
         if len(plan.stations) < 3:
             plan.problems.append(f"only {len(plan.stations)} robot stations see the whole target inside the robot's "
                                  "workspace; need at least 3 (move the target or change robot_distance_mm)")
+        else:
+            rel = [invert(b)[:3, :3] @ a[:3, :3] for i, a in enumerate(plan.stations) for b in plan.stations[i + 1:]]
+            spread = axis_spread_deg(rel)
+            if spread < MIN_AXIS_SPREAD_DEG:
+                plan.problems.append(f"degenerate robot stations: all rotations are about one axis (axes spread "
+                                     f"{spread:.1f}°, need ≥ {MIN_AXIS_SPREAD_DEG:.0f}°), X is not observable")
         if plan.stations:
             T0 = plan.stations[0]
             for xy in target.registration_positions_mm:

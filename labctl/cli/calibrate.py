@@ -55,9 +55,12 @@ class TerminalPrompt:
             raise UserInputError("no answer to the prompt (stdin closed): the target's placement was not confirmed")
 
 
-def _confirm_stopped(table, robot) -> str:
-    """Stop the table (GRBL feed hold, then soft reset) and the robot (STOP), read both back."""
+def _confirm_stopped(devs, settle_s: float = 2.0) -> str:
+    """Stop the table (GRBL feed hold, then soft reset: ``Table.stop``) and the robot (``STOP``),
+    then read both back until they report rest (bounded by ``settle_s`` on the devices' clock).
+    Returns what was confirmed, for the one line printed."""
     parts = []
+    table, robot = devs.table, devs.robot
     if table is not None:
         try:
             table.stop()
@@ -68,8 +71,10 @@ def _confirm_stopped(table, robot) -> str:
     if robot is not None:
         try:
             robot.stop()
-            st = robot.status()
-            parts.append("robot stopped" if not st.moving else "robot STILL MOVING")
+            deadline = devs.now() + settle_s
+            while (st := robot.status()).moving and devs.now() < deadline:
+                devs.sleep(0.05)  # STOP brings the arm to rest with a short quintic
+            parts.append("robot stopped" if not st.moving else f"robot STILL MOVING after {settle_s:g} s")
         except Exception as exc:  # noqa: BLE001
             parts.append(f"robot stop NOT confirmed ({type(exc).__name__}: {exc})")
     return ", ".join(parts) or "nothing was moving"
@@ -167,7 +172,9 @@ def calibrate_group(ctx: click.Context, camera: str, dry_run: bool, ros: bool, f
     plan = make_plan(target, nominal, camera)
     if plan.problems:
         raise UserInputError(f"the calibration plan does not fit the lab: {plan.problems[0]}")
+    # Ctrl-C and SIGTERM both end in the stop below, even if the parent started us ignoring SIGINT
     old_term = signal.signal(signal.SIGTERM, _raise_interrupt)
+    old_int = signal.signal(signal.SIGINT, signal.default_int_handler)
     devs = None
     close = None
     try:
@@ -181,7 +188,7 @@ def calibrate_group(ctx: click.Context, camera: str, dry_run: bool, ros: bool, f
         # stop on every exit path; a second Ctrl-C/TERM must not cut the stop short
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
-        said = _confirm_stopped(devs.table, devs.robot) if devs is not None else "no device was opened"
+        said = _confirm_stopped(devs) if devs is not None else "no device was opened"
         if close is not None:
             with contextlib.suppress(Exception):
                 close()
@@ -191,6 +198,7 @@ def calibrate_group(ctx: click.Context, camera: str, dry_run: bool, ros: bool, f
         raise
     finally:
         signal.signal(signal.SIGTERM, old_term)
+        signal.signal(signal.SIGINT, old_int)
     if close is not None:
         close()
     emit(rep, _human_report(rep))
