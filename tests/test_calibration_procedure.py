@@ -206,3 +206,53 @@ def test_signal_during_calibrate_stops_the_devices_one_line_exit_130(lab, sig, c
         assert last.endswith("robot stopped")
     assert {p.name: p.read_bytes() for p in (lab / "calibration").glob("*.yaml")} == before
     assert len(list((lab / "calibration").glob("captures/*/*.png"))) >= after  # images taken so far are kept
+
+
+def test_mixed_simulated_and_real_devices_are_refused(lab, capsys):
+    f = lab / "drivers" / "fixed_camera.yaml"
+    f.write_text(f.read_text().replace("kind: sim", "kind: v4l2").replace("device: null", "device: 0"))
+    code, _, err = _run(["--lab", str(lab), "calibrate", "--camera", "fixed"], capsys)
+    assert code == 2 and err.count("\n") == 1 and "all simulated or all real" in err
+    assert not (lab / "calibration" / "captures").exists()
+
+
+def test_prompt_command_places_the_target_or_refuses(tmp_path):
+    from labctl.cli.calibrate import CommandPrompt
+    from labctl.errors import UserInputError
+
+    log = tmp_path / "placed.txt"
+    script = tmp_path / "place.py"
+    script.write_text("import sys\nopen(sys.argv[1], 'a').write(' '.join(sys.argv[2:]) + '\\n')\n"
+                      "sys.exit(3 if sys.argv[2] == '99' else 0)\n")
+    p = CommandPrompt(f"{sys.executable} {script} {log}")
+    p.place_target(0.0, 0, 2)
+    p.place_target(60.0, 1, 2)
+    assert log.read_text().splitlines() == ["0 1 2", "60 2 2"]
+    with pytest.raises(UserInputError, match="did not place the target on 99 mm"):
+        p.place_target(99.0, 0, 1)
+
+
+def test_served_truth_file_is_read_as_the_simulator_truth(tmp_path):
+    """The served lab's truth file (labctl sim serve --lab-out) describes the same world."""
+    from labctl.calibration.run import load_truth
+    from labctl.config import load_lab
+    from labctl.sim import truth
+    from labctl.sim.rigs import SimCalibrationLab
+
+    lab = load_lab(REPO)
+    served = {"fixed_camera": {"T_w_c": truth.fixed_camera_pose(lab.fixed_camera).tolist(),
+                               "model": truth.camera_model(lab.fixed_camera).to_dict()},
+              "mobile_camera": {"T_f_c": truth.hand_eye(lab.mobile_camera).tolist(),
+                                "model": truth.camera_model(lab.mobile_camera).to_dict()},
+              "table_origin_w_mm": list(lab.table.origin_w_mm), "T_w_b": np.eye(4).tolist()}
+    (tmp_path / "served_truth.json").write_text(json.dumps(served))
+    got = load_truth(tmp_path / "served_truth.json")
+    ref = SimCalibrationLab(lab, PlaneTarget()).truth()
+    assert got.fixed_camera == ref["fixed_camera"] and got.mobile_camera == ref["mobile_camera"]
+    for key in ("T_w_c1", "T_f_c2", "T_w_table"):
+        assert np.allclose(getattr(got, key), ref[key])
+    (tmp_path / "bad.json").write_text(json.dumps({"fixed_camera": {}}))
+    from labctl.errors import UserInputError
+
+    with pytest.raises(UserInputError, match="missing or malformed"):
+        load_truth(tmp_path / "bad.json")

@@ -54,6 +54,29 @@ class Truth:
     T_w_table: np.ndarray
 
 
+def load_truth(path: Path | str) -> Truth:
+    """Ground truth from a served simulated lab's ``served_truth.json`` (``labctl sim serve
+    --lab-out``): ``fixed_camera: {T_w_c, model}``, ``mobile_camera: {T_f_c, model}``,
+    ``table_origin_w_mm``, optional ``T_w_b`` (the robot base in W; the calibration's W is B).
+    Raises UserInputError naming what is missing."""
+    import json
+
+    path = Path(path)
+    try:
+        d = json.loads(path.read_text(encoding="utf-8"))
+        T_b_w = np.linalg.inv(np.asarray(d.get("T_w_b", np.eye(4)), float))
+        fixed, mobile = d["fixed_camera"], d["mobile_camera"]
+        return Truth(fixed_camera=CameraModel.from_dict(fixed["model"]),
+                     T_w_c1=T_b_w @ np.asarray(fixed["T_w_c"], float),
+                     mobile_camera=CameraModel.from_dict(mobile["model"]),
+                     T_f_c2=np.asarray(mobile["T_f_c"], float),
+                     T_w_table=T_b_w @ make_T(None, d["table_origin_w_mm"]))
+    except (OSError, ValueError) as exc:
+        raise UserInputError(f"cannot read the truth file {path}: {exc}") from None
+    except (KeyError, TypeError) as exc:
+        raise UserInputError(f"truth file {path}: missing or malformed {exc}") from None
+
+
 @dataclass(frozen=True)
 class Nominal:
     """What the plan starts from: the nominal cameras and poses (a previous calibration where

@@ -55,6 +55,30 @@ class TerminalPrompt:
             raise UserInputError("no answer to the prompt (stdin closed): the target's placement was not confirmed")
 
 
+class CommandPrompt:
+    """The procedure's prompt answered by a program: ``CMD SPACER_MM INDEX COUNT`` places the
+    target (an out-of-process simulator's hook, a fixture robot); a non-zero exit refuses."""
+
+    def __init__(self, command: str):
+        import shlex
+
+        self.argv = shlex.split(command)
+
+    def place_target(self, spacer_mm: float, index: int, count: int) -> None:
+        import subprocess
+
+        from ..errors import UserInputError
+
+        try:
+            done = subprocess.run([*self.argv, f"{spacer_mm:g}", str(index + 1), str(count)], stdin=subprocess.DEVNULL,
+                                  capture_output=True, text=True, timeout=600)
+        except (OSError, subprocess.TimeoutExpired) as exc:
+            raise UserInputError(f"--prompt-command failed: {exc}") from None
+        if done.returncode != 0:
+            why = (done.stderr.strip().splitlines() or [f"exit status {done.returncode}"])[-1]
+            raise UserInputError(f"--prompt-command did not place the target on {spacer_mm:g} mm: {why}")
+
+
 def _confirm_stopped(devs, settle_s: float = 2.0) -> str:
     """Stop the table (GRBL feed hold, then soft reset: ``Table.stop``) and the robot (``STOP``),
     then read both back until they report rest (bounded by ``settle_s`` on the devices' clock).
@@ -84,7 +108,7 @@ def _raise_interrupt(_signum, _frame):
     raise KeyboardInterrupt
 
 
-def _open_devices(lab, cameras: str, seed: int, target):
+def _open_devices(lab, cameras: str, seed: int, target, prompt_command: str | None = None):
     """(Devices, prompt, truth or None, closer) for ``lab``: the coupled in-process simulator when
     every device is simulated, else the real drivers (mixing the two cannot work: a simulated
     camera would not see a real table)."""
@@ -129,7 +153,7 @@ def _open_devices(lab, cameras: str, seed: int, target):
 
     devs = Devices(table=opened["table"], robot=opened.get("robot"), fixed=opened.get("fixed_camera"),
                    mobile=opened.get("mobile_camera"), sleep=time.sleep, now=time.monotonic)
-    return devs, TerminalPrompt(), None, close
+    return devs, CommandPrompt(prompt_command) if prompt_command else TerminalPrompt(), None, close
 
 
 @click.group("calibrate", invoke_without_command=True)
@@ -140,9 +164,14 @@ def _open_devices(lab, cameras: str, seed: int, target):
 @click.option("--ros", is_flag=True, help="Also write ROS camera_info YAML for each calibrated camera.")
 @click.option("--full", is_flag=True, help="Optimise the image centre too (default: held at nominal).")
 @click.option("--seed", type=int, default=0, show_default=True, help="Sensor-noise seed of the simulated lab.")
+@click.option("--prompt-command", default=None, metavar="CMD",
+              help="Instead of asking on the terminal, run 'CMD SPACER_MM N COUNT' to place the target (real kinds).")
+@click.option("--truth", "truth_file", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Compare with this ground truth (served_truth.json of `labctl sim serve --lab-out`).")
 @json_option
 @click.pass_context
-def calibrate_group(ctx: click.Context, camera: str, dry_run: bool, ros: bool, full: bool, seed: int) -> None:
+def calibrate_group(ctx: click.Context, camera: str, dry_run: bool, ros: bool, full: bool, seed: int,
+                    prompt_command: str | None, truth_file: Path | None) -> None:
     """Calibrate the lab through its devices: the fixed camera (Tsai, target moved by the table at
     one or more spacer heights), the mobile camera and its hand-eye (robot stations), the table's
     registration. The same procedure runs on the simulated lab and on hardware."""
@@ -152,7 +181,15 @@ def calibrate_group(ctx: click.Context, camera: str, dry_run: bool, ros: bool, f
 
     from rich.progress import Progress
 
-    from ..calibration.run import lab_target, make_plan, nominal_for, plan_report, run_lab_calibration, steps_for
+    from ..calibration.run import (
+        lab_target,
+        load_truth,
+        make_plan,
+        nominal_for,
+        plan_report,
+        run_lab_calibration,
+        steps_for,
+    )
     from ..calibration.target import TargetError
     from ..errors import UserInputError
 
@@ -170,6 +207,7 @@ def calibrate_group(ctx: click.Context, camera: str, dry_run: bool, ros: bool, f
             raise UserInputError(f"the calibration plan does not fit the lab: {rep['problems'][0]}")
         return
     plan = make_plan(target, nominal, camera)
+    given_truth = load_truth(truth_file) if truth_file is not None else None
     if plan.problems:
         raise UserInputError(f"the calibration plan does not fit the lab: {plan.problems[0]}")
     # Ctrl-C and SIGTERM both end in the stop below, even if the parent started us ignoring SIGINT
@@ -178,7 +216,8 @@ def calibrate_group(ctx: click.Context, camera: str, dry_run: bool, ros: bool, f
     devs = None
     close = None
     try:
-        devs, prompt, truth, close = _open_devices(lab, camera, seed, target)
+        devs, prompt, truth, close = _open_devices(lab, camera, seed, target, prompt_command)
+        truth = given_truth or truth
         with Progress(console=c.console, transient=c.json) as bar:
             task = bar.add_task("calibrating", total=steps_for(plan))
             rep = run_lab_calibration(lab.calibration_dir, devs, prompt, target, nominal, cameras=camera, ros=ros,
