@@ -283,6 +283,9 @@ def capture(devs: Devices, prompt: Prompt, plan: Plan, motion: Motion = Motion()
     tick = progress or (lambda _m: None)
     store = keep or (lambda _n, _i: None)
     cap = Captures()
+    st = devs.table.status()
+    if st.state.startswith("Alarm"):  # never unlock here: after an alarm the position is unknown
+        raise DeviceError("table: in Alarm (position unknown): home it (`labctl table home`) before calibrating")
     spacers = sorted({h for h, _ in plan.fixed} | ({plan.robot_spacer_mm} if plan.stations else set()),
                      key=lambda h: (h != plan.robot_spacer_mm, h))
     robot = _Robot(devs, motion) if plan.stations else None
