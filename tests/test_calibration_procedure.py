@@ -17,6 +17,8 @@ import cv2
 import numpy as np
 import pytest
 import yaml
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from labctl.calibration.dots import detect_dots
 from labctl.calibration.target import PlaneTarget, load_target, target_yaml
@@ -256,3 +258,28 @@ def test_served_truth_file_is_read_as_the_simulator_truth(tmp_path):
 
     with pytest.raises(UserInputError, match="missing or malformed"):
         load_truth(tmp_path / "bad.json")
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.floats(-800.0, 800.0), min_size=3, max_size=3), st.lists(st.floats(-3.0, 3.0), min_size=3,
+                                                                            max_size=3))
+def test_segment_durations_keep_the_quintic_within_half_the_robot_limits(dp, rv):
+    """The controller interpolates a quintic (docs/protocols/robot.md); sampled numerically, its
+    peak speed, acceleration and angular speed stay within half the configured limits."""
+    from labctl.calibration.procedure import Motion, segment_duration
+    from labctl.geometry import make_T, rotvec_to_matrix
+
+    m = Motion(v_max_mm_s=500.0, a_max_mm_s2=1500.0, w_max_deg_s=120.0)
+    A = make_T(None, [100.0, -200.0, 900.0])
+    B = make_T(rotvec_to_matrix(np.array(rv)), A[:3, 3] + np.array(dp))
+    T = segment_duration(A, B, m)
+    tau = np.linspace(0.0, 1.0, 2001)
+    s = 10 * tau**3 - 15 * tau**4 + 6 * tau**5
+    v = np.gradient(s, tau) / T
+    a = np.gradient(v, tau) / T
+    d = float(np.linalg.norm(dp))
+    ang = float(np.degrees(np.linalg.norm(rv))) if np.linalg.norm(rv) <= np.pi else None
+    assert d * v.max() <= 0.5 * m.v_max_mm_s * 1.001
+    assert d * np.abs(a).max() <= 0.5 * m.a_max_mm_s2 * 1.01
+    if ang is not None:
+        assert ang * v.max() <= 0.5 * m.w_max_deg_s * 1.001
