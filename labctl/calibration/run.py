@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import UserInputError
-from ..geometry import CameraModel, make_T
+from ..geometry import CameraModel, look_at, make_T, rpy_willson
 from . import store
 from .dots import DotError
 from .handeye import HandEyeInputError
@@ -93,14 +93,27 @@ class Nominal:
     sources: dict
 
 
+def nominal_camera(cfg) -> CameraModel:
+    """The nominal Tsai model of a camera from its driver file's ``lens`` (Tsai's sensor data;
+    the simulator renders with the same fields as its truth, :mod:`labctl.sim.truth`)."""
+    lens = cfg.lens
+    return CameraModel(f=lens.f_mm, kappa1=lens.kappa1, sx=lens.sx,
+                       cx=lens.cx if lens.cx is not None else (cfg.width - 1) / 2.0,
+                       cy=lens.cy if lens.cy is not None else (cfg.height - 1) / 2.0,
+                       dx=lens.dx_mm, dy=lens.dy_mm, ncx=lens.ncx, nfx=lens.nfx, width=cfg.width, height=cfg.height)
+
+
+def _nominal_hand_eye(cfg) -> np.ndarray:
+    rx, ry, rz = np.radians(cfg.hand_eye_rpy_deg)
+    return make_T(rpy_willson(rx, ry, rz), cfg.hand_eye_mm)
+
+
 def nominal_for(lab) -> Nominal:
     """Nominal values for planning ``lab``'s calibration (see :class:`Nominal`)."""
-    from ..sim import truth as lens  # the driver files' lens fields: true in the sim, nominal on hardware
-
     cal = lab.calibration_dir
     src = {}
-    fixed = lens.camera_model(lab.fixed_camera)
-    mobile = lens.camera_model(lab.mobile_camera)
+    fixed = nominal_camera(lab.fixed_camera)
+    mobile = nominal_camera(lab.mobile_camera)
     try:
         T_w_table = store.load_table(cal)[0]
         src["table"] = "calibration/table.yaml"
@@ -111,16 +124,17 @@ def nominal_for(lab) -> Nominal:
         X = store.load_mobile_camera(cal)[1]
         src["hand_eye"] = "calibration/mobile_camera.yaml"
     except store.CalibrationFileError:
-        X = lens.hand_eye(lab.mobile_camera)
+        X = _nominal_hand_eye(lab.mobile_camera)
         src["hand_eye"] = "driver file hand_eye_*"
     try:
         T_w_c1 = store.load_fixed_camera(cal)[1]
         src["fixed_pose"] = "calibration/fixed_camera.yaml"
     except store.CalibrationFileError:
-        try:
-            T_w_c1 = lens.fixed_camera_pose(lab.fixed_camera)
+        cfg = lab.fixed_camera
+        if cfg.eye_w_mm is not None and cfg.target_w_mm is not None:
+            T_w_c1 = look_at(cfg.eye_w_mm, cfg.target_w_mm, up=(0.0, 1.0, 0.0))
             src["fixed_pose"] = "driver file eye_w_mm/target_w_mm"
-        except ValueError:
+        else:
             T_w_c1, src["fixed_pose"] = None, "unknown (not checked)"
     r = lab.robot
     motion = Motion(v_max_mm_s=r.v_max_mm_s, a_max_mm_s2=r.a_max_mm_s2, w_max_deg_s=r.w_max_deg_s,

@@ -29,12 +29,13 @@ def target_world(lab, target, *, table_position, flange_pose_at, supersample: in
             marks = [MarkerDisc(c, n, r, col) for c, n, r, col in zip(s.dots, s.normals, s.radii, target.dot_colours())]
             meshes = [Mesh(s.vertices, s.faces, tuple(target.plate_colour_bgr), marks)]
             if self.spacer_mm > 0:  # the spacer: a grey block under the target's footprint
-                from ..calibration.target import _box
+                import trimesh
 
                 w, length = target.footprint_mm
-                V, F = _box(np.array([w / 2.0, length / 2.0]), 0.0, self.spacer_mm)
+                box = trimesh.creation.box([w, length, self.spacer_mm])  # outward winding, centred
+                V = np.asarray(box.vertices) + [0.0, 0.0, self.spacer_mm / 2.0]
                 Tm = self.T_w_t(t) @ target.T_table_mount
-                meshes.append(Mesh(V @ Tm[:3, :3].T + Tm[:3, 3], F, (120, 120, 120)))
+                meshes.append(Mesh(V @ Tm[:3, :3].T + Tm[:3, 3], np.asarray(box.faces), (120, 120, 120)))
             return meshes
 
     return _World.from_lab(lab, table_position=table_position, flange_pose_at=flange_pose_at,
