@@ -82,8 +82,11 @@ class SimCalibrationLab:
         self.prompts: list[float] = []
 
     def open(self) -> None:
+        """Open every device and home the table (GRBL powers up locked until homed, as a lab is
+        homed before it is calibrated; homing takes virtual time only)."""
         for dev in (self.table, self.robot, *self.cameras.values()):
             dev.open()
+        self.table.home()
 
     def close(self) -> None:
         for dev in (*self.cameras.values(), self.robot, self.table):
