@@ -283,3 +283,16 @@ def test_segment_durations_keep_the_quintic_within_half_the_robot_limits(dp, rv)
     assert d * np.abs(a).max() <= 0.5 * m.a_max_mm_s2 * 1.01
     if ang is not None:
         assert ang * v.max() <= 0.5 * m.w_max_deg_s * 1.001
+
+
+def test_terminal_prompt_waits_for_enter_and_refuses_a_closed_stdin(monkeypatch, capsys):
+    import io
+
+    from labctl.cli.calibrate import TerminalPrompt
+    from labctl.errors import UserInputError
+
+    monkeypatch.setattr(sys, "stdin", io.StringIO("\n"))
+    TerminalPrompt().place_target(60.0, 1, 2)
+    assert "[2/2] put the calibration target on its locating pins on the 60 mm spacer" in capsys.readouterr().err
+    with pytest.raises(UserInputError, match="stdin closed"):
+        TerminalPrompt().place_target(0.0, 0, 2)

@@ -41,7 +41,11 @@ def _fmt(v):
 
 
 class TerminalPrompt:
-    """The procedure's prompt on hardware: asks on stderr, waits for Enter on stdin."""
+    """The procedure's prompt on hardware: asks on the console (above the progress bar), waits
+    for Enter on stdin."""
+
+    def __init__(self, console=None):
+        self.console = console
 
     def place_target(self, spacer_mm: float, index: int, count: int) -> None:
         import sys
@@ -49,8 +53,12 @@ class TerminalPrompt:
         from ..errors import UserInputError
 
         where = "directly on the carriage (no spacer)" if spacer_mm == 0 else f"on the {spacer_mm:g} mm spacer"
-        click.echo(f"[{index + 1}/{count}] put the calibration target on its locating pins {where}, "
-                   "then press Enter (Ctrl-C stops)", err=True)
+        text = (f"[{index + 1}/{count}] put the calibration target on its locating pins {where}, "
+                "then press Enter (Ctrl-C stops)")
+        if self.console is not None:
+            self.console.print(text, markup=False, highlight=False)
+        else:
+            click.echo(text, err=True)
         if not sys.stdin.readline():
             raise UserInputError("no answer to the prompt (stdin closed): the target's placement was not confirmed")
 
@@ -108,7 +116,7 @@ def _raise_interrupt(_signum, _frame):
     raise KeyboardInterrupt
 
 
-def _open_devices(lab, cameras: str, seed: int, target, prompt_command: str | None = None):
+def _open_devices(lab, cameras: str, seed: int, target, prompt_command: str | None = None, console=None):
     """(Devices, prompt, truth or None, closer) for ``lab``: the coupled in-process simulator when
     every device is simulated, else the real drivers (mixing the two cannot work: a simulated
     camera would not see a real table)."""
@@ -153,7 +161,7 @@ def _open_devices(lab, cameras: str, seed: int, target, prompt_command: str | No
 
     devs = Devices(table=opened["table"], robot=opened.get("robot"), fixed=opened.get("fixed_camera"),
                    mobile=opened.get("mobile_camera"), sleep=time.sleep, now=time.monotonic)
-    return devs, CommandPrompt(prompt_command) if prompt_command else TerminalPrompt(), None, close
+    return devs, CommandPrompt(prompt_command) if prompt_command else TerminalPrompt(console), None, close
 
 
 @click.group("calibrate", invoke_without_command=True)
@@ -216,7 +224,7 @@ def calibrate_group(ctx: click.Context, camera: str, dry_run: bool, ros: bool, f
     devs = None
     close = None
     try:
-        devs, prompt, truth, close = _open_devices(lab, camera, seed, target, prompt_command)
+        devs, prompt, truth, close = _open_devices(lab, camera, seed, target, prompt_command, c.console)
         truth = given_truth or truth
         with Progress(console=c.console, transient=c.json) as bar:
             task = bar.add_task("calibrating", total=steps_for(plan))
