@@ -151,7 +151,8 @@ def make_plan(target: Target, nominal: Nominal, cameras: str) -> Plan:
 
 def steps_for(plan: Plan) -> int:
     """Progress-bar length of a run: images taken plus the computing steps."""
-    return len(plan.fixed) + len(plan.stations) + len(plan.registration) + 4
+    computing = (2 if plan.stations else 0) + (1 if plan.fixed else 0) + 1  # hand-eye, table, Tsai C1, write
+    return len(plan.fixed) + len(plan.stations) + len(plan.registration) + computing
 
 
 def lab_target(cal_dir: Path) -> Target:

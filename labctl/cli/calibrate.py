@@ -29,6 +29,18 @@ def _human_report(rep: dict):
             err = r.get("error_vs_truth")
             if err:
                 c.print("   vs ground truth: " + ", ".join(f"{k}={_fmt(v)}" for k, v in err.items()))
+        fx = rep.get("fixed_camera", {}).get("error_vs_truth")
+        he = rep.get("mobile_camera", {}).get("error_vs_truth")
+        if fx or he:
+            parts = []
+            if fx:
+                parts.append(f"fixed camera {fx['table_plane']['max_percent_of_fov']:.4f} % of the field of view "
+                             f"({fx['table_plane']['max_mm']:.3f} mm)")
+            if he:
+                h = he["hand_eye"]
+                parts.append(f"hand-eye {h['rotation_deg']:.4f}°, {h['translation_mm']:.3f} mm")
+            c.print("[bold]error vs ground truth:[/] " + "; ".join(parts))
+        c.print(f"{rep.get('images', 0)} images kept in {rep.get('captures')}")
         for f in rep.get("files", []):
             c.print(f"wrote {f}")
     return show
