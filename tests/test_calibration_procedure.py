@@ -296,3 +296,37 @@ def test_terminal_prompt_waits_for_enter_and_refuses_a_closed_stdin(monkeypatch,
     assert "[2/2] put the calibration target on its locating pins on the 60 mm spacer" in capsys.readouterr().err
     with pytest.raises(UserInputError, match="stdin closed"):
         TerminalPrompt().place_target(0.0, 0, 2)
+
+
+def test_target_mounted_off_centre_and_turned_still_registers_the_table(tmp_path):
+    """The mount (x, y, yaw) enters the fixed camera's points and the table registration; a
+    turned, offset target must give the same table frame and camera poses as the truth.
+    A smaller plan than the sample lab's keeps this quick."""
+    from dataclasses import replace
+
+    from labctl.calibration.procedure import Devices
+    from labctl.calibration.run import Truth, nominal_for, run_lab_calibration
+    from labctl.config import load_lab
+    from labctl.sim.rigs import SimCalibrationLab
+
+    root = init_workspace(tmp_path / "lab")
+    for f in (root / "calibration").glob("*.yaml"):
+        if f.name != "target.yaml":
+            f.unlink()
+    lab = load_lab(root)
+    target = replace(PlaneTarget(), mount_on_table=(15.0, -10.0, 20.0), spacers_mm=(0.0, 45.0),
+                     fixed_positions_mm=((285.0, 210.0), (150.0, 120.0), (420.0, 290.0)), robot_stations=6,
+                     registration_positions_mm=((285.0, 210.0), (120.0, 90.0), (450.0, 120.0)))
+    sim = SimCalibrationLab(lab, target, seed=3)
+    sim.open()
+    try:
+        devs = Devices(sim.table, sim.robot, sim.cameras["fixed"], sim.cameras["mobile"], sim.clock.sleep,
+                       sim.clock.now)
+        rep = run_lab_calibration(root / "calibration", devs, sim, target, nominal_for(lab), truth=Truth(**sim.truth()))
+    finally:
+        sim.close()
+    assert sim.prompts == [0.0, 45.0]
+    assert rep["table"]["error_vs_truth"]["origin_mm"] < 0.5 and rep["table"]["error_vs_truth"]["rotation_deg"] < 0.05
+    assert rep["fixed_camera"]["error_vs_truth"]["table_plane"]["max_percent_of_fov"] < 0.1
+    he = rep["mobile_camera"]["error_vs_truth"]["hand_eye"]
+    assert he["rotation_deg"] < 0.2 and he["translation_mm"] < 1.0
