@@ -11,17 +11,18 @@ from hypothesis import strategies as st
 from labctl.calibration import store
 from labctl.calibration.dots import DotError, circle_centroid_bias, detect_dots, identify
 from labctl.calibration.table import TableRegistrationError, fit_table_frame, pixel_to_plane
-from labctl.calibration.target import RoofTarget, TargetError, load_target, target_yaml
+from labctl.calibration.target import PlaneTarget, RoofTarget, TargetError, load_target, target_yaml
 from labctl.geometry import CameraModel, apply, invert, look_at, make_T, rot_z
 from labctl.geometry.camera_io import load_camera_file
 
 CAM = CameraModel(f=25.0, kappa1=-8e-4, sx=1.0, cx=319.5, cy=239.5, dx=0.0098, dy=0.0098, ncx=640, nfx=640)
+T_W_T = make_T(None, [300.0, 200.0, 0.0])  # where the target sits in these tests
 
 
 def _render_target(target, T_w_c, cam=CAM, seed=0):
     from labctl.sim.render import MarkerDisc, Mesh, render
 
-    s = target.solid().transformed(target.T_w_t)
+    s = target.solid().transformed(T_W_T)
     marks = [MarkerDisc(c, n, r, col) for c, n, r, col in zip(s.dots, s.normals, s.radii, target.dot_colours())]
     return render(cam, T_w_c, [Mesh(s.vertices, s.faces, target.plate_colour_bgr, marks)],
                   rng=np.random.default_rng(seed)).image
@@ -29,13 +30,13 @@ def _render_target(target, T_w_c, cam=CAM, seed=0):
 
 def test_detected_centres_are_subpixel_after_bias_correction():
     target = RoofTarget()
-    T_w_c = look_at(apply(target.T_w_t, [250.0, -300.0, 950.0]), apply(target.T_w_t, [0, 0, 45.0]), up=(0, 1, 0))
+    T_w_c = look_at(apply(T_W_T, [250.0, -300.0, 950.0]), apply(T_W_T, [0, 0, 45.0]), up=(0, 1, 0))
     img = _render_target(target, T_w_c)
     blobs = detect_dots(img)
     solid = target.solid()
     mi, bi, T0 = identify(blobs, solid.dots, target.fiducial_indices, CAM)
     assert len(mi) == len(solid.dots)  # every dot found and identified
-    T_c_t = invert(T_w_c) @ target.T_w_t
+    T_c_t = invert(T_w_c) @ T_W_T
     truth = CAM.project(apply(T_c_t, solid.dots[mi]))
     bias = circle_centroid_bias(CAM, T_c_t, solid.dots[mi], solid.normals[mi], solid.radii[mi])
     err_raw = np.linalg.norm(blobs.centers[bi] - truth, axis=1)
@@ -56,7 +57,7 @@ def test_bias_vanishes_for_a_disc_facing_the_camera_on_axis():
 def test_missing_fiducials_are_reported():
     target = RoofTarget()
     # look at the target from far to the side: part of it leaves the image
-    T_w_c = look_at(apply(target.T_w_t, [0.0, 0.0, 900.0]), apply(target.T_w_t, [170.0, 0, 0]), up=(0, 1, 0))
+    T_w_c = look_at(apply(T_W_T, [0.0, 0.0, 900.0]), apply(T_W_T, [170.0, 0, 0]), up=(0, 1, 0))
     blobs = detect_dots(_render_target(target, T_w_c))
     with pytest.raises(DotError):
         identify(blobs, target.solid().dots, target.fiducial_indices, CAM)
@@ -99,9 +100,23 @@ def test_pixel_to_plane_inverts_projection():
 
 
 def test_target_file_round_trip_and_errors(tmp_path):
-    t = RoofTarget(pitch_mm=15.0, placements_w=((100.0, 50.0, 30.0),))
+    t = RoofTarget(pitch_mm=15.0, mount_on_table=(100.0, 50.0, 30.0))
     (tmp_path / "target.yaml").write_text(target_yaml(t))
     assert load_target(tmp_path / "target.yaml") == t
+    p = PlaneTarget(cols=7, rows=5, fiducials=((0, 0), (3, 0), (0, 2), (6, 4), (4, 3)), spacers_mm=(0.0, 45.0))
+    (tmp_path / "plane.yaml").write_text(target_yaml(p, with_dots=True))
+    q = load_target(tmp_path / "plane.yaml")
+    assert isinstance(q, PlaneTarget) and np.allclose(q.solid().dots, p.solid().dots)
+    # measured dot centres in the file replace the nominal grid
+    text = (tmp_path / "plane.yaml").read_text().replace("- [-66.0, -44.0, 3.0]", "- [-66.2, -44.1, 3.0]")
+    (tmp_path / "measured.yaml").write_text(text)
+    assert np.allclose(load_target(tmp_path / "measured.yaml").solid().dots[0], [-66.2, -44.1, 3.0])
+    (tmp_path / "flat1.yaml").write_text("kind: plane\nspacers_mm: [0.0]\n")
+    with pytest.raises(TargetError, match="2 different heights"):
+        load_target(tmp_path / "flat1.yaml")
+    (tmp_path / "line.yaml").write_text("kind: plane\nregistration_positions_mm: [[0, 0], [10, 10], [20, 20]]\n")
+    with pytest.raises(TargetError, match="collinear"):
+        load_target(tmp_path / "line.yaml")
     (tmp_path / "bad.yaml").write_text("kind: roof\nwidth_mm: 80\n")
     with pytest.raises(TargetError, match="do not fit"):
         load_target(tmp_path / "bad.yaml")

@@ -45,11 +45,14 @@ def pixel_to_plane(camera: CameraModel, T_w_c: np.ndarray, pixels: np.ndarray, z
     return o + s[:, None] * d
 
 
-def fit_table_frame(commanded_xy: np.ndarray, marker_w: np.ndarray, marker_at_table_xy=(0.0, 0.0)) -> TableRegistration:
+def fit_table_frame(commanded_xy: np.ndarray, marker_w: np.ndarray, marker_at_table_xy=(0.0, 0.0), *,
+                    marker_height_mm: float | None = None) -> TableRegistration:
     """Table frame from commanded positions (N, 2) mm and the marker's world points (N, 3) mm.
 
     Solves ``m_i = o + A p_i`` (least squares), takes X = A[:, 0]/|A[:, 0]|, Y ⟂ X in the plane
-    spanned by A, z up; the origin is o minus the marker's own offset on the carriage.
+    spanned by A, z up; the origin is o minus the marker's own offset on the carriage. The
+    table plane is z = 0 of W, or with ``marker_height_mm`` (the marker's height above the table
+    top) z = mean(marker z) − that height.
     """
     p = np.asarray(commanded_xy, float).reshape(-1, 2)
     m = np.asarray(marker_w, float).reshape(-1, 3)
@@ -77,7 +80,8 @@ def fit_table_frame(commanded_xy: np.ndarray, marker_w: np.ndarray, marker_at_ta
     origin = np.array([*o2, 0.0]) - R @ q
     T = make_T(R, origin)
     pred = M @ coef
-    T[2, 3] = 0.0  # the table plane is z = 0 of W by definition; the marker height is known
+    # by default the table plane is z = 0 of W (W defined on it); else it sits under the marker
+    T[2, 3] = 0.0 if marker_height_mm is None else float(np.mean(m[:, 2]) - marker_height_mm)
     return TableRegistration(T_w_table=T, scale=(float(np.linalg.norm(ax2)), float(np.linalg.norm(ay2))),
                              skew_deg=skew, residuals_mm=m[:, :2] - pred)
 

@@ -1,8 +1,11 @@
-"""``labctl calibrate``: Tsai calibration of both cameras, hand-eye, table registration;
-``labctl calibrate points FILE``: Tsai on a correspondence file. Parse, call, print."""
+"""``labctl calibrate``: Tsai calibration of both cameras, hand-eye, table registration, through
+the device interfaces (simulator or hardware), stopping the devices on every exit path;
+``labctl calibrate target``: a printable target; ``labctl calibrate points FILE``: Tsai on a
+correspondence file. Parse, call, print."""
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 
 import click
@@ -26,6 +29,18 @@ def _human_report(rep: dict):
             err = r.get("error_vs_truth")
             if err:
                 c.print("   vs ground truth: " + ", ".join(f"{k}={_fmt(v)}" for k, v in err.items()))
+        fx = rep.get("fixed_camera", {}).get("error_vs_truth")
+        he = rep.get("mobile_camera", {}).get("error_vs_truth")
+        if fx or he:
+            parts = []
+            if fx:
+                parts.append(f"fixed camera {fx['table_plane']['max_percent_of_fov']:.4f} % of the field of view "
+                             f"({fx['table_plane']['max_mm']:.3f} mm)")
+            if he:
+                h = he["hand_eye"]
+                parts.append(f"hand-eye {h['rotation_deg']:.4f}°, {h['translation_mm']:.3f} mm")
+            c.print("[bold]error vs ground truth:[/] " + "; ".join(parts))
+        c.print(f"{rep.get('images', 0)} images kept in {rep.get('captures')}")
         for f in rep.get("files", []):
             c.print(f"wrote {f}")
     return show
@@ -37,42 +52,290 @@ def _fmt(v):
     return f"{v:.4g}" if isinstance(v, float) else str(v)
 
 
+class TerminalPrompt:
+    """The procedure's prompt on hardware: asks on the console (above the progress bar), waits
+    for Enter on stdin."""
+
+    def __init__(self, console=None):
+        self.console = console
+
+    def place_target(self, spacer_mm: float, index: int, count: int) -> None:
+        import sys
+
+        from ..errors import UserInputError
+
+        where = "directly on the carriage (no spacer)" if spacer_mm == 0 else f"on the {spacer_mm:g} mm spacer"
+        text = (f"[{index + 1}/{count}] put the calibration target on its locating pins {where}, "
+                "then press Enter (Ctrl-C stops)")
+        if self.console is not None:
+            self.console.print(text, markup=False, highlight=False)
+        else:
+            click.echo(text, err=True)
+        if not sys.stdin.readline():
+            raise UserInputError("no answer to the prompt (stdin closed): the target's placement was not confirmed")
+
+
+class CommandPrompt:
+    """The procedure's prompt answered by a program: ``CMD SPACER_MM INDEX COUNT`` places the
+    target (an out-of-process simulator's hook, a fixture robot); a non-zero exit refuses."""
+
+    def __init__(self, command: str):
+        import shlex
+
+        self.argv = shlex.split(command)
+
+    def place_target(self, spacer_mm: float, index: int, count: int) -> None:
+        import subprocess
+
+        from ..errors import UserInputError
+
+        try:
+            done = subprocess.run([*self.argv, f"{spacer_mm:g}", str(index + 1), str(count)], stdin=subprocess.DEVNULL,
+                                  capture_output=True, text=True, timeout=600)
+        except (OSError, subprocess.TimeoutExpired) as exc:
+            raise UserInputError(f"--prompt-command failed: {exc}") from None
+        if done.returncode != 0:
+            why = (done.stderr.strip().splitlines() or [f"exit status {done.returncode}"])[-1]
+            raise UserInputError(f"--prompt-command did not place the target on {spacer_mm:g} mm: {why}")
+
+
+def _confirm_stopped(devs, settle_s: float = 2.0) -> str:
+    """Stop the table (GRBL feed hold, then soft reset: ``Table.stop``) and the robot (``STOP``),
+    then read both back until they report rest (bounded by ``settle_s`` on the devices' clock).
+    Returns what was confirmed, for the one line printed."""
+    parts = []
+    table, robot = devs.table, devs.robot
+    if table is not None:
+        try:
+            table.stop()
+            st = table.status()
+            parts.append(f"table stopped ({st.state} at {st.position[0]:.3f}, {st.position[1]:.3f})")
+        except Exception as exc:  # noqa: BLE001 - reported in the one line, the exit status stays
+            parts.append(f"table stop NOT confirmed ({type(exc).__name__}: {exc})")
+    if robot is not None:
+        try:
+            robot.stop()
+            deadline = devs.now() + settle_s
+            while (st := robot.status()).moving and devs.now() < deadline:
+                devs.sleep(0.05)  # STOP brings the arm to rest with a short quintic
+            parts.append("robot stopped" if not st.moving else f"robot STILL MOVING after {settle_s:g} s")
+        except Exception as exc:  # noqa: BLE001
+            parts.append(f"robot stop NOT confirmed ({type(exc).__name__}: {exc})")
+    return ", ".join(parts) or "nothing was moving"
+
+
+def _raise_interrupt(_signum, _frame):
+    raise KeyboardInterrupt
+
+
+def _open_devices(lab, cameras: str, seed: int, target, prompt_command: str | None = None, console=None):
+    """(Devices, prompt, truth or None, closer) for ``lab``: the coupled in-process simulator when
+    every device is simulated, else the real drivers (mixing the two cannot work: a simulated
+    camera would not see a real table)."""
+    import time
+
+    from ..calibration.procedure import Devices
+    from ..calibration.run import Truth
+    from ..errors import UserInputError
+    from ..workers.devices import open_device
+
+    roles = ["table", "fixed_camera"] if cameras == "fixed" else ["table", "robot", "fixed_camera", "mobile_camera"]
+    if cameras == "mobile":
+        roles.remove("fixed_camera")
+    kinds = {r: getattr(lab, r).kind for r in roles}
+    if all(k == "sim" for k in kinds.values()):
+        from ..sim.rigs import SimCalibrationLab
+
+        sim = SimCalibrationLab(lab, target, seed=seed)
+        sim.open()
+        devs = Devices(table=sim.table, robot=sim.robot if "robot" in roles else None, fixed=sim.cameras["fixed"],
+                       mobile=sim.cameras["mobile"], sleep=sim.clock.sleep, now=sim.clock.now)
+        return devs, sim, Truth(**sim.truth()), sim.close
+    if any(k == "sim" for k in kinds.values()):
+        raise UserInputError("calibration needs the devices all simulated or all real, not "
+                             + ", ".join(f"{r}: {k}" for r, k in kinds.items()))
+    opened = {}
+    try:
+        for r in roles:
+            dev = open_device(r, lab)
+            dev.open()
+            opened[r] = dev
+    except BaseException:
+        for dev in opened.values():
+            with contextlib.suppress(Exception):
+                dev.close()
+        raise
+
+    def close():
+        for dev in opened.values():
+            with contextlib.suppress(Exception):
+                dev.close()
+
+    devs = Devices(table=opened["table"], robot=opened.get("robot"), fixed=opened.get("fixed_camera"),
+                   mobile=opened.get("mobile_camera"), sleep=time.sleep, now=time.monotonic)
+    return devs, CommandPrompt(prompt_command) if prompt_command else TerminalPrompt(console), None, close
+
+
 @click.group("calibrate", invoke_without_command=True)
 @click.option("--camera", type=click.Choice(["fixed", "mobile", "all"]), default="all", show_default=True,
-              help="fixed: C1 and table registration; mobile: C2 and hand-eye; all: both.")
+              help="fixed: C1 (needs a table registration); mobile: C2, hand-eye and table registration; all: both.")
+@click.option("--dry-run", is_flag=True, help="List the planned table positions and robot poses and check them "
+              "against the table's travel, the robot's workspace and the cameras' views; nothing moves.")
 @click.option("--ros", is_flag=True, help="Also write ROS camera_info YAML for each calibrated camera.")
 @click.option("--full", is_flag=True, help="Optimise the image centre too (default: held at nominal).")
 @click.option("--seed", type=int, default=0, show_default=True, help="Sensor-noise seed of the simulated lab.")
+@click.option("--prompt-command", default=None, metavar="CMD",
+              help="Instead of asking on the terminal, run 'CMD SPACER_MM N COUNT' to place the target (real kinds).")
+@click.option("--truth", "truth_file", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Compare with this ground truth (served_truth.json of `labctl sim serve --lab-out`).")
 @json_option
 @click.pass_context
-def calibrate_group(ctx: click.Context, camera: str, ros: bool, full: bool, seed: int) -> None:
-    """Calibrate the lab: Tsai for both cameras, hand-eye of the mobile one, table registration."""
+def calibrate_group(ctx: click.Context, camera: str, dry_run: bool, ros: bool, full: bool, seed: int,
+                    prompt_command: str | None, truth_file: Path | None) -> None:
+    """Calibrate the lab through its devices: the fixed camera (Tsai, target moved by the table at
+    one or more spacer heights), the mobile camera and its hand-eye (robot stations), the table's
+    registration. The same procedure runs on the simulated lab and on hardware."""
     if ctx.invoked_subcommand is not None:
         return
+    import signal
+
     from rich.progress import Progress
 
-    from ..calibration.run import Truth, lab_target, run_lab_calibration, steps_for
-    from ..errors import LabctlError
-    from ..geometry import make_T
-    from ..sim import truth
-    from ..sim.rigs import CalibrationRig
+    from ..calibration.run import (
+        lab_target,
+        load_truth,
+        make_plan,
+        nominal_for,
+        plan_report,
+        run_lab_calibration,
+        steps_for,
+    )
+    from ..calibration.target import TargetError
+    from ..errors import UserInputError
 
     c = get_ctx()
     lab = c.lab()
-    if not lab.is_simulated:
-        raise LabctlError("image capture for calibration on hardware is not built yet: capture the dot target, "
-                          "then use `labctl calibrate points FILE`")
-    target = lab_target(lab.calibration_dir)
-    rig = CalibrationRig(lab, target, seed=seed)
-    tr = Truth(rig.c1, rig.T_w_c1, rig.c2, rig.X, make_T(None, lab.table.origin_w_mm))
-    with Progress(console=c.console, transient=c.json) as bar:
-        task = bar.add_task("calibrating", total=steps_for(camera, target, 10))
-        rep = run_lab_calibration(
-            lab.calibration_dir, rig, target, nominal_fixed=truth.camera_model(lab.fixed_camera),
-            nominal_mobile=truth.camera_model(lab.mobile_camera), X_nominal=truth.hand_eye(lab.mobile_camera),
-            robot_workspace=(lab.robot.workspace_min_mm, lab.robot.workspace_max_mm), cameras=camera, ros=ros,
-            full=full, truth=tr, progress=lambda msg: bar.update(task, advance=1, description=msg))
+    try:
+        target = lab_target(lab.calibration_dir)
+    except TargetError as exc:
+        raise UserInputError(str(exc)) from None
+    nominal = nominal_for(lab)
+    if dry_run:
+        rep = plan_report(target, nominal, camera)
+        emit(rep, _plan_human(rep))
+        if not rep["ok"]:
+            raise UserInputError(f"the calibration plan does not fit the lab: {rep['problems'][0]}")
+        return
+    plan = make_plan(target, nominal, camera)
+    given_truth = load_truth(truth_file) if truth_file is not None else None
+    if plan.problems:
+        raise UserInputError(f"the calibration plan does not fit the lab: {plan.problems[0]}")
+    # Ctrl-C and SIGTERM both end in the stop below, even if the parent started us ignoring SIGINT
+    old_term = signal.signal(signal.SIGTERM, _raise_interrupt)
+    old_int = signal.signal(signal.SIGINT, signal.default_int_handler)
+    devs = None
+    close = None
+    try:
+        devs, prompt, truth, close = _open_devices(lab, camera, seed, target, prompt_command, c.console)
+        truth = given_truth or truth
+        with Progress(console=c.console, transient=c.json) as bar:
+            task = bar.add_task("calibrating", total=steps_for(plan))
+            rep = run_lab_calibration(lab.calibration_dir, devs, prompt, target, nominal, cameras=camera, ros=ros,
+                                      full=full, truth=truth,
+                                      progress=lambda msg: bar.update(task, advance=1, description=msg))
+    except BaseException as exc:
+        # stop on every exit path; a second Ctrl-C/TERM must not cut the stop short
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        said = _confirm_stopped(devs) if devs is not None else "no device was opened"
+        if close is not None:
+            with contextlib.suppress(Exception):
+                close()
+        if isinstance(exc, KeyboardInterrupt):
+            click.echo(f"labctl: interrupted: {said}", err=True)
+            raise SystemExit(130) from None
+        raise
+    finally:
+        signal.signal(signal.SIGTERM, old_term)
+        signal.signal(signal.SIGINT, old_int)
+    if close is not None:
+        close()
     emit(rep, _human_report(rep))
+
+
+def _plan_human(rep: dict):
+    def show(c):
+        def xy(p):
+            return f"{p[0]:g}, {p[1]:g}"
+
+        for f in rep["fixed"]:
+            c.print(f"fixed camera  table {xy(f['table_xy_mm'])}  spacer {f['spacer_mm']:g} mm")
+        rb = rep["robot"]
+        if rb["stations"]:
+            c.print(f"robot stations (table {xy(rb['table_xy_mm'])}, spacer {rb['spacer_mm']:g} mm):")
+        for i, s in enumerate(rb["stations"]):
+            c.print(f"  {i + 1:2d}  flange {xy(s['xyz_mm'])}, {s['xyz_mm'][2]:g}  tilt {s['tilt_deg']:g}°")
+        for r in rep["registration"]:
+            c.print(f"registration  table {xy(r['table_xy_mm'])}  flange {xy(r['flange']['xyz_mm'])}, "
+                    f"{r['flange']['xyz_mm'][2]:g}")
+        for p in rep["problems"]:
+            c.print(f"[red]problem:[/] {p}")
+        if rep["ok"]:
+            c.print("plan OK: every pose is inside the table's travel and the robot's workspace")
+    return show
+
+
+@calibrate_group.command("target")
+@click.option("--out", "out", required=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="FILE.svg or FILE.pdf; the geometry file FILE.yaml is written beside it.")
+@click.option("--cols", type=click.IntRange(3, 60), default=None, help="Dots across (default: the lab's target).")
+@click.option("--rows", type=click.IntRange(3, 60), default=None, help="Dots down.")
+@click.option("--pitch", "pitch_mm", type=click.FloatRange(1.0, 500.0), default=None, help="Dot pitch, mm.")
+@click.option("--radius", "dot_radius_mm", type=click.FloatRange(0.2, 200.0), default=None, help="Dot radius, mm.")
+@json_option
+def calibrate_target(out: Path, cols, rows, pitch_mm, dot_radius_mm) -> None:
+    """Write a printable, true-scale plane dot target (SVG in mm units, or PDF) and its geometry
+    file (dot centres in the target frame, mm) for calibration/target.yaml."""
+    from dataclasses import replace
+
+    from ..calibration.run import lab_target
+    from ..calibration.target import PlaneTarget, TargetError, target_pdf, target_svg, target_yaml
+    from ..errors import UserInputError
+    from ..fsutil import atomic_write_bytes, atomic_write_text
+
+    suffix = out.suffix.lower()
+    if suffix not in (".svg", ".pdf"):
+        raise UserInputError(f"--out must end in .svg or .pdf, not {out.name!r}")
+    try:
+        base = lab_target(get_ctx().lab().calibration_dir)
+    except Exception:  # noqa: BLE001 - no lab or no plane target: start from the default
+        base = PlaneTarget()
+    if not isinstance(base, PlaneTarget):
+        base = PlaneTarget()
+    kw = {k: v for k, v in {"cols": cols, "rows": rows, "pitch_mm": pitch_mm, "dot_radius_mm": dot_radius_mm}.items()
+          if v is not None}
+    target = replace(base, **kw)
+    if kw and {"cols", "rows"} & set(kw):  # the default fiducials may not fit a smaller grid
+        c_, r_ = target.cols - 1, target.rows - 1
+        fid = ((0, 0), (min(3, c_), 0), (0, min(2, r_)), (c_, r_), (max(c_ - 2, 1), r_ - 1))
+        target = replace(target, fiducials=fid)
+    try:
+        target.check()
+    except TargetError as exc:
+        raise UserInputError(f"target: {exc}") from None
+    geometry = out.with_suffix(".yaml")
+    try:
+        if suffix == ".svg":
+            atomic_write_text(out, target_svg(target))
+        else:
+            atomic_write_bytes(out, target_pdf(target))
+        atomic_write_text(geometry, target_yaml(target, with_dots=True))
+    except OSError as exc:
+        raise UserInputError(f"cannot write {out}: {exc}") from None
+    rep = {"drawing": str(out), "geometry": str(geometry), "size_mm": [target.width_mm, target.length_mm],
+           "dots": len(target.dot_table())}
+    emit(rep, lambda c: c.print(f"wrote {out} ({target.width_mm:g} × {target.length_mm:g} mm, print at 100 %) and "
+                                f"{geometry}; copy the geometry file to the lab's calibration/target.yaml"))
 
 
 @calibrate_group.command("points")

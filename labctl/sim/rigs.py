@@ -1,7 +1,7 @@
 """The simulated lab as the offline procedures see it: a calibration rig and a standard-view camera.
 
-* :class:`CalibrationRig` — :mod:`labctl.calibration.procedure`'s ``Rig``: renders the target with
-  the true cameras; the robot reports exactly the commanded flange pose.
+* :class:`SimCalibrationLab` — what ``labctl calibrate`` drives in the simulator: the emulators
+  behind the real drivers and the simulated cameras, the calibration target riding the table.
 * :func:`standard_view_renderer` — what ``teach-object`` and the recognition benchmark render: the
   object resting on the table, seen by the robot's mobile camera along a marker normal.
 
@@ -13,51 +13,100 @@ from __future__ import annotations
 import numpy as np
 
 
-class CalibrationRig:
-    """The simulated lab as a calibration rig: renders the target/plate with the true cameras.
+def target_world(lab, target, *, table_position, flange_pose_at, supersample: int = 3):
+    """A :class:`~labctl.sim.world.SimWorld` of ``lab`` whose only object is the calibration
+    ``target`` on its locating pins on the carriage, raised by ``world.spacer_mm`` (a light
+    block under it): ``T_w_target = T_w_table(t) · (0, 0, spacer) · T_table_mount``."""
+    from .render import MarkerDisc, Mesh
+    from .world import SimWorld
 
-    Adapter between :mod:`labctl.calibration.procedure` (which may not import the simulator) and
-    :mod:`labctl.sim.render`; the robot reports exactly the commanded flange pose.
+    class _World(SimWorld):
+        spacer_mm = 0.0
+
+        def meshes_at(self, t):
+            T = self.T_w_t(t) @ target.T_table_t((0.0, 0.0), self.spacer_mm)
+            s = target.solid().transformed(T)
+            marks = [MarkerDisc(c, n, r, col) for c, n, r, col in zip(s.dots, s.normals, s.radii, target.dot_colours())]
+            meshes = [Mesh(s.vertices, s.faces, tuple(target.plate_colour_bgr), marks)]
+            if self.spacer_mm > 0:  # the spacer: a grey block under the target's footprint
+                import trimesh
+
+                w, length = target.footprint_mm
+                box = trimesh.creation.box([w, length, self.spacer_mm])  # outward winding, centred
+                V = np.asarray(box.vertices) + [0.0, 0.0, self.spacer_mm / 2.0]
+                Tm = self.T_w_t(t) @ target.T_table_mount
+                meshes.append(Mesh(V @ Tm[:3, :3].T + Tm[:3, 3], np.asarray(box.faces), (120, 120, 120)))
+            return meshes
+
+    return _World.from_lab(lab, table_position=table_position, flange_pose_at=flange_pose_at,
+                           supersample=supersample)
+
+
+class SimCalibrationLab:
+    """The simulated lab for ``labctl calibrate``, in one process on a virtual clock.
+
+    The GRBL and robot emulators behind the real drivers (bytes in the real protocols on
+    in-process ports, paced at the driver files' baud rates), both simulated cameras rendering a
+    world in which the calibration target rides the table's carriage and the mobile camera the
+    robot's flange. :meth:`place_target` is the simulator's hook for the procedure's prompt
+    (:class:`labctl.calibration.procedure.Prompt`): it puts the target on the requested spacer.
+    ``truth()`` is the ground truth the calibration is checked against (:mod:`.truth`, from the
+    driver files; the calibration code never sees it).
     """
 
     def __init__(self, lab, target, seed: int = 0):
+        from ..drivers.grbl import GrblTable
+        from ..drivers.robot import SerialRobot
+        from .camera import SimCamera
+        from .clock import VirtualClock
+        from .emulators.grbl import GrblEmulator
+        from .emulators.link import EmulatorPort
+        from .emulators.robot import RobotEmulator
+        from .world import home_flange_pose
+
+        self.lab, self.target = lab, target
+        self.clock = clock = VirtualClock(0.0)
+        t = lab.table
+        self.grbl = GrblEmulator(clock.now, travel_mm=t.travel_mm, max_feed_mm_min=t.max_feed_mm_min,
+                                 accel_mm_s2=t.accel_mm_s2, start_mm=(t.travel_mm[0] / 2, t.travel_mm[1] / 2, 0.0))
+        self.robot_emu = RobotEmulator(clock.now, lab.robot, start_pose=home_flange_pose(lab))
+        self.table = GrblTable.from_config(t, serial_port=EmulatorPort(self.grbl, clock.now, t.baud, sleep=clock.sleep),
+                                           clock=clock.now, sleep=clock.sleep)
+        self.robot = SerialRobot.from_config(
+            lab.robot, serial_port=EmulatorPort(self.robot_emu, clock.now, lab.robot.baud, sleep=clock.sleep),
+            clock=clock.now, sleep=clock.sleep)
+        self.world = target_world(lab, target, table_position=self.grbl.position_at,
+                                  flange_pose_at=self.robot_emu.flange_pose_at)
+        self.cameras = {role: SimCamera(self.world, role, clock, fps=getattr(lab, f"{role}_camera").fps, seed=seed)
+                        for role in ("fixed", "mobile")}
+        self.prompts: list[float] = []
+
+    def open(self) -> None:
+        """Open every device and home the table (GRBL powers up locked until homed, as a lab is
+        homed before it is calibrated; homing takes virtual time only)."""
+        for dev in (self.table, self.robot, *self.cameras.values()):
+            dev.open()
+        self.table.home()
+
+    def close(self) -> None:
+        for dev in (*self.cameras.values(), self.robot, self.table):
+            dev.close()
+
+    def place_target(self, spacer_mm: float, index: int, count: int) -> None:
+        """The prompt's simulator hook: the target is now on a ``spacer_mm`` spacer."""
+        self.prompts.append(float(spacer_mm))
+        self.world.spacer_mm = float(spacer_mm)
+
+    def truth(self) -> dict:
+        """Ground truth: both true cameras, C1's pose, the hand-eye X and the table frame (W)."""
         from ..geometry import make_T
         from . import truth
 
-        self.lab, self.target = lab, target
-        self.rng = np.random.default_rng(seed)
-        self.c1, self.T_w_c1 = truth.camera_model(lab.fixed_camera), truth.fixed_camera_pose(lab.fixed_camera)
-        self.c2, self.X = truth.camera_model(lab.mobile_camera), truth.hand_eye(lab.mobile_camera)
-        self.T_w_table = make_T(None, lab.table.origin_w_mm)
-
-    def _mesh(self, solid, T, colours):
-        from .render import MarkerDisc, Mesh
-
-        s = solid.transformed(T)
-        marks = [MarkerDisc(c, n, r, col) for c, n, r, col in zip(s.dots, s.normals, s.radii, colours)]
-        return Mesh(s.vertices, s.faces, tuple(self.target.plate_colour_bgr), marks)
-
-    def fixed_image(self, T_w_t):
-        from .render import render
-
-        mesh = self._mesh(self.target.solid(), T_w_t, self.target.dot_colours())
-        return render(self.c1, self.T_w_c1, [mesh], noise_sigma=self.lab.fixed_camera.noise_sigma, rng=self.rng).image
-
-    def mobile_image(self, T_b_f):
-        from .render import render
-
-        mesh = self._mesh(self.target.solid(), self.target.T_w_t, self.target.dot_colours())
-        img = render(self.c2, T_b_f @ self.X, [mesh], noise_sigma=self.lab.mobile_camera.noise_sigma, rng=self.rng)
-        return img.image, T_b_f
-
-    def table_image(self, xy):
-        from ..geometry import make_T
-        from .render import TableSurface, render
-
-        T = self.T_w_table @ make_T(None, [xy[0], xy[1], 0.0])
-        mesh = self._mesh(self.target.plate_solid(), T, [tuple(self.target.dot_colour_bgr)])
-        return render(self.c1, self.T_w_c1, [mesh], table=TableSurface(origin_w=(float(T[0, 3]), float(T[1, 3]))),
-                      noise_sigma=self.lab.fixed_camera.noise_sigma, rng=self.rng).image
+        lab = self.lab
+        return {"fixed_camera": truth.camera_model(lab.fixed_camera),
+                "T_w_c1": truth.fixed_camera_pose(lab.fixed_camera),
+                "mobile_camera": truth.camera_model(lab.mobile_camera), "T_f_c2": truth.hand_eye(lab.mobile_camera),
+                "T_w_table": make_T(None, lab.table.origin_w_mm)}
 
 
 def standard_view_renderer(camera, *, noise_sigma: float = 2.0, rng=None, table_origin=(0.0, 0.0),
