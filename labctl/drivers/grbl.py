@@ -34,6 +34,7 @@ from .interfaces import OpenClose, TableStatus
 from .serial_link import DeviceTimeout, ProtocolError, SerialLink
 
 log = logging.getLogger(__name__)
+log.addHandler(logging.NullHandler())  # warnings go to the record/-v, not stray stderr lines
 
 MAX_LINE = 79  # GRBL's line buffer (80) minus the terminator
 
@@ -129,6 +130,7 @@ class ProgramStream:
         self.error: DeviceError | None = None
         now = table.clock()
         self.last_alive = self.last_progress = now
+        self.idle_since: float | None = None  # GRBL reported Idle while lines waited for their reply
         self.t_start = now
 
     @property
@@ -156,6 +158,7 @@ class ProgramStream:
         self.used -= n
         self.acked += 1
         self.last_progress = self.table.clock()
+        self.idle_since = None
         if msg.kind == "error" and self.error is None:
             self._fail(GrblError(msg.code, self.program[idx], idx, self.numbers[idx] if self.numbered else None))
 
@@ -205,7 +208,10 @@ class ProgramStream:
                 st = msg.status
                 if st.state in BUSY:
                     self.last_progress = now  # executing: replies come as the planner drains
-                elif st.state == "Alarm" and self.in_flight:
+                    self.idle_since = None
+                elif st.state in ("Idle", "Check") and self.in_flight:
+                    self.idle_since = self.idle_since if self.idle_since is not None else now
+                if st.state == "Alarm" and self.in_flight:
                     self._fail(GrblAlarm(t.session_alarm, f"the controller entered Alarm while streaming "
                                                           f"({self.acked}/{self.total} lines acknowledged)"))
         if self.error is None and t.stalled:
@@ -213,8 +219,8 @@ class ProgramStream:
         if self.error is None and now - self.last_alive > t.timeout_s:
             self._fail(DeviceTimeout(f"{t.link.name}: GRBL went silent while streaming "
                                      f"({self.acked}/{self.total} lines acknowledged)"))
-        if (self.error is None and self.in_flight and now - self.last_alive < t.timeout_s / 2
-                and now - self.last_progress > t.timeout_s + sum(dwell_s(self.program[i]) for i, _ in self.in_flight)):
+        if (self.error is None and self.in_flight and self.idle_since is not None
+                and now - self.idle_since > t.timeout_s + sum(dwell_s(self.program[i]) for i, _ in self.in_flight)):
             self._fail(ProtocolError(f"{t.link.name}: {len(self.in_flight)} lines got no reply although GRBL is "
                                      "not busy (replies lost on the line?)"))
         if self.error is not None:
@@ -231,7 +237,7 @@ class GrblTable(OpenClose):
                  reset_on_open: bool = True, status_hz: float = 5.0, boot_s: float = 2.5,
                  serial_port=None, clock: Callable[[], float] = time.monotonic,
                  sleep: Callable[[float], None] = time.sleep, rx_buffer: int = RX_BUFFER_SIZE,
-                 auto_unlock: bool = True, reset_if_silent: bool = False, stall_reports: int = 10,
+                 auto_unlock: bool = True, reset_if_silent: bool = False, stall_reports: int = 25,
                  homing_timeout_s: float = 120.0, reconnect_s: float = 0.0, max_messages: int = 200):
         self.link = SerialLink(port, baud, timeout_s, port=serial_port, clock=clock, sleep=sleep,
                                name=f"grbl@{port or getattr(serial_port, 'port', 'port')}")
@@ -672,20 +678,34 @@ class GrblTable(OpenClose):
                 return
         raise DeviceTimeout(f"{self.link.name}: no banner after a soft reset")
 
-    def stop(self) -> TableStatus:
-        """Feed hold, wait (bounded) for the hold to complete, soft reset, and read the state back.
+    def stop(self, max_hold_s: float = 30.0) -> TableStatus:
+        """Feed hold, wait for the hold to complete, soft reset, and read the state back.
 
-        Returns the confirmed status (Idle, or Alarm if GRBL judged the reset to be in motion);
-        DeviceError if it still reports motion. A hold before the reset keeps the position."""
+        A reset after ``Hold:0`` keeps the position (GRBL reports Idle); a reset while still moving
+        raises ALARM:3. So the hold is awaited for as long as the table is still decelerating
+        (its position changes between reports), up to ``max_hold_s``; if it stops changing for a
+        second without reaching ``Hold:0`` (or GRBL goes silent), it resets at once. Returns the
+        confirmed status (Idle, or Alarm); DeviceError if it still reports motion afterwards."""
         self.feed_hold()
-        deadline = self.clock() + self.timeout_s
+        t0 = self.clock()
         try:
-            while self.clock() < deadline:
+            n = 0
+            last_pos, last_change = None, t0
+            while self.clock() - t0 < max_hold_s:
                 try:
-                    st = self.status()
+                    self._next_report(0.05)
                 except DeviceTimeout:
                     break
-                if st.state in ("Hold:0", "Idle", "Alarm", "Check"):
+                n += 1
+                st = self.last_status
+                state = st.state_word
+                # the first report may have been asked for before the '!': trust Idle only from the second
+                if state == "Hold:0" or (n >= 2 and state in ("Idle", "Alarm", "Check")):
+                    break
+                pos = st.mpos if st.mpos is not None else st.wpos
+                if pos != last_pos:
+                    last_pos, last_change = pos, self.clock()
+                elif self.clock() - last_change > 1.0:
                     break
         finally:
             self.reset()

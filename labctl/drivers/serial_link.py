@@ -26,6 +26,7 @@ from ..errors import DeviceError
 from .interfaces import OpenClose
 
 log = logging.getLogger(__name__)
+log.addHandler(logging.NullHandler())
 
 
 class DeviceTimeout(DeviceError):
