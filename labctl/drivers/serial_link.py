@@ -179,8 +179,8 @@ class SerialLink(OpenClose):
             if line is not None:
                 return line
             remaining = deadline - self.clock()
-            if remaining <= 0:
-                return None
+            if remaining <= 0:  # read what has arrived even with no time to wait (timeout 0: non-blocking)
+                return self._pop_line() if self.poll(0.0) else None
             self.poll(remaining)
 
     def lines(self, timeout_s: float = 0.0) -> list[str]:

@@ -123,7 +123,7 @@ def predictor_main(args: WorkerArgs, link_end, control) -> None:
     from ..drivers.grbl import GrblTable
     from ..drivers.robot import SerialRobot
     from .context import RunContext
-    from .predictor import PredictorPlanner
+    from .predictor import PredictorPlanner, ProgramProgress
     from .simlab import trajectory_program
     from .transport import LinkClosed, open_link
 
@@ -144,10 +144,14 @@ def predictor_main(args: WorkerArgs, link_end, control) -> None:
         link.send(m.Hello(role="predictor", pid=os.getpid()))
         now = _now(args.origin)
         planner = PredictorPlanner(ctx, robot, link.send, log, t_start=now, clock=lambda: _now(args.origin))
-        table.stream(trajectory_program(args.spec["trajectory"], args.spec["speed_mm_s"], lab)[1])
-        log("table_program", t=now, trajectory=args.spec["trajectory"], speed_mm_s=args.spec["speed_mm_s"])
+        # streamed from the loop: a long G2/G3 is acknowledged only when it leaves GRBL's planner
+        program = table.start_program(trajectory_program(args.spec["trajectory"], args.spec["speed_mm_s"], lab)[1])
+        log("table_program", t=now, trajectory=args.spec["trajectory"], speed_mm_s=args.spec["speed_mm_s"],
+            lines=program.total)
+        progress = ProgramProgress(program, log)
         t_beat = 0.0
         while not planner.finished:
+            progress.pump(_now(args.origin))
             frame = camera.grab()
             planner.on_frame(frame)
             while True:
