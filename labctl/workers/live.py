@@ -144,6 +144,9 @@ def predictor_main(args: WorkerArgs, link_end, control) -> None:
         link.send(m.Hello(role="predictor", pid=os.getpid()))
         now = _now(args.origin)
         planner = PredictorPlanner(ctx, robot, link.send, log, t_start=now, clock=lambda: _now(args.origin))
+        # a simulated table's power-up lock may be released (the simulator knows where it is); a real
+        # table in Alarm must be homed or unlocked by the operator first (its position may be lost)
+        table.ensure_ready(unlock=lab.table.kind == "sim")
         # streamed from the loop: a long G2/G3 is acknowledged only when it leaves GRBL's planner
         program = table.start_program(trajectory_program(args.spec["trajectory"], args.spec["speed_mm_s"], lab)[1])
         log("table_program", t=now, trajectory=args.spec["trajectory"], speed_mm_s=args.spec["speed_mm_s"],
