@@ -31,7 +31,7 @@ from .grbl_protocol import (
     parse_version,
 )
 from .interfaces import OpenClose, TableStatus
-from .serial_link import DeviceTimeout, ProtocolError, SerialLink
+from .serial_link import DeviceTimeout, LinkError, LinkLost, ProtocolError, SerialLink
 
 log = logging.getLogger(__name__)
 log.addHandler(logging.NullHandler())  # warnings go to the record/-v, not stray stderr lines
@@ -176,7 +176,7 @@ class ProgramStream:
                 break
             if _OFFSET_WORDS.search(line):
                 t._wco = None  # GRBL re-sends WCO: in the next report
-            t.link.write(data)
+            t._write(data)
             self.in_flight.append((self.sent, len(data)))
             self.used += len(data)
             t.max_in_flight = max(t.max_in_flight, self.used)
@@ -273,6 +273,7 @@ class GrblTable(OpenClose):
         self._stall_pos: tuple | None = None
         self.stalled = False
         self._booted = False  # a banner was seen since open (a fresh boot or our own reset)
+        self._recovering = False
 
     @classmethod
     def from_config(cls, cfg, **kw) -> GrblTable:
@@ -326,7 +327,7 @@ class GrblTable(OpenClose):
                     "`labctl table reset` soft-resets it")
             raise DeviceTimeout(f"{self.link.name}: no GRBL banner and no status report within {window:g} s; {hint}")
         log.info("%s: no banner and no status report; trying a soft reset", self.link.name)
-        self.link.write(b"\x18")
+        self._write(b"\x18")
         deadline = self.clock() + self.timeout_s
         while self.clock() < deadline:
             for msg in self._read(0.05, raise_alarm=False):
@@ -362,7 +363,7 @@ class GrblTable(OpenClose):
     def _sync(self) -> bool:
         """Terminate any half-line left in GRBL's buffer and drain stale replies. False if no reply
         came (GRBL locked by a critical alarm ignores lines until reset)."""
-        self.link.write(b"\n")
+        self._write(b"\n")
         deadline = self.clock() + min(self.timeout_s, 1.5)
         got = False
         while self.clock() < deadline and not got:
@@ -375,7 +376,7 @@ class GrblTable(OpenClose):
 
     # --- reading ----------------------------------------------------------------------------
     def _query(self) -> None:
-        self.link.write(b"?")
+        self._write(b"?")
         self._last_query_t = self.clock()
 
     def _handle(self, msg: GrblMessage) -> None:
@@ -426,9 +427,52 @@ class GrblTable(OpenClose):
         return TableStall(f"{self.link.name}: stalled: GRBL reported Run without moving for {self._stall_n} "
                           f"reports at {p[0]:.3f}, {p[1]:.3f} mm")
 
+    def _write(self, data: bytes) -> None:
+        try:
+            self.link.write(data)
+        except LinkError as exc:
+            self._recover(exc)
+            self.link.write(data)  # recovered with nothing in flight: the same bytes again
+
+    def _recover(self, exc: LinkError) -> None:
+        """The port failed. With ``reconnect_s`` > 0, reopen it with backoff (LinkLost if it stays
+        down), then read the controller's state again before anything else is sent. Returns only
+        if nothing was in flight and the table is not in Alarm; otherwise stops it if it is still
+        moving and raises (GrblAlarm after a reset/alarm, LinkLost after a drop mid-program)."""
+        if self.reconnect_s <= 0 or self._recovering:
+            raise exc
+        self._recovering = True
+        t0 = self.clock()
+        prog, self.program = self.program, None
+        try:
+            self.link.reconnect(self.reconnect_s)
+            self._orphans = 0
+            self._connect()  # banner or status: the state is read again
+            st = self.status()
+            dt = self.clock() - t0
+            if base_state(st.state) == "Alarm":
+                raise GrblAlarm(self.session_alarm, f"after the link came back ({dt:.1f} s; the controller reset or "
+                                                    "alarmed): the position may be lost; home or unlock before moving")
+            if prog is not None and prog.active:
+                prog.error = LinkLost(f"{self.link.name}: the link dropped mid-program ({prog.acked}/{prog.total} "
+                                      f"lines acknowledged) and came back after {dt:.1f} s")
+                if base_state(st.state) in BUSY:
+                    st = self.stop()
+                p = st.position
+                raise LinkLost(f"{prog.error}; the program was abandoned and the table stopped: {st.state} at "
+                               f"X{p[0]:.3f} Y{p[1]:.3f}")
+            log.warning("%s: link restored after %.1f s; state %s", self.link.name, dt, st.state)
+        finally:
+            self._recovering = False
+
     def _read(self, timeout_s: float, raise_alarm: bool = True) -> list[GrblMessage]:
         out = []
-        for line in self.link.lines(timeout_s):
+        try:
+            lines = self.link.lines(timeout_s)
+        except LinkError as exc:
+            self._recover(exc)
+            lines = []
+        for line in lines:
             msg = parse_line(line)
             self._handle(msg)
             out.append(msg)
@@ -454,7 +498,7 @@ class GrblTable(OpenClose):
         timeout_s = self.timeout_s if timeout_s is None else timeout_s
         if _OFFSET_WORDS.search(clean_line(line)):
             self._wco = None
-        self.link.send_line(line)
+        self._write((line + "\n").encode("ascii"))
         got: list[GrblMessage] = []
         deadline = self.clock() + timeout_s
         while True:
@@ -558,7 +602,7 @@ class GrblTable(OpenClose):
         if self.program is not None:
             raise TableBusy(f"{self.link.name}: a program is streaming")
         timeout_s = self.homing_timeout_s if timeout_s is None else timeout_s
-        self.link.send_line("$H")
+        self._write(b"$H\n")
         t0 = self.clock()
         next_report = t0 + progress_every_s
         while True:
@@ -658,16 +702,16 @@ class GrblTable(OpenClose):
 
     # --- real-time --------------------------------------------------------------------------
     def feed_hold(self) -> None:
-        self.link.write(b"!")
+        self._write(b"!")
 
     def resume(self) -> None:
-        self.link.write(b"~")
+        self._write(b"~")
 
     def reset(self) -> None:
         """Soft reset (0x18): stop at once, discard the plan; waits for the banner."""
         if self.program is not None:
             self._program_ended(self.program)
-        self.link.write(b"\x18")
+        self._write(b"\x18")
         deadline = self.clock() + self.timeout_s
         while self.clock() < deadline:
             if any(m.kind == "banner" for m in self._read(0.05, raise_alarm=False)):

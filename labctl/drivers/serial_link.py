@@ -37,6 +37,10 @@ class LinkError(DeviceError):
     """The port could not be opened, or failed while in use."""
 
 
+class LinkLost(LinkError):
+    """The link dropped and did not come back within the configured reconnect window."""
+
+
 class ProtocolError(DeviceError):
     """The device answered something the protocol does not allow (lost or garbled replies)."""
 
@@ -98,18 +102,30 @@ class SerialLink(OpenClose):
             self.port = None
         log.debug("%s closed t=%.6f", self.name, self.clock())
 
-    def reconnect(self, attempts: int = 3, backoff_s: float = 0.2) -> None:
-        """Close and reopen the port, retrying with a growing pause; LinkError if it stays down."""
+    def reconnect(self, window_s: float = 5.0, backoff_s: float = 0.1, max_backoff_s: float = 2.0) -> int:
+        """Close and reopen the port until it opens, doubling the pause between tries (from
+        ``backoff_s`` up to ``max_backoff_s``); :class:`LinkLost` once ``window_s`` has passed.
+        Returns the number of attempts. Bounded in time: never longer than ``window_s`` plus one
+        open attempt."""
+        t0 = self.clock()
+        pause = backoff_s
+        attempts = 0
         last: Exception | None = None
-        for i in range(attempts):
+        while True:
             self.close()
-            self.sleep(backoff_s * (i + 1))
+            attempts += 1
             try:
                 self.open()
-                return
+                log.info("%s reconnected after %d attempts (%.2f s)", self.name, attempts, self.clock() - t0)
+                return attempts
             except LinkError as exc:
                 last = exc
-        raise LinkError(f"{self.name}: reconnect failed after {attempts} attempts: {last}")
+            remaining = window_s - (self.clock() - t0)
+            if remaining <= 0:
+                raise LinkLost(f"{self.name}: the link dropped and did not come back within {window_s:g} s "
+                               f"({attempts} attempts; last: {last})")
+            self.sleep(min(pause, remaining))
+            pause = min(pause * 2.0, max_backoff_s)
 
     # --- bytes ------------------------------------------------------------------------------
     def write(self, data: bytes) -> None:
