@@ -396,6 +396,8 @@ class GrblTable(OpenClose):
         elif msg.kind == "alarm":
             self._alarm = msg.code
             self.session_alarm = msg.code
+            if msg.code in (1, 2):
+                self.locked = True  # critical: GRBL now ignores lines and '?' until a reset
             log.warning("%s: ALARM:%s %s", self.link.name, msg.code, msg.text)
         elif msg.kind == "banner":
             self._reset_seen = True
@@ -528,6 +530,8 @@ class GrblTable(OpenClose):
         offset is unknown; status then keeps asking (GRBL sends WCO in every 10th report, every
         30th while busy, and in the next one after an offset changes) rather than assume zero.
         """
+        if self.locked and self.session_alarm in (1, 2):
+            raise GrblAlarm(self.session_alarm, _alarm_advice(self.session_alarm))
         if (max_age_s is not None and self.last_status is not None and self._wco is not None
                 and self.clock() - self.last_status_t <= max_age_s):
             return self._table_status()
@@ -735,7 +739,7 @@ class GrblTable(OpenClose):
         try:
             n = 0
             last_pos, last_change = None, t0
-            while self.clock() - t0 < max_hold_s:
+            while self.clock() - t0 < max_hold_s and not self.locked:  # a locked GRBL has already stopped
                 try:
                     self._next_report(0.05)
                 except DeviceTimeout:
