@@ -143,3 +143,16 @@ def test_run_without_motion_is_a_stall():
     with pytest.raises(TableStall) as err:
         t.wait_idle(timeout_s=30)
     assert "12.500" in str(err.value)
+
+
+def test_a_device_that_never_ends_a_line_cannot_fill_memory():
+    from labctl.drivers.serial_link import SerialLink
+
+    class Noise(FrozenGrbl):
+        def __init__(self):
+            self.out = bytearray(b"\xff" * 100_000)
+
+    link = SerialLink(port=Noise(), timeout_s=0.1)
+    link.open()
+    assert link.readline(0.05) is None
+    assert len(link._buf) <= link.max_buffer and link.bytes_discarded >= 100_000 - link.max_buffer

@@ -70,6 +70,8 @@ class SerialLink(OpenClose):
         self._next_write_t = 0.0
         self.bytes_in = 0
         self.bytes_out = 0
+        self.max_buffer = 4096  # bytes kept while waiting for a line end
+        self.bytes_discarded = 0
 
     # --- lifecycle --------------------------------------------------------------------------
     @property
@@ -164,6 +166,11 @@ class SerialLink(OpenClose):
             data = self._read_available()
             if data:
                 self._buf += data
+                if len(self._buf) > self.max_buffer and self.eol not in self._buf[-self.max_buffer:]:
+                    # a device that never ends a line (wrong baud, binary noise): keep memory bounded
+                    cut = len(self._buf) - self.max_buffer
+                    del self._buf[:cut]
+                    self.bytes_discarded += cut
                 return True
             now = self.clock()
             if now >= deadline:
