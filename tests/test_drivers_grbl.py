@@ -141,9 +141,20 @@ def test_silent_port_times_out_cleanly():
     with silent_port() as dev:
         table = GrblTable(dev.path, 115200, reset_on_open=False, timeout_s=0.5, boot_s=0.5)
         t0 = time.monotonic()
-        with pytest.raises(DeviceTimeout):
+        with pytest.raises(DeviceTimeout) as err:
             table.open()
         assert time.monotonic() - t0 < 3.0
+        assert "115200 bps" in str(err.value) and "baud" in str(err.value)  # says what to check
+
+
+def test_garbled_replies_suggest_another_baud_rate():
+    from fakes import Wire
+
+    with fake_grbl(homing=False, wire=Wire(garbage=True, seed=3)) as dev:
+        table = GrblTable(dev.path, 9600, reset_on_open=False, timeout_s=0.5, boot_s=0.5)
+        with pytest.raises(DeviceTimeout) as err:
+            table.open()
+        assert "another rate than 9600 bps" in str(err.value)
 
 
 def test_missing_port_is_a_link_error():
