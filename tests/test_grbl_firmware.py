@@ -39,8 +39,9 @@ class Firmware:
     """The firmware served on a pty; ``raw()`` talks to it byte-wise (a second, independent client)."""
 
     def __init__(self, exe: Path, serve: Path):
+        # cwd: grbl-sim keeps its EEPROM in ./EEPROM.DAT — a fresh one per session, beside the build
         self.proc = subprocess.Popen([sys.executable, str(serve), "--exe", str(exe)], stdout=subprocess.PIPE,
-                                     stderr=subprocess.DEVNULL, text=True)
+                                     stderr=subprocess.DEVNULL, text=True, cwd=exe.parent)
         self.path = self.proc.stdout.readline().strip()
         assert self.path.startswith("/dev/"), self.path
         self.raw("", until="Grbl 1.1h", timeout_s=30)  # first boot: error:7, settings dump, banner
@@ -72,7 +73,7 @@ class Firmware:
 
     def fresh(self) -> None:
         """Soft reset to Idle with fast settings, no work offset, $10=1."""
-        out = self.raw(b"\x18", until="Grbl 1.1h", timeout_s=10, wait_s=0.3)
+        out = self.raw(b"\x18", until="Grbl 1.1h", timeout_s=30, wait_s=0.3)
         if "Alarm" in self.status():
             self.command("$X")
         for k, v in {**FAST, 10: 1, 20: 0, 22: 0}.items():
@@ -110,8 +111,11 @@ def fw(firmware_exe) -> Firmware:
         f.stop()
 
 
+SLOW = 15.0  # reply time-out: generous, as a starved simulator on a loaded machine can pause for seconds
+
+
 def table(fw, **kw) -> GrblTable:
-    return GrblTable(fw.path, 115200, reset_on_open=False, timeout_s=5.0, status_hz=10, auto_unlock=False, **kw)
+    return GrblTable(fw.path, 115200, reset_on_open=False, timeout_s=SLOW, status_hz=10, auto_unlock=False, **kw)
 
 
 @pytest.fixture
@@ -152,7 +156,7 @@ def test_work_offsets_and_report_masks_g53_moves(fw, labctl):
             assert st.position[:2] == pytest.approx((20.0, 15.0), abs=1e-3), mask
             assert t.work_position()[:2] == pytest.approx((15.0, 8.0), abs=1e-3), mask
     code, out, err = labctl("--json", "table", "move", "-5", "-5", "--feed", "6000", "--port", fw.path,
-                            "--baud", "115200")  # negative numbers without `--`
+                            "--baud", "115200", "--timeout", "15")  # negative numbers without `--`
     assert code == 0, err
     d = json.loads(out)
     assert (d["position"]["x"], d["position"]["y"]) == pytest.approx((-5.0, -5.0), abs=1e-3)
@@ -175,7 +179,7 @@ def test_hold_check_and_stop_keep_the_position(fw, labctl):
         while "Hold:0" not in seen and time.monotonic() < deadline:
             seen.add(t.status().state)
         assert {"Run", "Hold:0"} <= seen
-    code, out, err = labctl("--json", "table", "status", "--port", fw.path, "--baud", "115200")
+    code, out, err = labctl("--json", "table", "status", "--port", fw.path, "--baud", "115200", "--timeout", "15")
     assert code == 0, err
     held = json.loads(out)
     assert held["state"] == "Hold:0" and x0 < held["position"]["x"] < 80  # no "ignores lines", nothing queued
@@ -199,11 +203,11 @@ def test_alarm3_is_never_cleared_silently(fw, labctl):
         t.reset()
         assert t.session_alarm == 3 and t.status().state == "Alarm"
         x = t.status().position[0]
-    code, _, err = labctl("table", "move", "1", "1", "--port", fw.path, "--baud", "115200")
+    code, _, err = labctl("table", "move", "1", "1", "--port", fw.path, "--baud", "115200", "--timeout", "15")
     assert code == 3 and "ALARM" in err and "--unlock" in err and len(err.strip().splitlines()) == 1
     assert f"MPos:{x:.3f}" in fw.status() and "Alarm" in fw.status()
     code, out, err = labctl("--json", "table", "move", "1", "1", "--feed", "6000", "--unlock", "--port", fw.path,
-                            "--baud", "115200")
+                            "--baud", "115200", "--timeout", "15")
     assert code == 0, err
     assert json.loads(out)["state"] == "Idle"
 
@@ -214,7 +218,7 @@ def test_stream_300_lines_then_an_error_names_the_file_line_and_stops(fw, tmp_pa
     good = tmp_path / "good.nc"
     good.write_text("; 300 moves\nG21 G90\nG1 F6000\n\n" + "\n".join(moves) + "\n")
     code, out, err = labctl("--json", "table", "stream", str(good), "--port", fw.path, "--baud", "115200",
-                            timeout=120)
+                            "--timeout", "15")
     assert code == 0, err
     d = json.loads(out)
     assert d["lines"] == 302 and d["state"] == "Idle"
@@ -226,7 +230,7 @@ def test_stream_300_lines_then_an_error_names_the_file_line_and_stops(fw, tmp_pa
     body += [f"G1 X{i:.1f}" for i in range(10)]
     bad.write_text("\n".join(body) + "\n")
     assert body[150] == "G1 X10 Q5"
-    code, out, err = labctl("table", "stream", str(bad), "--port", fw.path, "--baud", "115200", timeout=120)
+    code, out, err = labctl("table", "stream", str(bad), "--port", fw.path, "--baud", "115200", "--timeout", "15")
     assert code == 3 and "file line 151" in err and "error:" in err, err
     assert len(err.strip().splitlines()) == 1 and "stopped" in err
     s1 = fw.status()
@@ -242,7 +246,8 @@ def test_interrupt_stops_the_table(fw, tmp_path, sig, cmd):
     prog = tmp_path / "long.nc"
     prog.write_text("G21 G90\nG1 F1200\n" + "".join(f"G1 X{i * 2}\n" for i in range(1, 60)))
     args = ["stream", str(prog)] if cmd == "stream" else ["move", "100", "0", "--feed", "1200"]
-    p = subprocess.Popen([sys.executable, "-m", "labctl", "table", *args, "--port", fw.path, "--baud", "115200"],
+    p = subprocess.Popen([sys.executable, "-m", "labctl", "table", *args, "--port", fw.path, "--baud", "115200",
+                          "--timeout", "15"],
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                          env={**os.environ, "PYTHONPATH": str(REPO)})
     time.sleep(6.0)  # python start-up and connect (slow on a loaded machine), then some motion
@@ -271,7 +276,7 @@ def test_critical_alarm_status_never_resets_and_homing_times_out(fw, labctl):
     code, _, err = labctl("table", "status", "--port", fw.path, "--baud", "115200", "--timeout", "2")
     assert code == 3 and "reset" in err and len(err.strip().splitlines()) == 1, err
     assert "Grbl 1.1h" not in fw.raw("?", wait_s=1.0)  # still locked: nobody reset it
-    code, out, err = labctl("--json", "table", "reset", "--port", fw.path, "--baud", "115200")
+    code, out, err = labctl("--json", "table", "reset", "--port", fw.path, "--baud", "115200", "--timeout", "15")
     assert code == 0 and json.loads(out)["state"] == "Alarm", err  # homing lock after the reset
     code, out, err = labctl("table", "home", "--timeout", "20", "--port", fw.path, "--baud", "115200")
     assert code == 3 and "ALARM:" in err and "Homing fail" in err, err  # grbl-sim: every limit pin reads active
