@@ -38,6 +38,9 @@ def test_table_move_status_stream(capsys, tmp_path):
     with fake_grbl(homing=True) as dev:
         code, out, err = run(capsys, "table", "move", "100", "50", "--feed", "3000", "--port", dev.path,
                              "--baud", "115200")
+        assert code == 3 and "ALARM" in err and "--unlock" in err  # the power-up lock is never cleared silently
+        code, out, err = run(capsys, "table", "move", "100", "50", "--feed", "3000", "--unlock", "--port", dev.path,
+                             "--baud", "115200")
         assert code == 0, err
         with dev.lock:
             assert not dev.emulator.moving

@@ -26,12 +26,14 @@ def short_moves(n: int, step: float = 0.4) -> list[str]:
 
 def test_connects_without_reset_and_reads_identity():
     with fake_grbl(homing=True) as dev:
-        with GrblTable(dev.path, 115200, reset_on_open=False, timeout_s=2.0) as table:
+        with GrblTable(dev.path, 115200, reset_on_open=False, timeout_s=2.0, auto_unlock=False) as table:
             assert table.connected_by in ("status", "banner")
             assert table.info["version"].startswith("1.1h") and table.rx_limit == 127
             st = table.status()
-            assert st.state == "Alarm"  # power-up homing lock
-            assert table.ensure_ready().state == "Idle"
+            assert st.state == "Alarm"  # power-up homing lock, but this session did not see the boot
+            with pytest.raises(GrblAlarm):
+                table.ensure_ready()  # never unlocked silently
+            assert table.ensure_ready(unlock=True).state == "Idle"
             settings = table.settings()
             assert settings[130] == 600.0 and settings[22] == 1
 
@@ -93,8 +95,9 @@ def test_errors_and_alarms_are_typed():
             with pytest.raises(GrblAlarm):
                 table.ensure_ready()  # never cleared silently
             table.reset()
-            table.session_alarm = None
-            assert table.ensure_ready().state == "Idle"
+            with pytest.raises(GrblAlarm):
+                table.ensure_ready()  # still not cleared silently after the reset
+            assert table.ensure_ready(unlock=True).state == "Idle"
             assert table.move_to(10.0, 10.0, 3000).position[0] == pytest.approx(10.0)
 
 
@@ -124,7 +127,7 @@ def test_feed_hold_resume_and_stop():
 def test_home_command():
     with fake_grbl(homing=True, settings={24: 600.0, 25: 3000.0}) as dev:
         with GrblTable(dev.path, 115200, reset_on_open=False) as table:
-            table.ensure_ready()
+            table.ensure_ready(unlock=True)
             table.move_to(30, 20, 3000)
             table.home()
             assert table.status().position == pytest.approx((0.0, 0.0, 0.0))
@@ -138,9 +141,20 @@ def test_silent_port_times_out_cleanly():
     with silent_port() as dev:
         table = GrblTable(dev.path, 115200, reset_on_open=False, timeout_s=0.5, boot_s=0.5)
         t0 = time.monotonic()
-        with pytest.raises(DeviceTimeout):
+        with pytest.raises(DeviceTimeout) as err:
             table.open()
         assert time.monotonic() - t0 < 3.0
+        assert "115200 bps" in str(err.value) and "baud" in str(err.value)  # says what to check
+
+
+def test_garbled_replies_suggest_another_baud_rate():
+    from fakes import Wire
+
+    with fake_grbl(homing=False, wire=Wire(garbage=True, seed=3)) as dev:
+        table = GrblTable(dev.path, 9600, reset_on_open=False, timeout_s=0.5, boot_s=0.5)
+        with pytest.raises(DeviceTimeout) as err:
+            table.open()
+        assert "another rate than 9600 bps" in str(err.value)
 
 
 def test_missing_port_is_a_link_error():

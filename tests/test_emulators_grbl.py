@@ -180,7 +180,7 @@ def test_soft_limit_alarm_locks_until_reset():
     out = send(g, "G0 X700\n")
     assert out == ["ALARM:2", "[MSG:Reset to continue]"]
     assert send(g, "G0 X1\n") == []  # ignored while locked
-    assert send(g, "?")[0].startswith("<Alarm|")
+    assert send(g, "?") == []  # the real 1.1h serves no status report in the critical lock either
     out = send(g, "\x18")
     assert out == ["Grbl 1.1h ['$' for help]", "[MSG:'$H'|'$X' to unlock]"]
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import signal
 from pathlib import Path
 
 import click
@@ -30,13 +32,33 @@ def devices_cmd() -> int:
     return 0 if all(r["ok"] for r in rows) else 3
 
 
+def _positive_baud(ctx, param, value):
+    if value is not None and value <= 0:
+        raise click.BadParameter(f"must be a positive number of bits per second, got {value}")
+    return value
+
+
+def _positive_timeout(ctx, param, value):
+    if value is not None and not value > 0:
+        raise click.BadParameter(f"must be a positive number of seconds, got {value}")
+    return value
+
+
 _port = click.option("--port", default=None, help="Device path or pyserial URL (default: the lab's table port).")
-_baud = click.option("--baud", type=int, default=None, help="Baud rate (default: the lab's table baud).")
-_timeout = click.option("--timeout", "timeout_s", type=float, default=None, help="Reply timeout, s.")
+_baud = click.option("--baud", type=int, default=None, callback=_positive_baud,
+                     help="Baud rate (default: the lab's table baud; stock GRBL 1.1h: 115200).")
+_timeout = click.option("--timeout", "timeout_s", type=float, default=None, callback=_positive_timeout,
+                        help="Reply timeout, s (for `home`: the homing time-out).")
+_unlock = click.option("--unlock", is_flag=True,
+                       help="Leave an Alarm with $X first: you vouch that the table's position is right.")
+# `table move -5 -5`: negative numbers are arguments, not options
+_NUMBERS = {"ignore_unknown_options": True}
 
 
-def _open_table(port: str | None, baud: int | None, timeout_s: float | None):
-    """The table named by --port/--baud (else the lab's), unopened: use it as ``with _open_table(...) as t``."""
+def _open_table(port: str | None, baud: int | None, timeout_s: float | None, *, reset_if_silent: bool = False):
+    """The table named by --port/--baud (else the lab's), unopened: use it as ``with _open_table(...) as t``.
+
+    Never unlocks an Alarm on its own and never soft-resets unless ``reset_if_silent``."""
     from ..config import TableConfig
     from ..drivers.grbl import GrblTable
     from ..errors import UserInputError
@@ -46,22 +68,64 @@ def _open_table(port: str | None, baud: int | None, timeout_s: float | None):
     if not port:
         raise UserInputError("no table port: pass --port PORT (the lab's table is simulated; "
                              "`labctl sim serve` prints a port to use)")
-    kw = {"timeout_s": timeout_s} if timeout_s else {}
+    kw = {name: getattr(cfg, name) for name in ("stall_reports", "homing_timeout_s") if hasattr(cfg, name)}
     return GrblTable(port, baud or cfg.baud, reset_on_open=cfg.reset_on_open, status_hz=cfg.status_hz,
-                     **({"timeout_s": cfg.timeout_s} | kw))
+                     timeout_s=timeout_s or cfg.timeout_s, auto_unlock=False, reset_if_silent=reset_if_silent, **kw)
+
+
+@contextlib.contextmanager
+def stops_table(table):
+    """Stop the table on every exit that is not a normal return (DESIGN §6, issue 13).
+
+    Ctrl-C, SIGTERM, a device error or any other exception: feed hold, soft reset, status read
+    back (:meth:`GrblTable.stop`), while further signals are ignored; then one line, with exit
+    130 for an interrupt and the error's own code otherwise."""
+    from ..errors import LabctlError
+
+    def on_term(signum, frame):
+        raise KeyboardInterrupt
+
+    old_term = signal.signal(signal.SIGTERM, on_term)
+    try:
+        yield
+    except BaseException as exc:
+        if isinstance(exc, SystemExit | GeneratorExit):
+            raise
+        old_int = signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        try:
+            st = table.stop()
+            p = st.position
+            stopped = f"table stopped (feed hold, reset) and confirmed {st.state} at X{p[0]:.3f} Y{p[1]:.3f}"
+        except Exception as stop_exc:  # noqa: BLE001 — said in the one line, never hidden
+            stopped = f"stopping the table FAILED ({type(stop_exc).__name__}: {stop_exc}); cut its power"
+        finally:
+            signal.signal(signal.SIGINT, old_int)
+        if isinstance(exc, KeyboardInterrupt):
+            err = LabctlError(f"interrupted; {stopped}")
+            err.exit_code = 130
+        elif isinstance(exc, LabctlError):
+            err = LabctlError(f"{exc}; {stopped}")
+            err.exit_code = exc.exit_code
+        else:
+            err = LabctlError(f"{type(exc).__name__}: {exc}; {stopped}")
+        raise err from None
+    finally:
+        signal.signal(signal.SIGTERM, old_term)
 
 
 def _status_dict(table, st) -> dict:
     wpos = table.work_position()
     return {"state": st.state, "position": dict(zip("xyz", st.position)),
-            "work_position": dict(zip("xyz", wpos)) if wpos else None, "feed_mm_min": st.feed_mm_min,
+            "work_position": dict(zip("xyz", wpos)) if wpos else None,
+            "wco": dict(zip("xyz", table.wco)) if table.wco else None, "feed_mm_min": st.feed_mm_min,
             "port": table.link.url, "version": table.info.get("version"), "connected_by": table.connected_by}
 
 
 def _print_status(d: dict):
     def human(console):
         p = d["position"]
-        console.print(f"[bold]{d['state']}[/]  X {p['x']:.3f}  Y {p['y']:.3f}  Z {p['z']:.3f} mm"
+        console.print(f"[bold]{d['state']}[/]  X {p['x']:.3f}  Y {p['y']:.3f}  Z {p['z']:.3f} mm (machine)"
                       f"  (Grbl {d.get('version') or '?'} on {d['port']})")
 
     return human
@@ -69,7 +133,7 @@ def _print_status(d: dict):
 
 @click.group("table")
 def table_group() -> None:
-    """Drive a GRBL 1.1 table directly (status, home, move, stream)."""
+    """Drive a GRBL 1.1 table directly (status, home, move, stream, reset)."""
 
 
 @table_group.command("status")
@@ -78,7 +142,7 @@ def table_group() -> None:
 @_timeout
 @json_option
 def table_status(port, baud, timeout_s) -> None:
-    """The table's state and machine position (mm)."""
+    """The table's state and machine position (mm). Never resets or unlocks the controller."""
     with _open_table(port, baud, timeout_s) as table:
         d = _status_dict(table, table.status())
     emit(d, _print_status(d))
@@ -90,22 +154,25 @@ def table_status(port, baud, timeout_s) -> None:
 @_timeout
 @json_option
 def table_home(port, baud, timeout_s) -> None:
-    """Run the homing cycle ($H)."""
-    with _open_table(port, baud, timeout_s) as table:
-        table.home()
-        d = _status_dict(table, table.status())
+    """Run the homing cycle ($H); --timeout bounds it (default: the lab's homing_timeout_s)."""
+    def progress(elapsed):
+        click.echo(f"homing… {elapsed:.0f} s", err=True)
+
+    with _open_table(port, baud, None) as table, stops_table(table):
+        st = table.home(timeout_s=timeout_s, on_progress=progress, progress_every_s=2.0)
+        d = _status_dict(table, st)
     emit(d, _print_status(d))
 
 
 @table_group.command("reset")
-@click.option("--unlock", is_flag=True, help="Also leave the Alarm state with $X (no homing).")
+@_unlock
 @_port
 @_baud
 @_timeout
 @json_option
 def table_reset(unlock, port, baud, timeout_s) -> None:
     """Soft reset (Ctrl-X): stop at once and clear a locked alarm; then optionally unlock."""
-    with _open_table(port, baud, timeout_s) as table:
+    with _open_table(port, baud, timeout_s, reset_if_silent=True) as table:
         table.reset()
         if unlock and table.status().state == "Alarm":
             table.unlock()
@@ -113,22 +180,23 @@ def table_reset(unlock, port, baud, timeout_s) -> None:
     emit(d, _print_status(d))
 
 
-@table_group.command("move")
+@table_group.command("move", context_settings=_NUMBERS)
 @click.argument("x", type=float)
 @click.argument("y", type=float)
 @click.option("--feed", "feed", type=float, default=None, help="Feed rate, mm/min (default: rapid G0).")
+@_unlock
 @_port
 @_baud
 @_timeout
 @json_option
-def table_move(x, y, feed, port, baud, timeout_s) -> None:
-    """Move to X Y (mm, absolute) and return when the motion has finished."""
+def table_move(x, y, feed, unlock, port, baud, timeout_s) -> None:
+    """Move to X Y (mm, machine coordinates: G53) and return when the motion has finished."""
     from ..errors import UserInputError
 
-    if feed is not None and feed <= 0:
+    if feed is not None and not feed > 0:
         raise UserInputError(f"--feed must be positive (mm/min), got {feed}")
-    with _open_table(port, baud, timeout_s) as table:
-        table.ensure_ready()
+    with _open_table(port, baud, timeout_s) as table, stops_table(table):
+        table.ensure_ready(unlock=unlock)
         st = table.move_to(x, y, feed)
         d = _status_dict(table, st)
     emit(d, _print_status(d))
@@ -137,21 +205,24 @@ def table_move(x, y, feed, port, baud, timeout_s) -> None:
 @table_group.command("stream")
 @click.argument("file", type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--no-wait", is_flag=True, help="Return once every line is accepted (do not wait for the motion).")
+@_unlock
 @_port
 @_baud
 @_timeout
 @json_option
-def table_stream(file, no_wait, port, baud, timeout_s) -> None:
-    """Stream a G-code FILE by character counting; by default wait until the motion has finished."""
+def table_stream(file, no_wait, unlock, port, baud, timeout_s) -> None:
+    """Stream a G-code FILE by character counting; by default wait until the motion has finished.
+
+    Ctrl-C, SIGTERM or a GRBL error stops the table (feed hold, reset) before exiting."""
     import time
 
-    from ..drivers.programs import load_gcode
+    from ..drivers.programs import load_gcode_numbered
 
-    lines = load_gcode(file)
-    with _open_table(port, baud, timeout_s) as table:
-        table.ensure_ready()
+    numbered = load_gcode_numbered(file)
+    with _open_table(port, baud, timeout_s) as table, stops_table(table):
+        table.ensure_ready(unlock=unlock)
         t0 = time.monotonic()
-        sent = table.stream(lines)
+        sent = table.stream([line for _, line in numbered], line_numbers=[n for n, _ in numbered])
         t_accepted = time.monotonic() - t0
         st = table.status() if no_wait else table.wait_idle(timeout_s=max(table.timeout_s, 3600.0))
         d = _status_dict(table, st) | {"lines": sent, "accepted_s": round(t_accepted, 3),

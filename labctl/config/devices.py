@@ -24,6 +24,9 @@ class TableConfig:
     max_feed_mm_min: float = 6000.0
     accel_mm_s2: float = 200.0
     status_hz: float = 5.0
+    stall_reports: int = 25  # Run reports in a row without motion before the table counts as stalled (0: off)
+    homing_timeout_s: float = 120.0  # GRBL sends nothing while homing: give up after this long
+    reconnect_s: float = 0.0  # after the port drops, retry opening it (with backoff) for this long
     # sim: T_w_table of the table's machine zero (the table plane is z = 0 in W)
     origin_w_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
@@ -32,6 +35,12 @@ class TableConfig:
             return "port", "a grbl table needs a port (device path or pyserial URL)"
         if self.baud <= 0:
             return "baud", f"expected a positive baud rate, got {self.baud}"
+        if self.stall_reports < 0:
+            return "stall_reports", f"expected 0 (off) or a positive count, got {self.stall_reports}"
+        if not self.homing_timeout_s > 0:
+            return "homing_timeout_s", f"expected a positive time, got {self.homing_timeout_s}"
+        if self.reconnect_s < 0:
+            return "reconnect_s", f"expected a time ≥ 0, got {self.reconnect_s}"
         return None
 
 

@@ -31,19 +31,35 @@ from .grbl_protocol import (
     parse_version,
 )
 from .interfaces import OpenClose, TableStatus
-from .serial_link import DeviceTimeout, ProtocolError, SerialLink
+from .serial_link import DeviceTimeout, LinkError, LinkLost, ProtocolError, SerialLink
 
 log = logging.getLogger(__name__)
+log.addHandler(logging.NullHandler())  # warnings go to the record/-v, not stray stderr lines
 
 MAX_LINE = 79  # GRBL's line buffer (80) minus the terminator
 
 
-class GrblError(DeviceError):
-    """GRBL answered ``error:N`` to a line."""
+BUSY = ("Run", "Hold", "Jog", "Home", "Door")
+_OFFSET_WORDS = re.compile(r"G(?:10|92|5[4-9]|43\.1|49)(?![0-9])")
 
-    def __init__(self, code: int, line: str = "", index: int | None = None):
-        self.code, self.line, self.index = code, line, index
-        where = f" (line {index + 1})" if index is not None else ""
+
+def base_state(state: str) -> str:
+    """``Hold:0`` → ``Hold``: the state without its sub-state."""
+    return state.split(":", 1)[0]
+
+
+class GrblError(DeviceError):
+    """GRBL answered ``error:N`` to a line. ``index`` is the line's place among the streamed lines,
+    ``file_line`` its 1-based line number in the file it came from (when known)."""
+
+    def __init__(self, code: int, line: str = "", index: int | None = None, file_line: int | None = None):
+        self.code, self.line, self.index, self.file_line = code, line, index, file_line
+        if file_line is not None:
+            where = f" (file line {file_line})"
+        elif index is not None:
+            where = f" (line {index + 1})"
+        else:
+            where = ""
         super().__init__(f"GRBL error:{code} {ERROR_CODES.get(code, 'unknown error')}{where}: {line!r}")
 
 
@@ -60,6 +76,14 @@ class GrblReset(DeviceError):
     """The controller reset (banner) while lines were in flight."""
 
 
+class TableStall(DeviceError):
+    """GRBL kept reporting ``Run`` without the position changing (a stalled or frozen machine)."""
+
+
+class TableBusy(DeviceError):
+    """The table is busy (Run, Hold, Jog, Home) when a command needs it Idle."""
+
+
 def dwell_s(line: str) -> float:
     """Seconds a cleaned line dwells (``G4 P…``), 0 for anything else."""
     m = re.search(r"G0*4(?![0-9.])", line)
@@ -73,6 +97,139 @@ def clean_line(line: str) -> str:
     return "".join(line.split())
 
 
+class ProgramStream:
+    """A G-code program on its way into GRBL by character counting, advanced by :meth:`pump`.
+
+    Nothing here blocks for longer than the ``timeout_s`` given to :meth:`pump`, so a run loop can
+    pump it once per iteration while it keeps tracking, planning and sending heartbeats (a long
+    ``G2``/``G3`` is acknowledged only when it leaves GRBL's planner, which takes as long as the
+    arc). Lines are sent while every unacknowledged line fits in GRBL's receive buffer; each
+    ``ok``/``error:N`` releases the oldest line. Progress: :attr:`acked` of :attr:`total`.
+    The first fault (``error:N``, alarm, reset, silence, lost replies, stall) is kept in
+    :attr:`error` and raised; the lines still in GRBL then keep running until the caller stops
+    the table (:meth:`GrblTable.stop`).
+    """
+
+    def __init__(self, table: GrblTable, lines: Iterable[str], line_numbers: Iterable[int] | None = None):
+        raw = list(lines)
+        numbers = list(line_numbers) if line_numbers is not None else list(range(1, len(raw) + 1))
+        if len(numbers) != len(raw):
+            raise ValueError("line_numbers must match lines")
+        pairs = [(n, c) for n, c in ((n, clean_line(r)) for n, r in zip(numbers, raw)) if c]
+        self.program = [c for _, c in pairs]
+        self.numbers = [n for n, _ in pairs]
+        self.numbered = line_numbers is not None
+        for i, line in enumerate(self.program):
+            if len(line) > MAX_LINE:
+                raise GrblError(11, line, i, self.numbers[i] if self.numbered else None)
+        self.table = table
+        self.in_flight: deque[tuple[int, int]] = deque()  # (index, bytes)
+        self.used = 0
+        self.sent = 0
+        self.acked = 0
+        self.error: DeviceError | None = None
+        now = table.clock()
+        self.last_alive = self.last_progress = now
+        self.idle_since: float | None = None  # GRBL reported Idle while lines waited for their reply
+        self.t_start = now
+
+    @property
+    def total(self) -> int:
+        return len(self.program)
+
+    @property
+    def done(self) -> bool:
+        """Every line acknowledged (the motion may still be running)."""
+        return self.acked == len(self.program) and self.error is None
+
+    @property
+    def active(self) -> bool:
+        return self.error is None and self.acked < len(self.program)
+
+    def progress(self) -> dict:
+        """``{"acked", "sent", "total", "in_flight"}`` — lines, for the record."""
+        return {"acked": self.acked, "sent": self.sent, "total": self.total, "in_flight": len(self.in_flight)}
+
+    def _on_response(self, msg: GrblMessage) -> None:
+        if not self.in_flight:
+            self._fail(ProtocolError(f"{self.table.link.name}: a reply {msg.raw!r} with no line in flight"))
+            return
+        idx, n = self.in_flight.popleft()
+        self.used -= n
+        self.acked += 1
+        self.last_progress = self.table.clock()
+        self.idle_since = None
+        if msg.kind == "error" and self.error is None:
+            self._fail(GrblError(msg.code, self.program[idx], idx, self.numbers[idx] if self.numbered else None))
+
+    def _fail(self, exc: DeviceError) -> None:
+        if self.error is None:
+            self.error = exc
+        self.table._program_ended(self)
+
+    def _fill(self) -> None:
+        t = self.table
+        while self.sent < len(self.program) and self.error is None:
+            line = self.program[self.sent]
+            data = (line + "\n").encode("ascii")
+            if self.used + len(data) > t.rx_limit:
+                break
+            if _OFFSET_WORDS.search(line):
+                t._wco = None  # GRBL re-sends WCO: in the next report
+            t._write(data)
+            self.in_flight.append((self.sent, len(data)))
+            self.used += len(data)
+            t.max_in_flight = max(t.max_in_flight, self.used)
+            self.sent += 1
+
+    def pump(self, timeout_s: float = 0.0) -> bool:
+        """Send what fits, read what came (waiting up to ``timeout_s``), poll status at its rate.
+        True while lines remain unacknowledged; raises the program's first fault."""
+        if self.error is not None:
+            raise self.error
+        if not self.active:
+            return False
+        t = self.table
+        try:
+            self._fill()
+            t._maybe_poll()
+            msgs = t._read(timeout_s)
+        except DeviceError as exc:
+            self._fail(exc)
+            raise
+        now = t.clock()
+        if any(m.kind != "unknown" for m in msgs):
+            self.last_alive = now
+        for msg in msgs:
+            if msg.kind == "banner":
+                self._fail(GrblReset(f"{t.link.name}: controller reset while streaming "
+                                     f"({len(self.in_flight)} lines lost, {self.acked}/{self.total} acknowledged)"))
+            elif msg.kind == "status":
+                st = msg.status
+                if st.state in BUSY:
+                    self.last_progress = now  # executing: replies come as the planner drains
+                    self.idle_since = None
+                elif st.state in ("Idle", "Check") and self.in_flight:
+                    self.idle_since = self.idle_since if self.idle_since is not None else now
+                if st.state == "Alarm" and self.in_flight:
+                    self._fail(GrblAlarm(t.session_alarm, f"the controller entered Alarm while streaming "
+                                                          f"({self.acked}/{self.total} lines acknowledged)"))
+        if self.error is None and t.stalled:
+            self._fail(t._stall_error())
+        if self.error is None and now - self.last_alive > t.timeout_s:
+            self._fail(DeviceTimeout(f"{t.link.name}: GRBL went silent while streaming "
+                                     f"({self.acked}/{self.total} lines acknowledged)"))
+        if (self.error is None and self.in_flight and self.idle_since is not None
+                and now - self.idle_since > t.timeout_s + sum(dwell_s(self.program[i]) for i, _ in self.in_flight)):
+            self._fail(ProtocolError(f"{t.link.name}: {len(self.in_flight)} lines got no reply although GRBL is "
+                                     "not busy (replies lost on the line?)"))
+        if self.error is not None:
+            raise self.error
+        if not self.active:
+            t._program_ended(self)
+        return self.active
+
+
 class GrblTable(OpenClose):
     """:class:`labctl.drivers.interfaces.Table` for a GRBL 1.1 controller."""
 
@@ -80,7 +237,8 @@ class GrblTable(OpenClose):
                  reset_on_open: bool = True, status_hz: float = 5.0, boot_s: float = 2.5,
                  serial_port=None, clock: Callable[[], float] = time.monotonic,
                  sleep: Callable[[float], None] = time.sleep, rx_buffer: int = RX_BUFFER_SIZE,
-                 auto_unlock: bool = True):
+                 auto_unlock: bool = True, reset_if_silent: bool = False, stall_reports: int = 25,
+                 homing_timeout_s: float = 120.0, reconnect_s: float = 0.0, max_messages: int = 200):
         self.link = SerialLink(port, baud, timeout_s, port=serial_port, clock=clock, sleep=sleep,
                                name=f"grbl@{port or getattr(serial_port, 'port', 'port')}")
         self.timeout_s = timeout_s
@@ -92,26 +250,42 @@ class GrblTable(OpenClose):
         self.last_status: StatusReport | None = None
         self.last_status_t = -1e18
         self._last_query_t = -1e18
-        self._wco = (0.0, 0.0, 0.0)
+        self._wco: tuple[float, float, float] | None = None  # unknown until a report carries WCO:
         self.info: dict = {}
-        self.messages: list[str] = []
+        self.messages: deque[str] = deque(maxlen=max_messages)
         self._alarm: int | None = None
         self._reset_seen = False
         self.connected_by = ""
         self.status_reports = 0
         self.max_in_flight = 0
+        # auto_unlock: release the power-up homing lock with $X, but only after a boot banner this
+        # session saw; an Alarm found on a controller that did not just boot is never cleared silently.
         self.auto_unlock = auto_unlock
+        self.reset_if_silent = reset_if_silent
+        self.stall_reports = stall_reports
+        self.homing_timeout_s = homing_timeout_s
+        self.reconnect_s = reconnect_s
         self.locked = False  # GRBL ignores lines until a reset (critical alarm)
         self.session_alarm: int | None = None  # the last ALARM:N seen since open
+        self.program: ProgramStream | None = None
+        self._orphans = 0  # replies still owed to lines of an abandoned program
+        self._stall_n = 0
+        self._stall_pos: tuple | None = None
+        self.stalled = False
+        self._booted = False  # a banner was seen since open (a fresh boot or our own reset)
+        self._recovering = False
 
     @classmethod
     def from_config(cls, cfg, **kw) -> GrblTable:
-        """From a :class:`labctl.config.TableConfig` (port, baud, timeout, reset_on_open, status_hz).
-
-        ``port``/``baud`` in ``kw`` override the driver file only when given (not None)."""
-        port, baud = kw.pop("port", None), kw.pop("baud", None)
-        return cls(port or cfg.port, baud or cfg.baud, timeout_s=cfg.timeout_s,
-                   reset_on_open=cfg.reset_on_open, status_hz=cfg.status_hz, **kw)
+        """From a :class:`labctl.config.TableConfig` (port, baud, timeout, reset_on_open, status_hz,
+        stall_reports, homing_timeout_s, reconnect_s). A ``port=None`` keyword keeps the configured port."""
+        port = kw.pop("port", None) or cfg.port
+        baud = kw.pop("baud", None) or cfg.baud
+        for name in ("stall_reports", "homing_timeout_s", "reconnect_s"):
+            if hasattr(cfg, name):
+                kw.setdefault(name, getattr(cfg, name))
+        return cls(port, baud, timeout_s=cfg.timeout_s, reset_on_open=cfg.reset_on_open,
+                   status_hz=cfg.status_hz, **kw)
 
     # --- connection -------------------------------------------------------------------------
     def open(self) -> None:
@@ -126,48 +300,58 @@ class GrblTable(OpenClose):
         self.link.close()
 
     def _connect(self) -> None:
-        """Find the controller alive: banner (board reset on open) or a status report (no reset)."""
+        """Find the controller alive: banner (board reset on open) or a status report (no reset).
+
+        Never soft-resets on its own (unless ``reset_if_silent``): a controller locked by a
+        critical alarm (ALARM:1/2) ignores ``?``, and a reset would discard what it shows."""
         window = self.boot_s if self.reset_on_open else min(self.boot_s, 1.0)
         deadline = self.clock() + window
         first_query = self.clock() + (0.3 if self.reset_on_open else 0.05)
         next_query = first_query
+        garbled = 0
         while self.clock() < deadline:
             if self.clock() >= next_query:
                 self._query()
-                next_query = self.clock() + 0.5
-            for msg in self._read(0.02):
-                if msg.kind == "banner":
-                    self.connected_by = "banner"
+                next_query = self.clock() + 0.2
+            for msg in self._read(0.02, raise_alarm=False):
+                if msg.kind in ("banner", "status"):
+                    self.connected_by = msg.kind
                     self._after_connect()
                     return
-                if msg.kind == "status":
-                    self.connected_by = "status"
-                    self._after_connect()
-                    return
+                garbled += msg.kind == "unknown"
+        if not self.reset_if_silent:
+            hint = (f"garbled bytes came back: the board likely runs at another rate than {self.link.baud} bps "
+                    "(stock GRBL 1.1h: 115200)" if garbled else
+                    f"nothing answered at {self.link.baud} bps: check the port and the baud rate (stock GRBL 1.1h: "
+                    "115200); a controller locked by a critical alarm (ALARM:1/2) also ignores '?' — "
+                    "`labctl table reset` soft-resets it")
+            raise DeviceTimeout(f"{self.link.name}: no GRBL banner and no status report within {window:g} s; {hint}")
         log.info("%s: no banner and no status report; trying a soft reset", self.link.name)
-        self.link.write(b"\x18")
+        self._write(b"\x18")
         deadline = self.clock() + self.timeout_s
         while self.clock() < deadline:
-            for msg in self._read(0.05):
+            for msg in self._read(0.05, raise_alarm=False):
                 if msg.kind in ("banner", "status"):
                     self.connected_by = "soft reset"
                     self._after_connect()
                     return
         raise DeviceTimeout(f"{self.link.name}: no GRBL banner, no status report and no answer to a soft reset "
-                            f"within {window + self.timeout_s:g} s")
+                            f"within {window + self.timeout_s:g} s at {self.link.baud} bps")
 
     def _after_connect(self) -> None:
         self._alarm = None
         self.session_alarm = None
         self._reset_seen = False
-        self._read(0.05)  # the rest of the banner burst ([MSG:…])
+        self._read(0.05, raise_alarm=False)  # the rest of the banner burst ([MSG:…])
         st = self.status()
         self.locked = False
-        if st.state not in ("Run", "Hold", "Jog", "Home"):
+        if base_state(st.state) not in BUSY:
             self.locked = not self._sync()
         if self.locked:
             log.warning("%s: controller ignores lines (critical alarm: reset to continue)", self.link.name)
             return
+        if st.state not in ("Idle", "Alarm", "Check"):
+            return  # $I needs Idle/Alarm; a held or running GRBL would queue the line
         try:
             feedback = self.command("$I")
             self.info.update(parse_version(feedback))
@@ -179,7 +363,7 @@ class GrblTable(OpenClose):
     def _sync(self) -> bool:
         """Terminate any half-line left in GRBL's buffer and drain stale replies. False if no reply
         came (GRBL locked by a critical alarm ignores lines until reset)."""
-        self.link.write(b"\n")
+        self._write(b"\n")
         deadline = self.clock() + min(self.timeout_s, 1.5)
         got = False
         while self.clock() < deadline and not got:
@@ -192,7 +376,7 @@ class GrblTable(OpenClose):
 
     # --- reading ----------------------------------------------------------------------------
     def _query(self) -> None:
-        self.link.write(b"?")
+        self._write(b"?")
         self._last_query_t = self.clock()
 
     def _handle(self, msg: GrblMessage) -> None:
@@ -200,14 +384,26 @@ class GrblTable(OpenClose):
             st = msg.status
             if st.wco is not None:
                 self._wco = st.wco
+            self._track_stall(st)
             self.last_status, self.last_status_t = st, self.clock()
             self.status_reports += 1
+        elif msg.is_response:
+            if self.program is not None and self.program.in_flight:
+                self.program._on_response(msg)
+            elif self._orphans > 0:
+                self._orphans -= 1
+                msg.fields["orphan"] = True
         elif msg.kind == "alarm":
             self._alarm = msg.code
             self.session_alarm = msg.code
+            if msg.code in (1, 2):
+                self.locked = True  # critical: GRBL now ignores lines and '?' until a reset
             log.warning("%s: ALARM:%s %s", self.link.name, msg.code, msg.text)
         elif msg.kind == "banner":
             self._reset_seen = True
+            self._booted = True
+            self._orphans = 0
+            self._wco = None
             self.info["version"] = msg.text
         elif msg.kind == "msg":
             self.messages.append(msg.text)
@@ -215,30 +411,102 @@ class GrblTable(OpenClose):
         elif msg.kind == "unknown":
             log.warning("%s: unexpected line %r", self.link.name, msg.raw)
 
+    def _track_stall(self, st: StatusReport) -> None:
+        """Count consecutive ``Run`` reports whose position has not changed (:attr:`stalled`)."""
+        pos = st.mpos if st.mpos is not None else st.wpos
+        if st.state != "Run" or pos is None:
+            self._stall_n, self._stall_pos, self.stalled = 0, None, False
+            return
+        if self._stall_pos is not None and all(abs(a - b) < 5e-4 for a, b in zip(pos, self._stall_pos)):
+            self._stall_n += 1
+        else:
+            self._stall_n = 0
+        self._stall_pos = pos
+        self.stalled = self.stall_reports > 0 and self._stall_n >= self.stall_reports
+
+    def _stall_error(self) -> TableStall:
+        p = self._stall_pos or (float("nan"),) * 3
+        return TableStall(f"{self.link.name}: stalled: GRBL reported Run without moving for {self._stall_n} "
+                          f"reports at {p[0]:.3f}, {p[1]:.3f} mm")
+
+    def _write(self, data: bytes) -> None:
+        try:
+            self.link.write(data)
+        except LinkError as exc:
+            self._recover(exc)
+            self.link.write(data)  # recovered with nothing in flight: the same bytes again
+
+    def _recover(self, exc: LinkError) -> None:
+        """The port failed. With ``reconnect_s`` > 0, reopen it with backoff (LinkLost if it stays
+        down), then read the controller's state again before anything else is sent. Returns only
+        if nothing was in flight and the table is not in Alarm; otherwise stops it if it is still
+        moving and raises (GrblAlarm after a reset/alarm, LinkLost after a drop mid-program)."""
+        if self.reconnect_s <= 0 or self._recovering:
+            raise exc
+        self._recovering = True
+        t0 = self.clock()
+        prog, self.program = self.program, None
+        try:
+            self.link.reconnect(self.reconnect_s)
+            self._orphans = 0
+            self._connect()  # banner or status: the state is read again
+            st = self.status()
+            dt = self.clock() - t0
+            if base_state(st.state) == "Alarm":
+                raise GrblAlarm(self.session_alarm, f"after the link came back ({dt:.1f} s; the controller reset or "
+                                                    "alarmed): the position may be lost; home or unlock before moving")
+            if prog is not None and prog.active:
+                prog.error = LinkLost(f"{self.link.name}: the link dropped mid-program ({prog.acked}/{prog.total} "
+                                      f"lines acknowledged) and came back after {dt:.1f} s")
+                if base_state(st.state) in BUSY:
+                    st = self.stop()
+                p = st.position
+                raise LinkLost(f"{prog.error}; the program was abandoned and the table stopped: {st.state} at "
+                               f"X{p[0]:.3f} Y{p[1]:.3f}")
+            log.warning("%s: link restored after %.1f s; state %s", self.link.name, dt, st.state)
+        finally:
+            self._recovering = False
+
     def _read(self, timeout_s: float, raise_alarm: bool = True) -> list[GrblMessage]:
         out = []
-        for line in self.link.lines(timeout_s):
+        try:
+            lines = self.link.lines(timeout_s)
+        except LinkError as exc:
+            self._recover(exc)
+            lines = []
+        for line in lines:
             msg = parse_line(line)
             self._handle(msg)
             out.append(msg)
         if raise_alarm and self._alarm is not None:
             code, self._alarm = self._alarm, None
-            raise GrblAlarm(code, "reset (labctl table reset), then home or unlock before moving")
+            raise GrblAlarm(code, _alarm_advice(code))
         return out
 
     def _maybe_poll(self) -> None:
         if self.clock() - self._last_query_t >= self.status_period:
             self._query()
 
+    def _program_ended(self, prog: ProgramStream) -> None:
+        if self.program is prog:
+            self.program = None
+            self._orphans += len(prog.in_flight)
+
     # --- commands ---------------------------------------------------------------------------
     def command(self, line: str, timeout_s: float | None = None) -> list[GrblMessage]:
         """Send one line, wait for its ``ok``; returns the push messages that came before it."""
+        if self.program is not None:
+            raise TableBusy(f"{self.link.name}: a program is streaming; {line!r} must wait until it is accepted")
         timeout_s = self.timeout_s if timeout_s is None else timeout_s
-        self.link.send_line(line)
+        if _OFFSET_WORDS.search(clean_line(line)):
+            self._wco = None
+        self._write((line + "\n").encode("ascii"))
         got: list[GrblMessage] = []
         deadline = self.clock() + timeout_s
         while True:
             for msg in self._read(0.02):
+                if msg.is_response and msg.fields.get("orphan"):
+                    continue  # owed to a line of an abandoned program
                 if msg.kind == "ok":
                     return got
                 if msg.kind == "error":
@@ -247,148 +515,175 @@ class GrblTable(OpenClose):
                     raise GrblReset(f"{self.link.name}: controller reset while running {line!r}")
                 if msg.kind != "status":
                     got.append(msg)
-                elif msg.status.state in ("Run", "Home", "Jog", "Hold"):
+                elif msg.status.state in BUSY and msg.status.state != "Hold":
                     deadline = max(deadline, self.clock() + timeout_s)  # busy, not silent
+            if self.stalled:
+                raise self._stall_error()
             if self.clock() > deadline:
                 raise DeviceTimeout(f"{self.link.name}: no reply to {line!r} within {timeout_s:g} s")
             self._maybe_poll()
 
     def status(self, max_age_s: float | None = None) -> TableStatus:
-        """Query ``?`` and return the next report (a fresh one if younger than ``max_age_s``)."""
-        if max_age_s is not None and self.last_status is not None and self.clock() - self.last_status_t <= max_age_s:
+        """Query ``?`` and return the next report (a fresh one if younger than ``max_age_s``).
+
+        The position is the machine position (mm). Until a report has carried ``WCO:`` the work
+        offset is unknown; status then keeps asking (GRBL sends WCO in every 10th report, every
+        30th while busy, and in the next one after an offset changes) rather than assume zero.
+        """
+        if self.locked and self.session_alarm in (1, 2):
+            raise GrblAlarm(self.session_alarm, _alarm_advice(self.session_alarm))
+        if (max_age_s is not None and self.last_status is not None and self._wco is not None
+                and self.clock() - self.last_status_t <= max_age_s):
             return self._table_status()
         wait = self._last_query_t + self.status_period - self.clock()
         if 0 < wait < self.status_period and self.last_status_t >= self._last_query_t:
             self.sleep(wait)  # bounded polling rate
+        self._next_report(self.status_period)
+        if self._wco is None:
+            n = 0
+            while self._wco is None:  # at most 30 quick reports: GRBL's own WCO refresh count
+                n += 1
+                if n > 40:
+                    raise ProtocolError(f"{self.link.name}: no WCO: in {n} status reports")
+                self._next_report(0.03)
+        return self._table_status()
+
+    def _next_report(self, pace_s: float) -> None:
         before = self.status_reports
         deadline = self.clock() + self.timeout_s
         self._query()
-        next_query = self.clock() + max(self.status_period, 0.25)
+        next_query = self.clock() + max(pace_s, 0.25)
         while self.status_reports == before:
             if self.clock() > deadline:
-                raise DeviceTimeout(f"{self.link.name}: no status report within {self.timeout_s:g} s")
-            self._read(0.02, raise_alarm=False)
+                hint = " (locked by a critical alarm? `labctl table reset`)" if self.locked else ""
+                raise DeviceTimeout(f"{self.link.name}: no status report within {self.timeout_s:g} s{hint}")
+            self._read(0.01, raise_alarm=False)
             if self.clock() >= next_query and self.status_reports == before:
                 self._query()  # a '?' may be lost on a noisy line
-                next_query = self.clock() + max(self.status_period, 0.25)
-        return self._table_status()
+                next_query = self.clock() + max(pace_s, 0.25)
 
     def _table_status(self) -> TableStatus:
         st = self.last_status
-        pos = st.machine_position(self._wco) or st.wpos or (0.0, 0.0, 0.0)  # WPos until a WCO arrives
+        pos = st.machine_position(self._wco)
+        if pos is None:
+            raise ProtocolError(f"{self.link.name}: the machine position is unknown (WPos without a WCO yet)")
         return TableStatus(state=st.state_word, position=tuple(float(v) for v in pos),
                            feed_mm_min=float(st.feed or 0.0), t=self.last_status_t)
 
+    @property
+    def wco(self) -> tuple[float, float, float] | None:
+        """The work coordinate offset (mm, machine − work), None until GRBL has reported it."""
+        return self._wco
+
     def work_position(self) -> tuple[float, float, float] | None:
+        """Work position (mm) of the last report; None while the offset is unknown."""
         st = self.last_status
         if st is None:
             return None
         if st.wpos is not None:
             return st.wpos
-        return tuple(m - o for m, o in zip(st.mpos, self._wco)) if st.mpos is not None else None
+        if st.mpos is None or self._wco is None:
+            return None
+        return tuple(m - o for m, o in zip(st.mpos, self._wco))
 
     def settings(self) -> dict[int, float]:
         """``$$``: every setting as {number: value}."""
         return {m.code: m.fields["value"] for m in self.command("$$") if m.kind == "setting"}
 
     def unlock(self) -> None:
-        """``$X``: leave the Alarm state without homing."""
+        """``$X``: leave the Alarm state without homing (the operator vouches for the position)."""
         self.command("$X")
+        self.session_alarm = None
 
-    def home(self, timeout_s: float = 120.0) -> None:
-        """``$H``: run the homing cycle (GrblError 5 if homing is disabled)."""
-        self.command("$H", timeout_s=timeout_s)
+    def home(self, timeout_s: float | None = None, on_progress: Callable[[float], None] | None = None,
+             progress_every_s: float = 1.0) -> TableStatus:
+        """``$H``: run the homing cycle; returns the status after it.
 
-    def ensure_ready(self, unlock: bool = True) -> TableStatus:
-        """Idle and unlocked. The power-up homing lock is released with ``$X`` if ``unlock``; an
-        alarm raised since open (limits, aborted motion) is never cleared silently: GrblAlarm."""
+        GRBL answers neither ``?`` nor anything else while homing, so the only signs of life are
+        the final ``ok`` or ``ALARM:6..9``; ``on_progress(elapsed_s)`` is called every
+        ``progress_every_s`` meanwhile. DeviceTimeout after ``timeout_s`` (default
+        :attr:`homing_timeout_s`); GrblError 5 if homing is disabled ($22=0)."""
+        if self.program is not None:
+            raise TableBusy(f"{self.link.name}: a program is streaming")
+        timeout_s = self.homing_timeout_s if timeout_s is None else timeout_s
+        self._write(b"$H\n")
+        t0 = self.clock()
+        next_report = t0 + progress_every_s
+        while True:
+            for msg in self._read(0.05):  # ALARM:N raises GrblAlarm
+                if msg.kind == "ok" and not msg.fields.get("orphan"):
+                    self.session_alarm = None
+                    self._wco = None
+                    return self.status()
+                if msg.kind == "error":
+                    raise GrblError(msg.code, "$H")
+                if msg.kind == "banner":
+                    raise GrblReset(f"{self.link.name}: controller reset while homing")
+            now = self.clock()
+            if now - t0 > timeout_s:
+                raise DeviceTimeout(f"{self.link.name}: homing not finished after {timeout_s:g} s "
+                                    "(raise the table's homing_timeout_s or pass --timeout)")
+            if on_progress is not None and now >= next_report:
+                on_progress(now - t0)
+                next_report = now + progress_every_s
+
+    def ensure_ready(self, unlock: bool | None = None) -> TableStatus:
+        """Idle (or Check) and unlocked, or a typed error saying what to do.
+
+        An Alarm is released with ``$X`` only if ``unlock`` (the caller vouches for the position),
+        or — with ``auto_unlock`` — when this session saw the controller boot and no ALARM:N since
+        (the power-up homing lock). An Alarm found on a controller that did not just boot may be
+        an ALARM:3 (reset in motion, position lost): it needs a home or an explicit unlock."""
         st = self.status()
-        if st.state == "Alarm":
-            if getattr(self, "locked", False):
+        state = base_state(st.state)
+        if state == "Alarm":
+            if self.locked:
                 raise GrblAlarm(None, "locked after a critical alarm (limits); reset it first: labctl table reset")
-            if self.session_alarm is not None:
-                raise GrblAlarm(self.session_alarm, "the table alarmed during this session; check it, then reset "
-                                "and home or unlock")
-            if not unlock:
-                raise GrblAlarm(None, "run `labctl table home` or unlock first")
+            boot_lock = self.auto_unlock and self._booted and self.session_alarm is None
+            if not (unlock or boot_lock):
+                code = self.session_alarm
+                raise GrblAlarm(code, "the table's position may be lost; home it (`labctl table home`) or, if you "
+                                      "know it is right, unlock it (`--unlock`)")
             self.unlock()
             st = self.status()
-        if st.state.startswith("Hold"):
-            self.resume()
-            st = self.status()
+            state = base_state(st.state)
+        if state in BUSY:
+            raise TableBusy(f"{self.link.name}: the table is {st.state}, not Idle; `labctl table reset` stops it "
+                            "and discards queued motion")
         return st
 
     # --- streaming --------------------------------------------------------------------------
-    def stream(self, lines: Iterable[str], on_progress: Callable[[int, TableStatus | None], None] | None = None
-               ) -> int:
+    def start_program(self, lines: Iterable[str], line_numbers: Iterable[int] | None = None) -> ProgramStream:
+        """Begin streaming ``lines`` without waiting: pump the returned :class:`ProgramStream`."""
+        if self.program is not None:
+            raise TableBusy(f"{self.link.name}: a program is already streaming")
+        prog = ProgramStream(self, lines, line_numbers)
+        if self.last_status is None or self.last_status.state == "Alarm":
+            self.ensure_ready(unlock=False)
+        self._reset_seen = False
+        self.program = prog if prog.total else None
+        return prog
+
+    def stream(self, lines: Iterable[str], on_progress: Callable[[int, TableStatus | None], None] | None = None,
+               line_numbers: Iterable[int] | None = None) -> int:
         """Character-counting stream; returns once every line has its ``ok``. Returns lines sent.
 
-        GrblError on the first ``error:N`` (after the lines in flight are answered), GrblAlarm
-        on an alarm, GrblReset if the controller resets, DeviceTimeout if it goes silent, and
-        ProtocolError if replies are lost (GRBL idle while lines still wait for their ``ok``).
+        GrblError on the first ``error:N`` (naming the file line if ``line_numbers`` are given),
+        GrblAlarm on an alarm, GrblReset if the controller resets, DeviceTimeout if it goes
+        silent, ProtocolError if replies are lost, TableStall if it runs without moving. Lines
+        already in GRBL keep running after a fault: callers stop the table (:meth:`stop`).
         """
-        program = [c for c in (clean_line(raw) for raw in lines) if c]
-        for i, line in enumerate(program):
-            if len(line) > MAX_LINE:
-                raise GrblError(11, line, i)
-        if self.last_status is None or self.last_status.state == "Alarm":
-            self.ensure_ready(unlock=self.auto_unlock)
-        in_flight: deque[tuple[int, int]] = deque()  # (index, bytes)
-        used = 0
-        sent = 0
-        first_error: GrblError | None = None
-        self._reset_seen = False
-        last_alive = last_progress = self.clock()
-        while sent < len(program) or in_flight:
-            while sent < len(program) and first_error is None:
-                data = (program[sent] + "\n").encode("ascii")
-                if used + len(data) > self.rx_limit:
-                    break
-                self.link.write(data)
-                in_flight.append((sent, len(data)))
-                used += len(data)
-                self.max_in_flight = max(self.max_in_flight, used)
-                sent += 1
-            if first_error is not None and not in_flight:
-                break
-            self._maybe_poll()
-            msgs = self._read(0.01)
-            now = self.clock()
-            if any(m.kind != "unknown" for m in msgs):
-                last_alive = now
-            for msg in msgs:
-                if msg.is_response:
-                    if not in_flight:
-                        raise ProtocolError(f"{self.link.name}: a reply {msg.raw!r} with no line in flight")
-                    idx, n = in_flight.popleft()
-                    used -= n
-                    last_progress = now
-                    if msg.kind == "error" and first_error is None:
-                        first_error = GrblError(msg.code, program[idx], idx)
-                elif msg.kind == "banner" or self._reset_seen:
-                    raise GrblReset(f"{self.link.name}: controller reset while streaming "
-                                    f"({len(in_flight)} lines lost, {sent}/{len(program)} sent)")
-                elif msg.kind == "status":
-                    if msg.status.state in ("Run", "Hold", "Home", "Jog", "Door"):
-                        last_progress = now  # busy executing: replies come as the planner drains
-                    elif msg.status.state == "Alarm" and in_flight:
-                        raise GrblAlarm(None, f"the controller entered Alarm while streaming "
-                                              f"({sent}/{len(program)} lines sent)")
-                    if on_progress is not None:
-                        on_progress(sent - len(in_flight), self._table_status())
-            if now - last_alive > self.timeout_s:
-                raise DeviceTimeout(f"{self.link.name}: GRBL went silent while streaming "
-                                    f"({sent}/{len(program)} lines sent)")
-            if (in_flight and now - last_alive < self.timeout_s / 2
-                    and now - last_progress > self.timeout_s + sum(dwell_s(program[i]) for i, _ in in_flight)):
-                raise ProtocolError(f"{self.link.name}: {len(in_flight)} lines got no reply although GRBL is not "
-                                    "busy (replies lost on the line?)")
-        if first_error is not None:
-            raise first_error
-        return sent
+        prog = self.start_program(lines, line_numbers)
+        reports = self.status_reports
+        while prog.pump(0.01):
+            if on_progress is not None and self.status_reports != reports:
+                reports = self.status_reports
+                on_progress(prog.acked, self._table_status() if self._wco is not None else None)
+        return prog.sent
 
     def wait_idle(self, timeout_s: float | None = None) -> TableStatus:
-        """Wait until the motion queued so far has finished (``G4 P0`` then an Idle report)."""
+        """Wait until the motion queued so far has finished (``G4 P0`` then an Idle report).
+        TableStall if it reports Run without moving for ``stall_reports`` reports."""
         timeout_s = self.timeout_s if timeout_s is None else timeout_s
         self.stream(["G4P0"])
         deadline = self.clock() + timeout_s
@@ -396,43 +691,79 @@ class GrblTable(OpenClose):
             st = self.status()
             if st.state == "Idle":
                 return st
+            if self.stalled:
+                raise self._stall_error()
             if self.clock() > deadline:
                 raise DeviceTimeout(f"{self.link.name}: table not idle after {timeout_s:g} s (state {st.state})")
 
     def move_to(self, x: float, y: float, feed_mm_min: float | None = None, z: float | None = None) -> TableStatus:
-        """Move (G90 G21 G1, or G0 without a feed) to machine-table coordinates and wait until there."""
+        """Move in machine-table coordinates (``G53`` with G0, or G1 at ``feed_mm_min`` mm/min) and
+        wait until there; work offsets (G54…, G92) do not apply."""
         axes = f"X{x:.3f}Y{y:.3f}" + (f"Z{z:.3f}" if z is not None else "")
-        motion = f"G1{axes}F{feed_mm_min:.1f}" if feed_mm_min else f"G0{axes}"
+        motion = f"G53G1{axes}F{feed_mm_min:.1f}" if feed_mm_min else f"G53G0{axes}"
         self.stream(["G21G90", motion])
         return self.wait_idle()
 
     # --- real-time --------------------------------------------------------------------------
     def feed_hold(self) -> None:
-        self.link.write(b"!")
+        self._write(b"!")
 
     def resume(self) -> None:
-        self.link.write(b"~")
+        self._write(b"~")
 
     def reset(self) -> None:
         """Soft reset (0x18): stop at once, discard the plan; waits for the banner."""
-        self.link.write(b"\x18")
+        if self.program is not None:
+            self._program_ended(self.program)
+        self._write(b"\x18")
         deadline = self.clock() + self.timeout_s
         while self.clock() < deadline:
             if any(m.kind == "banner" for m in self._read(0.05, raise_alarm=False)):
                 self._read(0.05, raise_alarm=False)
                 self._alarm = None
                 self.locked = False
+                self._orphans = 0
                 return
         raise DeviceTimeout(f"{self.link.name}: no banner after a soft reset")
 
-    def stop(self) -> None:
-        """Feed hold, wait (bounded) for the hold to complete, then reset: position is kept."""
+    def stop(self, max_hold_s: float = 30.0) -> TableStatus:
+        """Feed hold, wait for the hold to complete, soft reset, and read the state back.
+
+        A reset after ``Hold:0`` keeps the position (GRBL reports Idle); a reset while still moving
+        raises ALARM:3. So the hold is awaited for as long as the table is still decelerating
+        (its position changes between reports), up to ``max_hold_s``; if it stops changing for a
+        second without reaching ``Hold:0`` (or GRBL goes silent), it resets at once. Returns the
+        confirmed status (Idle, or Alarm); DeviceError if it still reports motion afterwards."""
         self.feed_hold()
-        deadline = self.clock() + self.timeout_s
+        t0 = self.clock()
         try:
-            while self.clock() < deadline:
-                st = self.status()
-                if st.state in ("Hold:0", "Idle", "Alarm"):
+            n = 0
+            last_pos, last_change = None, t0
+            while self.clock() - t0 < max_hold_s and not self.locked:  # a locked GRBL has already stopped
+                try:
+                    self._next_report(0.05)
+                except DeviceTimeout:
+                    break
+                n += 1
+                st = self.last_status
+                state = st.state_word
+                # the first report may have been asked for before the '!': trust Idle only from the second
+                if state == "Hold:0" or (n >= 2 and state in ("Idle", "Alarm", "Check")):
+                    break
+                pos = st.mpos if st.mpos is not None else st.wpos
+                if pos != last_pos:
+                    last_pos, last_change = pos, self.clock()
+                elif self.clock() - last_change > 1.0:
                     break
         finally:
             self.reset()
+        st = self.status()
+        if base_state(st.state) in ("Run", "Jog", "Home"):
+            raise DeviceError(f"{self.link.name}: the table still reports {st.state} after a feed hold and a reset")
+        return st
+
+
+def _alarm_advice(code: int | None) -> str:
+    if code in (1, 2):
+        return "GRBL now ignores everything but a reset: `labctl table reset`, then home or unlock"
+    return "reset (labctl table reset), then home or unlock before moving"

@@ -91,26 +91,30 @@ def program(name: str, speed_mm_s: float, start=(150.0, 200.0), *, length_mm: fl
     return lines
 
 
-def load_gcode(path: str | Path) -> list[str]:
-    """The lines of a G-code file to stream (blank lines, ``%`` and comment-only lines dropped)."""
+def load_gcode_numbered(path: str | Path) -> list[tuple[int, str]]:
+    """``(file line number, line)`` for every line of a G-code file to stream (1-based numbers;
+    blank lines, ``%`` and comment-only lines dropped), so errors can name the file's line."""
     p = Path(path)
     try:
         text = p.read_text(encoding="ascii")
     except FileNotFoundError:
         raise UserInputError(f"G-code file not found: {p}") from None
+    except IsADirectoryError:
+        raise UserInputError(f"{p} is a directory, not a G-code file") from None
     except UnicodeDecodeError as exc:
         raise UserInputError(f"{p}: not an ASCII G-code file (byte {exc.start})") from None
     out = []
     for i, raw in enumerate(text.splitlines(), 1):
         line = raw.split(";", 1)[0].strip()
-        stripped = "".join(c for c in line if c not in " \t")
+        stripped = re.sub(r"\([^)]*\)", "", "".join(c for c in line if c not in " \t"))
         if not stripped or stripped == "%":
             continue
-
-
-        if not re.sub(r"\([^)]*\)", "", stripped):
-            continue
-        if len(re.sub(r"\([^)]*\)", "", stripped)) > 79:
+        if len(stripped) > 79:
             raise UserInputError(f"{p}:{i}: line longer than GRBL's 79 characters")
-        out.append(line)
+        out.append((i, line))
     return out
+
+
+def load_gcode(path: str | Path) -> list[str]:
+    """The lines of a G-code file to stream (blank lines, ``%`` and comment-only lines dropped)."""
+    return [line for _, line in load_gcode_numbered(path)]

@@ -26,6 +26,7 @@ from ..errors import DeviceError
 from .interfaces import OpenClose
 
 log = logging.getLogger(__name__)
+log.addHandler(logging.NullHandler())
 
 
 class DeviceTimeout(DeviceError):
@@ -34,6 +35,10 @@ class DeviceTimeout(DeviceError):
 
 class LinkError(DeviceError):
     """The port could not be opened, or failed while in use."""
+
+
+class LinkLost(LinkError):
+    """The link dropped and did not come back within the configured reconnect window."""
 
 
 class ProtocolError(DeviceError):
@@ -65,6 +70,8 @@ class SerialLink(OpenClose):
         self._next_write_t = 0.0
         self.bytes_in = 0
         self.bytes_out = 0
+        self.max_buffer = 4096  # bytes kept while waiting for a line end
+        self.bytes_discarded = 0
 
     # --- lifecycle --------------------------------------------------------------------------
     @property
@@ -97,18 +104,30 @@ class SerialLink(OpenClose):
             self.port = None
         log.debug("%s closed t=%.6f", self.name, self.clock())
 
-    def reconnect(self, attempts: int = 3, backoff_s: float = 0.2) -> None:
-        """Close and reopen the port, retrying with a growing pause; LinkError if it stays down."""
+    def reconnect(self, window_s: float = 5.0, backoff_s: float = 0.1, max_backoff_s: float = 2.0) -> int:
+        """Close and reopen the port until it opens, doubling the pause between tries (from
+        ``backoff_s`` up to ``max_backoff_s``); :class:`LinkLost` once ``window_s`` has passed.
+        Returns the number of attempts. Bounded in time: never longer than ``window_s`` plus one
+        open attempt."""
+        t0 = self.clock()
+        pause = backoff_s
+        attempts = 0
         last: Exception | None = None
-        for i in range(attempts):
+        while True:
             self.close()
-            self.sleep(backoff_s * (i + 1))
+            attempts += 1
             try:
                 self.open()
-                return
+                log.info("%s reconnected after %d attempts (%.2f s)", self.name, attempts, self.clock() - t0)
+                return attempts
             except LinkError as exc:
                 last = exc
-        raise LinkError(f"{self.name}: reconnect failed after {attempts} attempts: {last}")
+            remaining = window_s - (self.clock() - t0)
+            if remaining <= 0:
+                raise LinkLost(f"{self.name}: the link dropped and did not come back within {window_s:g} s "
+                               f"({attempts} attempts; last: {last})")
+            self.sleep(min(pause, remaining))
+            pause = min(pause * 2.0, max_backoff_s)
 
     # --- bytes ------------------------------------------------------------------------------
     def write(self, data: bytes) -> None:
@@ -147,6 +166,11 @@ class SerialLink(OpenClose):
             data = self._read_available()
             if data:
                 self._buf += data
+                if len(self._buf) > self.max_buffer and self.eol not in self._buf[-self.max_buffer:]:
+                    # a device that never ends a line (wrong baud, binary noise): keep memory bounded
+                    cut = len(self._buf) - self.max_buffer
+                    del self._buf[:cut]
+                    self.bytes_discarded += cut
                 return True
             now = self.clock()
             if now >= deadline:
@@ -178,8 +202,8 @@ class SerialLink(OpenClose):
             if line is not None:
                 return line
             remaining = deadline - self.clock()
-            if remaining <= 0:
-                return None
+            if remaining <= 0:  # read what has arrived even with no time to wait (timeout 0: non-blocking)
+                return self._pop_line() if self.poll(0.0) else None
             self.poll(remaining)
 
     def lines(self, timeout_s: float = 0.0) -> list[str]:

@@ -124,7 +124,7 @@ def predictor_main(args: WorkerArgs, link_end, control) -> None:
     from ..drivers.grbl import GrblTable
     from ..drivers.robot import SerialRobot
     from .context import RunContext
-    from .predictor import PredictorPlanner
+    from .predictor import PredictorPlanner, ProgramProgress
     from .simlab import trajectory_program
     from .transport import LinkClosed, open_link
 
@@ -149,11 +149,23 @@ def predictor_main(args: WorkerArgs, link_end, control) -> None:
         link.send(m.Hello(role="predictor", pid=os.getpid()))
         now = _now(args.origin)
         planner = PredictorPlanner(ctx, robot, link.send, log, t_start=now, clock=lambda: _now(args.origin))
+        progress = None
         if table is not None:
-            table.stream(trajectory_program(args.spec["trajectory"], args.spec["speed_mm_s"], lab)[1])
-        log("table_program", t=now, trajectory=args.spec["trajectory"], speed_mm_s=args.spec["speed_mm_s"])
+            # a simulated table's power-up lock may be released (the simulator knows where it is); a real
+            # table in Alarm must be homed or unlocked by the operator first (its position may be lost)
+            table.ensure_ready(unlock=lab.table.kind == "sim")
+            # streamed from the loop: a long G2/G3 is acknowledged only when it leaves GRBL's planner
+            program = table.start_program(
+                trajectory_program(args.spec["trajectory"], args.spec["speed_mm_s"], lab)[1])
+            log("table_program", t=now, trajectory=args.spec["trajectory"], speed_mm_s=args.spec["speed_mm_s"],
+                lines=program.total)
+            progress = ProgramProgress(program, log)
+        else:
+            log("table_program", t=now, trajectory=args.spec["trajectory"], speed_mm_s=args.spec["speed_mm_s"])
         t_beat = 0.0
         while not planner.finished:
+            if progress is not None:
+                progress.pump(_now(args.origin))
             frame = camera.grab()
             planner.on_frame(frame)
             while True:

@@ -504,3 +504,26 @@ class PredictorPlanner:
             "stages": {k: round(v, 4) for k, v in self.stage_times.durations.items()},
             "failure": self.failure,
         }
+
+
+class ProgramProgress:
+    """Pumps the table's G-code program from the run loop and logs its progress to the record.
+
+    One :meth:`pump` per loop iteration sends what fits in GRBL's buffer and reads the replies
+    without waiting, so frames, planning and heartbeats go on while a long arc executes (issue
+    13). ``table_progress`` events (lines acknowledged / total) are logged at most every
+    ``every_s`` seconds and when the program is accepted; a fault raises the driver's error."""
+
+    def __init__(self, program, log, every_s: float = 0.5):
+        self.program, self.log, self.every_s = program, log, every_s
+        self._t_logged = -1e18
+        self._logged_acked = -1
+
+    def pump(self, now: float) -> None:
+        prog = self.program
+        if prog.active:
+            prog.pump(0.0)
+        if prog.acked != self._logged_acked and (now - self._t_logged >= self.every_s or prog.done):
+            self.log("table_progress", t=now, **prog.progress())
+            self._t_logged, self._logged_acked = now, prog.acked
+

@@ -91,7 +91,9 @@ def simulate_run(lab: Lab, ctx: RunContext, spec: TrialSpec, record=None, *, hea
 
     recognizer = Recognizer(ctx, grab_mobile, log, save)
     log("truth", t=t0, object=name, placement=world.truth(t0).to_dict()["placement"], seed=spec.seed)
-    bench.table.stream(program)
+    from .predictor import ProgramProgress
+
+    progress = ProgramProgress(bench.table.start_program(program), log)  # pumped by the loop, never waited on
 
     dt = 1.0 / ctx.lab.config.run.fps
     n = 0
@@ -100,6 +102,7 @@ def simulate_run(lab: Lab, ctx: RunContext, spec: TrialSpec, record=None, *, hea
         n += 1
         t = clock.advance(dt)
         bench.advance(t)
+        progress.pump(t)
         if t >= next_beat:  # both workers' heartbeats, carried like the real ones
             for role in ("predictor", "recognizer"):
                 meter.carry(m.Heartbeat(role=role, seq=n % 65536, t=t))

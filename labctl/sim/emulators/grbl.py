@@ -151,7 +151,7 @@ class GrblEmulator:
         self.line_flags = set()
         self.task = None  # generator executing the current line
         self.wake_at: float | None = None
-        self.locked = False  # critical alarm: only reset and '?' are served
+        self.locked = False  # critical alarm: only a reset is served ('?' too is ignored, as in 1.1h)
         self.hold_pending = False
         self.planner.clear()
         self.motion = 0  # G0
@@ -166,6 +166,7 @@ class GrblEmulator:
         self.coolant = 9
         self.tool = 0
         self.wco_counter = 0
+        self._wco_reported = None
         self.ovr_counter = 1
         self._write("\r\nGrbl " + VERSION + " ['$' for help]\r\n")
         if self.state in ("Alarm", "Sleep"):
@@ -190,7 +191,8 @@ class GrblEmulator:
         self.advance(max(self.now, self.clock() if t is None else t))
         for b in bytes(data):
             if b == 0x3F:  # '?'
-                self._status_report()
+                if not self.locked:  # 1.1h's critical-event loop serves no status reports (firmware-verified)
+                    self._status_report()
             elif b == 0x21:  # '!'
                 self._feed_hold()
             elif b == 0x7E:  # '~'
@@ -275,13 +277,17 @@ class GrblEmulator:
             pos = "WPos:" + ",".join(self._fmt(v) for v in mpos - wco)
         parts = [self.state_word, pos]
         if int(self.settings[10]) & 2:
-            parts.append(f"Bf:{self.planner.capacity - len(self.planner.blocks)},{self.rx_capacity - len(self.rx)}")
+            # the firmware reports 128 free bytes when its 127-byte ring buffer is empty
+            parts.append(f"Bf:{self.planner.capacity - len(self.planner.blocks)},{self.rx_capacity + 1 - len(self.rx)}")
         speed = self.planner.speed * 60.0
         if self.settings[13]:
             speed /= 25.4
         spindle = self.spindle_speed if self.spindle in (3, 4) else 0.0
         parts.append(f"FS:{speed:.0f},{spindle:.0f}")
         busy = self.state in ("Run", "Hold", "Home", "Jog", "Door")
+        if self._wco_reported is None or not np.array_equal(wco, self._wco_reported):
+            self.wco_counter = 0  # an offset changed: GRBL sends WCO in the very next report
+        self._wco_reported = wco.copy()
         if self.wco_counter > 0:
             self.wco_counter -= 1
         else:
