@@ -44,14 +44,20 @@ def fmt_num(value: float, decimals: int = 6) -> str:
     return "0" if text in ("", "-0") else text
 
 
+def fmt_fixed(value: float, decimals: int = 4) -> str:
+    """Fixed point with exactly ``decimals`` decimals, never ``-0.0000`` (STATUS, t0/t1)."""
+    text = f"{float(value):.{decimals}f}"
+    return text[1:] if text.startswith("-") and not text.strip("-0.") else text
+
+
 def canonical_rotvec(rv) -> np.ndarray:
-    """The rotation vector (rad, angle in [0, π]) as the controller reports it: at an angle of π
-    (within 1e-9) r and −r are the same rotation, and the one whose first non-zero component
-    (|c| > 1e-9) is positive is reported."""
+    """The rotation vector (rad, angle in [0, π]) as the controller reports it: within 1e-6 rad of
+    an angle of π, r and −r are (to 2e-6 rad) the same rotation, and the one whose first non-zero
+    component (|c| > 1e-6) is positive is reported."""
     rv = np.asarray(rv, dtype=float).reshape(3).copy()
-    if np.linalg.norm(rv) > math.pi - 1e-9:
+    if np.linalg.norm(rv) > math.pi - 1e-6:
         for c in rv:
-            if abs(c) > 1e-9:
+            if abs(c) > 1e-6:
                 if c < 0:
                     rv = -rv
                 break

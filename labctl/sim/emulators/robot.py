@@ -208,6 +208,7 @@ class RobotEmulator:
         self.history_s = 600.0
         self.last_request_t = self.now
         self.fault: str | None = None
+        self.session = self.dialect  # until a HELLO says otherwise: the strictest behaviour
         self.last_segment_id = 0
         self.watchdog_trips = 0
         self.out = bytearray()
@@ -222,6 +223,7 @@ class RobotEmulator:
         self.segments = []
         self._rest_p, self._rest_R = p, R
         self.fault = None
+        self.session = self.dialect
         self._line.clear()
         self._overlong = False
         self._write(f"@BOOT {self.name} {self.dialect}\n")
@@ -248,6 +250,9 @@ class RobotEmulator:
                 self._overlong = False
                 if overlong:
                     self._write("@ERR E04 line too long\n")
+                elif any(c > 0x7E or (c < 0x20 and c != 0x09) for c in line.encode("ascii", "replace")) \
+                        or "\ufffd" in line:
+                    self._write(f"@ERR E03 {ERROR_CODES[3]}\n")  # only printable ASCII (and tabs) in a line
                 elif line.strip():
                     self._handle(line)
             elif b == 0x0D:
@@ -447,10 +452,15 @@ class RobotEmulator:
         return True
 
     def _cmd_hello(self, req: Request) -> None:
+        """``HELLO [version]``: the session speaks the lower of the host's version (1.0 when it names
+        none: a 1.0 host) and the controller's; the reply names that version."""
         if len(req.args) > 1 or (req.args and not _VERSION.match(req.args[0])):
             self._error(req.seq, 2)
             return
-        self._reply(req.seq, f"{self.name} {self.dialect} queue={self.queue_size} profiles={','.join(PROFILES)}")
+        host = tuple(int(x) for x in req.args[0].split(".")) if req.args else (1, 0)
+        mine = tuple(int(x) for x in self.dialect.split("."))
+        self.session = ".".join(str(x) for x in min(host, mine))
+        self._reply(req.seq, f"{self.name} {self.session} queue={self.queue_size} profiles={','.join(PROFILES)}")
 
     def _cmd_hb(self, req: Request) -> None:
         if self._no_args(req):
@@ -465,7 +475,7 @@ class RobotEmulator:
         if not self._no_args(req):
             return
         self._stop_at(self.now)
-        if self.fault is None:
+        if self.fault is None and self.session != "1.0":  # a 1.0 host does not know it must CLEAR
             self.fault = "stopped"
         self._reply(req.seq)
 
@@ -485,8 +495,8 @@ class RobotEmulator:
         moving = 1 if self._moving_at(self.now) else 0
         queued = sum(1 for s in self.segments if s.t0 > self.now and s.commanded)
         fault = self.fault or "none"
-        self._reply(req.seq, " ".join(f"{v:.4f}" for v in (*p, *rv))
-                    + f" {moving} {self.segment_id} {queued} {self.now:.4f} {fault}")
+        self._reply(req.seq, " ".join(fmt_fixed(v) for v in (*p, *rv))
+                    + f" {moving} {self.segment_id} {queued} {fmt_fixed(self.now)} {fault}")
 
     def _fault_code(self) -> int:
         return 40 if self.fault == "watchdog" else 41
@@ -512,7 +522,7 @@ class RobotEmulator:
             self._error(req.seq, code)
             return
         self.segments.append(seg)
-        self._reply(req.seq, f"{seg.t0:.4f} {seg.t1:.4f}")
+        self._reply(req.seq, f"{fmt_fixed(seg.t0)} {fmt_fixed(seg.t1)}")
 
     def _parse_segment(self, req: Request):
         args = list(req.args)
@@ -521,7 +531,8 @@ class RobotEmulator:
             profile = args.pop()[len("profile="):].lower()
         if len(args) not in (8, 14):
             return 2
-        if not args[0].isdigit() or not 1 <= int(args[0]) <= 65535:
+        lowest = 0 if self.session == "1.0" else 1  # 1.1 reserves id 0 for HOME
+        if not args[0].isdigit() or not lowest <= int(args[0]) <= 65535:
             return 2
         vals = [parse_number(a) for a in args[1:]]
         if any(v is None for v in vals):
@@ -574,7 +585,7 @@ class RobotEmulator:
             self._cut_at(t0)
         self.segments.append(seg)
         self.last_segment_id = seg_id
-        self._reply(seq, f"{seg.t0:.4f} {seg.t1:.4f}")
+        self._reply(seq, f"{fmt_fixed(seg.t0)} {fmt_fixed(seg.t1)}")
 
     def _end_state(self):
         last = max(self.segments, key=lambda s: s.t1)
