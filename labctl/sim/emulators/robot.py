@@ -33,6 +33,7 @@ from ...drivers.robot_protocol import (
     Request,
     add_checksum,
     canonical_rotvec,
+    fmt_fixed,
     fmt_num,
     parse_number,
     parse_request,
