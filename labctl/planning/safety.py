@@ -38,6 +38,8 @@ def _unit_roots(c: np.ndarray) -> list[float]:
         return []
     desc = np.asarray(c, dtype=float)[::-1]
     keep = np.flatnonzero(np.abs(desc) > 1e-12 * scale)
+    if keep.size == 0:
+        return []
     desc = desc[keep[0]:]
     if len(desc) < 2:
         return []

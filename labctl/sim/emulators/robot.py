@@ -387,15 +387,21 @@ class RobotEmulator:
         lo, hi = _poly_range(b)
         if np.any(lo < lo_box) or np.any(hi > hi_box):
             return 10
+        p1 = poly_eval(seg.pos, T)
+        if np.any(p1 < self.box_min - BOX_TOL_MM) or np.any(p1 > self.box_max + BOX_TOL_MM):
+            return 10
+        return 10 if self._stop_leaves_box(seg, b, lo_box, hi_box) else 0
+
+    def _stop_leaves_box(self, seg: Segment, b: np.ndarray, lo_box: np.ndarray, hi_box: np.ndarray) -> bool:
+        """Would the stop ramp from some instant of the segment end outside (grown box), or from its end
+        outside the box itself? Exact (:func:`labctl.planning.safety.stop_envelope_range`)."""
+        T = seg.t1 - seg.t0
         elo, ehi = stop_envelope_range(b, T, self.a_stop)
         if np.any(elo < lo_box) or np.any(ehi > hi_box):
-            return 10
+            return True
         p1, v1 = poly_eval(seg.pos, T), poly_eval(seg.pos, T, 1)
         rest = p1 + v1 * np.abs(v1) / (2 * self.a_stop)
-        for q in (p1, rest):
-            if np.any(q < self.box_min - BOX_TOL_MM) or np.any(q > self.box_max + BOX_TOL_MM):
-                return 10
-        return 0
+        return bool(np.any(rest < self.box_min - BOX_TOL_MM) or np.any(rest > self.box_max + BOX_TOL_MM))
 
     def _plan(self, seg_id: int, p1, R1, T: float, v1, w1, t0: float, start) -> Segment:
         """The quintic from ``start`` = (p, v, a, R, ω) at t0 to (p1, v1, 0; R1, w1) at t0 + T.
