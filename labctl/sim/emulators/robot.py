@@ -72,13 +72,14 @@ def quintic_coeffs(p0, v0, a0, p1, v1, a1, T: float) -> np.ndarray:
     return np.stack([c0, c1, c2, c3, c4, c5])
 
 
+_K = np.arange(6)
+_FALLING = {d: np.array([math.factorial(k) / math.factorial(k - d) if k >= d else 0.0 for k in range(6)])
+            for d in range(6)}
+
+
 def poly_eval(c: np.ndarray, tau: float, deriv: int = 0) -> np.ndarray:
     """Value (deriv 0), velocity (1) or acceleration (2) of a quintic at τ."""
-    out = np.zeros(c.shape[1:])
-    for k in range(deriv, 6):
-        f = math.factorial(k) / math.factorial(k - deriv)
-        out = out + f * c[k] * tau ** (k - deriv)
-    return out
+    return (_FALLING[deriv] * float(tau) ** np.maximum(_K - deriv, 0)) @ c
 
 
 def _normalised(c: np.ndarray, T: float) -> np.ndarray:
@@ -128,6 +129,10 @@ class Segment:
     done_reported: bool = False
     commanded: bool = True  # a host's motion (SEG, SEGNOW, HOME), not a stop ramp
 
+    def position(self, t: float) -> np.ndarray:
+        """Flange position (mm) at time t, clamped to the segment."""
+        return poly_eval(self.pos, min(max(t - self.t0, 0.0), self.t1 - self.t0))
+
     def state(self, t: float):
         """(p, v, a, R, ω) at time t, clamped to the segment; ω is the true angular velocity (base frame)."""
         tau = min(max(t - self.t0, 0.0), self.t1 - self.t0)
@@ -159,6 +164,10 @@ class StopRamp:
         self.t_axis = np.abs(self.v) / self.a_stop
         self.t_rot = float(np.linalg.norm(self.w)) / self.alpha
         self.t1 = self.t0 + max(float(self.t_axis.max()), self.t_rot)
+
+    def position(self, t: float) -> np.ndarray:
+        ta = np.minimum(min(max(t - self.t0, 0.0), self.t1 - self.t0), self.t_axis)
+        return self.p + self.v * ta - 0.5 * np.sign(self.v) * self.a_stop * ta * ta
 
     def state(self, t: float):
         tau = min(max(t - self.t0, 0.0), self.t1 - self.t0)
@@ -330,6 +339,18 @@ class RobotEmulator:
         if t > seg.t1:  # at rest after the last segment
             v, a, w = np.zeros(3), np.zeros(3), np.zeros(3)
         return p, v, a, R, w
+
+    def position_at(self, t: float) -> np.ndarray:
+        """Flange position (mm) at time t: the position part of :meth:`state_at`, cheaply."""
+        seg = None
+        for s in self.segments:
+            if s.t0 <= t:
+                seg = s
+            else:
+                break
+        if seg is None:
+            return self.state_at(t)[0]
+        return seg.position(t)
 
     def flange_pose_at(self, t: float) -> np.ndarray:
         """``T_base_flange`` (4×4, mm) at time t (exact for t up to now; planned motion beyond)."""
