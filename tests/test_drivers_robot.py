@@ -94,7 +94,7 @@ def test_driver_negotiates_down_to_a_1_0_controller(cls):
         assert robot.dialect == "1.0" and robot.profiles == ("quintic",) and robot.queue == 8
         robot.segment(make_T(rot_x(math.pi), [420.0, -380.0, 820.0]), 1.0, 1)
         robot.stop()  # 1.0: no latch, the next segment just runs
-        robot.segment(make_T(rot_x(math.pi), [400.0, -400.0, 850.0]), 0.6, 2)
+        robot.segment(make_T(rot_x(math.pi), [400.0, -400.0, 850.0]), 1.0, 2)
         robot.wait_done(2, timeout_s=5)
         assert "a_stop_mm_s2" in robot.limits()  # the reference underneath still sends 18 fields
 
@@ -110,8 +110,8 @@ def test_driver_speaks_1_1_stop_latches_until_clear():
         robot.segment(make_T(rot_x(math.pi), [420.0, -380.0, 820.0]), 1.0, 3)
         robot.stop()
         with pytest.raises(RobotError) as err:
-            robot.segment(make_T(rot_x(math.pi), [400.0, -400.0, 850.0]), 0.6, 4)
+            robot.segment(make_T(rot_x(math.pi), [400.0, -400.0, 850.0]), 1.0, 4)
         assert err.value.code == 41
         robot.clear()
-        robot.segment(make_T(rot_x(math.pi), [400.0, -400.0, 850.0]), 0.6, 4)
+        robot.segment(make_T(rot_x(math.pi), [400.0, -400.0, 850.0]), 1.0, 4)
         robot.wait_done(4, timeout_s=5)
