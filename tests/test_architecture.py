@@ -17,7 +17,8 @@ ALLOWED = {
     "calibration": {"geometry", "vision", "config", "fsutil", "errors"},
     "library": {"geometry", "vision", "fsutil", "errors"},
     "drivers": {"geometry", "config", "errors", "fsutil"},
-    "sim": {"geometry", "config", "drivers", "library", "errors", "fsutil"},
+    "sim": {"geometry", "config", "drivers", "library", "errors", "fsutil", "planning"},
+    "conformance": set(),
     "records": {"fsutil", "errors"},
 }
 
