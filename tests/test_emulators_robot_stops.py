@@ -136,3 +136,30 @@ def test_the_issues_outward_segment_is_refused_and_an_inward_one_from_outside_ac
     outside.read_output()
     assert send(outside, f"#3 SEG 3 850 -450 900 {r} 2")[0].startswith("$3 ok")
     assert send(outside, f"#4 SEGNOW 4 960 -450 900 {r} 2")[0].startswith("$4 E10")  # further out: no
+
+
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(p0=st.tuples(unit, unit, unit), p1=st.tuples(unit, unit, unit), v0=st.tuples(*[st.floats(-1, 1)] * 3),
+       v1=st.tuples(*[st.floats(-1, 1)] * 3), a0=st.tuples(*[st.floats(-1, 1)] * 3), scale=st.floats(0.0, 0.6),
+       T=st.floats(0.2, 6.0), w0=st.tuples(*[st.floats(-1, 1)] * 3), turn=st.tuples(*[st.floats(-1.5, 1.5)] * 3))
+def test_what_the_planner_passes_the_controller_accepts(p0, p1, v0, v1, a0, scale, T, w0, turn):
+    """planning.check_segment (the host's last gate) and the controller's check agree one way: a segment
+    the planner passes (end acceleration 0, as the dialect's segments end) is never refused."""
+    from labctl.geometry import rotvec_to_matrix
+    from labctl.planning import Limits, LimitViolation, QuinticSegment, check_segment
+
+    limits = Limits.from_config(CFG)
+    p0, p1 = LO + np.array(p0) * (HI - LO), LO + np.array(p1) * (HI - LO)
+    v0, v1 = np.array(v0) * CFG.v_max_mm_s * scale, np.array(v1) * CFG.v_max_mm_s * scale
+    a0 = np.array(a0) * CFG.a_max_mm_s2 * scale
+    R0 = rot_x(math.pi)
+    R1 = R0 @ rotvec_to_matrix(turn)
+    w_body = np.array(w0) * limits.w_max * scale
+    seg = QuinticSegment(0.0, T, p0, v0, a0, p1, v1, np.zeros(3), R0=R0, R1=R1, w0=w_body)
+    try:
+        check_segment(seg, limits)
+    except LimitViolation:
+        return
+    emu = RobotEmulator(ManualClock(), CFG, start_pose=make_T(R0, p0))
+    ctl = emu._plan(1, p1, R1, T, v1, np.zeros(3), 0.0, (p0, v0, a0, R0, R0 @ w_body))
+    assert emu._check(ctl, p0) == 0

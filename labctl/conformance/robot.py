@@ -502,15 +502,17 @@ class Suite:
         self.record("errors.malformed", not got, f"no @ERR E03 for {got}" if got else "3 malformed lines → @ERR E03")
 
     # --- motion -------------------------------------------------------------------------------
-    def _room(self, p) -> tuple[int, float, float]:
-        """(axis, direction ±1, free mm) of the axis with the most room from p."""
+    def _room(self, p, nearest_over: float | None = None) -> tuple[int, float, float]:
+        """(axis, direction ±1, free mm) of the axis with the most room from p — or, with
+        ``nearest_over``, the nearest wall at least that far."""
         L = self.limits
-        best = (0, 1.0, -1.0)
-        for ax in range(3):
-            for sgn, room in ((1.0, L.box_max[ax] - p[ax]), (-1.0, p[ax] - L.box_min[ax])):
-                if room > best[2]:
-                    best = (ax, sgn, room)
-        return best
+        options = [(ax, sgn, room) for ax in range(3)
+                   for sgn, room in ((1.0, L.box_max[ax] - p[ax]), (-1.0, p[ax] - L.box_min[ax]))]
+        if nearest_over is not None:
+            far_enough = [o for o in options if o[2] >= nearest_over]
+            if far_enough:
+                return min(far_enough, key=lambda o: o[2])
+        return max(options, key=lambda o: o[2])
 
     def _here(self):
         st = self.status()
@@ -640,10 +642,10 @@ class Suite:
         """Both ends inside, the path overshoots the wall in between (a 81-sample check may miss a
         narrow one; any exact check does not): here by 2–10 mm."""
         p0, rv = self._here()
-        ax, sgn, room = self._room(p0)
+        ax, sgn, room = self._room(p0, nearest_over=120.0)
         wall = self.limits.box_max[ax] if sgn > 0 else self.limits.box_min[ax]
         for u in (40.0, 60.0, 90.0, 130.0):
-            for T, p1, v1, P, _V in self._candidates(p0, ax, sgn, 30.0, -sgn * u, np.linspace(1.5, 8.0, 27)):
+            for T, p1, v1, P, _V in self._candidates(p0, ax, sgn, 30.0, -sgn * u, np.geomspace(1.0, 20.0, 60)):
                 over = float(np.max(sgn * (P[:, ax] - wall)))
                 rest = p1[ax] + v1[ax] * abs(v1[ax]) / (2 * self.limits.a_stop)
                 if 2.0 < over < 10.0 and sgn * (rest - wall) < 0:
