@@ -25,7 +25,7 @@ def robot_group() -> None:
 @click.option("--no-motion", is_flag=True, help="Only framing and error replies; never command motion.")
 @click.option("--only", "only", multiple=True, metavar="GLOB",
               help="Run only rules matching GLOB (repeatable), e.g. 'watchdog.*'.")
-@click.option("--timeout", "timeout_s", type=click.FloatRange(min=0.05), default=1.0, show_default=True,
+@click.option("--timeout", "timeout_s", type=click.FloatRange(min=0.05), default=2.0, show_default=True,
               help="Seconds to wait for each reply.")
 @json_option
 def conformance_cmd(port: str, baud: int, no_motion: bool, only: tuple[str, ...], timeout_s: float) -> int:

@@ -569,6 +569,7 @@ class Suite:
             problems.append(f"rests {end_err:.4f} mm from the target")
         if mid_err > 0.05:
             problems.append(f"{mid_err:.3f} mm off the quintic on the way")
+        self.record("done.sent", done, f"@DONE {sid} {'at' if done else 'missing after'} the segment's end")
         self.record("timing.arrival", not problems, "; ".join(problems)
                     or f"{D:.0f} mm in {T:.3f} s: on the quintic to {max(mid_err, 0):.4f} mm, target to "
                        f"{end_err:.4f} mm, @DONE")
