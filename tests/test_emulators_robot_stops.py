@@ -108,14 +108,14 @@ def run_case(start, segs, stop_how, stop_at):
     return accepted
 
 
-@settings(max_examples=100, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(start=st.tuples(unit, unit, unit), segs=st.lists(segment, min_size=1, max_size=3),
        stop_how=st.sampled_from(["stop", "watchdog", "none"]), stop_at=st.floats(0.0, 1.0))
 def test_random_segments_and_stops_stay_inside_and_home_is_reachable(start, segs, stop_how, stop_at):
     target(float(run_case(LO + np.array(start) * (HI - LO), segs, stop_how, stop_at)), label="accepted segments")
 
 
-@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(start=st.tuples(*[st.floats(-0.15, 1.15)] * 3), segs=st.lists(segment, min_size=1, max_size=2),
        stop_how=st.sampled_from(["stop", "watchdog", "none"]), stop_at=st.floats(0.0, 1.0))
 def test_a_stray_arm_never_goes_further_out_and_comes_home(start, segs, stop_how, stop_at):
@@ -138,7 +138,7 @@ def test_the_issues_outward_segment_is_refused_and_an_inward_one_from_outside_ac
     assert send(outside, f"#4 SEGNOW 4 960 -450 900 {r} 2")[0].startswith("$4 E10")  # further out: no
 
 
-@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(p0=st.tuples(unit, unit, unit), p1=st.tuples(unit, unit, unit), v0=st.tuples(*[st.floats(-1, 1)] * 3),
        v1=st.tuples(*[st.floats(-1, 1)] * 3), a0=st.tuples(*[st.floats(-1, 1)] * 3), scale=st.floats(0.0, 0.6),
        T=st.floats(0.2, 6.0), w0=st.tuples(*[st.floats(-1, 1)] * 3), turn=st.tuples(*[st.floats(-1.5, 1.5)] * 3))

@@ -33,8 +33,7 @@ def test_bridge_skeleton_passes_conformance_and_streams_a_continuous_trajectory(
     arm = ex.ArmAPI(make_T(rot_x(math.pi), cfg.home_mm))
     bridge = ex.Bridge(arm, time.monotonic, cfg)
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    rules = ["hello.*", "checksum.*", "errors.*", "timing.arrival", "stop.ramp", "stop.refuse_outward_end",
-             "watchdog.trips"]
+    rules = ["hello.*", "checksum.*", "errors.*", "timing.arrival", "stop.ramp", "watchdog.trips"]
     with PtyDevice(bridge, 115200) as dev:
         cmd = [sys.executable, "-m", "labctl", "robot", "conformance", "--port", dev.path, "--baud", "115200",
                "--timeout", "3"] + [x for r in rules for x in ("--only", r)]
