@@ -115,3 +115,13 @@ def test_driver_speaks_1_1_stop_latches_until_clear():
         robot.clear()
         robot.segment(make_T(rot_x(math.pi), [400.0, -400.0, 850.0]), 1.0, 4)
         robot.wait_done(4, timeout_s=5)
+
+
+def test_a_reboot_after_motion_was_commanded_is_a_fault():
+    with fake_robot() as dev, SerialRobot(dev.path, 115200, timeout_s=1.0, heartbeat_s=0.1) as robot:
+        assert not robot.faults  # the @BOOT of start-up is not a loss
+        robot.segment(make_T(rot_x(math.pi), [420.0, -380.0, 820.0]), 1.5, 7)
+        dev.reset_after(0.2)
+        with pytest.raises(RobotFault):
+            robot.wait_done(7, timeout_s=5)
+        assert "boot" in robot.faults

@@ -60,6 +60,7 @@ class SerialRobot(OpenClose):
         self.faults: list[str] = []
         self.ident = ""
         self.dialect = "1.0"
+        self._commanded = False  # a segment or HOME was sent: a @BOOT from now on loses motion
         self.queue = 8
         self.profiles: tuple[str, ...] = ("quintic",)
         self._last_sent = -1e18
@@ -90,8 +91,6 @@ class SerialRobot(OpenClose):
                 raise
             reply = self.request("HELLO")
         self.ident = " ".join(reply.fields)
-        # a @BOOT before the HELLO reply is the controller starting up as we connect, not a loss
-        self.faults = [f for f in self.faults if f != "boot"]
         fields = list(reply.fields)
         version = fields[1] if len(fields) > 1 and re.fullmatch(r"\d+\.\d+", fields[1]) else "1.0"
         theirs = tuple(int(x) for x in version.split("."))
@@ -116,8 +115,11 @@ class SerialRobot(OpenClose):
             if msg.report == "DONE" and msg.fields and msg.fields[0].isdigit():
                 self.done_ids.append(int(msg.fields[0]))
             elif msg.report == "BOOT":
-                self.faults.append("boot")  # the controller restarted: queued and running segments are lost
-                log.warning("%s: controller restarted (%s)", self.link.name, " ".join(msg.fields))
+                if self._commanded:  # the controller restarted: queued and running segments are lost
+                    self.faults.append("boot")
+                    log.warning("%s: controller restarted (%s)", self.link.name, " ".join(msg.fields))
+                else:  # it started up as we connected: nothing of ours was lost
+                    log.debug("%s: controller booted (%s)", self.link.name, " ".join(msg.fields))
             elif msg.report == "WATCHDOG":
                 self.faults.append("watchdog")
                 log.warning("%s: controller watchdog stopped the robot", self.link.name)
@@ -187,6 +189,7 @@ class SerialRobot(OpenClose):
             args += [*map(float, v), *map(float, w)]
         if profile is not None and profile.lower() != "quintic":
             args.append(f"profile={profile.lower()}")
+        self._commanded = True
         try:
             reply = self.request("SEGNOW" if replace else "SEG", *args)
         except (DeviceTimeout, LinkError):
@@ -211,6 +214,7 @@ class SerialRobot(OpenClose):
         self.request("CLEAR")
 
     def home(self) -> None:
+        self._commanded = True
         self.request("HOME")
 
     def heartbeat(self) -> None:
