@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 
@@ -67,6 +68,10 @@ def test_heartbeats_keep_a_long_segment_alive():
             assert dev.emulator.fault is None and dev.emulator.watchdog_trips == 0
 
 
+# the new tests are about the dialect, not the watchdog: 2 s keeps them steady on a loaded machine
+SLOW_WATCHDOG = dataclasses.replace(robot_test_limits(), watchdog_s=2.0)
+
+
 class Controller10(RobotEmulator):
     """A dialect 1.0 controller as 1.0 was built: HELLO ignores its argument and STOP does not latch."""
 
@@ -89,8 +94,8 @@ class Strict10(Controller10):
 
 @pytest.mark.parametrize("cls", [Controller10, Strict10])
 def test_driver_negotiates_down_to_a_1_0_controller(cls):
-    emu = cls(time.monotonic, robot_test_limits())
-    with PtyDevice(emu, 115200) as dev, SerialRobot(dev.path, 115200, timeout_s=1.0, heartbeat_s=0.1) as robot:
+    emu = cls(time.monotonic, SLOW_WATCHDOG)
+    with PtyDevice(emu, 115200) as dev, SerialRobot(dev.path, 115200, timeout_s=2.0, heartbeat_s=0.1) as robot:
         assert robot.dialect == "1.0" and robot.profiles == ("quintic",) and robot.queue == 8
         robot.segment(make_T(rot_x(math.pi), [420.0, -380.0, 820.0]), 1.0, 1)
         robot.stop()  # 1.0: no latch, the next segment just runs
@@ -100,7 +105,8 @@ def test_driver_negotiates_down_to_a_1_0_controller(cls):
 
 
 def test_driver_speaks_1_1_stop_latches_until_clear():
-    with fake_robot() as dev, SerialRobot(dev.path, 115200, timeout_s=1.0, heartbeat_s=0.1) as robot:
+    with fake_robot(limits=SLOW_WATCHDOG) as dev, \
+            SerialRobot(dev.path, 115200, timeout_s=2.0, heartbeat_s=0.1) as robot:
         assert robot.dialect == "1.1" and "quintic" in robot.profiles
         assert robot.limits()["a_stop_mm_s2"] == pytest.approx(1500 / math.sqrt(3), abs=1e-5)
         with pytest.raises(ValueError):
@@ -118,7 +124,8 @@ def test_driver_speaks_1_1_stop_latches_until_clear():
 
 
 def test_a_reboot_after_motion_was_commanded_is_a_fault():
-    with fake_robot() as dev, SerialRobot(dev.path, 115200, timeout_s=1.0, heartbeat_s=0.1) as robot:
+    with fake_robot(limits=SLOW_WATCHDOG) as dev, \
+            SerialRobot(dev.path, 115200, timeout_s=2.0, heartbeat_s=0.1) as robot:
         assert not robot.faults  # the @BOOT of start-up is not a loss
         robot.segment(make_T(rot_x(math.pi), [420.0, -380.0, 820.0]), 1.5, 7)
         dev.reset_after(0.2)
