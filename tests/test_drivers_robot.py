@@ -2,15 +2,18 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 
 import numpy as np
 import pytest
-from fakes import fake_robot
+from fakes import fake_robot, robot_test_limits
 
 from labctl.drivers.robot import RobotError, RobotFault, SerialRobot
 from labctl.geometry import make_T, rot_x, rot_z
+from labctl.sim.emulators.pty import PtyDevice
+from labctl.sim.emulators.robot import RobotEmulator
 
 
 def test_identify_status_segment_and_done():
@@ -63,3 +66,69 @@ def test_heartbeats_keep_a_long_segment_alive():
         robot.wait_done(6, timeout_s=5)  # heartbeats while waiting
         with dev.lock:
             assert dev.emulator.fault is None and dev.emulator.watchdog_trips == 0
+
+
+# the new tests are about the dialect, not the watchdog: 2 s keeps them steady on a loaded machine
+SLOW_WATCHDOG = dataclasses.replace(robot_test_limits(), watchdog_s=2.0)
+
+
+class Controller10(RobotEmulator):
+    """A dialect 1.0 controller as 1.0 was built: HELLO ignores its argument and STOP does not latch."""
+
+    dialect = "1.0"
+
+    def _cmd_hello(self, req):
+        self.session = "1.0"
+        self._reply(req.seq, f"{self.name} 1.0 queue={self.queue_size}")
+
+
+class Strict10(Controller10):
+    """A 1.0 controller that follows 1.0's rule "E02 for a wrong argument count" to the letter."""
+
+    def _cmd_hello(self, req):
+        if req.args:
+            self._error(req.seq, 2)
+        else:
+            super()._cmd_hello(req)
+
+
+@pytest.mark.parametrize("cls", [Controller10, Strict10])
+def test_driver_negotiates_down_to_a_1_0_controller(cls):
+    emu = cls(time.monotonic, SLOW_WATCHDOG)
+    with PtyDevice(emu, 115200) as dev, SerialRobot(dev.path, 115200, timeout_s=2.0, heartbeat_s=0.1) as robot:
+        assert robot.dialect == "1.0" and robot.profiles == ("quintic",) and robot.queue == 8
+        robot.segment(make_T(rot_x(math.pi), [420.0, -380.0, 820.0]), 1.0, 1)
+        robot.stop()  # 1.0: no latch, the next segment just runs
+        robot.segment(make_T(rot_x(math.pi), [400.0, -400.0, 850.0]), 1.0, 2)
+        robot.wait_done(2, timeout_s=5)
+        assert "a_stop_mm_s2" in robot.limits()  # the reference underneath still sends 18 fields
+
+
+def test_driver_speaks_1_1_stop_latches_until_clear():
+    with fake_robot(limits=SLOW_WATCHDOG) as dev, \
+            SerialRobot(dev.path, 115200, timeout_s=2.0, heartbeat_s=0.1) as robot:
+        assert robot.dialect == "1.1" and "quintic" in robot.profiles
+        assert robot.limits()["a_stop_mm_s2"] == pytest.approx(1500 / math.sqrt(3), abs=1e-5)
+        with pytest.raises(ValueError):
+            robot.segment(make_T(rot_x(math.pi), [420.0, -380.0, 820.0]), 1.0, 0)  # HOME's id
+        with pytest.raises(ValueError):
+            robot.segment(make_T(rot_x(math.pi), [420.0, -380.0, 820.0]), 1.0, 3, profile="ruckig")
+        robot.segment(make_T(rot_x(math.pi), [420.0, -380.0, 820.0]), 1.0, 3)
+        robot.stop()
+        with pytest.raises(RobotError) as err:
+            robot.segment(make_T(rot_x(math.pi), [400.0, -400.0, 850.0]), 1.0, 4)
+        assert err.value.code == 41
+        robot.clear()
+        robot.segment(make_T(rot_x(math.pi), [400.0, -400.0, 850.0]), 1.0, 4)
+        robot.wait_done(4, timeout_s=5)
+
+
+def test_a_reboot_after_motion_was_commanded_is_a_fault():
+    with fake_robot(limits=SLOW_WATCHDOG) as dev, \
+            SerialRobot(dev.path, 115200, timeout_s=2.0, heartbeat_s=0.1) as robot:
+        assert not robot.faults  # the @BOOT of start-up is not a loss
+        robot.segment(make_T(rot_x(math.pi), [420.0, -380.0, 820.0]), 1.5, 7)
+        dev.reset_after(0.2)
+        with pytest.raises(RobotFault):
+            robot.wait_done(7, timeout_s=5)
+        assert "boot" in robot.faults

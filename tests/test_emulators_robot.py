@@ -143,7 +143,7 @@ def test_status_and_queue_full():
     out = req(emu, "#1 STATUS")[0].split()
     assert out[:2] == ["$1", "ok"] and [float(v) for v in out[2:5]] == [300.0, -450.0, 900.0]
     for i in range(9):  # one running + eight waiting
-        assert req(emu, seg_line(10 + i, i, (300.0 + 10 * (i + 1), -450.0, 900.0), rot_x(math.pi), 1.0))[0] \
+        assert req(emu, seg_line(10 + i, i + 1, (300.0 + 10 * (i + 1), -450.0, 900.0), rot_x(math.pi), 1.0))[0] \
             .startswith(f"${10 + i} ok")
     assert req(emu, seg_line(30, 99, (400.0, -450.0, 900.0), rot_x(math.pi), 1.0))[0].startswith("$30 E20")
     assert req(emu, "#31 STOP") == ["$31 ok"]

@@ -48,6 +48,13 @@ def _brute_force_T(p0, v0, a0, G, limits, horizon, dt=0.01, fine=0.0005, samples
         ok = np.all((P >= limits.box_min) & (P <= limits.box_max), axis=(1, 2))
         ok &= np.linalg.norm(V, axis=2).max(axis=1) <= limits.v_max  # speed and acceleration are norms
         ok &= np.linalg.norm(A, axis=2).max(axis=1) <= limits.a_max
+        # braking each axis at a_max/√3 from any sampled state must end inside the box (grown to the
+        # start's own braking point: the start state is not the segment's fault)
+        rest = P + V * np.abs(V) / (2 * limits.a_max / np.sqrt(3.0))
+        e0 = p0 + v0 * np.abs(v0) / (2 * limits.a_max / np.sqrt(3.0))
+        lo, hi = np.minimum(limits.box_min, e0), np.maximum(limits.box_max, e0)
+        ok &= np.all((rest >= lo) & (rest <= hi), axis=(1, 2))
+        ok &= np.all((rest[:, -1] >= limits.box_min) & (rest[:, -1] <= limits.box_max), axis=1)
         return ok
 
     Ts = np.arange(dt, horizon + 1e-9, dt)

@@ -33,9 +33,18 @@ def dense_extremes(seg: QuinticSegment):
     return P.min(axis=0), P.max(axis=0), np.linalg.norm(V, axis=1).max(), np.linalg.norm(A, axis=1).max()
 
 
+def dense_stop_outside(seg: QuinticSegment, limits: Limits, slack_mm: float = 0.0) -> bool:
+    """Independent of stop_envelope_range: does braking each axis at a_max/√3 from any of 2001 sampled
+    states end (more than ``slack_mm`` short of) outside the box?"""
+    P, V = POW @ seg.coeffs, DPOW @ seg.coeffs / seg.duration
+    rest = P + V * np.abs(V) / (2 * limits.a_max / np.sqrt(3.0))
+    return bool(np.any(rest < limits.box_min + slack_mm) or np.any(rest > limits.box_max - slack_mm))
+
+
 def assert_within_limits(seg: QuinticSegment, limits: Limits):
     lo, hi, v, a = dense_extremes(seg)
     assert np.all(lo >= limits.box_min - 1e-6) and np.all(hi <= limits.box_max + 1e-6), (lo, hi)
+    assert not dense_stop_outside(seg, limits, slack_mm=-1e-6)
     assert v <= limits.v_max * (1 + 1e-6), v
     assert a <= limits.a_max * (1 + 1e-6), a
     assert seg.max_rotation_rate() <= limits.w_max * (1 + 1e-6)
@@ -60,6 +69,7 @@ def test_check_segment_passes_only_safe_segments_and_names_real_violations(p0, p
             "acceleration": seg.max_accel() > LIMITS.a_max,
             "box": bool(np.any(seg.position_range()[0] < LIMITS.box_min - 1e-6)
                         or np.any(seg.position_range()[1] > LIMITS.box_max + 1e-6)),
+            "stop": dense_stop_outside(seg, LIMITS, slack_mm=1e-3),
         }
         assert exceeded[err.kind], (err, exceeded)
     else:

@@ -21,6 +21,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "lab": ("labctl.cli.lab", "lab_group"),
     "devices": ("labctl.cli.devices", "devices_cmd"),
     "table": ("labctl.cli.devices", "table_group"),
+    "robot": ("labctl.cli.robot", "robot_group"),
     "sim": ("labctl.cli.sim", "sim_group"),
     "vision": ("labctl.cli.vision", "vision_group"),
     "calibrate": ("labctl.cli.calibrate", "calibrate_group"),

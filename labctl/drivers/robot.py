@@ -10,6 +10,7 @@ heartbeats stop.
 from __future__ import annotations
 
 import logging
+import re
 import time
 from collections.abc import Callable
 
@@ -22,6 +23,8 @@ from .robot_protocol import ERROR_CODES, MAX_SEQ, RobotReply, format_request, pa
 from .serial_link import DeviceTimeout, LinkError, SerialLink
 
 log = logging.getLogger(__name__)
+
+HOST_DIALECT = "1.1"  # the highest dialect version this driver speaks
 
 # what a supervisor writes straight to the port in an emergency
 STOP_LINE = (format_request(0, "STOP") + "\n").encode("ascii")
@@ -56,6 +59,10 @@ class SerialRobot(OpenClose):
         self.done_ids: list[int] = []
         self.faults: list[str] = []
         self.ident = ""
+        self.dialect = "1.0"
+        self._commanded = False  # a segment or HOME was sent: a @BOOT from now on loses motion
+        self.queue = 8
+        self.profiles: tuple[str, ...] = ("quintic",)
         self._last_sent = -1e18
 
     @classmethod
@@ -70,11 +77,35 @@ class SerialRobot(OpenClose):
         self.link.open()
         try:
             self.link.discard_input()
-            reply = self.request("HELLO")
-            self.ident = " ".join(reply.fields)
+            self.negotiate()
         except BaseException:
             self.link.close()
             raise
+
+    def negotiate(self) -> str:
+        """``HELLO 1.1``, or a plain ``HELLO`` if the controller refuses the argument (a strict 1.0
+        controller); sets ``dialect`` (the session version), ``queue`` and ``profiles``
+        (docs/protocols/robot.md §1). Returns the session version."""
+        try:
+            reply = self.request("HELLO", HOST_DIALECT)
+        except RobotError as exc:
+            if exc.code != 2:
+                raise
+            reply = self.request("HELLO")
+        self.ident = " ".join(reply.fields)
+        fields = list(reply.fields)
+        version = fields[1] if len(fields) > 1 and re.fullmatch(r"\d+\.\d+", fields[1]) else "1.0"
+        theirs = tuple(int(x) for x in version.split("."))
+        mine = tuple(int(x) for x in HOST_DIALECT.split("."))
+        self.dialect = ".".join(map(str, min(theirs, mine)))
+        self.profiles = ("quintic",)
+        for f in fields[2:]:
+            key, _, value = f.partition("=")
+            if key == "queue" and value.isdigit():
+                self.queue = int(value)
+            elif key == "profiles" and value:
+                self.profiles = tuple(p.lower() for p in value.split(","))
+        return self.dialect
 
     def close(self) -> None:
         self.link.close()
@@ -85,6 +116,12 @@ class SerialRobot(OpenClose):
         if msg.kind == "async":
             if msg.report == "DONE" and msg.fields and msg.fields[0].isdigit():
                 self.done_ids.append(int(msg.fields[0]))
+            elif msg.report == "BOOT":
+                if self._commanded:  # the controller restarted: queued and running segments are lost
+                    self.faults.append("boot")
+                    log.warning("%s: controller restarted (%s)", self.link.name, " ".join(msg.fields))
+                else:  # it started up as we connected: nothing of ours was lost
+                    log.debug("%s: controller booted (%s)", self.link.name, " ".join(msg.fields))
             elif msg.report == "WATCHDOG":
                 self.faults.append("watchdog")
                 log.warning("%s: controller watchdog stopped the robot", self.link.name)
@@ -130,19 +167,31 @@ class SerialRobot(OpenClose):
 
     # --- Robot interface --------------------------------------------------------------------
     def segment(self, T_base_flange: np.ndarray, duration_s: float, segment_id: int, *,
-                end_velocity_mm_s=None, end_omega_rad_s=None, replace: bool = False) -> tuple[float, float]:
-        """Queue (or with ``replace`` start now) a quintic segment; returns its controller (t0, t1)."""
+                end_velocity_mm_s=None, end_omega_rad_s=None, replace: bool = False,
+                profile: str | None = None) -> tuple[float, float]:
+        """Queue (or with ``replace`` start now) a segment; returns its controller (t0, t1).
+
+        ``profile`` (default the controller's ``quintic``) must be one HELLO listed; id 0 is HOME's
+        in dialect 1.1, so ids are 1–65535 there."""
         T = np.asarray(T_base_flange, float)
         if T.shape != (4, 4) or not np.all(np.isfinite(T)):
             raise ValueError("T_base_flange must be a finite 4×4 matrix")
         if not (duration_s > 0 and np.isfinite(duration_s)):
             raise ValueError(f"segment duration must be positive, got {duration_s}")
+        lowest = 1 if self.dialect != "1.0" else 0
+        if not lowest <= int(segment_id) <= MAX_SEQ:
+            raise ValueError(f"segment id must be {lowest}..{MAX_SEQ}, got {segment_id}")
+        if profile is not None and profile.lower() not in self.profiles:
+            raise ValueError(f"the controller runs the profiles {', '.join(self.profiles)}, not {profile!r}")
         rv = matrix_to_rotvec(T[:3, :3])
         args: list = [int(segment_id), *map(float, T[:3, 3]), *map(float, rv), float(duration_s)]
         if end_velocity_mm_s is not None or end_omega_rad_s is not None:
             v = np.zeros(3) if end_velocity_mm_s is None else np.asarray(end_velocity_mm_s, float)
             w = np.zeros(3) if end_omega_rad_s is None else np.asarray(end_omega_rad_s, float)
             args += [*map(float, v), *map(float, w)]
+        if profile is not None and profile.lower() != "quintic":
+            args.append(f"profile={profile.lower()}")
+        self._commanded = True
         try:
             reply = self.request("SEGNOW" if replace else "SEG", *args)
         except (DeviceTimeout, LinkError):
@@ -152,6 +201,7 @@ class SerialRobot(OpenClose):
         return (times[0], times[1]) if times else (float("nan"), float("nan"))
 
     def stop(self) -> None:
+        """STOP: brake with the stop ramp; in dialect 1.1 it latches ``stopped`` until :meth:`clear`."""
         self.request("STOP")
 
     def emergency_stop(self) -> None:
@@ -166,6 +216,7 @@ class SerialRobot(OpenClose):
         self.request("CLEAR")
 
     def home(self) -> None:
+        self._commanded = True
         self.request("HOME")
 
     def heartbeat(self) -> None:
@@ -177,11 +228,18 @@ class SerialRobot(OpenClose):
             self.heartbeat()
 
     def limits(self) -> dict:
-        f = self.request("LIMITS").floats(10)
+        """The controller's LIMITS; dialect 1.1 adds ``a_stop_mm_s2``, ``alpha_stop_deg_s2`` and
+        ``home`` (x y z mm, rotation vector rad)."""
+        reply = self.request("LIMITS")
+        f = reply.floats(10)
         if f is None:
             raise DeviceError(f"{self.link.name}: malformed LIMITS reply")
-        return {"workspace_min_mm": f[0:3], "workspace_max_mm": f[3:6], "v_max_mm_s": f[6],
-                "a_max_mm_s2": f[7], "w_max_deg_s": f[8], "watchdog_s": f[9]}
+        out = {"workspace_min_mm": f[0:3], "workspace_max_mm": f[3:6], "v_max_mm_s": f[6],
+               "a_max_mm_s2": f[7], "w_max_deg_s": f[8], "watchdog_s": f[9]}
+        g = reply.floats(18)
+        if g is not None:
+            out.update(a_stop_mm_s2=g[10], alpha_stop_deg_s2=g[11], home=g[12:18])
+        return out
 
     def status(self) -> RobotStatus:
         reply = self.request("STATUS")

@@ -9,17 +9,59 @@ The parsers accept any text and never raise.
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass, field
+
+import numpy as np
 
 ERROR_CODES = {
     1: "unknown command", 2: "bad arguments", 3: "malformed request", 4: "line too long",
-    10: "target outside the workspace", 11: "bad duration", 12: "too fast (linear speed limit)",
-    13: "acceleration limit exceeded", 14: "too fast (angular speed limit)", 20: "segment queue full",
-    5: "checksum mismatch", 40: "stopped by the watchdog: send CLEAR", 41: "stopped: send CLEAR",
+    5: "checksum mismatch",
+    10: "outside the workspace (path or stop)", 11: "bad duration", 12: "too fast (linear speed limit)",
+    13: "acceleration limit exceeded", 14: "too fast (angular speed limit)", 15: "profile not supported",
+    20: "segment queue full", 40: "stopped by the watchdog: send CLEAR", 41: "stopped: send CLEAR",
 }
 
 MAX_LINE = 240
 MAX_SEQ = 65535
+_NUMBER = re.compile(r"^[+-]?(\d+(\.\d*)?|\.\d+)([eE][+-]?\d+)?$")
+
+
+def parse_number(text: str) -> float | None:
+    """A request number as dialect 1.1 defines it: ``[+-]digits[.digits][e[+-]digits]`` (also
+    ``.5``, ``5.``; what C's strtod and Python's float read, without inf, nan, hex or ``_``);
+    None if ``text`` is not one or overflows to infinity."""
+    if not _NUMBER.match(text):
+        return None
+    value = float(text)
+    return value if math.isfinite(value) else None
+
+
+def fmt_num(value: float, decimals: int = 6) -> str:
+    """A number as the controller prints it: fixed point, at most ``decimals`` decimals, trailing
+    zeros dropped, never an exponent, never ``-0``."""
+    text = f"{float(value):.{decimals}f}".rstrip("0").rstrip(".")
+    return "0" if text in ("", "-0") else text
+
+
+def fmt_fixed(value: float, decimals: int = 4) -> str:
+    """Fixed point with exactly ``decimals`` decimals, never ``-0.0000`` (STATUS, t0/t1)."""
+    text = f"{float(value):.{decimals}f}"
+    return text[1:] if text.startswith("-") and not text.strip("-0.") else text
+
+
+def canonical_rotvec(rv) -> np.ndarray:
+    """The rotation vector (rad, angle in [0, π]) as the controller reports it: within 1e-6 rad of
+    an angle of π, r and −r are (to 2e-6 rad) the same rotation, and the one whose first non-zero
+    component (|c| > 1e-6) is positive is reported."""
+    rv = np.asarray(rv, dtype=float).reshape(3).copy()
+    if np.linalg.norm(rv) > math.pi - 1e-6:
+        for c in rv:
+            if abs(c) > 1e-6:
+                if c < 0:
+                    rv = -rv
+                break
+    return rv
 
 
 @dataclass(frozen=True)
@@ -109,8 +151,7 @@ def format_request(seq: int, command: str, *args, check: bool = True) -> str:
     parts = [f"#{seq}", command]
     for a in args:
         if isinstance(a, float):
-            text = f"{a:.6f}".rstrip("0").rstrip(".")
-            parts.append("0" if text in ("", "-0") else text)
+            parts.append(fmt_num(a))
         else:
             parts.append(str(a))
     line = " ".join(parts)

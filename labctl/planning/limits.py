@@ -23,7 +23,8 @@ class PlanningError(LabctlError):
 class LimitViolation(PlanningError):
     """A segment would leave the workspace box or exceed a velocity/acceleration/rotation limit.
 
-    ``kind`` is one of ``"box"``, ``"velocity"``, ``"acceleration"``, ``"angular_velocity"``,
+    ``kind`` is one of ``"box"``, ``"stop"`` (braking at some instant would end outside the box),
+    ``"velocity"``, ``"acceleration"``, ``"angular_velocity"``,
     ``"invalid"``; ``value`` and ``limit`` are the offending number and its bound.
     """
 
@@ -58,6 +59,12 @@ class Limits:
             if not np.isfinite(value) or value <= 0:
                 raise PlanningError(f"{name} must be a positive number, got {value!r}")
             object.__setattr__(self, name, value)
+
+    @property
+    def a_stop(self) -> float:
+        """Per-axis braking deceleration of the robot controller (mm/s²): ``a_max/√3``, so the
+        acceleration norm stays within ``a_max`` while all three axes brake (docs/protocols/robot.md)."""
+        return self.a_max / float(np.sqrt(3.0))
 
     @classmethod
     def from_config(cls, robot_cfg) -> Limits:

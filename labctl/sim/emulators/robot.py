@@ -1,30 +1,60 @@
-"""The robot controller of docs/protocols/robot.md, on an injectable clock.
+"""The reference robot controller of docs/protocols/robot.md (dialect 1.1), on an injectable clock.
 
 Task-space segments are quintic polynomials (the paper's time-optimal task-space quintics,
 §4.2): position p(τ) per axis and orientation R(τ) = R0·exp([φ(τ)]×) with φ a quintic vector
-from 0 to log(R0ᵀR1), each from the current state (position, velocity, acceleration) to the
-target with the requested end velocity and zero end acceleration over the given duration.
-Limits (workspace box along the whole path, peak linear speed and acceleration, peak angular
-speed) are checked before a segment is accepted. A watchdog stops the robot — a quintic to
-rest — when no request arrives for ``watchdog_s`` while it moves, and latches a fault until
-``CLEAR``. Units: mm, s, rad.
+from 0 to log(R0ᵀR1), each from the current state (position, velocity, acceleration; rotation
+and true angular velocity) to the target with the requested end velocities and zero end
+acceleration over the given duration. Before a segment is accepted the controller checks,
+exactly (critical points of the polynomials, :mod:`labctl.planning.safety`): the path inside the
+workspace box, the braking rest point (each axis at ``a_stop = a_max/√3``) inside the box at
+every instant, peak speed and acceleration, and the peak *true* angular speed. STOP, the
+watchdog and the end of a segment that ends moving brake with that ramp, so the arm never
+leaves the box. ``STOP`` latches ``stopped`` and the watchdog ``watchdog`` until ``CLEAR``.
+Units: mm, s, rad.
+
+The class is written to be subclassed (tests/ build deliberately broken controllers from it):
+the line parser (:meth:`RobotEmulator._parse_line`), the watchdog deadline
+(:meth:`RobotEmulator._watchdog_due`), the stop ramp (:meth:`RobotEmulator._make_ramp`) and the
+segment check (:meth:`RobotEmulator._check`) are separate methods.
 """
 
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
-from ...drivers.robot_protocol import ERROR_CODES, MAX_LINE, Request, add_checksum, parse_request
+from ...drivers.robot_protocol import (
+    ERROR_CODES,
+    MAX_LINE,
+    Request,
+    add_checksum,
+    canonical_rotvec,
+    fmt_fixed,
+    fmt_num,
+    parse_number,
+    parse_request,
+)
 from ...geometry import make_T, matrix_to_rotvec, rotvec_to_matrix
+from ...planning.quintic import _derivative, _norm_max, _poly_range
+from ...planning.rotation import right_jacobian
+from ...planning.safety import stop_envelope_range
 
-IDENT = "labctl-robot 1.0"
+NAME = "labctl-robot"
+DIALECT = "1.1"
+PROFILES = ("quintic",)
+IDENT = f"{NAME} {DIALECT}"
 QUEUE_SIZE = 8
 MAX_DURATION_S = 60.0
+HOME_MIN_S = 1.0
+ANGULAR_STOP_PER_S = 4.0  # angular braking deceleration = 4·w_max per second: w_max to rest in 0.25 s
 HOME_RPY = (math.pi, 0.0, 0.0)  # flange z pointing down at the table
+REL_TOL = 1e-6  # relative slack on the v/a/ω limits (round-off of a state spliced right at a limit)
+BOX_TOL_MM = 1e-6
+_VERSION = re.compile(r"^\d+\.\d+$")
 
 
 def quintic_coeffs(p0, v0, a0, p1, v1, a1, T: float) -> np.ndarray:
@@ -42,41 +72,127 @@ def quintic_coeffs(p0, v0, a0, p1, v1, a1, T: float) -> np.ndarray:
     return np.stack([c0, c1, c2, c3, c4, c5])
 
 
+_K = np.arange(6)
+_FALLING = {d: np.array([math.factorial(k) / math.factorial(k - d) if k >= d else 0.0 for k in range(6)])
+            for d in range(6)}
+
+
 def poly_eval(c: np.ndarray, tau: float, deriv: int = 0) -> np.ndarray:
     """Value (deriv 0), velocity (1) or acceleration (2) of a quintic at τ."""
-    out = np.zeros(c.shape[1:])
-    for k in range(deriv, 6):
-        f = math.factorial(k) / math.factorial(k - deriv)
-        out = out + f * c[k] * tau ** (k - deriv)
-    return out
+    return (_FALLING[deriv] * float(tau) ** np.maximum(_K - deriv, 0)) @ c
+
+
+def _normalised(c: np.ndarray, T: float) -> np.ndarray:
+    """τ-coefficients → coefficients in u = τ/T ∈ [0, 1]."""
+    return c * (T ** np.arange(6))[:, None]
+
+
+def true_angular_velocity(R0: np.ndarray, rot: np.ndarray, tau: float) -> np.ndarray:
+    """Base-frame angular velocity (rad/s) of R(τ) = R0·exp([φ(τ)]×): R(τ)·J_r(φ)·φ̇ (exact, not φ̇)."""
+    phi = poly_eval(rot, tau)
+    return R0 @ rotvec_to_matrix(phi) @ right_jacobian(phi) @ poly_eval(rot, tau, 1)
+
+
+def max_angular_speed(R0: np.ndarray, rot: np.ndarray, T: float) -> float:
+    """Largest true angular speed ‖ω(τ)‖ over [0, T] (rad/s).
+
+    ‖φ̇‖ bounds it from above (every singular value of J_r is ≤ 1; exact from the critical points of
+    ‖φ̇‖²); if that bound is within ``w_max`` nothing more is needed, so the caller passes it first.
+    Otherwise: 129 samples, each local maximum refined by a bounded Brent search to 1e-12 s.
+    """
+    from scipy.optimize import minimize_scalar
+
+    taus = np.linspace(0.0, T, 129)
+    speeds = np.array([np.linalg.norm(true_angular_velocity(R0, rot, t)) for t in taus])
+    best = float(speeds.max())
+    for i in range(len(taus)):
+        left = speeds[i - 1] if i > 0 else -1.0
+        right = speeds[i + 1] if i + 1 < len(taus) else -1.0
+        if speeds[i] >= left and speeds[i] >= right:
+            lo, hi = taus[max(i - 1, 0)], taus[min(i + 1, len(taus) - 1)]
+            res = minimize_scalar(lambda t: -np.linalg.norm(true_angular_velocity(R0, rot, t)), bounds=(lo, hi),
+                                  method="bounded", options={"xatol": 1e-12})
+            best = max(best, float(-res.fun))
+    return best
 
 
 @dataclass
 class Segment:
-    """One quintic segment from t0 to t1 (controller time)."""
+    """One quintic segment from t0 to t1 (controller time). ``seg_id`` 0 is HOME."""
 
     seg_id: int
     t0: float
     t1: float
-    pos: np.ndarray  # 6×3 coefficients
+    pos: np.ndarray  # 6×3 coefficients in τ
     R0: np.ndarray
-    rot: np.ndarray  # 6×3 coefficients of φ
+    rot: np.ndarray  # 6×3 coefficients of φ in τ
     done_reported: bool = False
+    commanded: bool = True  # a host's motion (SEG, SEGNOW, HOME), not a stop ramp
+
+    def position(self, t: float) -> np.ndarray:
+        """Flange position (mm) at time t, clamped to the segment."""
+        return poly_eval(self.pos, min(max(t - self.t0, 0.0), self.t1 - self.t0))
 
     def state(self, t: float):
-        """(p, v, a, R, ω) at time t, clamped to the segment."""
+        """(p, v, a, R, ω) at time t, clamped to the segment; ω is the true angular velocity (base frame)."""
         tau = min(max(t - self.t0, 0.0), self.t1 - self.t0)
         p = poly_eval(self.pos, tau)
         v = poly_eval(self.pos, tau, 1)
         a = poly_eval(self.pos, tau, 2)
-        phi = poly_eval(self.rot, tau)
-        R = self.R0 @ rotvec_to_matrix(phi)
-        w = self.R0 @ poly_eval(self.rot, tau, 1)  # approximately the angular velocity (base frame)
+        R = self.R0 @ rotvec_to_matrix(poly_eval(self.rot, tau))
+        w = true_angular_velocity(self.R0, self.rot, tau)
+        return p, v, a, R, w
+
+
+@dataclass
+class StopRamp:
+    """The stop ramp (docs/protocols/robot.md §Stopping): from (p, v, R, ω) at t0 each axis brakes at
+    constant ``a_stop`` to rest, and the rotation at constant ``alpha`` about its fixed axis (base frame)."""
+
+    t0: float
+    p: np.ndarray
+    v: np.ndarray
+    R: np.ndarray
+    w: np.ndarray
+    a_stop: float
+    alpha: float
+    seg_id: int = -1
+    done_reported: bool = True
+    commanded: bool = False
+
+    def __post_init__(self):
+        self.t_axis = np.abs(self.v) / self.a_stop
+        self.t_rot = float(np.linalg.norm(self.w)) / self.alpha
+        self.t1 = self.t0 + max(float(self.t_axis.max()), self.t_rot)
+
+    def position(self, t: float) -> np.ndarray:
+        ta = np.minimum(min(max(t - self.t0, 0.0), self.t1 - self.t0), self.t_axis)
+        return self.p + self.v * ta - 0.5 * np.sign(self.v) * self.a_stop * ta * ta
+
+    def state(self, t: float):
+        tau = min(max(t - self.t0, 0.0), self.t1 - self.t0)
+        ta = np.minimum(tau, self.t_axis)
+        sgn = np.sign(self.v)
+        p = self.p + self.v * ta - 0.5 * sgn * self.a_stop * ta * ta
+        braking = tau < self.t_axis
+        v = np.where(braking, self.v - sgn * self.a_stop * tau, 0.0)
+        a = np.where(braking, -sgn * self.a_stop, 0.0)
+        wn = float(np.linalg.norm(self.w))
+        if wn == 0.0:
+            return p, v, a, self.R.copy(), np.zeros(3)
+        tr = min(tau, self.t_rot)
+        theta = wn * tr - 0.5 * self.alpha * tr * tr
+        axis = self.w / wn
+        R = rotvec_to_matrix(axis * theta) @ self.R
+        w = axis * max(wn - self.alpha * tau, 0.0)
         return p, v, a, R, w
 
 
 class RobotEmulator:
     """The robot controller: ``receive(data, t)`` request bytes, ``read_output()`` reply bytes."""
+
+    name = NAME
+    dialect = DIALECT
 
     def __init__(self, clock: Callable[[], float], limits=None, *, queue_size: int = QUEUE_SIZE,
                  start_pose: np.ndarray | None = None):
@@ -89,6 +205,8 @@ class RobotEmulator:
         self.v_max = float(cfg.v_max_mm_s)
         self.a_max = float(cfg.a_max_mm_s2)
         self.w_max = math.radians(cfg.w_max_deg_s)
+        self.a_stop = self.a_max / math.sqrt(3.0)
+        self.alpha_stop = ANGULAR_STOP_PER_S * self.w_max
         self.watchdog_s = float(cfg.watchdog_s)
         self.home_T = make_T(_rpy(*HOME_RPY), cfg.home_mm)
         self.queue_size = queue_size
@@ -96,25 +214,29 @@ class RobotEmulator:
         T0 = self.home_T if start_pose is None else np.asarray(start_pose, float)
         self._rest_p = T0[:3, 3].copy()
         self._rest_R = T0[:3, :3].copy()
-        self.segments: list[Segment] = []  # scheduled and recent ones, in time order
+        self.segments: list = []  # scheduled and recent segments and ramps, in time order
         self.history_s = 600.0
         self.last_request_t = self.now
         self.fault: str | None = None
+        self.session = self.dialect  # until a HELLO says otherwise: the strictest behaviour
         self.last_segment_id = 0
         self.watchdog_trips = 0
         self.out = bytearray()
         self._line = bytearray()
         self._overlong = False
-        self._write(f"@BOOT {IDENT}\n")
+        self._write(f"@BOOT {self.name} {self.dialect}\n")
 
     def power_cycle(self) -> None:
         """Controller reset: the brakes stop the arm where it is; queue, fault and line are lost."""
         self.advance(max(self.now, self.clock()))
-        if self._moving_at(self.now):
-            self._stop_at(self.now)
+        p, _, _, R, _ = self.state_at(self.now)
+        self.segments = []
+        self._rest_p, self._rest_R = p, R
         self.fault = None
+        self.session = self.dialect
         self._line.clear()
-        self._write(f"@BOOT {IDENT}\n")
+        self._overlong = False
+        self._write(f"@BOOT {self.name} {self.dialect}\n")
 
     # --- wire -------------------------------------------------------------------------------
     def _write(self, text: str) -> None:
@@ -138,38 +260,44 @@ class RobotEmulator:
                 self._overlong = False
                 if overlong:
                     self._write("@ERR E04 line too long\n")
+                elif any(c > 0x7E or (c < 0x20 and c != 0x09) for c in line.encode("ascii", "replace")) \
+                        or "\ufffd" in line:
+                    self._write(f"@ERR E03 {ERROR_CODES[3]}\n")  # only printable ASCII (and tabs) in a line
                 elif line.strip():
                     self._handle(line)
             elif b == 0x0D:
-                continue
+                continue  # '\r' is dropped wherever it appears and does not count towards the 240
             elif len(self._line) >= MAX_LINE:
                 self._overlong = True
             else:
                 self._line.append(b)
 
     # --- time -------------------------------------------------------------------------------
+    def _watchdog_due(self) -> float:
+        """Controller time at which the watchdog trips if no valid request arrives before."""
+        return self.last_request_t + self.watchdog_s
+
     def advance(self, t: float) -> None:
-        """Run the controller up to time t: segment completions (@DONE) and the watchdog."""
+        """Run the controller up to time t: segment completions (@DONE), stop ramps and the watchdog."""
         if t <= self.now:
             return
         while True:
-            trip = self.last_request_t + self.watchdog_s
+            trip = self._watchdog_due()
             pending = [s for s in self.segments if not s.done_reported]
             next_done = min((s.t1 for s in pending), default=math.inf)
-            if trip < next_done and trip <= t and self._moving_at(trip) and self.fault is None:
+            if trip < next_done and trip <= t and self._commanded_at(trip) and self.fault is None:
                 self.now = max(self.now, trip)
                 self.watchdog_trips += 1
                 self._stop_at(self.now)
                 self.fault = "watchdog"
-                self._write(f"@WATCHDOG {self.watchdog_s:g}\n")
+                self._write(f"@WATCHDOG {fmt_num(self.watchdog_s)}\n")
                 continue
             if next_done <= t:
                 self.now = max(self.now, next_done)
                 for s in pending:
                     if s.t1 <= next_done:
                         s.done_reported = True
-                        if s.seg_id >= 0:
-                            self._write(f"@DONE {s.seg_id}\n")
+                        self._write(f"@DONE {s.seg_id}\n")
                         _, v, _, _, w = s.state(s.t1)
                         followed = any(o.t0 >= s.t1 and o is not s for o in self.segments)
                         if not followed and (np.linalg.norm(v) > 1e-9 or np.linalg.norm(w) > 1e-9):
@@ -182,7 +310,11 @@ class RobotEmulator:
             self.segments.pop(0)
 
     def _moving_at(self, t: float) -> bool:
-        return any(s.t0 <= t < s.t1 for s in self.segments) or any(s.t0 > t for s in self.segments)
+        return any(s.t0 <= t < s.t1 or s.t0 > t for s in self.segments)
+
+    def _commanded_at(self, t: float) -> bool:
+        """A host's segment runs or waits at t (the watchdog guards these, not a stop ramp)."""
+        return any(s.commanded and (s.t0 <= t < s.t1 or s.t0 > t) for s in self.segments)
 
     @property
     def moving(self) -> bool:
@@ -190,7 +322,7 @@ class RobotEmulator:
         return self._moving_at(self.now)
 
     def state_at(self, t: float):
-        """(p, v, a, R, ω) of the flange at time t (mm, mm/s, mm/s², 3×3, rad/s)."""
+        """(p, v, a, R, ω) of the flange at time t (mm, mm/s, mm/s², 3×3, rad/s; ω base frame)."""
         seg = None
         for s in self.segments:
             if s.t0 <= t:
@@ -208,6 +340,18 @@ class RobotEmulator:
             v, a, w = np.zeros(3), np.zeros(3), np.zeros(3)
         return p, v, a, R, w
 
+    def position_at(self, t: float) -> np.ndarray:
+        """Flange position (mm) at time t: the position part of :meth:`state_at`, cheaply."""
+        seg = None
+        for s in self.segments:
+            if s.t0 <= t:
+                seg = s
+            else:
+                break
+        if seg is None:
+            return self.state_at(t)[0]
+        return seg.position(t)
+
     def flange_pose_at(self, t: float) -> np.ndarray:
         """``T_base_flange`` (4×4, mm) at time t (exact for t up to now; planned motion beyond)."""
         if t <= self.clock():
@@ -217,59 +361,91 @@ class RobotEmulator:
 
     @property
     def segment_id(self) -> int:
+        """Id of the running segment, else of the last one started (0 before any, and for HOME)."""
         sid = 0
         for s in self.segments:
-            if s.t0 <= self.now and s.seg_id >= 0:
+            if s.t0 <= self.now and s.commanded:
                 sid = s.seg_id
         return sid
 
     # --- motion -----------------------------------------------------------------------------
     def _cut_at(self, t: float) -> None:
-        """Drop everything scheduled after t; the running segment ends at t."""
+        """Drop everything scheduled after t; the running segment ends at t (no @DONE for it)."""
         kept = []
         for s in self.segments:
             if s.t0 >= t and not (s.t0 == t and s.t1 == t):
                 continue
             kept.append(s)
         self.segments = kept
-
-    def _plan(self, seg_id: int, p1, R1, T: float, v1, w1, t0: float, start) -> Segment | int:
-        p0, v0, a0, R0, w0 = start
-        pos = quintic_coeffs(p0, v0, a0, p1, v1, np.zeros(3), T)
-        phi1 = matrix_to_rotvec(R0.T @ R1)
-        rot = quintic_coeffs(np.zeros(3), R0.T @ w0, np.zeros(3), phi1, R0.T @ w1, np.zeros(3), T)
-        taus = np.linspace(0.0, T, 81)
-        for tau in taus:
-            p = poly_eval(pos, tau)
-            if np.any(p < self.box_min - 1e-6) or np.any(p > self.box_max + 1e-6):
-                return 10
-        speeds = [float(np.linalg.norm(poly_eval(pos, tau, 1))) for tau in taus]
-        if max(speeds) > self.v_max * (1 + 1e-6):
-            return 12
-        accels = [float(np.linalg.norm(poly_eval(pos, tau, 2))) for tau in taus]
-        if max(accels) > self.a_max * (1 + 1e-6):
-            return 13
-        omegas = [float(np.linalg.norm(poly_eval(rot, tau, 1))) for tau in taus]
-        if max(omegas) > self.w_max * (1 + 1e-6):
-            return 14
-        return Segment(seg_id, t0, t0 + T, pos, R0, rot)
-
-    def _stop_at(self, t: float) -> None:
-        """Bring the flange to rest from its state at t with a short quintic (no limit checks)."""
-        p, v, a, R, w = self.state_at(t)
-        self._cut_at(t)
         for s in self.segments:
             if s.t1 > t:
                 s.t1 = t
                 s.done_reported = True
-        speed = float(np.linalg.norm(v))
-        T = max(2.0 * speed / self.a_max, 1.5 * float(np.linalg.norm(w)) / max(self.w_max, 1e-6), 0.05)
-        p1 = p + v * T / 2.0
-        R1 = R @ rotvec_to_matrix(R.T @ w * T / 2.0)
-        pos = quintic_coeffs(p, v, a, p1, np.zeros(3), np.zeros(3), T)
-        rot = quintic_coeffs(np.zeros(3), R.T @ w, np.zeros(3), matrix_to_rotvec(R.T @ R1), np.zeros(3),
-                             np.zeros(3), T)
-        self.segments.append(Segment(-1, t, t + T, pos, R, rot))
+
+    def _check(self, seg: Segment, p0: np.ndarray) -> int:
+        """0 if the segment may run, else its error code, first of E12, E13, E14, E10 (box: path, stop ramp).
+
+        The dynamic limits come first: a segment the arm cannot follow has no meaningful stop point.
+
+        The box is grown to hold the start point ``p0`` and its braking rest point (an arm outside, or
+        heading out, may move back but not further out); the end point and its braking rest point must
+        lie in the box itself. All maxima exact.
+        """
+        T = seg.t1 - seg.t0
+        b = _normalised(seg.pos, T)
+        if _norm_max(_derivative(b)) / T > self.v_max * (1 + REL_TOL):
+            return 12
+        if _norm_max(_derivative(_derivative(b))) / T ** 2 > self.a_max * (1 + REL_TOL):
+            return 13
+        limit = self.w_max * (1 + REL_TOL)
+        if _norm_max(_derivative(_normalised(seg.rot, T))) / T > limit:  # ‖φ̇‖ ≥ ‖ω‖: only then look closer
+            if max_angular_speed(seg.R0, seg.rot, T) > limit:
+                return 14
+        v0 = poly_eval(seg.pos, 0.0, 1)
+        e0 = p0 + v0 * np.abs(v0) / (2 * self.a_stop)
+        lo_box = np.minimum(np.minimum(self.box_min, p0), e0) - BOX_TOL_MM
+        hi_box = np.maximum(np.maximum(self.box_max, p0), e0) + BOX_TOL_MM
+        lo, hi = _poly_range(b)
+        if np.any(lo < lo_box) or np.any(hi > hi_box):
+            return 10
+        p1 = poly_eval(seg.pos, T)
+        if np.any(p1 < self.box_min - BOX_TOL_MM) or np.any(p1 > self.box_max + BOX_TOL_MM):
+            return 10
+        return 10 if self._stop_leaves_box(seg, b, lo_box, hi_box) else 0
+
+    def _stop_leaves_box(self, seg: Segment, b: np.ndarray, lo_box: np.ndarray, hi_box: np.ndarray) -> bool:
+        """Would the stop ramp from some instant of the segment end outside (grown box), or from its end
+        outside the box itself? Exact (:func:`labctl.planning.safety.stop_envelope_range`)."""
+        T = seg.t1 - seg.t0
+        elo, ehi = stop_envelope_range(b, T, self.a_stop)
+        if np.any(elo < lo_box) or np.any(ehi > hi_box):
+            return True
+        p1, v1 = poly_eval(seg.pos, T), poly_eval(seg.pos, T, 1)
+        rest = p1 + v1 * np.abs(v1) / (2 * self.a_stop)
+        return bool(np.any(rest < self.box_min - BOX_TOL_MM) or np.any(rest > self.box_max + BOX_TOL_MM))
+
+    def _plan(self, seg_id: int, p1, R1, T: float, v1, w1, t0: float, start) -> Segment:
+        """The quintic from ``start`` = (p, v, a, R, ω) at t0 to (p1, v1, 0; R1, w1) at t0 + T.
+
+        φ̇(0) = R0ᵀω0 and φ̇(T) = J_r(φ1)⁻¹R1ᵀw1 make the true angular velocity exact at both ends."""
+        p0, v0, a0, R0, w0 = start
+        pos = quintic_coeffs(p0, v0, a0, p1, v1, np.zeros(3), T)
+        phi1 = matrix_to_rotvec(R0.T @ R1)
+        R1 = R0 @ rotvec_to_matrix(phi1)
+        phidot1 = np.linalg.solve(right_jacobian(phi1), R1.T @ np.asarray(w1, float))
+        rot = quintic_coeffs(np.zeros(3), R0.T @ w0, np.zeros(3), phi1, phidot1, np.zeros(3), T)
+        return Segment(seg_id, t0, t0 + T, pos, R0, rot)
+
+    def _make_ramp(self, t: float, p, v, R, w) -> StopRamp:
+        return StopRamp(t, np.asarray(p, float), np.asarray(v, float), R, np.asarray(w, float), self.a_stop,
+                        self.alpha_stop)
+
+    def _stop_at(self, t: float) -> None:
+        """Brake from the state at t (the documented stop ramp); the queue is discarded."""
+        p, v, _, R, w = self.state_at(t)
+        self._cut_at(t)
+        if np.linalg.norm(v) > 0.0 or np.linalg.norm(w) > 0.0:
+            self.segments.append(self._make_ramp(t, p, v, R, w))
 
     # --- commands ---------------------------------------------------------------------------
     def _reply(self, seq: int, fields: str = "") -> None:
@@ -278,89 +454,140 @@ class RobotEmulator:
     def _error(self, seq: int, code: int) -> None:
         self._write(f"${seq} E{code:02d} {ERROR_CODES.get(code, 'error')}\n")
 
+    def _parse_line(self, line: str) -> Request | int:
+        return parse_request(line)
+
     def _handle(self, line: str) -> None:
-        req = parse_request(line)
+        req = self._parse_line(line)
         if isinstance(req, int):
-            seq = line.strip()[1:].split(" ", 1)[0]
-            if req == 5 and seq.isdigit() and len(seq) <= 5:
+            seq = line.strip()[1:].split(" ", 1)[0] if line.strip().startswith("#") else ""
+            if req == 5 and seq.isdigit() and len(seq) <= 5 and int(seq) <= 65535:
                 self._error(int(seq), 5)  # the sender learns at once that its line was damaged
             else:
                 self._write(f"@ERR E{req:02d} {ERROR_CODES[req]}\n")
             return
-        self.last_request_t = self.now
+        self.last_request_t = self.now  # any request answered with its $seq (not E05) feeds the watchdog
         handler = getattr(self, "_cmd_" + req.command.lower(), None) if req.command.isalpha() else None
         if handler is None:
             self._error(req.seq, 1)
             return
         handler(req)
 
+    def _no_args(self, req: Request) -> bool:
+        if req.args:
+            self._error(req.seq, 2)
+            return False
+        return True
+
     def _cmd_hello(self, req: Request) -> None:
-        self._reply(req.seq, f"{IDENT} queue={self.queue_size}")
+        """``HELLO [version]``: the session speaks the lower of the host's version (1.0 when it names
+        none: a 1.0 host) and the controller's; the reply names that version."""
+        if len(req.args) > 1 or (req.args and not _VERSION.match(req.args[0])):
+            self._error(req.seq, 2)
+            return
+        host = tuple(int(x) for x in req.args[0].split(".")) if req.args else (1, 0)
+        mine = tuple(int(x) for x in self.dialect.split("."))
+        self.session = ".".join(str(x) for x in min(host, mine))
+        self._reply(req.seq, f"{self.name} {self.session} queue={self.queue_size} profiles={','.join(PROFILES)}")
 
     def _cmd_hb(self, req: Request) -> None:
-        self._reply(req.seq)
+        if self._no_args(req):
+            self._reply(req.seq)
 
     def _cmd_clear(self, req: Request) -> None:
-        self.fault = None
-        self._reply(req.seq)
+        if self._no_args(req):
+            self.fault = None
+            self._reply(req.seq)
 
     def _cmd_stop(self, req: Request) -> None:
-        if self._moving_at(self.now):
-            self._stop_at(self.now)
+        if not self._no_args(req):
+            return
+        self._stop_at(self.now)
+        if self.fault is None and self.session != "1.0":  # a 1.0 host does not know it must CLEAR
+            self.fault = "stopped"
         self._reply(req.seq)
 
     def _cmd_limits(self, req: Request) -> None:
-        vals = [*self.box_min, *self.box_max, self.v_max, self.a_max, math.degrees(self.w_max), self.watchdog_s]
-        self._reply(req.seq, " ".join(f"{v:g}" for v in vals))
+        if not self._no_args(req):
+            return
+        home = [*self.home_T[:3, 3], *canonical_rotvec(matrix_to_rotvec(self.home_T[:3, :3]))]
+        vals = [*self.box_min, *self.box_max, self.v_max, self.a_max, math.degrees(self.w_max), self.watchdog_s,
+                self.a_stop, math.degrees(self.alpha_stop), *home]
+        self._reply(req.seq, " ".join(fmt_num(v) for v in vals))
 
     def _cmd_status(self, req: Request) -> None:
+        if not self._no_args(req):
+            return
         p, _, _, R, _ = self.state_at(self.now)
-        rv = matrix_to_rotvec(R)
+        rv = canonical_rotvec(matrix_to_rotvec(R))
         moving = 1 if self._moving_at(self.now) else 0
-        queued = sum(1 for s in self.segments if s.t0 > self.now)
+        queued = sum(1 for s in self.segments if s.t0 > self.now and s.commanded)
         fault = self.fault or "none"
-        self._reply(req.seq, " ".join(f"{v:.4f}" for v in (*p, *rv))
-                    + f" {moving} {self.segment_id} {queued} {self.now:.4f} {fault}")
+        self._reply(req.seq, " ".join(fmt_fixed(v) for v in (*p, *rv))
+                    + f" {moving} {self.segment_id} {queued} {fmt_fixed(self.now)} {fault}")
+
+    def _fault_code(self) -> int:
+        return 40 if self.fault == "watchdog" else 41
 
     def _cmd_home(self, req: Request) -> None:
-        if self.fault:
-            self._error(req.seq, 40 if self.fault == "watchdog" else 41)
+        if not self._no_args(req):
             return
-        p0 = self.state_at(self.now)[0]
+        if self.fault:
+            self._error(req.seq, self._fault_code())
+            return
+        self._stop_at(self.now)  # brake first (if moving); home starts where the arm comes to rest
+        t0 = max([self.now, *(s.t1 for s in self.segments)])
+        p0, _, _, R0, _ = self.state_at(t0)
         d = float(np.linalg.norm(self.home_T[:3, 3] - p0))
-        # a rest-to-rest quintic peaks at 1.875·d/T in speed and 5.77·d/T² in acceleration
-        T = max(1.0, 1.875 * d / (0.5 * self.v_max), math.sqrt(5.78 * d / (0.5 * self.a_max)), 3.0)
-        self._queue_segment(req.seq, 0, self.home_T[:3, 3], self.home_T[:3, :3], T, np.zeros(3), np.zeros(3),
-                            replace=True)
+        theta = float(np.linalg.norm(matrix_to_rotvec(R0.T @ self.home_T[:3, :3])))
+        # a rest-to-rest quintic peaks at 1.875·d/T in speed and 10/√3·d/T² in acceleration
+        T = max(HOME_MIN_S, 1.875 * d / (0.5 * self.v_max), math.sqrt(10 / math.sqrt(3) * d / (0.5 * self.a_max)),
+                1.875 * theta / (0.5 * self.w_max))
+        seg = self._plan(0, self.home_T[:3, 3], self.home_T[:3, :3], T, np.zeros(3), np.zeros(3), t0,
+                         (p0, np.zeros(3), np.zeros(3), R0, np.zeros(3)))
+        code = self._check(seg, p0)
+        if code:  # cannot happen (a straight rest-to-rest move into the box); kept as the last gate
+            self._error(req.seq, code)
+            return
+        self.segments.append(seg)
+        self._reply(req.seq, f"{fmt_fixed(seg.t0)} {fmt_fixed(seg.t1)}")
 
     def _parse_segment(self, req: Request):
-        if len(req.args) not in (8, 14):
+        args = list(req.args)
+        profile = "quintic"
+        if args and args[-1].lower().startswith("profile="):
+            profile = args.pop()[len("profile="):].lower()
+        if len(args) not in (8, 14):
             return 2
-        try:
-            vals = [float(a) for a in req.args]
-        except ValueError:
+        lowest = 0 if self.session == "1.0" else 1  # 1.1 reserves id 0 for HOME
+        if not args[0].isdigit() or not lowest <= int(args[0]) <= 65535:
             return 2
-        if not all(math.isfinite(v) for v in vals) or vals[0] != int(vals[0]) or vals[0] < 0:
+        vals = [parse_number(a) for a in args[1:]]
+        if any(v is None for v in vals):
             return 2
-        seg_id = int(vals[0])
-        p1 = np.array(vals[1:4])
-        R1 = rotvec_to_matrix(np.array(vals[4:7]))
-        T = vals[7]
-        if not (0.0 < T <= MAX_DURATION_S):
-            return 11
-        v1 = np.array(vals[8:11]) if len(vals) == 14 else np.zeros(3)
-        w1 = np.array(vals[11:14]) if len(vals) == 14 else np.zeros(3)
-        return seg_id, p1, R1, T, v1, w1
+        return int(args[0]), vals, profile
 
     def _cmd_seg(self, req: Request, replace: bool = False) -> None:
-        if self.fault:
-            self._error(req.seq, 40 if self.fault == "watchdog" else 41)
-            return
         parsed = self._parse_segment(req)
         if isinstance(parsed, int):
             self._error(req.seq, parsed)
             return
-        self._queue_segment(req.seq, *parsed, replace=replace)
+        seg_id, vals, profile = parsed
+        if self.fault:
+            self._error(req.seq, self._fault_code())
+            return
+        T = vals[6]
+        if not (0.0 < T <= MAX_DURATION_S):
+            self._error(req.seq, 11)
+            return
+        if profile not in PROFILES:
+            self._error(req.seq, 15)
+            return
+        p1 = np.array(vals[0:3])
+        R1 = rotvec_to_matrix(np.array(vals[3:6]))
+        v1 = np.array(vals[7:10]) if len(vals) == 13 else np.zeros(3)
+        w1 = np.array(vals[10:13]) if len(vals) == 13 else np.zeros(3)
+        self._queue_segment(req.seq, seg_id, p1, R1, T, v1, w1, replace=replace)
 
     def _cmd_segnow(self, req: Request) -> None:
         self._cmd_seg(req, replace=True)
@@ -378,18 +605,15 @@ class RobotEmulator:
             t0 = max(self.now, last)
             start = self._end_state() if last > self.now else self.state_at(self.now)
         seg = self._plan(seg_id, p1, R1, T, v1, w1, t0, start)
-        if isinstance(seg, int):
-            self._error(seq, seg)
+        code = self._check(seg, start[0])
+        if code:
+            self._error(seq, code)
             return
         if replace:
             self._cut_at(t0)
-            for s in self.segments:
-                if s.t1 > t0:
-                    s.t1 = t0
-                    s.done_reported = True
         self.segments.append(seg)
         self.last_segment_id = seg_id
-        self._reply(seq, f"{seg.t0:.4f} {seg.t1:.4f}")
+        self._reply(seq, f"{fmt_fixed(seg.t0)} {fmt_fixed(seg.t1)}")
 
     def _end_state(self):
         last = max(self.segments, key=lambda s: s.t1)

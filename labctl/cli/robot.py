@@ -1,0 +1,56 @@
+"""``labctl robot …``: the robot controller's dialect, from the host side.
+
+``labctl robot conformance --port PORT`` runs the conformance suite of docs/protocols/robot.md
+against any controller (a lab's bridge, the reference served by ``labctl sim serve``) and prints
+PASS/FAIL per named rule. Exit 0 all pass, 1 some fail, 3 cannot talk to the controller.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import click
+
+from ._common import get_ctx, json_option, to_json
+
+
+@click.group("robot")
+def robot_group() -> None:
+    """The robot controller: conformance of its dialect."""
+
+
+@robot_group.command("conformance")
+@click.option("--port", required=True, help="Serial port or pyserial URL of the controller.")
+@click.option("--baud", type=click.IntRange(min=1), default=9600, show_default=True)
+@click.option("--no-motion", is_flag=True, help="Only framing and error replies; never command motion.")
+@click.option("--only", "only", multiple=True, metavar="GLOB",
+              help="Run only rules matching GLOB (repeatable), e.g. 'watchdog.*'.")
+@click.option("--timeout", "timeout_s", type=click.FloatRange(min=0.05), default=2.0, show_default=True,
+              help="Seconds to wait for each reply.")
+@json_option
+def conformance_cmd(port: str, baud: int, no_motion: bool, only: tuple[str, ...], timeout_s: float) -> int:
+    """Check a robot controller against docs/protocols/robot.md; PASS/FAIL per rule."""
+    from ..conformance.robot import CannotTalk, run_suite
+
+    ctx = get_ctx()
+
+    def show(res) -> None:
+        if not ctx.json:
+            click.echo(f"{res.status:4}  {res.rule:26} {res.detail}")
+            sys.stdout.flush()
+
+    try:
+        results = run_suite(port, baud, no_motion=no_motion, only=list(only), log=show, timeout_s=timeout_s)
+    except CannotTalk as exc:
+        click.echo(f"labctl: error: robot controller on {port}: {exc}", err=True)
+        return 3
+    failed = [r for r in results if r.status == "FAIL"]
+    if ctx.json:
+        sys.stdout.write(to_json({"port": port, "passed": not failed,
+                                  "results": [r.__dict__ for r in results]}) + "\n")
+    else:
+        n_pass = sum(r.status == "PASS" for r in results)
+        n_skip = sum(r.status == "SKIP" for r in results)
+        click.echo(f"{n_pass} passed, {len(failed)} failed, {n_skip} skipped"
+                   + (f": {', '.join(r.rule for r in failed)}" if failed else ""))
+    return 1 if failed else 0
