@@ -164,9 +164,9 @@ def ml_prediction(scn: Scenario, z: np.ndarray, n_frames: int, horizon_s: float)
         return (positions(fam, u * sc, t) - zz).reshape(-1)
 
     if fam == "zigzag":
-        # linear in the rest for a fixed t_c, only piecewise smooth in t_c: profile t_c on a 5 ms grid
+        # linear in the rest for a fixed t_c, only piecewise smooth in t_c: profile t_c on a 5 ms grid (±1 s)
         best = None
-        for tc in th0[6] + np.linspace(-0.2, 0.2, 81):
+        for tc in th0[6] + np.linspace(-1.0, 1.0, 401):
             if not t[0] < tc < t[-1]:
                 continue
             d = (t - tc)[:, None]

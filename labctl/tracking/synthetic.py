@@ -178,7 +178,7 @@ def compare_with_bound(make_tracker, family: str, speed_mm_s: float, *, runs: in
     ml_errs = {t: [] for t in instants}
     nees = {t: [] for t in instants}
     crb = {}
-    for r in range(runs):
+    for _ in range(runs):
         scn = make_scenario(family, speed_mm_s, duration, rate_hz=rate_hz, sigma_mm=sigma_mm,
                             heading_rad=rng.uniform(-np.pi, np.pi), corner_s=corner_s)
         z = scn.measure(rng)

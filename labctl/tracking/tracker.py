@@ -230,6 +230,7 @@ class MarkerTracker:
         init_curvature_sigma: float = 1 / 80,
         init_accel_sigma: float = 50.0,
         max_misses: int = 10,
+        corner_window_s: float = 0.6,
     ) -> None:
         if model not in MODELS:
             raise TrackingError(f"unknown tracking model {model!r} (expected {', '.join(MODELS)})")
@@ -253,6 +254,7 @@ class MarkerTracker:
         self.model = model
         self.gate_sigma = float(gate_sigma)
         self.max_misses = int(max_misses)
+        self._corner_window = float(corner_window_s)
         self._q = float(process_noise) ** 2
         self._q_turn = float(curvature_noise) ** 2
         self._man_rel = float(maneuver_noise)
@@ -312,6 +314,12 @@ class MarkerTracker:
             kf.R = self._R.copy()
             self._kfs.append(kf)
         self._imm = None
+        self._history: list = []  # IMM only: (t, z, CV x, P, cumulative CV NIS, μ) per frame
+        self._nis = 0.0
+        self._in_corner = False
+        self._refits = 0
+        self._detect_at = 0.0
+        self.corners: list[float] = []  # estimated corner times (s) the IMM restarted its quiet modes at
 
     @property
     def initialized(self) -> bool:
@@ -436,12 +444,105 @@ class MarkerTracker:
             return False
         if self._imm is not None:
             self._imm.update(zc)
+            self._after_imm_update(t, z)
         else:
             self._kfs[0].update(zc)
         self._t = t
         self._updates += 1
         self._misses = 0
         return True
+
+    # -- corners: the IMM's manoeuvre detection, then a restart of the quiet modes at the corner -----------
+
+    def _after_imm_update(self, t: float, z: np.ndarray) -> None:
+        """Keep the recent history; when the manoeuvre mode takes over, restart the quiet modes at the corner.
+
+        The IMM's mixing lets the manoeuvre mode's short-memory velocity leak into the quiet modes
+        for as long as it holds probability, so after a corner they would learn the new leg slowly.
+        Instead, once ``P(man) > ½`` (a few frames after the corner), the corner frame is estimated
+        by maximum likelihood over the recent frames (the old track's innovations before it, a
+        straight new leg from the old track's position after it: a GLR test, Willsky & Jones 1976)
+        and the quiet modes are re-run from there with a diffuse velocity, so the new leg is the
+        least-squares fit of every frame since the corner, anchored at the corner.
+        """
+        cv = self._kfs[0]
+        Sinv = np.linalg.inv(cv.S)
+        self._nis += float(cv.y[:, 0] @ Sinv @ cv.y[:, 0]) + float(np.log(np.linalg.det(cv.S)))
+        self._history.append((t, z.copy(), cv.x.copy(), cv.P.copy(), self._nis, self._imm.mu.copy()))
+        while self._history and t - self._history[0][0] > self._corner_window:
+            self._history.pop(0)
+        if self._refits > 0:  # refine the corner with the frames that came since it was detected
+            self._refits -= 1
+            self._restart_at_corner(self._detect_at)
+            return
+        if self._imm.mu[2] < 0.5 and not self._glr_detects():
+            self._in_corner = False
+            return
+        if self._in_corner or len(self._history) < 4:
+            return
+        self._in_corner = True
+        self._detect_at = t
+        self._refits = 6
+        self._restart_at_corner(t)
+
+    def _glr_detects(self, threshold: float = 25.0) -> bool:
+        """A slow corner the manoeuvre mode misses: the GLR statistic (no corner vs the best corner) > threshold."""
+        hist = self._history
+        if len(hist) < 8 or hist[-1][4] - hist[-6][4] < 5 * (2.0 + np.log(np.linalg.det(self._kfs[0].S))):
+            return False  # the old track still explains the last frames (expected NIS 2 per frame)
+        cost, _ = self._best_corner(hist[-1][0])
+        return hist[-1][4] - cost > threshold
+
+    def _best_corner(self, t_detect: float) -> tuple[float, int]:
+        hist = self._history
+        R = self._R[0, 0]
+        best = (np.inf, 1)
+        for j in range(1, len(hist) - 1):  # corner between frames j-1 and j, up to the detection
+            if hist[j][0] > t_detect:
+                break
+            t0, _, x0, P0, nis0, _ = hist[j - 1]
+            p0 = x0[[0, 2], 0]
+            ts = np.array([h[0] for h in hist[j:]]) - t0
+            zs = np.array([h[1] for h in hist[j:]])
+            # new leg p0 + v2·τ (p0 from the old track): v2 by least squares; cost in the NIS units of the old track
+            v2 = (ts @ (zs - p0)) / (ts @ ts)
+            cost = nis0 + float(np.sum((zs - p0 - np.outer(ts, v2)) ** 2)) / R + len(ts) * np.log(R * R)
+            if cost < best[0]:
+                best = (cost, j)
+        return best
+
+    def _restart_at_corner(self, t_detect: float) -> None:
+        hist = self._history
+        j = self._best_corner(t_detect)[1]
+        t0, _, x0, P0, _, mu0 = hist[j - 1]
+        if self._refits < 6 and self.corners:  # a refinement of the same corner
+            self.corners[-1] = float(t0)
+        else:
+            self.corners.append(float(t0))
+        speed_sigma = self._init_sigmas[0]
+        for kf, mode in zip(self._kfs, self._modes):
+            x = x0.copy()
+            P = P0.copy()
+            P[np.ix_(self._vel, self._vel)] = 0.0
+            P[np.ix_(self._pos, self._vel)] = 0.0
+            P[np.ix_(self._vel, self._pos)] = 0.0
+            P[self._vel, self._vel] = speed_sigma**2
+            kf.x, kf.P = x, P  # the curvature is kept: the new leg is likely shaped like the old
+            tp = t0
+            quiet = _Mode("cv", self._q, self._q_turn) if mode.kind == "man" else mode
+            for th, zh, *_ in hist[j:]:
+                F, Q = self._matrices(quiet, th - tp)
+                if F is None:
+                    kf.dt, kf.Q = th - tp, Q
+                    kf.predict()
+                else:
+                    kf.predict(F=F, Q=Q)
+                kf.update(zh.reshape(2, 1))
+                tp = th
+        quiet = mu0[0] + mu0[1]
+        self._imm.mu = np.array([mu0[0] / quiet * 0.98, mu0[1] / quiet * 0.98, 0.02])
+        self._imm._compute_mixing_probabilities()
+        self._imm._compute_state_estimate()
 
     # -- estimates and predictions -------------------------------------------------------------
 
