@@ -49,7 +49,7 @@ def _bound_table(quick: bool, models=None) -> list[dict]:
     from ..tracking.synthetic import compare_with_bound
 
     sigma, fps = TrackingConfig().measurement_noise_mm, RunConfig().fps
-    runs = 6 if quick else 30
+    runs = 6 if quick else 16
     speeds = (12.0, 100.0) if quick else SPEEDS
     rows = []
     for family in FAMILIES:

@@ -314,7 +314,7 @@ class MarkerTracker:
             kf.R = self._R.copy()
             self._kfs.append(kf)
         self._imm = None
-        self._history: list = []  # IMM only: (t, z, CV x, P, cumulative CV NIS, μ) per frame
+        self._history: list = []  # IMM only: (t, z, quiet x, P, cumulative NIS, μ) per frame
         self._nis = 0.0
         self._in_corner = False
         self._refits = 0
@@ -361,7 +361,7 @@ class MarkerTracker:
             c = self._curve_prior  # the prior odds of a curve, also after a manoeuvre
             M = np.array([[1 - s, s / 2, s / 2], [s / 2, 1 - s, s / 2], [e * (1 - c), e * c, 1 - e]])
             self._imm = _LogIMM(self._kfs, np.array([(1 - c) * 0.99, c * 0.99, 0.01]), M)
-        self._t = t
+        self._t = self._t_start = t
         self._updates = 1
         self._misses = 0
 
@@ -465,12 +465,14 @@ class MarkerTracker:
         and the quiet modes are re-run from there with a diffuse velocity, so the new leg is the
         least-squares fit of every frame since the corner, anchored at the corner.
         """
-        cv = self._kfs[0]
-        Sinv = np.linalg.inv(cv.S)
-        self._nis += float(cv.y[:, 0] @ Sinv @ cv.y[:, 0]) + float(np.log(np.linalg.det(cv.S)))
-        self._history.append((t, z.copy(), cv.x.copy(), cv.P.copy(), self._nis, self._imm.mu.copy()))
+        quiet = self._kfs[int(np.argmax(self._imm.mu[:2]))]  # the old track: the likelier of CV and CT
+        Sinv = np.linalg.inv(quiet.S)
+        self._nis += float(quiet.y[:, 0] @ Sinv @ quiet.y[:, 0]) + float(np.log(np.linalg.det(quiet.S)))
+        self._history.append((t, z.copy(), quiet.x.copy(), quiet.P.copy(), self._nis, self._imm.mu.copy()))
         while self._history and t - self._history[0][0] > self._corner_window:
             self._history.pop(0)
+        if t - self._t_start < 2 * self._corner_window:
+            return  # the track's first frames: the quiet modes are still converging, not turning a corner
         if self._refits > 0:  # refine the corner with the frames that came since it was detected
             self._refits -= 1
             self._restart_at_corner(self._detect_at)
@@ -488,7 +490,7 @@ class MarkerTracker:
     def _glr_detects(self, threshold: float = 25.0) -> bool:
         """A slow corner the manoeuvre mode misses: the GLR statistic (no corner vs the best corner) > threshold."""
         hist = self._history
-        if len(hist) < 8 or hist[-1][4] - hist[-6][4] < 5 * (2.0 + np.log(np.linalg.det(self._kfs[0].S))):
+        if len(hist) < 8 or hist[-1][4] - hist[-6][4] < 5 * (2.0 + np.log(self._R[0, 0] ** 2)):
             return False  # the old track still explains the last frames (expected NIS 2 per frame)
         cost, _ = self._best_corner(hist[-1][0])
         return hist[-1][4] - cost > threshold
