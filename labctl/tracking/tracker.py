@@ -13,8 +13,9 @@ Models (Bar-Shalom, Li & Kirubarajan 2001, ch. 6 and §11.7):
   nonlinear mean, Jacobian covariance), for arcs and circles. The curvature's prior is the
   table's tightest radius (80 mm in the lab's programs), the same at every speed;
 * ``imm`` — interacting multiple models of that CV, that CT and a *manoeuvre* mode (CV with a
-  large white-acceleration noise) that absorbs corners such as a zigzag's, after which the
-  quiet modes take over again;
+  large white-acceleration noise, proportional to the speed) that absorbs corners such as a
+  zigzag's; on detecting one, the quiet modes restart at the corner's ML time (a GLR over the
+  recent frames) and take over again;
 * ``ca`` — constant acceleration, kept as a standalone comparison only (measured in
   docs/notes/planning.md: it costs 4–10× on lines and has the wrong shape for arcs).
 
@@ -203,10 +204,14 @@ class MarkerTracker:
 
     ``model``: ``"cv"``, ``"ct"``, ``"imm"`` or ``"ca"`` (see the module doc). ``process_noise``
     is the square root of the white-acceleration density (mm/s^1.5) of the quiet CV and CT
-    modes; ``turn_noise`` that of the CT turn rate's random walk (rad/s^1.5);
-    ``maneuver_noise`` that of the IMM's manoeuvre mode; ``jerk_noise`` that of the standalone
-    CA model (mm/s^2.5). ``imm_switch_prob`` is the per-update probability of leaving a quiet
-    mode (half to each other mode); the manoeuvre mode is left with ``maneuver_exit_prob``.
+    modes; ``curvature_noise`` that of the CT curvature's random walk (mm⁻¹/s^0.5);
+    ``maneuver_noise`` that of the IMM's manoeuvre mode *per mm/s of speed* (a corner turns the
+    velocity, so its size scales with the speed); ``jerk_noise`` that of the standalone CA model
+    (mm/s^2.5). ``imm_switch_prob`` is the per-update probability of leaving a quiet mode (half
+    to each other mode); the manoeuvre mode is left with ``maneuver_exit_prob``, to CT with the
+    prior odds ``curve_prior`` (also the initial odds of a curve). ``init_curvature_sigma`` is the
+    curvature prior (the table's tightest radius). ``corner_window_s``: frames kept for the
+    corner restart (see :meth:`_after_imm_update`).
     ``measurement_noise_mm`` is the centroid's standard deviation per axis on the table plane.
     A measurement whose Mahalanobis distance from the prediction exceeds ``gate_sigma`` is
     rejected; after ``max_misses`` consecutive rejections the track is restarted on the newest
