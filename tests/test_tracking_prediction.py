@@ -28,14 +28,15 @@ def test_cv_on_a_line_at_10_mm_s_predicts_5_s_ahead_within_half_a_millimetre():
     assert _rms(errs) <= 0.5
 
 
-def test_imm_on_a_100_mm_arc_at_10_mm_s_predicts_5_s_ahead_within_8_mm():
+def test_imm_on_a_100_mm_arc_at_10_mm_s_predicts_5_s_ahead_within_1_mm():
+    """The CV+CA IMM managed 5.9 mm here; the coordinated-turn mode has the arc's shape (issue 18)."""
     traj = make_trajectory("arc", 10.0, duration_s=30.0)
     errs = []
     for seed in range(2):
-        trk = MarkerTracker("imm", process_noise=0.05, measurement_noise_mm=0.5, jerk_noise=0.1, imm_switch_prob=0.002)
+        trk = MarkerTracker("imm", process_noise=0.01, measurement_noise_mm=0.5)
         errs.append(prediction_errors(trk, traj, [5.0], warmup_s=10.0, rng=np.random.default_rng(seed))[5.0])
-        assert trk.mode_probabilities[1] > 0.8  # the arc is an accelerating motion: CA dominates
-    assert _rms(errs) <= 8.0
+        assert trk.mode_names[1] == "ct" and trk.mode_probabilities[1] > 0.8  # the arc is a turn: CT dominates
+    assert _rms(errs) <= 1.0
     # and the CV model alone cannot do it: the curvature costs it ~12 mm at 5 s
     cv = prediction_errors(MarkerTracker("cv", process_noise=0.05, measurement_noise_mm=0.5), traj, [5.0],
                            rng=np.random.default_rng(0))[5.0]

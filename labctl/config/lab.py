@@ -47,13 +47,15 @@ class ViewingConfig:
 
 @dataclass(frozen=True)
 class TrackingConfig:
-    model: Literal["cv", "ca", "imm"] = "cv"
-    process_noise: float = 0.5  # sqrt of the white-acceleration spectral density (mm/s^1.5)
+    model: Literal["cv", "ct", "ca", "imm"] = "imm"  # chosen by measurement: docs/notes/planning.md
+    process_noise: float = 0.01  # sqrt of the white-acceleration spectral density (mm/s^1.5); near 0: exact paths
     measurement_noise_mm: float = 0.7
     gate_sigma: float = 4.0
     window_px: int = 48
     plane_height_mm: float = 30.0  # height of the plane the fixed camera's centroids are mapped onto
-    min_track_s: float = 1.0  # track this long before planning the interception
+    min_track_s: float = 1.0  # plan the interception after tracking this long at the latest
+    commit_margin_mm: float = 10.0  # ... or sooner, once the 3-sigma prediction error at commit_horizon_s is this small
+    commit_horizon_s: float = 1.5  # about the interception's duration
 
 
 @dataclass(frozen=True)

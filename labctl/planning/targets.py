@@ -145,3 +145,32 @@ def standard_view_path(table_path: MarkerPath, t_ref: float, marker_center_w, ma
     R, extra = _flange_offset(T[:3, :3], T_f_c)
     carried = _CarriedMarker(table_path, float(t_ref), c[:2].copy())
     return TargetPath(carried, T[:3, 3] - c + extra, R, float(c[2]))
+
+
+def prediction_margin_mm(cov, n_sigma: float = 3.0) -> float:
+    """Radius (mm) of the circle that holds the ``n_sigma`` error ellipse of a predicted marker position.
+
+    ``cov`` is the prediction's 2×2 table-plane covariance (mm², e.g. ``MarkerTracker.predict``):
+    ``n_sigma · sqrt(λ_max)``. The planner commits to an interception only once this is small
+    at the arrival horizon, and sizes the initial view's margin with it (issue 18; paper §4.2-4.3).
+    """
+    c = np.asarray(cov, dtype=float).reshape(2, 2)
+    if not np.all(np.isfinite(c)):
+        raise PlanningError("prediction covariance must be finite")
+    lam = float(np.max(np.linalg.eigvalsh(0.5 * (c + c.T))))
+    return float(n_sigma) * float(np.sqrt(max(lam, 0.0)))
+
+
+def viewing_distance_with_margin(distance_mm: float, margin_mm: float, half_fov_rad: float,
+                                 marker_radius_mm: float = 0.0, fill: float = 0.5) -> float:
+    """The initial viewing distance (mm), lengthened if the prediction is too uncertain for it.
+
+    A marker anywhere within ``margin_mm`` of the predicted point (plus its own radius) must stay
+    inside the central ``fill`` of the mobile camera's half field of view ``half_fov_rad``, so the
+    distance is at least ``(margin + radius) / (fill · tan(half_fov))``; never shorter than asked.
+    """
+    if not (np.isfinite(half_fov_rad) and 0.0 < half_fov_rad < np.pi / 2 and 0.0 < fill <= 1.0):
+        raise PlanningError(f"half field of view must be in (0, 90°) and fill in (0, 1], "
+                            f"got {half_fov_rad!r}, {fill!r}")
+    need = (max(float(margin_mm), 0.0) + max(float(marker_radius_mm), 0.0)) / (fill * np.tan(half_fov_rad))
+    return float(max(float(distance_mm), need))

@@ -2,11 +2,12 @@
 
 from .models import axis_process_noise, axis_transition, plane_matrices, position_matrix
 from .synthetic import SHAPES, TableTrajectory, make_trajectory, prediction_errors, sample_measurements
-from .tracker import MarkerTracker, PredictedPath, TrackingError
+from .tracker import MarkerTracker, MixturePath, PredictedPath, TrackingError
 
 __all__ = [
     "SHAPES",
     "MarkerTracker",
+    "MixturePath",
     "PredictedPath",
     "TableTrajectory",
     "TrackingError",

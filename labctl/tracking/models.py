@@ -8,7 +8,9 @@ frames, irregular frame times, and predictions far ahead all use the same formul
 Bar-Shalom, Li & Kirubarajan 2001, §6.2).
 
 State layout (filterpy's ``order_by_dim`` layout): ``[x, vx, y, vy]`` for constant velocity and
-``[x, vx, ax, y, vy, ay]`` for constant acceleration. Units: mm, s.
+``[x, vx, ax, y, vy, ay]`` for constant acceleration; the coordinated-turn model and the IMM's
+modes share ``[x, vx, y, vy, κ]`` (κ the path curvature, 1/mm, so the turn rate is κ·|v|;
+Bar-Shalom et al. §11.7). Units: mm, s, rad.
 """
 
 from __future__ import annotations
@@ -79,3 +81,67 @@ def position_matrix(dim_axis: int) -> np.ndarray:
     H[0, 0] = 1.0
     H[1, dim_axis] = 1.0
     return H
+
+
+# -- the 5-D state shared by the IMM's modes: [x, vx, y, vy, κ] (κ: path curvature, 1/mm) -------------
+
+TURN_DIM = 5
+
+
+def turn_transition(x, dt: float) -> np.ndarray:
+    """Coordinated-turn mean propagation of ``x = [x, vx, y, vy, κ]`` over ``dt`` s (constant speed and curvature).
+
+    Bar-Shalom, Li & Kirubarajan 2001, §11.7.2, with the turn rate written as ``ω = κ·|v|``: the
+    velocity rotates by ``ω dt``, the position moves along the circle of radius ``1/κ``; exact
+    (series) as ``ω → 0``, where it is the constant-velocity motion. The curvature, unlike ω,
+    does not depend on the speed, so one prior on it (the table's tightest radius) fits every speed.
+    """
+    x = np.asarray(x, dtype=float).reshape(-1)
+    vx, vy = x[1], x[3]
+    w = x[4] * np.hypot(vx, vy)
+    wt = w * dt
+    if abs(wt) < 1e-4:
+        s_over = dt * (1.0 - wt**2 / 6.0)  # sin(ω dt)/ω
+        c_over = dt * (wt / 2.0 - wt**3 / 24.0)  # (1 - cos(ω dt))/ω
+    else:
+        s_over = np.sin(wt) / w
+        c_over = (1.0 - np.cos(wt)) / w
+    c, s = np.cos(wt), np.sin(wt)
+    return np.array([
+        x[0] + s_over * vx - c_over * vy,
+        c * vx - s * vy,
+        x[2] + c_over * vx + s_over * vy,
+        s * vx + c * vy,
+        x[4],
+    ])
+
+
+def turn_jacobian(x, dt: float) -> np.ndarray:
+    """d turn_transition / dx (5×5) by central differences (steps scaled to each component)."""
+    x = np.asarray(x, dtype=float).reshape(-1)
+    J = np.zeros((5, 5))
+    J[0, 0] = J[2, 2] = J[4, 4] = 1.0  # position and curvature enter linearly / unchanged
+    speed = max(np.hypot(x[1], x[3]), 1e-3)
+    for k, h in ((1, 1e-5 * speed), (3, 1e-5 * speed), (4, 1e-9)):
+        e = np.zeros(5)
+        e[k] = h
+        J[:4, k] = (turn_transition(x + e, dt)[:4] - turn_transition(x - e, dt)[:4]) / (2 * h)
+    return J
+
+
+def turn_process_noise(dt: float, q_acc: float, q_curv: float) -> np.ndarray:
+    """Q (5×5) of the 5-D state: white acceleration (density ``q_acc`` mm²/s³) on each axis and a
+    random-walk curvature (density ``q_curv`` mm⁻²/s)."""
+    Q = np.zeros((5, 5))
+    Q1 = axis_process_noise(1, dt, q_acc)
+    Q[np.ix_([0, 1], [0, 1])] = Q1
+    Q[np.ix_([2, 3], [2, 3])] = Q1
+    Q[4, 4] = q_curv * dt
+    return Q
+
+
+def straight_transition_5d(dt: float) -> np.ndarray:
+    """F (5×5) of constant-velocity motion in the 5-D state; κ is carried along unused."""
+    F = np.eye(5)
+    F[0, 1] = F[2, 3] = dt
+    return F

@@ -152,3 +152,60 @@ def prediction_errors(tracker, traj: TableTrajectory, horizons, warmup_s: float 
             mean, _ = tracker.predict(t + h)
             errs[h].append(float(np.hypot(*(mean - true_p))))
     return {h: np.array(e) for h, e in errs.items()}
+
+
+def compare_with_bound(make_tracker, family: str, speed_mm_s: float, *, runs: int = 30, track_s=(2.0, 4.0),
+                       horizon_s: float = 5.0, rate_hz: float = 30.0, sigma_mm: float = 0.7, with_ml: bool = True,
+                       seed: int = 0, after_corner_s=(), corner_s: float = 2.0) -> dict:
+    """Monte-Carlo of a tracker's ``horizon_s`` prediction against the bound (:mod:`.bounds`) on one family.
+
+    ``make_tracker()`` builds a fresh tracker; each run feeds it the frames of a
+    :func:`~.bounds.make_scenario` path (random heading) and, after each of ``track_s`` seconds
+    of tracking, predicts ``horizon_s`` ahead. For the zigzag, ``after_corner_s`` adds the
+    instants that long after the corner (at ``corner_s``). Returns, per instant (keyed by its
+    time in s): the tracker's RMS error (mm), the Cramér-Rao bound on it, the RMS of the ML fit on
+    the same measurements (if ``with_ml``), and the tracker's mean NEES of that prediction (2 dof)
+    with its two-sided 95 % bounds for ``runs`` runs.
+    """
+    from scipy.stats import chi2
+
+    from .bounds import crb_prediction_rms, make_scenario, ml_prediction
+
+    instants = sorted({float(t) for t in track_s} | {corner_s + float(t) for t in after_corner_s})
+    duration = max(instants)
+    rng = np.random.default_rng(seed)
+    errs = {t: [] for t in instants}
+    ml_errs = {t: [] for t in instants}
+    nees = {t: [] for t in instants}
+    crb = {}
+    for _ in range(runs):
+        scn = make_scenario(family, speed_mm_s, duration, rate_hz=rate_hz, sigma_mm=sigma_mm,
+                            heading_rad=rng.uniform(-np.pi, np.pi), corner_s=corner_s)
+        z = scn.measure(rng)
+        trk = make_tracker()
+        marks = {int(round(t * rate_hz)): t for t in instants}
+        for k, (t, zk) in enumerate(zip(scn.times, z)):
+            trk.update(t, zk)
+            if k not in marks:
+                continue
+            ti = marks[k]
+            truth = scn.current_motion(t, [t + horizon_s])[0]
+            mean, cov = trk.predict(t + horizon_s)
+            e = mean - truth
+            errs[ti].append(e)
+            nees[ti].append(float(e @ np.linalg.solve(cov, e)))
+            if with_ml:
+                ml_errs[ti].append(ml_prediction(scn, z, k + 1, horizon_s) - truth)
+            if ti not in crb:  # the bound does not depend on the heading
+                crb[ti] = crb_prediction_rms(scn, k + 1, horizon_s)
+    lo, hi = chi2.ppf(0.025, 2 * runs) / runs, chi2.ppf(0.975, 2 * runs) / runs
+    out = {}
+    for t in instants:
+        e = np.array(errs[t])
+        row = {"rms_mm": float(np.sqrt(np.mean(np.sum(e**2, axis=1)))), "crb_mm": crb[t],
+               "nees": float(np.mean(nees[t])), "nees_bounds": (float(lo), float(hi))}
+        if with_ml:
+            m = np.array(ml_errs[t])
+            row["ml_rms_mm"] = float(np.sqrt(np.mean(np.sum(m**2, axis=1))))
+        out[t] = row
+    return out

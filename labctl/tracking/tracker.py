@@ -1,9 +1,29 @@
-"""Marker tracking on the table plane: Kalman filter (CV, CA or IMM of both) with prediction.
+"""Marker tracking on the table plane: Kalman filters (CV, CT, CA, or an IMM) with prediction.
 
 Paper §4.2 (after its ref. [13], Croft, Fenton & Benhabib): the fixed camera's marker centroid,
 mapped through the calibration onto the table plane, updates a recursive Kalman filter; the
 one-step-ahead prediction keeps the search window on the marker and multiple-step-ahead
 predictions (the filter's extrapolation equations run forward) give the object's future path.
+
+Models (Bar-Shalom, Li & Kirubarajan 2001, ch. 6 and §11.7):
+
+* ``cv`` — constant velocity with near-zero white-acceleration noise: on a straight path it is
+  the least-squares line fit, the best the data allow;
+* ``ct`` — coordinated turn (constant speed and curvature κ, turn rate ω = κ·|v|; an EKF:
+  nonlinear mean, Jacobian covariance), for arcs and circles. The curvature's prior is the
+  table's tightest radius (80 mm in the lab's programs), the same at every speed;
+* ``imm`` — interacting multiple models of that CV, that CT and a *manoeuvre* mode (CV with a
+  large white-acceleration noise, proportional to the speed) that absorbs corners such as a
+  zigzag's; on detecting one, the quiet modes restart at the corner's ML time (a GLR over the
+  recent frames) and take over again;
+* ``ca`` — constant acceleration, kept as a standalone comparison only (measured in
+  docs/notes/planning.md: it costs 4–10× on lines and has the wrong shape for arcs).
+
+The CV, CT and manoeuvre modes share the state ``[x, vx, y, vy, κ]`` so the IMM can mix them.
+Long-horizon predictions propagate the CT mode's mean through the turn and its covariance by
+the cubature rule (2n points, Arasaratnam & Haykin 2009), which keeps the banana-shaped
+uncertainty of a poorly known turn rate honest; the manoeuvre mode extrapolates with the quiet
+CV noise (a corner is a transient, not a motion that continues).
 
 Built on filterpy 2.0.0 with its pitfalls avoided (DESIGN §4): measurements always go in as
 (2, 1) column vectors, ``update`` is never given an ``H`` override, H is built by hand rather
@@ -19,9 +39,18 @@ from typing import Literal
 import numpy as np
 from filterpy.kalman import IMMEstimator, KalmanFilter
 
-from .models import plane_matrices, position_matrix
+from .models import (
+    TURN_DIM,
+    plane_matrices,
+    position_matrix,
+    straight_transition_5d,
+    turn_jacobian,
+    turn_process_noise,
+    turn_transition,
+)
 
-ModelName = Literal["cv", "ca", "imm"]
+ModelName = Literal["cv", "ct", "ca", "imm"]
+MODELS = ("cv", "ct", "ca", "imm")
 
 
 class TrackingError(ValueError):
@@ -32,28 +61,64 @@ class TrackingError(ValueError):
     """
 
 
+def _turn_offsets(v: np.ndarray, w: float, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Displacements (N, 2) and velocities (N, 2) after times ``d`` of a turn at rate ``w`` from velocity ``v``."""
+    wt = w * d
+    c, s = np.cos(wt), np.sin(wt)
+    if abs(w) < 1e-9:
+        so, co = d, 0.5 * w * d * d
+    else:
+        so, co = s / w, (1.0 - c) / w
+    disp = np.column_stack([so * v[0] - co * v[1], co * v[0] + so * v[1]])
+    vel = np.column_stack([c * v[0] - s * v[1], s * v[0] + c * v[1]])
+    return disp, vel
+
+
 @dataclass(frozen=True)
 class PredictedPath:
     """The mean predicted marker path, a snapshot that no longer depends on the tracker.
 
-    ``p(t) = position + velocity·Δ + acceleration·Δ²/2`` with ``Δ = t - t_ref`` (table-plane mm,
-    s). This is exactly the Kalman mean extrapolation of the CV/CA models (and of an IMM with its
-    mode probabilities frozen at ``t_ref``), so it also gives the path's velocity and acceleration
-    analytically, as the interception planner needs (paper §4.3, G(t)).
+    With ``turn_rate`` ω = 0: ``p(t) = position + velocity·Δ + acceleration·Δ²/2`` (Δ = t − t_ref;
+    table-plane mm, s) — the CV/CA mean extrapolation. With ω ≠ 0 (and no acceleration) the
+    path is the coordinated turn: the velocity rotates at ω and the position follows the arc,
+    so G(t) is the true curve, not its tangent (paper §4.3). Velocities and accelerations are
+    analytic, as the interception planner needs.
     """
 
     t_ref: float
     position: np.ndarray
     velocity: np.ndarray
     acceleration: np.ndarray = field(default_factory=lambda: np.zeros(2))
+    turn_rate: float = 0.0
 
     def __call__(self, times) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Positions, velocities and accelerations, each (N, 2), at ``times`` (s)."""
-        d = np.atleast_1d(np.asarray(times, dtype=float))[:, None] - self.t_ref
-        p = self.position + self.velocity * d + 0.5 * self.acceleration * d * d
-        v = self.velocity + self.acceleration * d
-        a = np.broadcast_to(self.acceleration, p.shape).copy()
-        return p, v, a
+        d = np.atleast_1d(np.asarray(times, dtype=float)) - self.t_ref
+        if self.turn_rate == 0.0:
+            dd = d[:, None]
+            p = self.position + self.velocity * dd + 0.5 * self.acceleration * dd * dd
+            v = self.velocity + self.acceleration * dd
+            a = np.broadcast_to(self.acceleration, p.shape).copy()
+            return p, v, a
+        disp, v = _turn_offsets(np.asarray(self.velocity, float), float(self.turn_rate), d)
+        a = self.turn_rate * np.column_stack([-v[:, 1], v[:, 0]])
+        return self.position + disp, v, a
+
+
+@dataclass(frozen=True)
+class MixturePath:
+    """The IMM's mean path: ``Σ wᵢ pathᵢ(t)`` with the mode probabilities frozen at ``t_ref``."""
+
+    t_ref: float
+    weights: tuple[float, ...]
+    paths: tuple[PredictedPath, ...]
+
+    def __call__(self, times) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        out = [np.zeros((len(np.atleast_1d(times)), 2)) for _ in range(3)]
+        for w, path in zip(self.weights, self.paths):
+            for acc, part in zip(out, path(times)):
+                acc += w * part
+        return out[0], out[1], out[2]
 
 
 class _KalmanFilter2D(KalmanFilter):
@@ -74,54 +139,138 @@ class _KalmanFilter2D(KalmanFilter):
         return self._log_likelihood
 
 
+class _TurnFilter(_KalmanFilter2D):
+    """EKF of the coordinated turn: nonlinear mean propagation, Jacobian covariance, linear (x, y) update.
+
+    ``dt`` is set before each ``predict`` (filterpy's IMM calls ``predict()`` without arguments).
+    """
+
+    dt = 0.0
+
+    def predict(self, u=None, B=None, F=None, Q=None):
+        J = turn_jacobian(self.x, self.dt)
+        self.x = turn_transition(self.x, self.dt).reshape(-1, 1)
+        self.P = J @ self.P @ J.T + (self.Q if Q is None else Q)
+        self.x_prior = self.x.copy()
+        self.P_prior = self.P.copy()
+
+
+class _LogIMM(IMMEstimator):
+    """filterpy's IMM with the mode probabilities updated from log-likelihoods.
+
+    filterpy multiplies raw likelihoods, which underflow to its floor for every mode at once
+    when a fast corner makes all innovations large; then the probabilities go flat.
+    """
+
+    def update(self, z):
+        logl = np.empty(self.N)
+        for i, f in enumerate(self.filters):
+            f.update(z)
+            logl[i] = f.log_likelihood
+        w = np.log(np.maximum(self.cbar, 1e-300)) + logl
+        w = np.exp(w - w.max())
+        self.mu = w / w.sum()
+        self.likelihood = np.exp(logl - logl.max())
+        self._compute_mixing_probabilities()
+        self._compute_state_estimate()
+        self.x_post = self.x.copy()
+        self.P_post = self.P.copy()
+
+
+@dataclass(frozen=True)
+class _Mode:
+    kind: str  # "cv" | "ct" | "man" (manoeuvre) | "ca"
+    q: float  # white-acceleration (or jerk, for ca) spectral density
+    q_turn: float = 0.0  # curvature random-walk density (mm⁻²/s)
+
+
+def _cubature(x: np.ndarray, P: np.ndarray, fn) -> tuple[np.ndarray, np.ndarray]:
+    """Mean ``fn(x)`` and the cubature-rule covariance of ``fn`` over N(x, P) around it."""
+    n = len(x)
+    try:
+        L = np.linalg.cholesky(0.5 * (P + P.T))
+    except np.linalg.LinAlgError:
+        w, V = np.linalg.eigh(0.5 * (P + P.T))
+        L = V * np.sqrt(np.clip(w, 0.0, None))
+    S = np.sqrt(n) * L
+    m = fn(x)
+    pts = np.array([fn(x + S[:, k]) for k in range(n)] + [fn(x - S[:, k]) for k in range(n)])
+    d = pts - m
+    return m, d.T @ d / (2 * n)
+
+
 class MarkerTracker:
     """Track one marker centroid on the table plane and predict it at any future time.
 
-    ``model``: ``"cv"`` (constant velocity, white-acceleration noise of spectral density
-    ``process_noise²`` mm²/s³), ``"ca"`` (constant acceleration, white-jerk noise of density
-    ``jerk_noise²`` mm²/s⁵) or ``"imm"`` (interacting multiple models: that CV and that CA,
-    switching probability ``imm_switch_prob`` per update). ``measurement_noise_mm`` is the
-    centroid's standard deviation per axis on the table plane. A measurement whose Mahalanobis
-    distance from the prediction exceeds ``gate_sigma`` is rejected; after ``max_misses``
-    consecutive rejections the track is restarted on the newest measurement (the marker really
-    moved differently). Paper §4.2.
+    ``model``: ``"cv"``, ``"ct"``, ``"imm"`` or ``"ca"`` (see the module doc). ``process_noise``
+    is the square root of the white-acceleration density (mm/s^1.5) of the quiet CV and CT
+    modes; ``curvature_noise`` that of the CT curvature's random walk (mm⁻¹/s^0.5);
+    ``maneuver_noise`` that of the IMM's manoeuvre mode *per mm/s of speed* (a corner turns the
+    velocity, so its size scales with the speed); ``jerk_noise`` that of the standalone CA model
+    (mm/s^2.5). ``imm_switch_prob`` is the per-update probability of leaving a quiet mode (half
+    to each other mode); the manoeuvre mode is left with ``maneuver_exit_prob``, to CT with the
+    prior odds ``curve_prior`` (also the initial odds of a curve). ``init_curvature_sigma`` is the
+    curvature prior (the table's tightest radius). ``corner_window_s``: frames kept for the
+    corner restart (see :meth:`_after_imm_update`).
+    ``measurement_noise_mm`` is the centroid's standard deviation per axis on the table plane.
+    A measurement whose Mahalanobis distance from the prediction exceeds ``gate_sigma`` is
+    rejected; after ``max_misses`` consecutive rejections the track is restarted on the newest
+    measurement (the marker really moved differently). Paper §4.2.
     """
 
     def __init__(
         self,
-        model: ModelName = "cv",
-        process_noise: float = 5.0,
+        model: ModelName = "imm",
+        process_noise: float = 0.05,
         measurement_noise_mm: float = 0.7,
         gate_sigma: float = 4.0,
         *,
+        curvature_noise: float = 1e-5,
+        maneuver_noise: float = 3.0,
         jerk_noise: float = 2.0,
-        imm_switch_prob: float = 0.02,
+        imm_switch_prob: float = 1e-6,
+        maneuver_exit_prob: float = 0.3,
+        curve_prior: float = 0.2,
         init_speed_sigma: float = 150.0,
+        init_curvature_sigma: float = 1 / 80,
         init_accel_sigma: float = 50.0,
         max_misses: int = 10,
+        corner_window_s: float = 0.6,
     ) -> None:
-        if model not in ("cv", "ca", "imm"):
-            raise TrackingError(f"unknown tracking model {model!r} (expected cv, ca or imm)")
+        if model not in MODELS:
+            raise TrackingError(f"unknown tracking model {model!r} (expected {', '.join(MODELS)})")
         for name, value in (
             ("process_noise", process_noise),
             ("measurement_noise_mm", measurement_noise_mm),
             ("gate_sigma", gate_sigma),
+            ("curvature_noise", curvature_noise),
+            ("maneuver_noise", maneuver_noise),
             ("jerk_noise", jerk_noise),
             ("init_speed_sigma", init_speed_sigma),
+            ("init_curvature_sigma", init_curvature_sigma),
             ("init_accel_sigma", init_accel_sigma),
         ):
             if not np.isfinite(value) or value <= 0:
                 raise TrackingError(f"{name} must be a positive number, got {value!r}")
-        if not 0.0 < imm_switch_prob < 1.0:
-            raise TrackingError(f"imm_switch_prob must be in (0, 1), got {imm_switch_prob!r}")
+        for name, value in (("imm_switch_prob", imm_switch_prob), ("maneuver_exit_prob", maneuver_exit_prob),
+                            ("curve_prior", curve_prior)):
+            if not 0.0 < value < 1.0:
+                raise TrackingError(f"{name} must be in (0, 1), got {value!r}")
         self.model = model
         self.gate_sigma = float(gate_sigma)
         self.max_misses = int(max_misses)
-        self._q_cv = float(process_noise) ** 2
+        self._corner_window = float(corner_window_s)
+        self._q = float(process_noise) ** 2
+        self._q_turn = float(curvature_noise) ** 2
+        self._man_rel = float(maneuver_noise)
+        self._man_min_speed = 2.0  # mm/s
+        self._q_man_now = 0.0
         self._q_ca = float(jerk_noise) ** 2
         self._R = np.eye(2) * float(measurement_noise_mm) ** 2
-        self._init_sigmas = (float(init_speed_sigma), float(init_accel_sigma))
+        self._init_sigmas = (float(init_speed_sigma), float(init_curvature_sigma), float(init_accel_sigma))
         self._switch = float(imm_switch_prob)
+        self._exit = float(maneuver_exit_prob)
+        self._curve_prior = float(curve_prior)
         self.reset()
 
     @classmethod
@@ -133,6 +282,9 @@ class MarkerTracker:
             measurement_noise_mm=cfg.measurement_noise_mm,
             gate_sigma=cfg.gate_sigma,
         )
+        for name in ("curvature_noise", "maneuver_noise", "imm_switch_prob"):
+            if hasattr(cfg, name):
+                kw[name] = getattr(cfg, name)
         kw.update(overrides)
         return cls(**kw)
 
@@ -144,21 +296,35 @@ class MarkerTracker:
         self._updates = 0
         self._misses = 0
         self.last_mahalanobis: float | None = None
-        if self.model == "cv":
-            self._specs = [(1, self._q_cv, False)]
-        elif self.model == "ca":
-            self._specs = [(2, self._q_ca, False)]
+        quiet_cv = _Mode("cv", self._q)
+        quiet_ct = _Mode("ct", self._q, self._q_turn)
+        self._modes = {
+            "cv": [quiet_cv],
+            "ct": [quiet_ct],
+            "ca": [_Mode("ca", self._q_ca)],
+            "imm": [quiet_cv, quiet_ct, _Mode("man", 0.0)],
+        }[self.model]
+        if self.model == "ca":
+            self._pos, self._vel = [0, 3], [1, 4]
+            self._H = position_matrix(3)
+            dim = 6
         else:
-            self._specs = [(1, self._q_cv, True), (2, self._q_ca, False)]
-        self._dim_axis = 2 if self.model == "cv" else 3
-        self._H = position_matrix(self._dim_axis)
+            self._pos, self._vel = [0, 2], [1, 3]
+            self._H = np.array([[1.0, 0, 0, 0, 0], [0, 0, 1.0, 0, 0]])
+            dim = TURN_DIM
         self._kfs = []
-        for _ in self._specs:
-            kf = _KalmanFilter2D(dim_x=2 * self._dim_axis, dim_z=2)
+        for mode in self._modes:
+            kf = (_TurnFilter if mode.kind == "ct" else _KalmanFilter2D)(dim_x=dim, dim_z=2)
             kf.H = self._H.copy()
             kf.R = self._R.copy()
             self._kfs.append(kf)
         self._imm = None
+        self._history: list = []  # IMM only: (t, z, quiet x, P, cumulative NIS, μ) per frame
+        self._nis = 0.0
+        self._in_corner = False
+        self._refits = 0
+        self._detect_at = 0.0
+        self.corners: list[float] = []  # estimated corner times (s) the IMM restarted its quiet modes at
 
     @property
     def initialized(self) -> bool:
@@ -171,37 +337,60 @@ class MarkerTracker:
         return self._t
 
     @property
+    def mode_names(self) -> tuple[str, ...]:
+        """Names of the modes, in the order of :attr:`mode_probabilities` (``man``: manoeuvre)."""
+        return tuple(m.kind for m in self._modes)
+
+    @property
     def mode_probabilities(self) -> np.ndarray:
-        """IMM mode probabilities ``[P(CV), P(CA)]``; ``[1.]`` for a single model."""
+        """IMM mode probabilities in :attr:`mode_names` order (``[P(CV), P(CT), P(man)]``); ``[1.]`` for one model."""
         return np.array([1.0]) if self._imm is None else self._imm.mu.copy()
 
     def _start(self, t: float, z: np.ndarray) -> None:
-        speed_sigma, accel_sigma = self._init_sigmas
-        d = self._dim_axis
-        x = np.zeros((2 * d, 1))
-        x[0, 0], x[d, 0] = z
-        P = np.zeros((2 * d, 2 * d))
-        for base in (0, d):
-            P[base, base] = self._R[0, 0]
-            P[base + 1, base + 1] = speed_sigma**2
-            if d == 3:
-                P[base + 2, base + 2] = accel_sigma**2
-        for kf, (_, _, embed) in zip(self._kfs, self._specs):
+        speed_sigma, curvature_sigma, accel_sigma = self._init_sigmas
+        dim = self._kfs[0].dim_x
+        x = np.zeros((dim, 1))
+        x[self._pos, 0] = z
+        P = np.zeros((dim, dim))
+        P[self._pos, self._pos] = self._R[0, 0]
+        P[self._vel, self._vel] = speed_sigma**2
+        if self.model == "ca":
+            P[[2, 5], [2, 5]] = accel_sigma**2
+        else:
+            P[4, 4] = curvature_sigma**2
+        for kf in self._kfs:
             kf.x = x.copy()
             kf.P = P.copy()
-            if embed:  # the CV model inside the IMM carries no acceleration
-                for base in (0, d):
-                    kf.P[base + 2, base + 2] = 1e-9
         if self.model == "imm":
-            M = np.array([[1 - self._switch, self._switch], [self._switch, 1 - self._switch]])
-            self._imm = IMMEstimator(self._kfs, np.array([0.5, 0.5]), M)
-        self._t = t
+            s, e = self._switch, self._exit
+            c = self._curve_prior  # the prior odds of a curve, also after a manoeuvre
+            M = np.array([[1 - s, s / 2, s / 2], [s / 2, 1 - s, s / 2], [e * (1 - c), e * c, 1 - e]])
+            self._imm = _LogIMM(self._kfs, np.array([(1 - c) * 0.99, c * 0.99, 0.01]), M)
+        self._t = self._t_start = t
         self._updates = 1
         self._misses = 0
 
+    def _matrices(self, mode: _Mode, dt: float, *, extrapolate: bool = False):
+        """``(F, Q)`` of ``mode`` over ``dt`` (F is None for the CT mode: its mean is nonlinear)."""
+        if mode.kind == "ca":
+            return plane_matrices(2, dt, mode.q)
+        if mode.kind == "ct":
+            return None, turn_process_noise(dt, mode.q, mode.q_turn)
+        q = mode.q
+        if mode.kind == "man":
+            q = self._q if extrapolate else self._q_man_now
+        return straight_transition_5d(dt), turn_process_noise(dt, q, self._q_turn)
+
     def _set_dt(self, dt: float) -> None:
-        for kf, (order, q, embed) in zip(self._kfs, self._specs):
-            kf.F, kf.Q = plane_matrices(order, dt, q, embed_in_ca=embed)
+        if self._imm is not None:  # the manoeuvre mode's noise scales with the speed: a corner turns the velocity
+            speed = float(np.hypot(self._imm.x[1, 0], self._imm.x[3, 0]))
+            self._q_man_now = (self._man_rel * max(speed, self._man_min_speed)) ** 2
+        for kf, mode in zip(self._kfs, self._modes):
+            F, kf.Q = self._matrices(mode, dt)
+            if F is None:
+                kf.dt = dt
+            else:
+                kf.F = F
 
     def _snapshot(self):
         snap = [(kf.x.copy(), kf.P.copy()) for kf in self._kfs]
@@ -223,7 +412,7 @@ class MarkerTracker:
         """Fuse the centroid ``z_xy`` (table-plane mm) measured at time ``t`` (s).
 
         Returns False when the measurement is gated out (its Mahalanobis distance from the
-        one-step-ahead prediction exceeds ``gate_sigma``) or is not newer than the last one;
+        one-step-ahead prediction of every mode exceeds ``gate_sigma``) or is not newer than the last one;
         the filter state is then unchanged. Raises :class:`TrackingError` on non-finite input.
         """
         t = float(t)
@@ -240,14 +429,15 @@ class MarkerTracker:
         self._set_dt(dt)
         if self._imm is not None:
             self._imm.predict()
-            x_prior, P_prior = self._imm.x, self._imm.P
         else:
             self._kfs[0].predict()
-            x_prior, P_prior = self._kfs[0].x, self._kfs[0].P
         zc = z.reshape(2, 1)  # filterpy wants column vectors
-        y = zc - self._H @ x_prior
-        S = self._H @ P_prior @ self._H.T + self._R
-        d2 = float((y.T @ np.linalg.solve(S, y))[0, 0])
+        # gate on the mode that explains z best: a corner is the manoeuvre mode's to take, not an outlier
+        d2 = np.inf
+        for kf in self._kfs:
+            y = zc - self._H @ kf.x
+            S = self._H @ kf.P @ self._H.T + self._R
+            d2 = min(d2, float((y.T @ np.linalg.solve(S, y))[0, 0]))
         self.last_mahalanobis = float(np.sqrt(max(d2, 0.0)))
         if self._updates >= 3 and d2 > self.gate_sigma**2:
             self._restore(snap)
@@ -259,12 +449,107 @@ class MarkerTracker:
             return False
         if self._imm is not None:
             self._imm.update(zc)
+            self._after_imm_update(t, z)
         else:
             self._kfs[0].update(zc)
         self._t = t
         self._updates += 1
         self._misses = 0
         return True
+
+    # -- corners: the IMM's manoeuvre detection, then a restart of the quiet modes at the corner -----------
+
+    def _after_imm_update(self, t: float, z: np.ndarray) -> None:
+        """Keep the recent history; when the manoeuvre mode takes over, restart the quiet modes at the corner.
+
+        The IMM's mixing lets the manoeuvre mode's short-memory velocity leak into the quiet modes
+        for as long as it holds probability, so after a corner they would learn the new leg slowly.
+        Instead, once ``P(man) > ½`` (a few frames after the corner), the corner frame is estimated
+        by maximum likelihood over the recent frames (the old track's innovations before it, a
+        straight new leg from the old track's position after it: a GLR test, Willsky & Jones 1976)
+        and the quiet modes are re-run from there with a diffuse velocity, so the new leg is the
+        least-squares fit of every frame since the corner, anchored at the corner.
+        """
+        quiet = self._kfs[int(np.argmax(self._imm.mu[:2]))]  # the old track: the likelier of CV and CT
+        Sinv = np.linalg.inv(quiet.S)
+        self._nis += float(quiet.y[:, 0] @ Sinv @ quiet.y[:, 0]) + float(np.log(np.linalg.det(quiet.S)))
+        self._history.append((t, z.copy(), quiet.x.copy(), quiet.P.copy(), self._nis, self._imm.mu.copy()))
+        while self._history and t - self._history[0][0] > self._corner_window:
+            self._history.pop(0)
+        if t - self._t_start < 2 * self._corner_window:
+            return  # the track's first frames: the quiet modes are still converging, not turning a corner
+        if self._refits > 0:  # refine the corner with the frames that came since it was detected
+            self._refits -= 1
+            self._restart_at_corner(self._detect_at)
+            return
+        if self._imm.mu[2] < 0.5 and not self._glr_detects():
+            self._in_corner = False
+            return
+        if self._in_corner or len(self._history) < 4:
+            return
+        self._in_corner = True
+        self._detect_at = t
+        self._refits = 6
+        self._restart_at_corner(t)
+
+    def _glr_detects(self, threshold: float = 25.0) -> bool:
+        """A slow corner the manoeuvre mode misses: the GLR statistic (no corner vs the best corner) > threshold."""
+        hist = self._history
+        if len(hist) < 8 or hist[-1][4] - hist[-6][4] < 5 * (2.0 + np.log(self._R[0, 0] ** 2)):
+            return False  # the old track still explains the last frames (expected NIS 2 per frame)
+        cost, _ = self._best_corner(hist[-1][0])
+        return hist[-1][4] - cost > threshold
+
+    def _best_corner(self, t_detect: float) -> tuple[float, int]:
+        hist = self._history
+        R = self._R[0, 0]
+        best = (np.inf, 1)
+        for j in range(1, len(hist) - 1):  # corner between frames j-1 and j, up to the detection
+            if hist[j][0] > t_detect:
+                break
+            t0, _, x0, P0, nis0, _ = hist[j - 1]
+            p0 = x0[[0, 2], 0]
+            ts = np.array([h[0] for h in hist[j:]]) - t0
+            zs = np.array([h[1] for h in hist[j:]])
+            # new leg p0 + v2·τ (p0 from the old track): v2 by least squares; cost in the NIS units of the old track
+            v2 = (ts @ (zs - p0)) / (ts @ ts)
+            cost = nis0 + float(np.sum((zs - p0 - np.outer(ts, v2)) ** 2)) / R + len(ts) * np.log(R * R)
+            if cost < best[0]:
+                best = (cost, j)
+        return best
+
+    def _restart_at_corner(self, t_detect: float) -> None:
+        hist = self._history
+        j = self._best_corner(t_detect)[1]
+        t0, _, x0, P0, _, mu0 = hist[j - 1]
+        if self._refits < 6 and self.corners:  # a refinement of the same corner
+            self.corners[-1] = float(t0)
+        else:
+            self.corners.append(float(t0))
+        speed_sigma = self._init_sigmas[0]
+        for kf, mode in zip(self._kfs, self._modes):
+            x = x0.copy()
+            P = P0.copy()
+            P[np.ix_(self._vel, self._vel)] = 0.0
+            P[np.ix_(self._pos, self._vel)] = 0.0
+            P[np.ix_(self._vel, self._pos)] = 0.0
+            P[self._vel, self._vel] = speed_sigma**2
+            kf.x, kf.P = x, P  # the curvature is kept: the new leg is likely shaped like the old
+            tp = t0
+            quiet = _Mode("cv", self._q, self._q_turn) if mode.kind == "man" else mode
+            for th, zh, *_ in hist[j:]:
+                F, Q = self._matrices(quiet, th - tp)
+                if F is None:
+                    kf.dt, kf.Q = th - tp, Q
+                    kf.predict()
+                else:
+                    kf.predict(F=F, Q=Q)
+                kf.update(zh.reshape(2, 1))
+                tp = th
+        quiet = mu0[0] + mu0[1]
+        self._imm.mu = np.array([mu0[0] / quiet * 0.98, mu0[1] / quiet * 0.98, 0.02])
+        self._imm._compute_mixing_probabilities()
+        self._imm._compute_state_estimate()
 
     # -- estimates and predictions -------------------------------------------------------------
 
@@ -273,21 +558,28 @@ class MarkerTracker:
             raise TrackingError("no track yet: call update() with a measurement first")
 
     def _model_predictions(self, dt: float):
-        """Each model's (x, P) extrapolated ``dt`` s past the last update, without touching the filter."""
+        """Each mode's (x, P) extrapolated ``dt`` s past the last update, without touching the filter."""
         out = []
-        for kf, (order, q, embed) in zip(self._kfs, self._specs):
+        for kf, mode in zip(self._kfs, self._modes):
             if dt == 0.0:
                 out.append((kf.x.copy(), kf.P.copy()))
                 continue
-            F, Q = plane_matrices(order, dt, q, embed_in_ca=embed)
-            out.append((F @ kf.x, F @ kf.P @ F.T + Q))
+            F, Q = self._matrices(mode, dt, extrapolate=True)
+            if F is None:
+                m, P = _cubature(kf.x[:, 0], kf.P, lambda s: turn_transition(s, dt))
+                out.append((m.reshape(-1, 1), P + Q))
+            else:
+                out.append((F @ kf.x, F @ kf.P @ F.T + Q))
         return out
+
+    def _weights(self) -> np.ndarray:
+        return np.array([1.0]) if self._imm is None else self._imm.mu
 
     def _combined(self, dt: float) -> tuple[np.ndarray, np.ndarray]:
         preds = self._model_predictions(dt)
         if self._imm is None:
             return preds[0]
-        mu = self._imm.mu
+        mu = self._weights()
         x = sum(m * xp for m, (xp, _) in zip(mu, preds))
         P = sum(m * (Pp + (xp - x) @ (xp - x).T) for m, (xp, Pp) in zip(mu, preds))
         return x, P
@@ -305,13 +597,13 @@ class MarkerTracker:
     def predict(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         """Predicted marker position (2,) mm and its covariance (2, 2) mm² at time ``t`` ≥ last update.
 
-        Runs the Kalman extrapolation equations over ``t - t_last`` in one exact step (paper §4.2:
-        one-step-ahead for the search window, multiple-step-ahead for the path). The filter's
-        state is not changed. For the IMM the models' predictions are moment-matched with the
-        current mode probabilities.
+        Runs the extrapolation over ``t - t_last`` in one step (paper §4.2: one-step-ahead for
+        the search window, multiple-step-ahead for the path). The filter's state is not
+        changed. For the IMM the modes' predictions are moment-matched with the current mode
+        probabilities.
         """
         x, P = self._combined(self._check_future(t))
-        idx = [0, self._dim_axis]
+        idx = self._pos
         return x[idx, 0].copy(), P[np.ix_(idx, idx)].copy()
 
     def predict_path(self, times) -> tuple[np.ndarray, np.ndarray]:
@@ -327,25 +619,37 @@ class MarkerTracker:
         """Posterior ``[x, y, vx, vy]`` (mm, mm/s) and its 4×4 covariance at the last update."""
         self._require_track()
         x, P = self._combined(0.0)
-        d = self._dim_axis
-        idx = [0, d, 1, d + 1]
+        idx = self._pos + self._vel
         return x[idx, 0].copy(), P[np.ix_(idx, idx)].copy()
 
     def velocity(self) -> np.ndarray:
         """Posterior marker velocity (2,) in mm/s at the last update."""
         return self.estimate()[0][2:]
 
-    def predicted_path(self) -> PredictedPath:
-        """The mean predicted path as a :class:`PredictedPath` snapshot (for G(t), paper §4.3)."""
+    def turn_rate(self) -> float:
+        """Posterior turn rate ω (rad/s, counter-clockwise positive), mode-weighted; 0 for CV/CA."""
         self._require_track()
-        preds = self._model_predictions(0.0)
-        mu = np.array([1.0]) if self._imm is None else self._imm.mu
-        d = self._dim_axis
-        p = sum(m * xp[[0, d], 0] for m, (xp, _) in zip(mu, preds))
-        v = sum(m * xp[[1, d + 1], 0] for m, (xp, _) in zip(mu, preds))
-        a = np.zeros(2)
-        if d == 3:
-            for m, (xp, _), (order, _, _) in zip(mu, preds, self._specs):
-                if order == 2:
-                    a = a + m * xp[[2, d + 2], 0]
-        return PredictedPath(self._t, np.asarray(p, float), np.asarray(v, float), a)
+        if self.model in ("cv", "ca"):
+            return 0.0
+        return float(sum(m * kf.x[4, 0] * np.hypot(kf.x[1, 0], kf.x[3, 0])
+                         for m, kf, mode in zip(self._weights(), self._kfs, self._modes) if mode.kind == "ct"))
+
+    def _mode_path(self, kf, mode: _Mode) -> PredictedPath:
+        x = kf.x[:, 0]
+        p, v = x[self._pos], x[self._vel]
+        if mode.kind == "ca":
+            return PredictedPath(self._t, p.copy(), v.copy(), x[[2, 5]].copy())
+        w = float(x[4] * np.hypot(*v)) if mode.kind == "ct" else 0.0  # ω = κ·|v|
+        return PredictedPath(self._t, p.copy(), v.copy(), np.zeros(2), w)
+
+    def predicted_path(self) -> PredictedPath | MixturePath:
+        """The mean predicted path (for G(t), paper §4.3): a line, a parabola (CA) or the turn's arc.
+
+        For the IMM, the modes' paths weighted by the mode probabilities at the last update,
+        which is exactly the mean :meth:`predict` gives.
+        """
+        self._require_track()
+        paths = [self._mode_path(kf, mode) for kf, mode in zip(self._kfs, self._modes)]
+        if self._imm is None:
+            return paths[0]
+        return MixturePath(self._t, tuple(float(m) for m in self._imm.mu), tuple(paths))

@@ -29,7 +29,7 @@ from ..drivers.interfaces import Frame, Robot
 from ..errors import DeviceError
 from ..geometry import make_T, matrix_to_rotvec
 from ..planning import Interception, camera_placement_trajectory, plan_interception
-from ..planning.targets import standard_view_path
+from ..planning.targets import prediction_margin_mm, standard_view_path, viewing_distance_with_margin
 from ..tracking.tracker import MarkerTracker
 from ..vision import detect_markers, detect_markers_windowed, red_mask
 from . import messages as m
@@ -215,7 +215,10 @@ class PredictorPlanner:
 
     # -- planning ----------------------------------------------------------------------------
     def _initial_view_target(self, azimuth_deg: float):
-        G = camera_placement_trajectory(self._marker_path(), self.cfg.viewing.initial_distance_mm,
+        cam = self.ctx.mobile_camera  # the prediction's uncertainty must stay well inside the view (issue 18)
+        distance = viewing_distance_with_margin(self.cfg.viewing.initial_distance_mm, self._commit_margin_mm(),
+                                                float(np.arctan2(0.5 * cam.height, cam.K[1, 1])))
+        G = camera_placement_trajectory(self._marker_path(), distance,
                                         self.cfg.viewing.initial_angle_deg, azimuth_deg,
                                         marker_z_mm=self.ctx.plane_height_mm, T_f_c=self.ctx.T_f_c2)
         return _RestAt(G)
@@ -239,6 +242,17 @@ class PredictorPlanner:
         self.log("plan", t=now, kind=kind, t_hit=plan.t_hit)
         horizon = np.linspace(now, max(plan.t_hit, now + 1.0), 12)
         self.log("predict", t=now, path=self._marker_path()(horizon)[0])
+
+    def _commit_margin_mm(self) -> float:
+        """3-σ radius (mm) of the predicted marker position ``commit_horizon_s`` ahead (issue 18)."""
+        _, cov = self.tracker.predict(self.tracker.time + self.cfg.tracking.commit_horizon_s)
+        return prediction_margin_mm(cov)
+
+    def _ready_to_commit(self, now: float) -> bool:
+        """Plan once the prediction is good enough for the interception, or after ``min_track_s``."""
+        if now - self.t_first_seen >= self.cfg.tracking.min_track_s:
+            return True
+        return self._commit_margin_mm() <= self.cfg.tracking.commit_margin_mm
 
     def _choose_azimuth(self) -> float:
         """Initial viewing side: from the marker towards the robot's home (shortest reach)."""
@@ -454,7 +468,7 @@ class PredictorPlanner:
             self.fail(now, f"no identity within the run's {self.cfg.run.timeout_s:.0f} s")
             return
         if self.stage == "track":
-            if self.n_updates >= 10 and now - self.t_first_seen >= self.cfg.tracking.min_track_s:
+            if self.n_updates >= 10 and self._ready_to_commit(now):
                 self.azimuth_deg = self._choose_azimuth()
                 self._enter("intercept", now)
                 self._plan_initial(now, "initial1")
@@ -491,7 +505,8 @@ class PredictorPlanner:
         t_id = (self.stage_times.started.get("done") - self.t_start) if ident is not None else None
         lower = lower_q = None
         if t_id is not None and self.t_first_seen is not None:
-            fixed = (self.t_first_seen - self.t_start) + self.cfg.tracking.min_track_s
+            track_s = self.stage_times.durations.get("track", self.cfg.tracking.min_track_s)  # commit may be sooner
+            fixed = (self.t_first_seen - self.t_start) + track_s
             lower, lower_q = fixed + self.min_motion_s, fixed + self.min_quintic_s
         return {
             "identity": self.ctx.names[ident.object_id] if ident is not None else None,

@@ -1,0 +1,131 @@
+"""Issue 18: the estimation bound, and the trackers measured against it (paper §4.2).
+
+The bound (labctl.tracking.bounds) shares no code with the filters; here it is itself checked
+against closed forms that owe nothing to it: the textbook variance of a least-squares line's
+extrapolation, and an exact circle.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from labctl.config.lab import RunConfig, TrackingConfig
+from labctl.planning import camera_placement_trajectory
+from labctl.planning.targets import prediction_margin_mm, viewing_distance_with_margin
+from labctl.tracking import MarkerTracker
+from labctl.tracking.bounds import crb_prediction_rms, make_scenario, ml_prediction, positions
+from labctl.tracking.synthetic import compare_with_bound
+
+SIGMA = TrackingConfig().measurement_noise_mm  # the noise the tracker is told about (lab.yaml: 0.7 mm)
+FPS = RunConfig().fps
+
+
+def test_line_bound_is_the_least_squares_extrapolation_variance():
+    """Per axis: σ² (1/N + (t_p − t̄)² / Σ(t − t̄)²) for a straight-line fit (any regression textbook)."""
+    scn = make_scenario("line", 12.0, 4.0, rate_hz=FPS, sigma_mm=SIGMA)
+    for n in (31, 61, 121):
+        t = scn.times[:n]
+        tp = t[-1] + 5.0
+        var_axis = SIGMA**2 * (1 / n + (tp - t.mean()) ** 2 / np.sum((t - t.mean()) ** 2))
+        assert crb_prediction_rms(scn, n, 5.0) == pytest.approx(np.sqrt(2 * var_axis), rel=1e-6)
+
+
+def test_turn_model_is_an_exact_circle_and_ml_recovers_it_from_clean_data():
+    scn = make_scenario("circle", 50.0, 6.0, sigma_mm=SIGMA, heading_rad=0.7)
+    r = 50.0 / scn.theta[4]
+    centre = scn.theta[:2] + r * np.array([-np.sin(0.7), np.cos(0.7)])
+    p = positions("circle", scn.theta, scn.times)
+    np.testing.assert_allclose(np.hypot(*(p - centre).T), r, rtol=1e-12)
+    clean = scn.truth(scn.times)
+    np.testing.assert_allclose(ml_prediction(scn, clean, 61, 5.0), scn.truth([scn.times[60] + 5.0])[0], atol=1e-6)
+    # the bound shrinks with more data and grows with the horizon
+    assert crb_prediction_rms(scn, 121, 5.0) < crb_prediction_rms(scn, 61, 5.0) < crb_prediction_rms(scn, 61, 8.0)
+
+
+def _lab_tracker():
+    return MarkerTracker.from_config(TrackingConfig())
+
+
+def _ct_tracker():
+    return MarkerTracker.from_config(TrackingConfig(model="ct"))
+
+
+def _cv_tracker():
+    return MarkerTracker.from_config(TrackingConfig(model="cv"))
+
+
+# Where the acceptance holds in `labctl bench planning` (docs/notes/planning.md); the gaps are listed there.
+SMOOTH_CASES = [
+    (_lab_tracker, "line", 100.0),
+    (_lab_tracker, "arc", 12.0), (_lab_tracker, "arc", 100.0),
+    (_lab_tracker, "circle", 100.0),
+    (_cv_tracker, "line", 12.0), (_ct_tracker, "circle", 12.0),
+]
+
+
+@pytest.mark.parametrize(("make", "family", "speed"), SMOOTH_CASES)
+def test_tracker_reaches_the_bound_on_smooth_paths(make, family, speed):
+    """After 2 s: RMS ≤ 1.2× the bound; after 4 s: ≤ 1.3× (bound: the smaller of CRB and ML, Monte Carlo)."""
+    res = compare_with_bound(make, family, speed, runs=12, rate_hz=FPS, sigma_mm=SIGMA, seed=int(speed))
+    for t, limit in ((2.0, 1.2), (4.0, 1.3)):
+        r = res[t]
+        assert r["rms_mm"] <= limit * min(r["crb_mm"], r["ml_rms_mm"]), (family, speed, t, r)
+
+
+def test_lab_tracker_nees_inside_its_95_percent_bounds_on_a_fast_circle():
+    """Mean NEES of the 5-s prediction (2 dof) inside its two-sided 95 % bounds for the number of runs.
+
+    Only where it holds: on lines the IMM is conservative and on slow curves overconfident
+    (docs/notes/planning.md has every cell).
+    """
+    res = compare_with_bound(_lab_tracker, "circle", 50.0, runs=16, rate_hz=FPS, sigma_mm=SIGMA, with_ml=False,
+                             seed=50)
+    for t, r in res.items():
+        lo, hi = r["nees_bounds"]
+        assert lo <= r["nees"] <= hi, (t, r)
+
+
+def test_zigzag_corner_switches_modes_within_a_few_frames_and_settles_near_the_bound():
+    for speed in (12.0, 50.0):
+        scn = make_scenario("zigzag", speed, 2.5, rate_hz=FPS, sigma_mm=SIGMA)
+        trk = _lab_tracker()
+        switched = None
+        for k, (t, z) in enumerate(zip(scn.times, scn.measure(np.random.default_rng(3)))):
+            trk.update(t, z)
+            if switched is None and t > 2.0 and (trk.mode_probabilities[2] > 0.5 or trk.corners):
+                switched = k - 60
+        assert switched is not None and switched <= 8, (speed, switched)
+        assert trk.corners and abs(trk.corners[-1] - 2.0) <= 0.05
+        res = compare_with_bound(_lab_tracker, "zigzag", speed, runs=12, rate_hz=FPS, sigma_mm=SIGMA,
+                                 track_s=(), after_corner_s=(0.5,), seed=int(speed))
+        r = res[2.5]
+        assert r["rms_mm"] <= 1.5 * min(r["crb_mm"], r["ml_rms_mm"]), (speed, r)
+
+
+def test_predicted_path_follows_the_arc_and_feeds_a_curved_g():
+    """The tracker's mean path on a circle is the circle (not its tangent), and so is G(t)."""
+    scn = make_scenario("circle", 50.0, 4.0, rate_hz=FPS, sigma_mm=SIGMA, heading_rad=-0.4)
+    trk = _lab_tracker()
+    for t, z in zip(scn.times, scn.measure(np.random.default_rng(5))):
+        trk.update(t, z)
+    future = trk.time + np.linspace(0.0, 3.0, 7)
+    p, v, a = trk.predicted_path()(future)
+    truth = scn.truth(future)
+    assert np.max(np.hypot(*(p - truth).T)) < 3.0
+    np.testing.assert_allclose(p, trk.predict_path(future)[0], atol=1e-9)  # the same mean as predict()
+    np.testing.assert_allclose(np.hypot(*a.T), 50.0**2 / 80.0, rtol=0.1)  # centripetal v²/r
+    G = camera_placement_trajectory(trk.predicted_path(), 1000.0, 63.0, marker_z_mm=30.0)
+    gp, gv, _ = G(future)
+    np.testing.assert_allclose(gp[:, :2] - gp[0, :2], p - p[0], atol=1e-9)
+    np.testing.assert_allclose(gv[:, :2], v, atol=1e-9)
+
+
+def test_prediction_margin_and_viewing_distance():
+    cov = np.array([[4.0, 0.0], [0.0, 1.0]])
+    assert prediction_margin_mm(cov) == pytest.approx(6.0)
+    rot = np.array([[np.cos(0.3), -np.sin(0.3)], [np.sin(0.3), np.cos(0.3)]])
+    assert prediction_margin_mm(rot @ cov @ rot.T, n_sigma=2.0) == pytest.approx(4.0)
+    assert viewing_distance_with_margin(1000.0, 6.0, np.deg2rad(20.0)) == 1000.0  # a small margin changes nothing
+    far = viewing_distance_with_margin(1000.0, 300.0, np.deg2rad(20.0), marker_radius_mm=10.0)
+    assert far == pytest.approx(310.0 / (0.5 * np.tan(np.deg2rad(20.0))))
