@@ -122,16 +122,23 @@ def mm_per_px(camera: CameraModel, standoff_mm: float) -> float:
 
 
 def build_standard_views(markers: list[Marker], render_view: RenderView, *, standoff_mm: float,
-                         scale_mm_per_px: float, progress: Callable[[int], None] | None = None
-                         ) -> list[StandardView]:
+                         scale_mm_per_px: float, progress: Callable[[int], None] | None = None,
+                         on_crop: Callable[[int, str], None] | None = None) -> list[StandardView]:
     """Render and describe the standard view of every marker (paper §3.4).
 
-    Raises :class:`labctl.vision.shape.ShapeError` if a view shows no complete silhouette.
+    Raises :class:`labctl.vision.shape.ShapeError` if a view shows no complete silhouette. A view
+    that is complete as taught but would leave the image at some in-plane rotation raises too,
+    unless ``on_crop(marker_id, reason)`` is given: then it is reported there and kept.
     """
     views = []
     for m in markers:
         img = render_view(standard_view_pose(m, standoff_mm))
-        check_fits_any_rotation(silhouette_mask(img))
+        try:
+            check_fits_any_rotation(silhouette_mask(img))
+        except ShapeError as exc:
+            if on_crop is None:
+                raise
+            on_crop(m.id, str(exc))
         views.append(StandardView(m.id, features_from_image(img, scale_mm_per_px), img))
         if progress is not None:
             progress(1)
