@@ -255,3 +255,25 @@ def identify(first: ShapeFeatures, index: LibraryIndex, acquire: Callable[[str, 
         remaining = keep or [min(remaining, key=lambda c: step_score[c])]
     name = min(remaining, key=lambda c: total[c])
     return Identification(name, len(remaining) == 1, remaining, views_used, steps, requested)
+
+
+def ambiguity_groups(index: LibraryIndex, threshold: float = DEFAULT_THRESHOLD) -> list[list[int]]:
+    """Views that look alike (paper §3.4): connected components of the view-to-view graph whose edges
+    are pairwise scores ≤ ``threshold`` — the same scores :func:`plan_next_view` uses to pick the
+    extra view that tells candidates apart. Returns the groups of ≥ 2 view indices, largest first."""
+    P = index.pairwise()
+    n = len(index)
+    parent = list(range(n))
+
+    def find(i):
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for i, j in zip(*np.nonzero(np.triu(P <= threshold, k=1)), strict=True):
+        parent[find(int(i))] = find(int(j))
+    groups: dict[int, list[int]] = {}
+    for i in range(n):
+        groups.setdefault(find(i), []).append(i)
+    return sorted((g for g in groups.values() if len(g) > 1), key=lambda g: (-len(g), g[0]))

@@ -34,7 +34,7 @@ import trimesh
 import yaml
 
 from ..errors import UserInputError
-from ..fsutil import atomic_dir, atomic_write_text
+from ..fsutil import atomic_dir, atomic_write_bytes, atomic_write_text
 from ..vision.shape import ShapeError, ShapeFeatures, silhouette_mask
 from .placement import Marker
 from .views import StandardView, contact_sheet
@@ -93,6 +93,30 @@ def check_name(name: str) -> str:
     return name
 
 
+def face_label(normal) -> str:
+    """The face a marker sits on, in words: ``+x`` … ``-z`` when the normal is within 5° of an axis of O,
+    else the rounded normal."""
+    n = np.asarray(normal, float)
+    i = int(np.argmax(np.abs(n)))
+    if abs(n[i]) >= np.cos(np.radians(5.0)):
+        return f"{'+' if n[i] > 0 else '-'}{'xyz'[i]} face"
+    return "face n=(" + ",".join(f"{v:+.2f}" for v in n) + ")"
+
+
+def _sheet(obj: LibraryObject, images: dict[int, np.ndarray], groups: dict) -> np.ndarray:
+    """Contact sheet: each view labelled with its marker (id, radius) and face; views in an ambiguity
+    group (``groups``: marker id → (group number, other members)) get the group's tag."""
+    imgs, labels, tags = [], [], []
+    for mid, img in sorted(images.items()):
+        m = obj.marker(mid)
+        imgs.append(img)
+        labels.append(f"{obj.name} #{mid} r{m.radius:g}")
+        g = groups.get(mid) or groups.get(str(mid))
+        tags.append(f"{face_label(m.normal)}" + (f"  G{g['group']}: {', '.join(g['with'][:2])}" if g else ""))
+    return contact_sheet(imgs, labels, sublabels=tags, highlight=[bool(groups.get(mid) or groups.get(str(mid)))
+                                                                 for mid in sorted(images)])
+
+
 def save_object(library_dir: Path | str, obj: LibraryObject) -> Path:
     """Write ``library_dir/NAME/`` atomically (an existing folder is replaced only when complete)."""
     check_name(obj.name)
@@ -104,19 +128,32 @@ def save_object(library_dir: Path | str, obj: LibraryObject) -> Path:
         poses = [{"T": np.round(T, 6).tolist(), "probability": round(float(p), 6)} for T, p in obj.stable_poses]
         (tmp / "stable_poses.yaml").write_text(yaml.safe_dump({"stable_poses": poses}, sort_keys=False))
         (tmp / "views").mkdir()
-        imgs, labels = [], []
+        imgs = {}
         for mid, v in sorted(obj.views.items()):
             if v.image is not None:
                 if not cv2.imwrite(str(tmp / "views" / f"{mid}.png"), _crop_to_object(v.image),
                                    [cv2.IMWRITE_PNG_COMPRESSION, 9]):
                     raise LibraryError(f"cannot write view image {mid}.png")
-                imgs.append(v.image)
-                labels.append(f"{obj.name} #{mid}")
+                imgs[mid] = v.image
             (tmp / "views" / f"{mid}.json").write_text(json.dumps(v.features.to_dict()))
-        cv2.imwrite(str(tmp / "contact_sheet.png"), contact_sheet(imgs, labels))
+        groups = obj.info.get("ambiguity_groups") or {}
+        cv2.imwrite(str(tmp / "contact_sheet.png"), _sheet(obj, imgs, groups))
         info = {"name": obj.name, "format": FORMAT_VERSION, **obj.info}
-        (tmp / "object.yaml").write_text(yaml.safe_dump(info, sort_keys=False))
+        (tmp / "object.yaml").write_text(yaml.safe_dump(_plain(info), sort_keys=False))
     return target
+
+
+def _plain(x):
+    """numpy scalars and arrays → plain Python for YAML."""
+    if isinstance(x, dict):
+        return {str(k) if not isinstance(k, int | str) else k: _plain(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_plain(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return _plain(x.tolist())
+    if isinstance(x, np.generic):
+        return x.item()
+    return x
 
 
 def _read_yaml(path: Path, key: str):
@@ -256,22 +293,108 @@ def library_angle(library_dir: Path | str, default_deg: float) -> float:
     return float(default_deg)
 
 
-def update_library_angle(library_dir: Path | str, default_deg: float,
-                         library: dict[str, LibraryObject] | None = None) -> dict:
+def update_library_angle(library_dir: Path | str, view, library: dict[str, LibraryObject] | None = None) -> dict:
     """Re-choose the library-wide initial viewing angle from every object's coverage-versus-angle
-    curve (``object.yaml``), write ``library.yaml`` (atomically) and return what was written:
-    ``{"initial_angle_deg", "previous_deg", "coverage": {name: probability at that angle}}``."""
-    from .placement import library_viewing_angle
+    curve and return ``{"initial_angle_deg", "previous_deg", "coverage": {name: probability}}``.
+
+    ``view``: the lab's :class:`~labctl.library.placement.ViewingGeometry` (its ``angle_deg`` is the
+    lab.yaml default used before the library has its own). Curves come from ``object.yaml``
+    (written when taught); for objects taught before curves were recorded they are computed from
+    the object's markers (not written back)."""
+    from .placement import coverage_vs_angle, library_viewing_angle
 
     root = Path(library_dir)
     lib = library if library is not None else load_library(root, warn=None)
-    current = library_angle(root, default_deg)
-    curves = {n: o.info["coverage_vs_angle"] for n, o in lib.items()
-              if isinstance(o.info.get("coverage_vs_angle"), dict) and o.info["coverage_vs_angle"].get("coverage")}
+    current = library_angle(root, view.angle_deg)
+    curves = {}
+    for n, o in lib.items():
+        c = o.info.get("coverage_vs_angle")
+        if not (isinstance(c, dict) and c.get("coverage")):
+            c = coverage_vs_angle(o.mesh, o.stable_poses, o.markers, view)
+        curves[n] = c
     angle, cov = library_viewing_angle(curves, current)
-    data = {"format": FORMAT_VERSION, "initial_angle_deg": float(angle), "previous_deg": float(current),
+    return {"format": FORMAT_VERSION, "initial_angle_deg": float(angle), "previous_deg": float(current),
             "chosen_from": "worst object's initial-view coverage, then the mean, then nearest the previous angle",
             "coverage": cov}
-    if root.is_dir():
-        atomic_write_text(root / LIBRARY_FILE, yaml.safe_dump(data, sort_keys=False))
+
+
+def refresh_library(library_dir: Path | str, view, *, threshold: float | None = None) -> dict:
+    """After an object is added or removed: re-choose the library-wide initial viewing angle
+    (:func:`update_library_angle`), recompute the ambiguity groups over all standard views
+    (:func:`labctl.library.matching.ambiguity_groups`), record them in ``library.yaml`` and in each
+    object's ``object.yaml``, and redraw the contact sheets whose groups changed (atomic writes)."""
+    from .matching import DEFAULT_THRESHOLD, LibraryIndex, ambiguity_groups
+
+    root = Path(library_dir)
+    lib = load_library(root, warn=None)
+    data = update_library_angle(root, view, library=lib)
+    groups_out: list[list[str]] = []
+    per_obj: dict[str, dict] = {n: {} for n in lib}
+    if lib:
+        index = LibraryIndex.from_library(lib)
+        for k, g in enumerate(ambiguity_groups(index, threshold or DEFAULT_THRESHOLD), start=1):
+            members = [f"{index.names[i]}#{int(index.marker_ids[i])}" for i in g]
+            groups_out.append(members)
+            for i, tag in zip(g, members, strict=True):
+                per_obj[index.names[i]][int(index.marker_ids[i])] = {
+                    "group": k, "with": [t for t in members if t != tag]}
+    data["ambiguity_groups"] = groups_out
+    atomic_write_text(root / LIBRARY_FILE, yaml.safe_dump(_plain(data), sort_keys=False))
+    for name, obj in lib.items():
+        new = per_obj[name]
+        old = {int(k): v for k, v in (obj.info.get("ambiguity_groups") or {}).items()}
+        if old == new:
+            continue
+        obj.info["ambiguity_groups"] = new
+        images = {}
+        for mid in obj.views:
+            try:
+                images[mid] = obj.view_image(mid)
+            except LibraryError:
+                pass
+        sheet = _sheet(obj, images, new)
+        ok, png = cv2.imencode(".png", sheet)
+        if ok:
+            atomic_write_bytes(obj.path / "contact_sheet.png", png.tobytes())
+        atomic_write_text(obj.path / "object.yaml", yaml.safe_dump(_plain({"name": name, **obj.info}), sort_keys=False))
     return data
+
+
+def check_library(library_dir: Path | str) -> tuple[list[str], list[str]]:
+    """Validate every object folder: (names that are fine, one line per problem naming object and file).
+
+    Beyond what loading checks: every standard-view image is readable, the stored model matches the
+    content hash recorded when it was taught, stable-pose probabilities sum to 1, and
+    ``library.yaml`` is readable."""
+    import hashlib
+
+    root = Path(library_dir)
+    objs, bad = load_library_checked(root)
+    problems = [f"{msg}" for msg in bad.values()]
+    ok = []
+    for name, obj in objs.items():
+        errs = []
+        for mid in obj.views:
+            png = obj.path / "views" / f"{mid}.png"
+            if not png.is_file():
+                errs.append(f"{name}: missing views/{mid}.png")
+            elif cv2.imread(str(png), cv2.IMREAD_COLOR) is None:
+                errs.append(f"{name}: views/{mid}.png is not a readable image")
+        want = (obj.info.get("source") or {}).get("stored_model_sha256") if isinstance(obj.info.get("source"),
+                                                                                       dict) else None
+        if want and hashlib.sha256((obj.path / "model.stl").read_bytes()).hexdigest() != want:
+            errs.append(f"{name}: model.stl differs from the model it was taught with (content hash)")
+        total = sum(p for _, p in obj.stable_poses)
+        if abs(total - 1.0) > 1e-3:
+            errs.append(f"{name}: stable_poses.yaml probabilities sum to {total:.4f}, not 1")
+        problems += errs
+        if not errs:
+            ok.append(name)
+    lf = root / LIBRARY_FILE
+    if lf.exists():
+        try:
+            data = yaml.safe_load(lf.read_text())
+            float(data["initial_angle_deg"])
+        except (yaml.YAMLError, KeyError, TypeError, ValueError, UnicodeDecodeError):
+            problems.append(f"{LIBRARY_FILE}: malformed (no valid initial_angle_deg); re-teach or remove it")
+    return ok, problems

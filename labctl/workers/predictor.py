@@ -216,7 +216,7 @@ class PredictorPlanner:
     # -- planning ----------------------------------------------------------------------------
     def _initial_view_target(self, azimuth_deg: float):
         G = camera_placement_trajectory(self._marker_path(), self.cfg.viewing.initial_distance_mm,
-                                        self.cfg.viewing.initial_angle_deg, azimuth_deg,
+                                        self.ctx.initial_angle_deg or self.cfg.viewing.initial_angle_deg, azimuth_deg,
                                         marker_z_mm=self.ctx.plane_height_mm, T_f_c=self.ctx.T_f_c2)
         return _RestAt(G)
 
