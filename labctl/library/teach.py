@@ -18,7 +18,6 @@ import numpy as np
 import trimesh
 import yaml
 
-from ..vision.shape import ShapeError
 from .model import ModelError, load_model, stable_poses, validate_model
 from .placement import (
     Marker,
@@ -118,6 +117,24 @@ def file_sha256(path: Path | str) -> str:
     return h.hexdigest()
 
 
+def _standard_views(name, mesh, markers, poses, render_factory, standoff_mm, scale_mm_per_px, step):
+    """Standard views of ``markers``: (views, {marker id: why it has none}, crop warnings)."""
+    step("standard views", 0, len(markers))
+    render_view = render_factory(mesh, markers, poses)
+    done, failed, crops = [0], {}, []
+
+    def tick(k):
+        done[0] += k
+        step("standard views", done[0], len(markers))
+
+    def crop(mid, why):
+        crops.append(f"{name}: standard view of marker {mid}: {why}; would fix it: a longer viewing.standoff_mm")
+
+    views = build_standard_views(markers, render_view, standoff_mm=standoff_mm, scale_mm_per_px=scale_mm_per_px,
+                                 progress=tick, on_crop=crop, on_fail=failed.__setitem__)
+    return views, failed, crops
+
+
 def teach_object(name: str, model: Path | str | trimesh.Trimesh, *, radius_mm: float, view: ViewingGeometry,
                  standoff_mm: float, scale_mm_per_px: float, render_factory: RenderFactory,
                  markers: list[Marker] | None = None, library_dir: Path | str | None = None,
@@ -154,37 +171,47 @@ def teach_object(name: str, model: Path | str | trimesh.Trimesh, *, radius_mm: f
     mesh = validate_model(mesh, marker_radius_mm=smallest, name=name)
     step("stable poses", 0, 1)
     poses = stable_poses(mesh)
-    step("marker placement", 0, 1)
-    if markers is None:
-        placement = plan_markers(mesh, poses, radius_mm, view)
-        markers = placement.markers
-        method, bound = placement.method, placement.bound
-        n_candidates = len(placement.candidates)
-    else:
-        method, bound, n_candidates = "given", None, len(markers)
     Ts = [T for T, _ in poses]
+    candidates = None
+    rejected: list[str] = []
+    for _attempt in range(8):
+        step("marker placement", 0, 1)
+        if markers is None or candidates is not None:
+            placement = plan_markers(mesh, poses, radius_mm, view, candidates=candidates)
+            chosen = placement.markers
+            method, bound = placement.method, placement.bound
+            n_candidates = len(placement.candidates)
+        else:
+            chosen, method, bound, n_candidates = markers, "given", None, len(markers)
+        views, failed, crops = _standard_views(name, mesh, chosen, poses, render_factory, standoff_mm,
+                                               scale_mm_per_px, step)
+        if not failed:
+            break
+        if method == "given":
+            mid, why = next(iter(failed.items()))
+            raise ModelError(f"{name}: the standard view of marker {mid} shows no usable silhouette ({why})")
+        # a site whose standard view leaves the image (an off-centre marker on a large part): drop that
+        # site and plan again from the others (the view is centred on the marker, paper §3.4)
+        bad = {tuple(np.round(chosen[mid].center, 6)) for mid in failed}
+        rejected += [f"marker site at {np.round(chosen[mid].center, 1).tolist()} mm: {why}"
+                     for mid, why in failed.items()]
+        candidates = [c for c in placement.candidates if tuple(np.round(c.center, 6)) not in bad]
+        if not candidates:
+            raise ModelError(f"{name}: no marker site has a standard view that fits the image "
+                             f"({next(iter(failed.values()))}); a longer viewing.standoff_mm would fix it")
+    else:
+        raise ModelError(f"{name}: standard views keep leaving the image ({next(iter(failed.values()))})")
+    markers = chosen
     counts = check_coverage(mesh, Ts, markers, view)
     overhead = check_overhead_coverage(mesh, Ts, markers, view) if view.overhead_distance_mm is not None else None
     untracked = [] if overhead is None else [int(p) for p in np.flatnonzero(overhead == 0)]
     cov = coverage_report(mesh, poses, counts, overhead)
     curve = coverage_vs_angle(mesh, poses, markers, view) if angle_curve else None
-    warnings = coverage_warnings(name, cov, view, curve)
+    warnings = coverage_warnings(name, cov, view, curve) + crops
+    if rejected:
+        warnings.append(f"{name}: {len(rejected)} marker site(s) left out, their standard view leaves the image "
+                        f"(e.g. {rejected[0]}); would fix it: a longer viewing.standoff_mm")
     sweep = optimal_viewing_angle(mesh, poses, radius_mm, view) if sweep else None
-    step("standard views", 0, len(markers))
-    render_view = render_factory(mesh, markers, poses)
-    done = [0]
-
-    def tick(k):
-        done[0] += k
-        step("standard views", done[0], len(markers))
-
-    try:
-        views = build_standard_views(markers, render_view, standoff_mm=standoff_mm, scale_mm_per_px=scale_mm_per_px,
-                                     progress=tick, on_crop=lambda mid, why: warnings.append(
-                                         f"{name}: standard view of marker {mid}: {why}; would fix it: a longer "
-                                         f"viewing.standoff_mm"))
-    except ShapeError as exc:
-        raise ModelError(f"{name}: a standard view shows no usable silhouette ({exc})") from None
     with io.BytesIO() as buf:
         mesh.export(buf, file_type="stl")
         stored_sha = hashlib.sha256(buf.getvalue()).hexdigest()

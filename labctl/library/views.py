@@ -123,18 +123,27 @@ def mm_per_px(camera: CameraModel, standoff_mm: float) -> float:
 
 def build_standard_views(markers: list[Marker], render_view: RenderView, *, standoff_mm: float,
                          scale_mm_per_px: float, progress: Callable[[int], None] | None = None,
-                         on_crop: Callable[[int, str], None] | None = None) -> list[StandardView]:
+                         on_crop: Callable[[int, str], None] | None = None,
+                         on_fail: Callable[[int, str], None] | None = None) -> list[StandardView]:
     """Render and describe the standard view of every marker (paper §3.4).
 
-    Raises :class:`labctl.vision.shape.ShapeError` if a view shows no complete silhouette. A view
-    that is complete as taught but would leave the image at some in-plane rotation raises too,
-    unless ``on_crop(marker_id, reason)`` is given: then it is reported there and kept.
+    Raises :class:`labctl.vision.shape.ShapeError` if a view shows no complete silhouette, unless
+    ``on_fail(marker_id, reason)`` is given: then that marker gets no view and is reported there.
+    A view that is complete as taught but would leave the image at some in-plane rotation raises
+    too, unless ``on_crop(marker_id, reason)`` is given: then it is reported there and kept.
     """
     views = []
     for m in markers:
         img = render_view(standard_view_pose(m, standoff_mm))
         try:
-            check_fits_any_rotation(silhouette_mask(img))
+            mask = silhouette_mask(img)
+        except ShapeError as exc:
+            if on_fail is None:
+                raise
+            on_fail(m.id, str(exc))
+            continue
+        try:
+            check_fits_any_rotation(mask)
         except ShapeError as exc:
             if on_crop is None:
                 raise
