@@ -54,6 +54,9 @@ def test_batch_teach_keeps_the_model_with_its_absolute_path_and_hash(lab):
     assert src["sha256"] == hashlib.sha256(model.read_bytes()).hexdigest()
     assert (lab / "object_library" / "box_b" / "model.stl").is_file()
     assert (lab / "object_library" / "library.yaml").is_file()
+    # the refused 40×30×20 box: taught, fully covered, its 20 mm faces with smaller markers
+    a = load_object(lab / "object_library" / "box_a")
+    assert a.info["coverage"]["probability"] == 1.0 and min(m.radius for m in a.markers) < 8.0
 
 
 def test_no_silent_overwrite_and_force_replaces(lab, tmp_path):
