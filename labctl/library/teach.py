@@ -139,7 +139,7 @@ def teach_object(name: str, model: Path | str | trimesh.Trimesh, *, radius_mm: f
                  standoff_mm: float, scale_mm_per_px: float, render_factory: RenderFactory,
                  markers: list[Marker] | None = None, library_dir: Path | str | None = None,
                  progress: Callable[[str, int, int], None] | None = None, sweep: bool = True,
-                 force: bool = False, angle_curve: bool = True) -> LibraryObject:
+                 force: bool = False, angle_curve: bool | None = None) -> LibraryObject:
     """Teach one object; write it to ``library_dir/NAME`` (atomically) when a folder is given.
 
     Never refuses a valid watertight model that fits the lab: faces too small for the lab's
@@ -150,7 +150,8 @@ def teach_object(name: str, model: Path | str | trimesh.Trimesh, *, radius_mm: f
     is False (the library is untouched either way). ``progress(stage, done, total)`` is called as
     the stages advance. ``sweep`` also computes the marker count versus viewing angle (paper
     §4.1); ``angle_curve`` the coverage of the chosen markers versus viewing angle (what the
-    library-wide angle is chosen from, :func:`labctl.library.storage.update_library_angle`).
+    library-wide angle is chosen from, :func:`labctl.library.storage.update_library_angle`;
+    default: when the object is written to a library).
     """
     check_name(name)
     if library_dir is not None and (Path(library_dir) / name).exists() and not force:
@@ -206,7 +207,9 @@ def teach_object(name: str, model: Path | str | trimesh.Trimesh, *, radius_mm: f
     overhead = check_overhead_coverage(mesh, Ts, markers, view) if view.overhead_distance_mm is not None else None
     untracked = [] if overhead is None else [int(p) for p in np.flatnonzero(overhead == 0)]
     cov = coverage_report(mesh, poses, counts, overhead)
-    curve = coverage_vs_angle(mesh, poses, markers, view) if angle_curve else None
+    if angle_curve is None:
+        angle_curve = library_dir is not None
+    curve = coverage_vs_angle(mesh, poses, markers, view, n_yaw=36) if angle_curve else None
     warnings = coverage_warnings(name, cov, view, curve) + crops
     if rejected:
         warnings.append(f"{name}: {len(rejected)} marker site(s) left out, their standard view leaves the image "
