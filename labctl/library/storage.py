@@ -310,7 +310,7 @@ def update_library_angle(library_dir: Path | str, view, library: dict[str, Libra
     for n, o in lib.items():
         c = o.info.get("coverage_vs_angle")
         if not (isinstance(c, dict) and c.get("coverage")):
-            c = coverage_vs_angle(o.mesh, o.stable_poses, o.markers, view)
+            c = coverage_vs_angle(o.mesh, o.stable_poses, o.markers, view, n_yaw=36)
         curves[n] = c
     angle, cov = library_viewing_angle(curves, current)
     return {"format": FORMAT_VERSION, "initial_angle_deg": float(angle), "previous_deg": float(current),
