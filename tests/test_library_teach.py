@@ -210,7 +210,8 @@ def test_bad_models_give_clear_errors_and_leave_library_untouched(tmp_path):
     hidden = teach_object("hidden", trimesh.creation.box((40, 40, 35)), radius_mm=8.0,
                           view=ViewingGeometry(angle_deg=63.0, max_obliquity_deg=15.0), standoff_mm=600.0,
                           scale_mm_per_px=mm_per_px(CAM, 600),
-                          render_factory=lambda m, mk, *_: silhouette_renderer(CAM, m, mk), sweep=False)
+                          render_factory=lambda m, mk, *_: silhouette_renderer(CAM, m, mk), sweep=False,
+                          angle_curve=True)
     assert hidden.info["coverage"]["initial_view"] == 0.0
     assert "initial viewing angle of" in hidden.info["warnings"][0]
     assert _snapshot(lib) == before
