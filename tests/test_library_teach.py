@@ -22,7 +22,7 @@ from labctl.library.placement import (
     segments_blocked,
     set_cover,
 )
-from labctl.library.storage import LibraryError, load_library
+from labctl.library.storage import LibraryError, load_library, load_object
 from labctl.library.teach import teach_object
 from labctl.library.views import mm_per_px, silhouette_renderer
 
@@ -205,12 +205,15 @@ def test_bad_models_give_clear_errors_and_leave_library_untouched(tmp_path):
             _teach("bad", mesh, library_dir=lib)
         msg = str(err.value)
         assert expect.split()[0] in msg or (expect == "metres" and "mm" in msg), msg
-    # a pose from which no marker can ever be seen: an obliquity limit that hides every face
-    with pytest.raises(ModelError, match="no marker can be made visible"):
-        teach_object("bad", trimesh.creation.box((40, 40, 35)), radius_mm=8.0,
-                     view=ViewingGeometry(angle_deg=63.0, max_obliquity_deg=15.0), standoff_mm=600.0,
-                     scale_mm_per_px=mm_per_px(CAM, 600),
-                     render_factory=lambda m, mk, *_: silhouette_renderer(CAM, m, mk), library_dir=lib, sweep=False)
+    # a viewing geometry from which no marker can ever be seen is taught anyway, with a warning saying
+    # what would fix it (issue 15: never refuse a valid model; coverage is reported, not an error)
+    hidden = teach_object("hidden", trimesh.creation.box((40, 40, 35)), radius_mm=8.0,
+                          view=ViewingGeometry(angle_deg=63.0, max_obliquity_deg=15.0), standoff_mm=600.0,
+                          scale_mm_per_px=mm_per_px(CAM, 600),
+                          render_factory=lambda m, mk, *_: silhouette_renderer(CAM, m, mk), sweep=False,
+                          angle_curve=True)
+    assert hidden.info["coverage"]["initial_view"] == 0.0
+    assert "initial viewing angle of" in hidden.info["warnings"][0]
     assert _snapshot(lib) == before
     assert not (lib / "bad").exists()
 
@@ -233,17 +236,17 @@ def test_corrupt_library_folder_is_a_clear_error(tmp_path):
     good = mk.read_text()
     mk.write_text("markers: [{id: 0, center: [0, 0], normal: [0, 0, 1], radius: 8}]")
     with pytest.raises(LibraryError, match="cube: markers.yaml"):
-        load_library(tmp_path)
+        load_object(tmp_path / "cube")
     mk.write_text(good)
     (tmp_path / "cube" / "views" / "0.json").write_text("{not json")
     with pytest.raises(LibraryError, match="views/0.json"):
-        load_library(tmp_path)
+        load_object(tmp_path / "cube")
     (tmp_path / "cube" / "views" / "0.json").unlink()
     with pytest.raises(LibraryError, match="missing views/0.json"):
-        load_library(tmp_path)
+        load_object(tmp_path / "cube")
     (tmp_path / "cube" / "object.yaml").write_text(yaml.safe_dump({"name": "other", "format": 1}))
     with pytest.raises(LibraryError, match="names it"):
-        load_library(tmp_path)
+        load_object(tmp_path / "cube")
 
 
 def test_standard_views_are_taught_with_the_object_resting_in_the_pose_that_faces_the_marker_up():

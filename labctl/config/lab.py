@@ -28,10 +28,18 @@ class DriverFiles:
 @dataclass(frozen=True)
 class MarkerConfig:
     radius_mm: float = 8.0
+    # faces too small for radius_mm get smaller markers, radius_mm·size_ratio^k, down to the one whose
+    # face-on image at the initial viewing distance is min_image_diameter_px across (issue 15)
+    min_image_diameter_px: float = 16.0
+    size_ratio: float = 0.8
 
     def validate(self):
         if self.radius_mm <= 0:
             return "radius_mm", f"expected a positive radius, got {self.radius_mm}"
+        if not self.min_image_diameter_px > 0:
+            return "min_image_diameter_px", f"expected a positive size, got {self.min_image_diameter_px}"
+        if not 0.5 <= self.size_ratio < 1:
+            return "size_ratio", f"expected a ratio in [0.5, 1), got {self.size_ratio}"
         return None
 
 

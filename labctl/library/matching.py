@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..vision.shape import ShapeFeatures, hu_distance, signature_distance
+from ..vision.shape import ShapeFeatures, hu_distance
 
 ECC_GATE = 0.15
 SIZE_GATE = 0.12
@@ -55,6 +55,21 @@ class LibraryIndex:
     fd: np.ndarray  # (V, K)
     hu: np.ndarray  # (V, 7)
     _pair: np.ndarray | None = field(default=None, repr=False)
+    _cache: dict = field(default_factory=dict, repr=False)
+
+    def aos_spectra(self) -> tuple[np.ndarray, np.ndarray]:
+        """The library's angle-of-sight spectra (V, S, N/2+1) and squared norms (V,), computed once
+        (matching then needs one FFT of the query and one inverse FFT per gated-in view)."""
+        if "fft" not in self._cache:
+            self._cache["fft"] = np.fft.rfft(self.aos, axis=-1)
+            self._cache["sq"] = np.sum(self.aos * self.aos, axis=(1, 2))
+        return self._cache["fft"], self._cache["sq"]
+
+    def name_ids(self) -> tuple[np.ndarray, np.ndarray]:
+        """(unique object names, each view's index into them), computed once."""
+        if "ids" not in self._cache:
+            self._cache["uniq"], self._cache["ids"] = np.unique(np.array(self.names), return_inverse=True)
+        return self._cache["uniq"], self._cache["ids"]
 
     @classmethod
     def from_views(cls, views: Sequence[tuple[str, int, ShapeFeatures]]) -> LibraryIndex:
@@ -128,7 +143,10 @@ def view_scores(q: ShapeFeatures, index: LibraryIndex, *, method: str = "aos", e
     ok = (np.abs(q.eccentricity ** 2 - index.ecc2) <= ecc_gate) & (dlog <= size_gate)
     shift = np.zeros(len(index), int)
     if method == "aos":
-        d, shift = signature_distance(q.aos, index.aos)
+        d = np.full(len(index), np.inf)
+        rows = np.flatnonzero(ok)  # the gates first: the signature distance only for views that pass them
+        if rows.size:
+            d[rows], shift[rows] = _aos_distance(q.aos, index, rows)
     elif method == "fd":
         d = np.linalg.norm(index.fd - q.fd[None], axis=1)
     elif method == "hu":
@@ -139,27 +157,38 @@ def view_scores(q: ShapeFeatures, index: LibraryIndex, *, method: str = "aos", e
     return (s, shift) if with_shift else s
 
 
+def _aos_distance(q_aos: np.ndarray, index: LibraryIndex, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`labctl.vision.shape.signature_distance` of the query against views ``rows`` of the index,
+    from the index's cached spectra (same formula: ‖a‖² + ‖b‖² − 2·max_s cross-correlation)."""
+    fft, sq = index.aos_spectra()
+    q = np.asarray(q_aos, float)
+    n = q.shape[-1]
+    corr = np.fft.irfft(np.einsum("vsk,sk->vk", fft[rows], np.conj(np.fft.rfft(q, axis=-1))), n=n, axis=-1)
+    shift = np.argmax(corr, axis=1)
+    best = corr[np.arange(len(rows)), shift]
+    d = np.sqrt(np.maximum(np.sum(q * q) + sq[rows] - 2.0 * best, 0.0) / q.size)
+    return d, shift
+
+
 def match(features: ShapeFeatures, index: LibraryIndex, threshold: float = DEFAULT_THRESHOLD, *,
           method: str = "aos", restrict: Sequence[str] | None = None, margin: float = MARGIN,
           **gates) -> MatchResult:
     """Minimum-distance identification of one standard view with the ambiguity rule (paper §3.4)."""
     s, shift = view_scores(features, index, method=method, with_shift=True, **gates)
-    names = np.array(index.names)
+    uniq, ids = index.name_ids()
     if restrict is not None:
-        s = np.where(np.isin(names, list(restrict)), s, np.inf)
-    scores: dict[str, float] = {}
-    views: dict[str, int] = {}
-    for i in np.argsort(s, kind="stable"):
-        n = names[i]
-        if n not in scores:
-            scores[n] = float(s[i])
-            views[n] = int(index.marker_ids[i])
-    i_best = int(np.argmin(s))
+        s = np.where(np.isin(uniq, list(restrict))[ids], s, np.inf)
+    order = np.argsort(s, kind="stable")
+    _, first = np.unique(ids[order], return_index=True)  # each object's best view
+    firsts = order[np.sort(first)]  # objects in order of their best score
+    scores = {str(uniq[ids[i]]): float(s[i]) for i in firsts}
+    views = {str(uniq[ids[i]]): int(index.marker_ids[i]) for i in firsts}
+    i_best = int(order[0])
     if not np.isfinite(s[i_best]):
         return MatchResult(None, [], scores, views, False)
     best = float(s[i_best])
     cands = [n for n, v in scores.items() if v <= threshold or v <= best + margin]
-    return MatchResult((str(names[i_best]), int(index.marker_ids[i_best])), cands, scores, views,
+    return MatchResult((str(index.names[i_best]), int(index.marker_ids[i_best])), cands, scores, views,
                        len(cands) > 1, int(shift[i_best]))
 
 
@@ -255,3 +284,25 @@ def identify(first: ShapeFeatures, index: LibraryIndex, acquire: Callable[[str, 
         remaining = keep or [min(remaining, key=lambda c: step_score[c])]
     name = min(remaining, key=lambda c: total[c])
     return Identification(name, len(remaining) == 1, remaining, views_used, steps, requested)
+
+
+def ambiguity_groups(index: LibraryIndex, threshold: float = DEFAULT_THRESHOLD) -> list[list[int]]:
+    """Views that look alike (paper §3.4): connected components of the view-to-view graph whose edges
+    are pairwise scores ≤ ``threshold`` — the same scores :func:`plan_next_view` uses to pick the
+    extra view that tells candidates apart. Returns the groups of ≥ 2 view indices, largest first."""
+    P = index.pairwise()
+    n = len(index)
+    parent = list(range(n))
+
+    def find(i):
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for i, j in zip(*np.nonzero(np.triu(P <= threshold, k=1)), strict=True):
+        parent[find(int(i))] = find(int(j))
+    groups: dict[int, list[int]] = {}
+    for i in range(n):
+        groups.setdefault(find(i), []).append(i)
+    return sorted((g for g in groups.values() if len(g) > 1), key=lambda g: (-len(g), g[0]))

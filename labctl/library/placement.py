@@ -89,6 +89,12 @@ class ViewingGeometry:
     overhead_distance_mm: float | None = 1800.0
     overhead_cone_deg: float = 10.0
     overhead_max_tilt_deg: float = 60.0
+    # marker sizes a face may get, largest first (None: only the radius passed to the planner)
+    radii_mm: tuple[float, ...] | None = None
+    # the fixed camera's scale (px per mm at the table) and the red-blob area it needs to track a marker
+    # at the rim of its cone; None: no size limit (only the tilt limit)
+    overhead_px_per_mm: float | None = None
+    overhead_min_area_px: float = 24.0
 
 
 @dataclass
@@ -105,6 +111,8 @@ class PlacementResult:
     # stable poses in which no face at all can carry a marker the overhead camera tracks (best effort:
     # there the fixed camera follows the red pixels of markers seen edge-on)
     untracked_poses: list[int] = field(default_factory=list)
+    # initial-view rows (pose·n_yaw + yaw) that no candidate site can serve (coverage below 1)
+    uncovered_rows: np.ndarray = field(default_factory=lambda: np.zeros(0, int), repr=False)
 
     @property
     def min_overhead_visible(self) -> int | None:
@@ -148,18 +156,43 @@ def _plane_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return u, np.cross(n, u)
 
 
+def marker_radii(radius_mm: float, min_radius_mm: float, ratio: float = 0.8) -> tuple[float, ...]:
+    """The marker sizes (mm) a face may get, largest first: the lab's ``radius_mm`` times ``ratio^k``
+    down to ``min_radius_mm`` (the smallest the mobile camera resolves at the initial viewing distance).
+
+    Discrete sizes a factor ``1/ratio`` apart, so the run can tell which size it sees from the
+    marker's height above the table (an ellipse fixes a circle's distance only up to its radius)."""
+    if not 0 < ratio < 1:
+        raise ValueError("ratio must be in (0, 1)")
+    out = [float(radius_mm)]
+    while out[-1] * ratio >= min_radius_mm - 1e-9:
+        out.append(round(out[-1] * ratio, 3))
+    return tuple(out)
+
+
+def min_marker_radius(fx_px: float, distance_mm: float, min_diameter_px: float) -> float:
+    """Smallest marker radius (mm) whose face-on image at ``distance_mm`` is ``min_diameter_px`` across
+    (pinhole: diameter_px = 2·r·fx/Z)."""
+    return float(min_diameter_px * distance_mm / (2.0 * fx_px))
+
+
 def candidate_sites(mesh: trimesh.Trimesh, radius_mm: float, *, margin: float = 1.3,
-                    grid_mm: float = 0.25) -> list[Marker]:
-    """Marker sites: per planar face region that can hold a disc of ``margin·radius``, the point
-    nearest the object's bounding-box centre (projected on the face) at least that far inside
-    the face, so standard views are centred. Ids in order of decreasing face area."""
+                    grid_mm: float = 0.25, radii_mm: tuple[float, ...] | None = None) -> list[Marker]:
+    """Marker sites: one per planar face region (paper §4.1).
+
+    Each face gets the largest radius of ``radii_mm`` (default: only ``radius_mm``) whose disc of
+    ``margin·r`` fits inside it (distance transform of the face rasterised at ``grid_mm``); the
+    site is the point that deep inside the face nearest the object's bounding-box centre
+    (projected on the face), so standard views are centred but a marker may sit off-centre where
+    the face's middle is cut away. Faces too small for the smallest radius get no site. Ids in
+    order of decreasing face area."""
+    radii = sorted(radii_mm if radii_mm else (radius_mm,), reverse=True)
     groups = [np.asarray(f) for f in mesh.facets]
     in_facet = np.zeros(len(mesh.faces), bool)
     for g in groups:
         in_facet[g] = True
     groups += [np.array([i]) for i in np.flatnonzero(~in_facet)]
     sites = []
-    need = margin * radius_mm
     centre = mesh.bounds.mean(axis=0)
     for g in groups:
         n = mesh.face_normals[g].mean(axis=0)
@@ -169,25 +202,27 @@ def candidate_sites(mesh: trimesh.Trimesh, radius_mm: float, *, margin: float = 
         uv = np.stack([tri @ u, tri @ v], axis=-1)  # (k, 3, 2)
         lo = uv.reshape(-1, 2).min(axis=0) - 2 * grid_mm
         hi = uv.reshape(-1, 2).max(axis=0) + 2 * grid_mm
-        if np.min(hi - lo) < 2 * need:
+        if np.min(hi - lo) < 2 * margin * radii[-1]:
             continue
         shape = np.ceil((hi - lo) / grid_mm).astype(int) + 1
         img = np.zeros((shape[1], shape[0]), np.uint8)
         pix = np.round((uv - lo) / grid_mm * 16).astype(np.int32)  # 4 fractional bits
         cv2.fillPoly(img, list(pix), 1, lineType=cv2.LINE_8, shift=4)
         dist = cv2.distanceTransform(img, cv2.DIST_L2, 5) * grid_mm
-        deep_r, deep_c = np.nonzero(dist >= need)
-        if deep_r.size == 0:
+        fits = [r for r in radii if dist.max() >= margin * r]
+        if not fits:
             continue
+        r = fits[0]
+        deep_r, deep_c = np.nonzero(dist >= margin * r)
         # of the points deep enough, the one nearest the object's centre: centred standard views
         aim = (np.array([centre @ u, centre @ v]) - lo) / grid_mm
         k = int(np.argmin((deep_c - aim[0]) ** 2 + (deep_r - aim[1]) ** 2))
         p2 = lo + np.array([deep_c[k], deep_r[k]]) * grid_mm
         plane_d = float(np.mean(tri.reshape(-1, 3) @ n))
         center = p2[0] * u + p2[1] * v + plane_d * n
-        sites.append((float(mesh.area_faces[g].sum()), center, n))
+        sites.append((float(mesh.area_faces[g].sum()), center, n, r))
     sites.sort(key=lambda s: -s[0])
-    return [Marker(i, c, nn, float(radius_mm)) for i, (_, c, nn) in enumerate(sites)]
+    return [Marker(i, c, nn, float(r)) for i, (_, c, nn, r) in enumerate(sites)]
 
 
 # --- visibility -------------------------------------------------------------------------
@@ -305,8 +340,22 @@ def overhead_visibility(mesh: trimesh.Trimesh, sites: list[Marker], poses: list[
     normals = np.array([m.normal for m in sites]).reshape(-1, 3)
     up_z = np.stack([T[2, :3] for T in poses]) @ normals.T  # (P, sites): z of the normal in W
     # 0.01° slack: a triangular prism lying on a side shows its upper faces at exactly 60°
-    tilt_ok = up_z >= np.cos(np.radians(view.overhead_max_tilt_deg + 0.01))
+    tilt_ok = up_z >= np.cos(np.radians(overhead_tilt_limits_deg(sites, view) + 0.01))[None, :]
     return seen.reshape(P, K, len(sites)).all(axis=1) & tilt_ok
+
+
+def overhead_tilt_limits_deg(sites: list[Marker], view: ViewingGeometry) -> np.ndarray:
+    """Per site, the largest tilt (deg) of its normal from the vertical at which the overhead camera
+    still tracks it: ``overhead_max_tilt_deg``, lowered for small markers so that the red blob's area
+    at the cone's rim, ``π (r·s)² cos(tilt + cone)`` (s = px/mm), stays ≥ ``overhead_min_area_px``;
+    −inf (never trackable) when even a face-on marker is smaller than that."""
+    lim = np.full(len(sites), float(view.overhead_max_tilt_deg))
+    if view.overhead_px_per_mm is None:
+        return lim
+    for i, m in enumerate(sites):
+        need = view.overhead_min_area_px / (np.pi * (m.radius * view.overhead_px_per_mm) ** 2)
+        lim[i] = min(lim[i], np.degrees(np.arccos(need)) - view.overhead_cone_deg) if need <= 1 else -np.inf
+    return lim
 
 
 def plan_markers(mesh: trimesh.Trimesh, poses: list[tuple[np.ndarray, float]], radius_mm: float,
@@ -314,43 +363,43 @@ def plan_markers(mesh: trimesh.Trimesh, poses: list[tuple[np.ndarray, float]], r
                  candidates: list[Marker] | None = None) -> PlacementResult:
     """Minimum marker set for ``mesh`` (paper §4.1) meeting (a) the initial-view requirement and,
     unless ``view.overhead_distance_mm`` is None, (b) the overhead-tracking requirement (module
-    docstring). Raises :class:`ModelError` if some stable pose has a yaw from which no candidate
-    site can be seen, or no candidate the overhead camera can track (no placement can work).
+    docstring), wherever some candidate site can meet them. Rows no site can serve (a pose and yaw
+    from which every face that holds a marker is hidden or too oblique; a pose no face can serve
+    overhead) are left out and reported (``uncovered_rows``, ``untracked_poses``): the model is
+    taught anyway and :func:`coverage_report` gives the share of placements covered. Raises
+    :class:`ModelError` only when no face can hold even the smallest marker or none is ever visible.
 
     Planning (a) uses an obliquity limit ``planning_margin_deg`` tighter than the check's, so the
     result holds between the sampled yaws too; (b)'s tilt test is exact (no sampling) and its
     occlusion test is re-checked on a finer cone grid by :func:`check_overhead_coverage`.
     """
-    sites = candidates if candidates is not None else candidate_sites(mesh, radius_mm)
+    sites = candidates if candidates is not None else candidate_sites(mesh, radius_mm, radii_mm=view.radii_mm)
     if not sites:
-        raise ModelError(f"no flat face can hold a marker of radius {radius_mm:g} mm")
+        smallest = min(view.radii_mm) if view.radii_mm else radius_mm
+        raise ModelError(f"no flat face can hold even the smallest marker (radius {smallest:g} mm: faces at "
+                         f"least {2 * 1.3 * smallest:.1f} mm across)")
     Ts = [T for T, _ in poses]
     dirs = view_directions_o(Ts, view.angle_deg, view.n_yaw)
     vis = visibility_matrix(mesh, sites, dirs, distance_mm=view.distance_mm,
                             max_obliquity_deg=view.max_obliquity_deg - planning_margin_deg)
-    uncovered = ~vis.any(axis=1)
-    if uncovered.any():
-        r = int(np.flatnonzero(uncovered)[0])
-        p, j = divmod(r, view.n_yaw)
-        n_bad = int(uncovered.reshape(len(Ts), view.n_yaw)[p].sum())
-        raise ModelError(
-            f"no marker can be made visible in stable pose {p} (probability {poses[p][1]:.3f}) at "
-            f"{n_bad} of {view.n_yaw} yaw angles, e.g. {360.0 * j / view.n_yaw:.0f}° (viewing angle "
-            f"{view.angle_deg:g}°, max obliquity {view.max_obliquity_deg:g}°)")
-    rows = vis
+    coverable = vis.any(axis=1)  # (pose, yaw) rows no site can serve: left uncovered and reported
+    rows = vis[coverable]
     over = None
     untracked: list[int] = []
     if view.overhead_distance_mm is not None:
         over = overhead_visibility(mesh, sites, Ts, view)
         trackable = over.any(axis=1)  # a pose no face can serve stays uncovered (reported, not fatal)
         untracked = np.flatnonzero(~trackable).tolist()
-        rows = np.vstack([vis, over[trackable]])
+        rows = np.vstack([rows, over[trackable]])
+    if rows.shape[0] == 0:
+        raise ModelError("no marker site is visible from the initial viewing camera in any pose")
     chosen, method, bound = set_cover(rows)
     markers = [Marker(i, sites[k].center, sites[k].normal, sites[k].radius) for i, k in enumerate(chosen)]
     cov = vis[:, chosen]
     return PlacementResult(markers=markers, candidates=sites, method=method, bound=bound,
                            n_rows=len(rows), min_visible=int(cov.sum(axis=1).min()), coverage=cov,
-                           overhead_coverage=None if over is None else over[:, chosen], untracked_poses=untracked)
+                           overhead_coverage=None if over is None else over[:, chosen], untracked_poses=untracked,
+                           uncovered_rows=np.flatnonzero(~coverable))
 
 
 def check_coverage(mesh: trimesh.Trimesh, poses: list[np.ndarray], markers: list[Marker],
@@ -381,41 +430,102 @@ def optimal_viewing_angle(mesh: trimesh.Trimesh, poses: list[tuple[np.ndarray, f
                           view: ViewingGeometry, angles_deg=None, n_yaw: int = 72) -> dict:
     """Minimum marker count versus viewing angle; the optimal initial viewing angle (paper §4.1).
 
-    Returns ``{"angles_deg", "counts", "min_visible", "optimal_deg", "optimal_range_deg"}``;
-    angles where some pose cannot be covered get count ``None``. The counts are for the
-    initial-view requirement alone (the paper's quantity); the overhead rows do not depend on α.
+    Returns ``{"angles_deg", "counts", "coverage", "min_visible", "optimal_deg", "optimal_range_deg"}``:
+    per angle the planned marker count and the initial-view coverage probability it reaches (1.0
+    unless some pose and yaw can see no face that holds a marker). The optimum has the highest
+    coverage, then the fewest markers (the paper's quantity), then the largest worst-case number
+    of visible markers, then the steepest angle. The overhead rows do not depend on α.
     """
     angles = np.arange(30.0, 90.01, 3.0) if angles_deg is None else np.asarray(angles_deg, float)
-    sites = candidate_sites(mesh, radius_mm)
-    counts, worst = [], []
+    sites = candidate_sites(mesh, radius_mm, radii_mm=view.radii_mm)
+    probs = np.array([p for _, p in poses])
+    counts, worst, cover = [], [], []
     for a in angles:
         v = replace(view, angle_deg=float(a), n_yaw=n_yaw, overhead_distance_mm=None)
         try:
             r = plan_markers(mesh, poses, radius_mm, v, candidates=sites)
-            counts.append(len(r.markers))
-            worst.append(r.min_visible)
         except ModelError:
             counts.append(None)
             worst.append(0)
+            cover.append(0.0)
+            continue
+        counts.append(len(r.markers))
+        worst.append(r.min_visible)
+        missed = np.bincount(r.uncovered_rows // n_yaw, minlength=len(poses)) / n_yaw
+        cover.append(round(float(probs @ (1.0 - missed)), 4))
     valid = [i for i, c in enumerate(counts) if c is not None]
     if not valid:
-        return {"angles_deg": angles.tolist(), "counts": counts, "min_visible": worst,
+        return {"angles_deg": angles.tolist(), "counts": counts, "coverage": cover, "min_visible": worst,
                 "optimal_deg": None, "optimal_range_deg": None}
-    best = min(counts[i] for i in valid)
-    tied = [i for i in valid if counts[i] == best]
-    top = max(worst[i] for i in tied)
-    pick = max(i for i in tied if worst[i] == top)  # steepest: top faces seen most frontally
-    return {"angles_deg": angles.tolist(), "counts": counts, "min_visible": worst,
+    key = {i: (cover[i], -counts[i], worst[i], angles[i]) for i in valid}
+    pick = max(valid, key=lambda i: key[i])
+    tied = [i for i in valid if key[i][:2] == key[pick][:2]]
+    return {"angles_deg": angles.tolist(), "counts": counts, "coverage": cover, "min_visible": worst,
             "optimal_deg": float(angles[pick]),
             "optimal_range_deg": [float(angles[tied].min()), float(angles[tied].max())]}
 
 
-def viewing_geometry(lab):
-    """The marker-placement viewing geometry of a lab (lab.yaml ``viewing`` and the fixed camera's height)."""
+# --- coverage probability (paper §4.1: the share of random placements with a usable marker) -------
+def coverage_probability(probabilities, visible_share, tracked=None) -> float:
+    """Σ_p π_p · v_p · t_p: stable pose p drawn with probability π_p, yaw uniform; v_p the share of yaws
+    with a visible marker, t_p 1 if the overhead camera tracks one in pose p (omitted: 1)."""
+    v = np.asarray(visible_share, float)
+    t = np.ones_like(v) if tracked is None else np.asarray(tracked, float)
+    return float(np.asarray(probabilities, float) @ (v * t))
+
+
+def coverage_vs_angle(mesh: trimesh.Trimesh, poses: list[tuple[np.ndarray, float]], markers: list[Marker],
+                      view: ViewingGeometry, angles_deg=None, n_yaw: int = 72) -> dict:
+    """Initial-view coverage probability of fixed ``markers`` versus viewing angle α (deg):
+    ``{"angles_deg": [...], "coverage": [...]}`` — what the library-wide angle is chosen from."""
+    angles = np.arange(30.0, 90.01, 3.0) if angles_deg is None else np.asarray(angles_deg, float)
+    probs = np.array([p for _, p in poses])
+    Ts = [T for T, _ in poses]
+    out = []
+    for a in angles:
+        counts = check_coverage(mesh, Ts, markers, replace(view, angle_deg=float(a)), n_yaw=n_yaw)
+        out.append(round(coverage_probability(probs, (counts > 0).mean(axis=1)), 4))
+    return {"angles_deg": [float(a) for a in angles], "coverage": out}
+
+
+def library_viewing_angle(curves: dict[str, dict], current_deg: float) -> tuple[float, dict[str, float]]:
+    """One initial viewing angle for the whole library (paper §4.1, "a given set of objects").
+
+    ``curves``: per object ``{"angles_deg", "coverage"}`` (:func:`coverage_vs_angle`). The angle
+    maximises the worst object's coverage, then the mean, then stays nearest ``current_deg``
+    (markers were planned there). Returns (angle, each object's coverage at it). With no curves,
+    ``current_deg``."""
+    if not curves:
+        return float(current_deg), {}
+    grid = sorted({float(a) for c in curves.values() for a in c["angles_deg"]} | {float(current_deg)})
+
+    def at(c, a):
+        return float(np.interp(a, c["angles_deg"], c["coverage"]))
+
+    def key(a):
+        cov = [at(c, a) for c in curves.values()]
+        return (round(min(cov), 4), round(float(np.mean(cov)), 4), -abs(a - current_deg))
+
+    best = max(grid, key=key)
+    return best, {n: round(at(c, best), 4) for n, c in curves.items()}
+
+
+def viewing_geometry(lab, angle_deg: float | None = None):
+    """The marker-placement viewing geometry of a lab: lab.yaml ``viewing`` and ``marker`` (the size
+    ladder down to the smallest marker the mobile camera resolves at the initial viewing distance),
+    the fixed camera's height and scale. ``angle_deg`` overrides the initial viewing angle (the
+    library's own, :func:`labctl.library.storage.library_angle`)."""
     v = lab.config.viewing
+    mk = lab.config.marker
     cam = lab.fixed_camera
     height = 1800.0  # paper §5.2: the fixed camera 1.8 m above the table
     if getattr(cam, "eye_w_mm", None) is not None:
         height = float(cam.eye_w_mm[2]) - float(lab.table.origin_w_mm[2])
-    return ViewingGeometry(angle_deg=v.initial_angle_deg, distance_mm=v.initial_distance_mm,
-                           max_obliquity_deg=v.max_obliquity_deg, overhead_distance_mm=height)
+    mob = lab.mobile_camera.lens
+    fx_mobile = mob.f_mm / mob.dx_mm
+    r_min = min_marker_radius(fx_mobile, v.initial_distance_mm, getattr(mk, "min_image_diameter_px", 16.0))
+    radii = marker_radii(mk.radius_mm, min(r_min, mk.radius_mm), getattr(mk, "size_ratio", 0.8))
+    fixed_scale = cam.lens.f_mm / cam.lens.dx_mm / height
+    return ViewingGeometry(angle_deg=v.initial_angle_deg if angle_deg is None else float(angle_deg),
+                           distance_mm=v.initial_distance_mm, max_obliquity_deg=v.max_obliquity_deg,
+                           overhead_distance_mm=height, radii_mm=radii, overhead_px_per_mm=fixed_scale)

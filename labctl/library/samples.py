@@ -127,3 +127,44 @@ def write_sample_models(folder: Path | str = SAMPLE_MODELS_DIR) -> list[Path]:
 if __name__ == "__main__":  # pragma: no cover - a generator script
     for p in write_sample_models(sys.argv[1] if len(sys.argv) > 1 else SAMPLE_MODELS_DIR):
         print(p)
+
+
+PART_KINDS = ("box", "plate", "concave", "stepped", "holed")
+
+
+def random_part(rng: np.random.Generator, kind: str | None = None) -> trimesh.Trimesh:
+    """A random machined part for the scale benchmark (issue 15), 5–120 mm, centred on its bounding box.
+
+    ``box`` 15–110 mm per side; ``plate`` 5–9 mm thick, 30–110 mm across; ``concave`` an extruded L, T,
+    U or cross profile (:func:`random_object`'s shapes); ``stepped`` a block with 2–3 steps; ``holed``
+    a rectangular or round-cornered block with a through hole (trimesh's extrusion of a polygon with a
+    hole, via shapely + mapbox_earcut)."""
+    kind = kind or str(rng.choice(PART_KINDS))
+    u = lambda lo, hi: float(rng.uniform(lo, hi))  # noqa: E731
+    if kind == "box":
+        return trimesh.creation.box((u(15, 110), u(15, 110), u(15, 110)))
+    if kind == "plate":
+        return trimesh.creation.box((u(30, 110), u(30, 110), u(5, 9)))
+    if kind == "concave":
+        while True:
+            m = random_object(rng)
+            if not m.is_convex:
+                return m
+    if kind == "stepped":
+        n = int(rng.integers(2, 4))
+        return _profile(stepped(u(30 * n, 100), sorted([u(15, 70) for _ in range(n)], reverse=True)), u(25, 90),
+                        lay_flat=bool(rng.integers(0, 2)))
+    if kind == "holed":
+        from shapely.geometry import Point, Polygon
+
+        w, d = u(40, 100), u(40, 100)
+        wall = u(12, 20)
+        outer = Polygon([(0, 0), (w, 0), (w, d), (0, d)])
+        if rng.random() < 0.5:
+            hole = Point(w / 2, d / 2).buffer(min(w, d) / 2 - wall, resolution=8)
+        else:
+            hole = Polygon([(wall, wall), (w - wall, wall), (w - wall, d - wall), (wall, d - wall)])
+        m = trimesh.creation.extrude_polygon(outer.difference(hole), u(10, 60))
+        m.apply_translation(-m.bounds.mean(axis=0))
+        return m
+    raise ValueError(f"unknown part kind {kind!r} ({', '.join(PART_KINDS)})")

@@ -11,14 +11,20 @@ One folder per object, written atomically (:func:`labctl.fsutil.atomic_dir`)::
       views/<id>.json      its features (eccentricity, size, chain code, angle-of-sight signature…)
       contact_sheet.png    all standard views side by side
 
-:func:`load_library` reads a whole library and fails with one clear :class:`LibraryError`
-naming the folder and file when anything is missing or malformed.
+:func:`load_library` reads a whole library; an object folder that is missing a file or has a
+malformed one is skipped with one warning line naming the object, the file and the problem
+(:func:`load_object` raises that line as a :class:`LibraryError`). ``library.yaml`` beside the
+object folders holds the library-wide initial viewing angle (paper §4.1).
 """
 
 from __future__ import annotations
 
 import json
+import os
 import re
+import shutil
+import sys
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -28,7 +34,7 @@ import trimesh
 import yaml
 
 from ..errors import UserInputError
-from ..fsutil import atomic_dir
+from ..fsutil import atomic_dir, atomic_write_bytes, atomic_write_text
 from ..vision.shape import ShapeError, ShapeFeatures, silhouette_mask
 from .placement import Marker
 from .views import StandardView, contact_sheet
@@ -87,6 +93,30 @@ def check_name(name: str) -> str:
     return name
 
 
+def face_label(normal) -> str:
+    """The face a marker sits on, in words: ``+x`` … ``-z`` when the normal is within 5° of an axis of O,
+    else the rounded normal."""
+    n = np.asarray(normal, float)
+    i = int(np.argmax(np.abs(n)))
+    if abs(n[i]) >= np.cos(np.radians(5.0)):
+        return f"{'+' if n[i] > 0 else '-'}{'xyz'[i]} face"
+    return "face n=(" + ",".join(f"{v:+.2f}" for v in n) + ")"
+
+
+def _sheet(obj: LibraryObject, images: dict[int, np.ndarray], groups: dict) -> np.ndarray:
+    """Contact sheet: each view labelled with its marker (id, radius) and face; views in an ambiguity
+    group (``groups``: marker id → (group number, other members)) get the group's tag."""
+    imgs, labels, tags = [], [], []
+    for mid, img in sorted(images.items()):
+        m = obj.marker(mid)
+        imgs.append(img)
+        labels.append(f"{obj.name} #{mid} r{m.radius:g}")
+        g = groups.get(mid) or groups.get(str(mid))
+        tags.append(f"{face_label(m.normal)}" + (f"  G{g['group']}: {', '.join(g['with'][:2])}" if g else ""))
+    return contact_sheet(imgs, labels, sublabels=tags, highlight=[bool(groups.get(mid) or groups.get(str(mid)))
+                                                                 for mid in sorted(images)])
+
+
 def save_object(library_dir: Path | str, obj: LibraryObject) -> Path:
     """Write ``library_dir/NAME/`` atomically (an existing folder is replaced only when complete)."""
     check_name(obj.name)
@@ -98,19 +128,32 @@ def save_object(library_dir: Path | str, obj: LibraryObject) -> Path:
         poses = [{"T": np.round(T, 6).tolist(), "probability": round(float(p), 6)} for T, p in obj.stable_poses]
         (tmp / "stable_poses.yaml").write_text(yaml.safe_dump({"stable_poses": poses}, sort_keys=False))
         (tmp / "views").mkdir()
-        imgs, labels = [], []
+        imgs = {}
         for mid, v in sorted(obj.views.items()):
             if v.image is not None:
                 if not cv2.imwrite(str(tmp / "views" / f"{mid}.png"), _crop_to_object(v.image),
                                    [cv2.IMWRITE_PNG_COMPRESSION, 9]):
                     raise LibraryError(f"cannot write view image {mid}.png")
-                imgs.append(v.image)
-                labels.append(f"{obj.name} #{mid}")
+                imgs[mid] = v.image
             (tmp / "views" / f"{mid}.json").write_text(json.dumps(v.features.to_dict()))
-        cv2.imwrite(str(tmp / "contact_sheet.png"), contact_sheet(imgs, labels))
+        groups = obj.info.get("ambiguity_groups") or {}
+        cv2.imwrite(str(tmp / "contact_sheet.png"), _sheet(obj, imgs, groups))
         info = {"name": obj.name, "format": FORMAT_VERSION, **obj.info}
-        (tmp / "object.yaml").write_text(yaml.safe_dump(info, sort_keys=False))
+        (tmp / "object.yaml").write_text(yaml.safe_dump(_plain(info), sort_keys=False))
     return target
+
+
+def _plain(x):
+    """numpy scalars and arrays → plain Python for YAML."""
+    if isinstance(x, dict):
+        return {str(k) if not isinstance(k, int | str) else k: _plain(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_plain(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return _plain(x.tolist())
+    if isinstance(x, np.generic):
+        return x.item()
+    return x
 
 
 def _read_yaml(path: Path, key: str):
@@ -118,67 +161,240 @@ def _read_yaml(path: Path, key: str):
         data = yaml.safe_load(path.read_text())
     except FileNotFoundError:
         raise LibraryError(f"{path.parent.name}: missing {path.name}") from None
-    except yaml.YAMLError as exc:
+    except (yaml.YAMLError, UnicodeDecodeError) as exc:
         raise LibraryError(f"{path.parent.name}: {path.name} is not valid YAML ({exc.__class__.__name__})") from None
+    except OSError as exc:
+        raise LibraryError(f"{path.parent.name}: cannot read {path.name} ({exc.strerror})") from None
     if not isinstance(data, dict) or key not in data:
         raise LibraryError(f"{path.parent.name}: {path.name} has no {key!r} entry")
-    return data[key] if key != "." else data
+    return data, data[key]
+
+
+def _features(name: str, fj: Path, mid: int) -> ShapeFeatures:
+    try:
+        f = ShapeFeatures.from_dict(json.loads(fj.read_text()))
+    except FileNotFoundError:
+        raise LibraryError(f"{name}: missing views/{fj.name} (standard view of marker {mid})") from None
+    except (KeyError, TypeError, ValueError, UnicodeDecodeError) as exc:
+        raise LibraryError(f"{name}: views/{fj.name} is malformed ({exc})") from None
+    if f.hu.shape != (7,) or f.fd.ndim != 1 or not all(np.isfinite(a).all() for a in (f.aos, f.fd, f.hu)):
+        raise LibraryError(f"{name}: views/{fj.name} is malformed (feature arrays of the wrong shape or not finite)")
+    if not (f.size_mm > 0 and f.perimeter_mm > 0 and 0 <= f.eccentricity <= 1):
+        raise LibraryError(f"{name}: views/{fj.name} is malformed (size, perimeter or eccentricity out of range)")
+    return f
 
 
 def load_object(folder: Path | str) -> LibraryObject:
-    """Read one object folder; raise :class:`LibraryError` (naming folder and file) if it is corrupt."""
+    """Read one object folder; raise :class:`LibraryError` (one line naming the object and file) if it is corrupt."""
     folder = Path(folder)
     name = folder.name
     if not folder.is_dir():
         raise LibraryError(f"library object {name!r} not found in {folder.parent}")
-    info = _read_yaml(folder / "object.yaml", "name")
-    meta = yaml.safe_load((folder / "object.yaml").read_text())
+    meta, info = _read_yaml(folder / "object.yaml", "name")
     if info != name:
         raise LibraryError(f"{name}: object.yaml names it {info!r}")
     if meta.get("format") != FORMAT_VERSION:
-        raise LibraryError(f"{name}: unsupported library format {meta.get('format')!r}")
+        raise LibraryError(f"{name}: object.yaml: unsupported library format {meta.get('format')!r}")
     model = folder / "model.stl"
+    if not model.is_file():
+        raise LibraryError(f"{name}: missing model.stl")
     try:
         mesh = trimesh.load(model, force="mesh")
-    except Exception as exc:
-        raise LibraryError(f"{name}: cannot read model.stl ({exc})") from None
+    except Exception as exc:  # trimesh raises many kinds on broken files
+        raise LibraryError(f"{name}: cannot read model.stl ({exc.__class__.__name__})") from None
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0 or not mesh.is_watertight:
         raise LibraryError(f"{name}: model.stl is empty or not watertight")
     try:
-        markers = [Marker.from_dict(d) for d in _read_yaml(folder / "markers.yaml", "markers")]
+        _, items = _read_yaml(folder / "markers.yaml", "markers")
+        markers = [Marker.from_dict(d) for d in items]
     except (KeyError, TypeError, ValueError) as exc:
         raise LibraryError(f"{name}: markers.yaml is malformed ({exc})") from None
+    if not markers:
+        raise LibraryError(f"{name}: markers.yaml lists no markers")
+    if len({m.id for m in markers}) != len(markers):
+        raise LibraryError(f"{name}: markers.yaml repeats a marker id")
     try:
         poses = []
-        for d in _read_yaml(folder / "stable_poses.yaml", "stable_poses"):
+        _, items = _read_yaml(folder / "stable_poses.yaml", "stable_poses")
+        for d in items:
             T = np.asarray(d["T"], float)
             if T.shape != (4, 4) or not np.isfinite(T).all():
                 raise ValueError("T must be a finite 4×4 matrix")
             poses.append((T, float(d["probability"])))
+        if not poses:
+            raise ValueError("no poses")
     except (KeyError, TypeError, ValueError) as exc:
         raise LibraryError(f"{name}: stable_poses.yaml is malformed ({exc})") from None
-    views = {}
-    for m in markers:
-        fj = folder / "views" / f"{m.id}.json"
-        try:
-            views[m.id] = StandardView(m.id, ShapeFeatures.from_dict(json.loads(fj.read_text())))
-        except FileNotFoundError:
-            raise LibraryError(f"{name}: missing views/{m.id}.json (standard view of marker {m.id})") from None
-        except (KeyError, TypeError, ValueError) as exc:
-            raise LibraryError(f"{name}: views/{m.id}.json is malformed ({exc})") from None
-    if not markers:
-        raise LibraryError(f"{name}: no markers")
+    views = {m.id: StandardView(m.id, _features(name, folder / "views" / f"{m.id}.json", m.id)) for m in markers}
     meta.pop("name", None)
     return LibraryObject(name, mesh, markers, poses, views, info=meta, path=folder)
 
 
-def load_library(library_dir: Path | str) -> dict[str, LibraryObject]:
-    """All objects of a library folder by name (hidden and temporary folders are skipped)."""
+def object_folders(root: Path) -> list[Path]:
+    """The object folders of a library (hidden and temporary folders — atomic writes — are not objects)."""
+    return [d for d in sorted(root.iterdir()) if d.is_dir() and not d.name.startswith(".")]
+
+
+def load_library_checked(library_dir: Path | str) -> tuple[dict[str, LibraryObject], dict[str, str]]:
+    """All loadable objects by name, and a one-line problem per object folder that cannot be loaded."""
     root = Path(library_dir)
     if not root.is_dir():
         raise LibraryError(f"object library folder not found: {root}")
-    out = {}
-    for d in sorted(root.iterdir()):
-        if d.is_dir() and not d.name.startswith("."):
+    out, bad = {}, {}
+    for d in object_folders(root):
+        try:
             out[d.name] = load_object(d)
+        except LibraryError as exc:
+            bad[d.name] = str(exc)
+    return out, bad
+
+
+def warn_stderr(message: str) -> None:
+    sys.stderr.write(f"warning: {message}\n")
+
+
+def load_library(library_dir: Path | str, *, warn: Callable[[str], None] | None = warn_stderr
+                 ) -> dict[str, LibraryObject]:
+    """All objects of a library folder by name. A broken object is skipped with one line to
+    ``warn`` (default: stderr) naming it, the file and the problem; it never blocks the others."""
+    out, bad = load_library_checked(library_dir)
+    for msg in bad.values():
+        if warn is not None:
+            warn(f"object library: skipped {msg}")
     return out
+
+
+def remove_object(library_dir: Path | str, name: str) -> Path:
+    """Delete ``library_dir/NAME`` (renamed aside first, so a crash leaves it whole or gone)."""
+    check_name(name)
+    target = Path(library_dir) / name
+    if not target.is_dir():
+        raise LibraryError(f"no object {name!r} in {library_dir}")
+    aside = target.with_name(f".{name}.removed.tmp")
+    shutil.rmtree(aside, ignore_errors=True)
+    os.replace(target, aside)
+    shutil.rmtree(aside, ignore_errors=True)
+    return target
+
+
+# --- the library's own settings: one initial viewing angle for the whole library (paper §4.1) ------
+LIBRARY_FILE = "library.yaml"
+
+
+def library_angle(library_dir: Path | str, default_deg: float) -> float:
+    """The library's initial viewing angle (deg): ``library.yaml``'s, else ``default_deg`` (lab.yaml)."""
+    try:
+        data = yaml.safe_load((Path(library_dir) / LIBRARY_FILE).read_text())
+        a = float(data["initial_angle_deg"])
+        if 0.0 < a <= 90.0:
+            return a
+    except (OSError, yaml.YAMLError, KeyError, TypeError, ValueError):
+        pass
+    return float(default_deg)
+
+
+def update_library_angle(library_dir: Path | str, view, library: dict[str, LibraryObject] | None = None) -> dict:
+    """Re-choose the library-wide initial viewing angle from every object's coverage-versus-angle
+    curve and return ``{"initial_angle_deg", "previous_deg", "coverage": {name: probability}}``.
+
+    ``view``: the lab's :class:`~labctl.library.placement.ViewingGeometry` (its ``angle_deg`` is the
+    lab.yaml default used before the library has its own). Curves come from ``object.yaml``
+    (written when taught); for objects taught before curves were recorded they are computed from
+    the object's markers (not written back)."""
+    from .placement import coverage_vs_angle, library_viewing_angle
+
+    root = Path(library_dir)
+    lib = library if library is not None else load_library(root, warn=None)
+    current = library_angle(root, view.angle_deg)
+    curves = {}
+    for n, o in lib.items():
+        c = o.info.get("coverage_vs_angle")
+        if not (isinstance(c, dict) and c.get("coverage")):
+            c = coverage_vs_angle(o.mesh, o.stable_poses, o.markers, view, n_yaw=36)
+        curves[n] = c
+    angle, cov = library_viewing_angle(curves, current)
+    return {"format": FORMAT_VERSION, "initial_angle_deg": float(angle), "previous_deg": float(current),
+            "chosen_from": "worst object's initial-view coverage, then the mean, then nearest the previous angle",
+            "coverage": cov}
+
+
+def refresh_library(library_dir: Path | str, view, *, threshold: float | None = None) -> dict:
+    """After an object is added or removed: re-choose the library-wide initial viewing angle
+    (:func:`update_library_angle`), recompute the ambiguity groups over all standard views
+    (:func:`labctl.library.matching.ambiguity_groups`), record them in ``library.yaml`` and in each
+    object's ``object.yaml``, and redraw the contact sheets whose groups changed (atomic writes)."""
+    from .matching import DEFAULT_THRESHOLD, LibraryIndex, ambiguity_groups
+
+    root = Path(library_dir)
+    lib = load_library(root, warn=None)
+    data = update_library_angle(root, view, library=lib)
+    groups_out: list[list[str]] = []
+    per_obj: dict[str, dict] = {n: {} for n in lib}
+    if lib:
+        index = LibraryIndex.from_library(lib)
+        for k, g in enumerate(ambiguity_groups(index, threshold or DEFAULT_THRESHOLD), start=1):
+            members = [f"{index.names[i]}#{int(index.marker_ids[i])}" for i in g]
+            groups_out.append(members)
+            for i, tag in zip(g, members, strict=True):
+                per_obj[index.names[i]][int(index.marker_ids[i])] = {
+                    "group": k, "with": [t for t in members if t != tag]}
+    data["ambiguity_groups"] = groups_out
+    atomic_write_text(root / LIBRARY_FILE, yaml.safe_dump(_plain(data), sort_keys=False))
+    for name, obj in lib.items():
+        new = per_obj[name]
+        old = {int(k): v for k, v in (obj.info.get("ambiguity_groups") or {}).items()}
+        if old == new:
+            continue
+        obj.info["ambiguity_groups"] = new
+        images = {}
+        for mid in obj.views:
+            try:
+                images[mid] = obj.view_image(mid)
+            except LibraryError:
+                pass
+        sheet = _sheet(obj, images, new)
+        ok, png = cv2.imencode(".png", sheet)
+        if ok:
+            atomic_write_bytes(obj.path / "contact_sheet.png", png.tobytes())
+        atomic_write_text(obj.path / "object.yaml", yaml.safe_dump(_plain({"name": name, **obj.info}), sort_keys=False))
+    return data
+
+
+def check_library(library_dir: Path | str) -> tuple[list[str], list[str]]:
+    """Validate every object folder: (names that are fine, one line per problem naming object and file).
+
+    Beyond what loading checks: every standard-view image is readable, the stored model matches the
+    content hash recorded when it was taught, stable-pose probabilities sum to 1, and
+    ``library.yaml`` is readable."""
+    import hashlib
+
+    root = Path(library_dir)
+    objs, bad = load_library_checked(root)
+    problems = [f"{msg}" for msg in bad.values()]
+    ok = []
+    for name, obj in objs.items():
+        errs = []
+        for mid in obj.views:
+            png = obj.path / "views" / f"{mid}.png"
+            if not png.is_file():
+                errs.append(f"{name}: missing views/{mid}.png")
+            elif cv2.imread(str(png), cv2.IMREAD_COLOR) is None:
+                errs.append(f"{name}: views/{mid}.png is not a readable image")
+        want = (obj.info.get("source") or {}).get("stored_model_sha256") if isinstance(obj.info.get("source"),
+                                                                                       dict) else None
+        if want and hashlib.sha256((obj.path / "model.stl").read_bytes()).hexdigest() != want:
+            errs.append(f"{name}: model.stl differs from the model it was taught with (content hash)")
+        total = sum(p for _, p in obj.stable_poses)
+        if abs(total - 1.0) > 1e-3:
+            errs.append(f"{name}: stable_poses.yaml probabilities sum to {total:.4f}, not 1")
+        problems += errs
+        if not errs:
+            ok.append(name)
+    lf = root / LIBRARY_FILE
+    if lf.exists():
+        try:
+            data = yaml.safe_load(lf.read_text())
+            float(data["initial_angle_deg"])
+        except (yaml.YAMLError, KeyError, TypeError, ValueError, UnicodeDecodeError):
+            problems.append(f"{LIBRARY_FILE}: malformed (no valid initial_angle_deg); re-teach or remove it")
+    return ok, problems

@@ -9,6 +9,8 @@ or the simulator."""
 
 from __future__ import annotations
 
+import hashlib
+import io
 from collections.abc import Callable
 from pathlib import Path
 
@@ -16,13 +18,14 @@ import numpy as np
 import trimesh
 import yaml
 
-from ..vision.shape import ShapeError
 from .model import ModelError, load_model, stable_poses, validate_model
 from .placement import (
     Marker,
     ViewingGeometry,
     check_coverage,
     check_overhead_coverage,
+    coverage_probability,
+    coverage_vs_angle,
     optimal_viewing_angle,
     plan_markers,
 )
@@ -55,68 +58,188 @@ def read_markers_file(path: Path | str, default_radius_mm: float) -> list[Marker
     return out
 
 
-def teach_object(name: str, model: Path | str | trimesh.Trimesh, *, radius_mm: float, view: ViewingGeometry,
-                 standoff_mm: float, scale_mm_per_px: float, render_factory: RenderFactory,
-                 markers: list[Marker] | None = None, library_dir: Path | str | None = None,
-                 progress: Callable[[str, int, int], None] | None = None, sweep: bool = True) -> LibraryObject:
-    """Teach one object; write it to ``library_dir/NAME`` (atomically) when a folder is given.
+def _pose_words(mesh: trimesh.Trimesh, T: np.ndarray) -> str:
+    """A stable pose as the user sees it: the footprint and height (mm) of the object resting so."""
+    e = np.ptp(trimesh.transform_points(mesh.vertices, T), axis=0)
+    return f"resting {e[2]:.0f} mm tall on a {min(e[0], e[1]):.0f}×{max(e[0], e[1]):.0f} mm footprint"
 
-    Raises :class:`ModelError` for a model that cannot be taught (the library is untouched).
-    ``progress(stage, done, total)`` is called as the stages advance. ``sweep`` also computes the
-    marker count versus viewing angle (the optimal initial viewing angle, paper §4.1).
-    """
-    check_name(name)
 
-    def step(stage, done, total):
-        if progress is not None:
-            progress(stage, done, total)
+def coverage_report(mesh: trimesh.Trimesh, poses: list[tuple[np.ndarray, float]], counts: np.ndarray,
+                    overhead: np.ndarray | None) -> dict:
+    """Coverage probability of a placement (paper §4.1): the share of random placements — stable pose
+    by its probability, yaw uniform — in which the initial viewing camera sees a marker
+    (``initial_view``), the overhead camera tracks one (``tracked``), and both (``probability``).
+    ``counts`` (P, n_yaw): visible markers (:func:`check_coverage`); ``overhead`` (P,): tracked markers."""
+    probs = np.array([p for _, p in poses])
+    share = (counts > 0).mean(axis=1)
+    tracked = np.ones(len(poses)) if overhead is None else (np.asarray(overhead) > 0).astype(float)
+    return {
+        "probability": round(coverage_probability(probs, share, tracked), 4),
+        "initial_view": round(coverage_probability(probs, share), 4),
+        "tracked": round(float(probs @ tracked), 4),
+        "per_pose": [{"probability": round(float(p), 4), "visible_yaw_share": round(float(v), 4),
+                      "tracked": bool(t), "pose": _pose_words(mesh, T)}
+                     for (T, p), v, t in zip(poses, share, tracked, strict=True)],
+    }
 
-    mesh = load_model(model) if not isinstance(model, trimesh.Trimesh) else model
-    mesh = validate_model(mesh, marker_radius_mm=radius_mm, name=name)
-    step("stable poses", 0, 1)
-    poses = stable_poses(mesh)
-    step("marker placement", 0, 1)
-    if markers is None:
-        placement = plan_markers(mesh, poses, radius_mm, view)
-        markers = placement.markers
-        method, bound = placement.method, placement.bound
-        n_candidates = len(placement.candidates)
-    else:
-        method, bound, n_candidates = "given", None, len(markers)
-    counts = check_coverage(mesh, [T for T, _ in poses], markers, view)
-    if counts.min() == 0:
-        p = int(np.argmin(counts.min(axis=1)))
-        raise ModelError(f"{name}: in stable pose {p} (probability {poses[p][1]:.3f}) no marker is visible at "
-                         f"{int((counts[p] == 0).sum())} of {counts.shape[1]} yaw angles")
-    overhead, untracked = None, []
-    if view.overhead_distance_mm is not None:
-        overhead = check_overhead_coverage(mesh, [T for T, _ in poses], markers, view)
-        untracked = [int(p) for p in np.flatnonzero(overhead == 0)]
-        possible = set(untracked) if method == "given" else set(placement.untracked_poses)
-        missed = [p for p in untracked if p not in possible]
-        if missed:
-            p = missed[0]
-            raise ModelError(f"{name}: in stable pose {p} (probability {poses[p][1]:.3f}) the overhead camera can "
-                             f"track no marker (none within {view.overhead_max_tilt_deg:g}° of the vertical and in "
-                             f"view over its {view.overhead_cone_deg:g}° field cone)")
-    sweep = optimal_viewing_angle(mesh, poses, radius_mm, view) if sweep else None
+
+def coverage_warnings(name: str, cov: dict, view: ViewingGeometry, curve: dict | None = None) -> list[str]:
+    """One line per shortfall of a coverage report, saying what would fix it."""
+    out = []
+    if cov["initial_view"] < 1.0:
+        worst = min(cov["per_pose"], key=lambda d: d["visible_yaw_share"])
+        fixes = []
+        if curve:
+            k = int(np.argmax(curve["coverage"]))
+            if curve["coverage"][k] > cov["initial_view"] + 1e-3:
+                fixes.append(f"an initial viewing angle of {curve['angles_deg'][k]:g}° "
+                             f"({100 * curve['coverage'][k]:.1f} %)")
+        smallest = min(view.radii_mm) if view.radii_mm else None
+        if smallest is not None:
+            fixes.append(f"a flat face ≥ {2 * 1.3 * smallest:.0f} mm across turned to the camera in that pose")
+        fixes.append("hand-placed markers (--markers FILE)")
+        out.append(f"{name}: a marker is in the initial view in {100 * cov['initial_view']:.1f} % of random "
+                   f"placements (worst: {worst['pose']}, probability {worst['probability']:.3f}, no marker at "
+                   f"{100 * (1 - worst['visible_yaw_share']):.0f} % of yaws); would fix it: " + "; ".join(fixes))
+    if cov["tracked"] < 1.0:
+        miss = [d for d in cov["per_pose"] if not d["tracked"]]
+        out.append(f"{name}: the overhead camera tracks a marker in {100 * cov['tracked']:.1f} % of random "
+                   f"placements (not when {miss[0]['pose']}); the run then follows red pixels seen edge-on; "
+                   f"would fix it: a flat face within {view.overhead_max_tilt_deg:g}° of upward in that pose")
+    return out
+
+
+def file_sha256(path: Path | str) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def _standard_views(name, mesh, markers, poses, render_factory, standoff_mm, scale_mm_per_px, step):
+    """Standard views of ``markers``: (views, {marker id: why it has none}, [(marker id, crop warning)])."""
     step("standard views", 0, len(markers))
     render_view = render_factory(mesh, markers, poses)
-    done = [0]
+    done, failed, crops = [0], {}, []
 
     def tick(k):
         done[0] += k
         step("standard views", done[0], len(markers))
 
-    try:
-        views = build_standard_views(markers, render_view, standoff_mm=standoff_mm, scale_mm_per_px=scale_mm_per_px,
-                                     progress=tick)
-    except ShapeError as exc:
-        raise ModelError(f"{name}: a standard view shows no usable silhouette ({exc})") from None
+    def crop(mid, why):
+        crops.append((mid, f"{name}: standard view of marker {mid}: {why}; would fix it: a longer "
+                           "viewing.standoff_mm"))
+
+    views = build_standard_views(markers, render_view, standoff_mm=standoff_mm, scale_mm_per_px=scale_mm_per_px,
+                                 progress=tick, on_crop=crop, on_fail=failed.__setitem__)
+    return views, failed, crops
+
+
+def teach_object(name: str, model: Path | str | trimesh.Trimesh, *, radius_mm: float, view: ViewingGeometry,
+                 standoff_mm: float, scale_mm_per_px: float, render_factory: RenderFactory,
+                 markers: list[Marker] | None = None, library_dir: Path | str | None = None,
+                 progress: Callable[[str, int, int], None] | None = None, sweep: bool = True,
+                 force: bool = False, angle_curve: bool | None = None) -> LibraryObject:
+    """Teach one object; write it to ``library_dir/NAME`` (atomically) when a folder is given.
+
+    Never refuses a valid watertight model that fits the lab: faces too small for the lab's
+    marker get smaller ones (``view.radii_mm``), and where full coverage is physically impossible
+    the object is taught anyway with its coverage probability in ``info["coverage"]`` and one
+    line per shortfall in ``info["warnings"]`` (what would fix it). Raises :class:`ModelError`
+    for a model that cannot be taught and :class:`LibraryError` if ``NAME`` exists and ``force``
+    is False (the library is untouched either way). ``progress(stage, done, total)`` is called as
+    the stages advance. ``sweep`` also computes the marker count versus viewing angle (paper
+    §4.1); ``angle_curve`` the coverage of the chosen markers versus viewing angle (what the
+    library-wide angle is chosen from, :func:`labctl.library.storage.update_library_angle`;
+    default: when the object is written to a library).
+    """
+    check_name(name)
+    if library_dir is not None and (Path(library_dir) / name).exists() and not force:
+        raise LibraryError(f"object {name!r} already exists in {library_dir}; use --force to replace it")
+
+    def step(stage, done, total):
+        if progress is not None:
+            progress(stage, done, total)
+
+    source: dict = {"path": None, "sha256": None}
+    if not isinstance(model, trimesh.Trimesh):
+        source = {"path": str(Path(model).expanduser().resolve()), "sha256": None}
+        mesh = load_model(model)
+        source["sha256"] = file_sha256(model)
+    else:
+        mesh = model
+    smallest = min(view.radii_mm) if view.radii_mm else radius_mm
+    mesh = validate_model(mesh, marker_radius_mm=smallest, name=name)
+    step("stable poses", 0, 1)
+    poses = stable_poses(mesh)
+    Ts = [T for T, _ in poses]
+    candidates = None
+    rejected: list[str] = []
+    for _attempt in range(8):
+        step("marker placement", 0, 1)
+        if markers is None or candidates is not None:
+            placement = plan_markers(mesh, poses, radius_mm, view, candidates=candidates)
+            chosen = placement.markers
+            method, bound = placement.method, placement.bound
+            n_candidates = len(placement.candidates)
+        else:
+            chosen, method, bound, n_candidates = markers, "given", None, len(markers)
+        views, failed, crops = _standard_views(name, mesh, chosen, poses, render_factory, standoff_mm,
+                                               scale_mm_per_px, step)
+        if not failed:
+            break
+        if method == "given":
+            mid, why = next(iter(failed.items()))
+            raise ModelError(f"{name}: the standard view of marker {mid} shows no usable silhouette ({why})")
+        # a site whose standard view leaves the image (an off-centre marker on a large part): drop that
+        # site and plan again from the others (the view is centred on the marker, paper §3.4)
+        bad = {tuple(np.round(chosen[mid].center, 6)) for mid in failed}
+        rejected += [f"marker site at {np.round(chosen[mid].center, 1).tolist()} mm: {why}"
+                     for mid, why in failed.items()]
+        candidates = [c for c in placement.candidates if tuple(np.round(c.center, 6)) not in bad]
+        if not candidates:
+            raise ModelError(f"{name}: no marker site has a standard view that fits the image "
+                             f"({next(iter(failed.values()))}); a longer viewing.standoff_mm would fix it")
+    else:
+        raise ModelError(f"{name}: standard views keep leaving the image ({next(iter(failed.values()))})")
+    if crops and method != "given":
+        # views that fit as taught but leave the image at some in-plane rotation fail in runs: plan once more
+        # without those sites and keep that plan if it covers as much and all its views fit any rotation
+        bad = {tuple(np.round(chosen[mid].center, 6)) for mid, _ in crops}
+        alt = [c for c in placement.candidates if tuple(np.round(c.center, 6)) not in bad]
+        if alt:
+            p2 = plan_markers(mesh, poses, radius_mm, view, candidates=alt)
+            if (len(p2.uncovered_rows), len(p2.untracked_poses)) <= (len(placement.uncovered_rows),
+                                                                   len(placement.untracked_poses)):
+                v2, f2, c2 = _standard_views(name, mesh, p2.markers, poses, render_factory, standoff_mm,
+                                             scale_mm_per_px, step)
+                if not f2 and not c2:
+                    placement, chosen, views, crops = p2, p2.markers, v2, []
+                    method, bound, n_candidates = p2.method, p2.bound, len(p2.candidates)
+    markers = chosen
+    counts = check_coverage(mesh, Ts, markers, view)
+    overhead = check_overhead_coverage(mesh, Ts, markers, view) if view.overhead_distance_mm is not None else None
+    untracked = [] if overhead is None else [int(p) for p in np.flatnonzero(overhead == 0)]
+    cov = coverage_report(mesh, poses, counts, overhead)
+    if angle_curve is None:
+        angle_curve = library_dir is not None
+    curve = coverage_vs_angle(mesh, poses, markers, view, n_yaw=36) if angle_curve else None
+    warnings = coverage_warnings(name, cov, view, curve) + [w for _, w in crops]
+    if rejected:
+        warnings.append(f"{name}: {len(rejected)} marker site(s) left out, their standard view leaves the image "
+                        f"(e.g. {rejected[0]}); would fix it: a longer viewing.standoff_mm")
+    sweep = optimal_viewing_angle(mesh, poses, radius_mm, view) if sweep else None
+    with io.BytesIO() as buf:
+        mesh.export(buf, file_type="stl")
+        stored_sha = hashlib.sha256(buf.getvalue()).hexdigest()
     info = {
         "units": "mm",
-        "source": str(model) if not isinstance(model, trimesh.Trimesh) else "mesh",
+        "source": {**source, "stored_model_sha256": stored_sha},
         "extents_mm": [round(float(v), 3) for v in mesh.extents],
+        "marker_radii_mm": sorted({float(m.radius) for m in markers}, reverse=True),
+        "coverage": {k: v for k, v in cov.items()},
+        "warnings": warnings,
         "placement": {"method": method, "greedy_bound": bound, "candidate_sites": n_candidates,
                       "markers": len(markers), "viewing_angle_deg": view.angle_deg,
                       "distance_mm": view.distance_mm, "max_obliquity_deg": view.max_obliquity_deg,
@@ -128,6 +251,7 @@ def teach_object(name: str, model: Path | str | trimesh.Trimesh, *, radius_mm: f
                           "untracked_poses": untracked,
                           "untracked_probability": round(sum(poses[p][1] for p in untracked), 4),
                           "tracked_markers_per_pose": [int(v) for v in overhead]}},
+        "coverage_vs_angle": curve if curve is not None else {},
         "viewing_angle_sweep": sweep if sweep is not None else {},
         "standoff_mm": float(standoff_mm), "mm_per_px": float(scale_mm_per_px),
     }

@@ -122,16 +122,32 @@ def mm_per_px(camera: CameraModel, standoff_mm: float) -> float:
 
 
 def build_standard_views(markers: list[Marker], render_view: RenderView, *, standoff_mm: float,
-                         scale_mm_per_px: float, progress: Callable[[int], None] | None = None
-                         ) -> list[StandardView]:
+                         scale_mm_per_px: float, progress: Callable[[int], None] | None = None,
+                         on_crop: Callable[[int, str], None] | None = None,
+                         on_fail: Callable[[int, str], None] | None = None) -> list[StandardView]:
     """Render and describe the standard view of every marker (paper §3.4).
 
-    Raises :class:`labctl.vision.shape.ShapeError` if a view shows no complete silhouette.
+    Raises :class:`labctl.vision.shape.ShapeError` if a view shows no complete silhouette, unless
+    ``on_fail(marker_id, reason)`` is given: then that marker gets no view and is reported there.
+    A view that is complete as taught but would leave the image at some in-plane rotation raises
+    too, unless ``on_crop(marker_id, reason)`` is given: then it is reported there and kept.
     """
     views = []
     for m in markers:
         img = render_view(standard_view_pose(m, standoff_mm))
-        check_fits_any_rotation(silhouette_mask(img))
+        try:
+            mask = silhouette_mask(img)
+        except ShapeError as exc:
+            if on_fail is None:
+                raise
+            on_fail(m.id, str(exc))
+            continue
+        try:
+            check_fits_any_rotation(mask)
+        except ShapeError as exc:
+            if on_crop is None:
+                raise
+            on_crop(m.id, str(exc))
         views.append(StandardView(m.id, features_from_image(img, scale_mm_per_px), img))
         if progress is not None:
             progress(1)
@@ -189,8 +205,10 @@ def silhouette_renderer(camera: CameraModel, mesh: trimesh.Trimesh, markers: lis
     return render_view
 
 
-def contact_sheet(images: list[np.ndarray], labels: list[str], *, thumb: int = 240, cols: int = 4) -> np.ndarray:
-    """Grid of labelled thumbnails of the standard views (BGR)."""
+def contact_sheet(images: list[np.ndarray], labels: list[str], *, thumb: int = 240, cols: int = 4,
+                  sublabels: list[str] | None = None, highlight: list[bool] | None = None) -> np.ndarray:
+    """Grid of labelled thumbnails of the standard views (BGR): ``labels`` on top, ``sublabels``
+    (face, ambiguity group) at the bottom, an orange frame round views marked in ``highlight``."""
     if not images:
         return np.zeros((thumb, thumb, 3), np.uint8)
     rows = (len(images) + cols - 1) // cols
@@ -199,11 +217,16 @@ def contact_sheet(images: list[np.ndarray], labels: list[str], *, thumb: int = 2
     for k, (img, lab) in enumerate(zip(images, labels, strict=True)):
         h, w = img.shape[:2]
         s = thumb / max(h, w)
-        t = cv2.resize(img, (int(w * s), int(h * s)), interpolation=cv2.INTER_AREA)
+        t = cv2.resize(img, (max(1, int(w * s)), max(1, int(h * s))), interpolation=cv2.INTER_AREA)
         r, c = divmod(k, cols)
         y0, x0 = r * thumb + (thumb - t.shape[0]) // 2, c * thumb + (thumb - t.shape[1]) // 2
         sheet[y0:y0 + t.shape[0], x0:x0 + t.shape[1]] = t
         cv2.putText(sheet, lab, (c * thumb + 6, r * thumb + 20), cv2.FONT_HERSHEY_SIMPLEX, 0.55, (0, 160, 0), 1,
                     cv2.LINE_AA)
+        if sublabels:
+            cv2.putText(sheet, sublabels[k], (c * thumb + 6, (r + 1) * thumb - 8), cv2.FONT_HERSHEY_SIMPLEX, 0.4,
+                        (0, 200, 255), 1, cv2.LINE_AA)
+        if highlight and highlight[k]:
+            cv2.rectangle(sheet, (c * thumb + 1, r * thumb + 1), ((c + 1) * thumb - 2, (r + 1) * thumb - 2),
+                          (0, 140, 255), 3)
     return sheet
-

@@ -16,7 +16,7 @@ from ..config import Lab
 from ..errors import UserInputError
 from ..geometry import CameraModel, apply, invert
 from ..library.matching import LibraryIndex
-from ..library.storage import load_library
+from ..library.storage import library_angle, load_library
 from ..planning import Limits
 
 #: the planner keeps this fraction of the controller's limits in hand (latency, sampling, round-off)
@@ -38,6 +38,10 @@ class RunContext:
     names: list[str]  # object id on the host link = index in this list (sorted names)
     index: LibraryIndex
     limits: Limits
+    # the library's own initial viewing angle (library.yaml, paper §4.1), None: lab.yaml's
+    initial_angle_deg: float | None = None
+    # marker radii used in the library, largest first (issue 15: small faces carry smaller markers)
+    marker_radii_mm: tuple[float, ...] = ()
 
     @classmethod
     def load(cls, lab: Lab) -> RunContext:
@@ -46,7 +50,9 @@ class RunContext:
         if not library:
             raise UserInputError(f"the object library {lab.library_dir} is empty (teach objects first)")
         names = sorted(library)
-        return cls(lab, calibration, library, names, LibraryIndex.from_library(library), planning_limits(lab.robot))
+        radii = tuple(sorted({float(mk.radius) for o in library.values() for mk in o.markers}, reverse=True))
+        return cls(lab, calibration, library, names, LibraryIndex.from_library(library), planning_limits(lab.robot),
+                   library_angle(lab.library_dir, lab.config.viewing.initial_angle_deg), radii)
 
     @property
     def root(self) -> Path:

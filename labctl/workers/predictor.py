@@ -219,7 +219,7 @@ class PredictorPlanner:
         distance = viewing_distance_with_margin(self.cfg.viewing.initial_distance_mm, self._commit_margin_mm(),
                                                 float(np.arctan2(0.5 * cam.height, cam.K[1, 1])))
         G = camera_placement_trajectory(self._marker_path(), distance,
-                                        self.cfg.viewing.initial_angle_deg, azimuth_deg,
+                                        self.ctx.initial_angle_deg or self.cfg.viewing.initial_angle_deg, azimuth_deg,
                                         marker_z_mm=self.ctx.plane_height_mm, T_f_c=self.ctx.T_f_c2)
         return _RestAt(G)
 

@@ -72,6 +72,12 @@ def _ellipse_row(e) -> list[float]:
     return [float(e.center[0]), float(e.center[1]), float(e.axes[0]), float(e.axes[1]), float(e.angle)]
 
 
+def _height_misfit(z: float, z_table: float, max_height_mm: float = 130.0) -> float:
+    """How far (mm) a marker centre at height ``z`` lies outside the band an object on the table can
+    reach, [z_table, z_table + max_height_mm] (0 inside)."""
+    return max(z_table - z, 0.0, z - (z_table + max_height_mm))
+
+
 def _angle(u, v) -> float:
     return float(np.arctan2(np.linalg.norm(np.cross(u, v)), float(np.dot(u, v))))
 
@@ -84,6 +90,7 @@ class Recognizer:
         self.ctx, self.grab, self.log = ctx, grab, log
         self.save_image = save_image or (lambda name, image: None)
         self.radius = ctx.lab.config.marker.radius_mm
+        self.z_table = float(ctx.lab.table.origin_w_mm[2])
         self.threshold = ctx.lab.config.run.ambiguity_threshold or DEFAULT_THRESHOLD
         self.first: list | None = None  # (marker, (pose, pose) in W) of the first image, preferred first
         self.resolved_normals: list[np.ndarray] = []
@@ -107,11 +114,20 @@ class Recognizer:
         """Every complete marker in the frame with its two world-frame candidate poses."""
         out = []
         for mk in detect_markers(frame.image, **self.detect_kw):
-            try:
-                a, b = marker_pose_candidates(mk, self.ctx.mobile_camera, self.radius)
-            except (CirclePoseError, EllipseFitError, ValueError):
-                continue
-            out.append((mk, (_to_world(T_w_c2, a), _to_world(T_w_c2, b))))
+            best = None
+            # an ellipse fixes a circle's distance only up to its radius: with several marker sizes in the
+            # library (issue 15), take the size that puts the marker on the object, i.e. near the table
+            for r in getattr(self.ctx, "marker_radii_mm", ()) or (self.radius,):
+                try:
+                    a, b = marker_pose_candidates(mk, self.ctx.mobile_camera, r)
+                except (CirclePoseError, EllipseFitError, ValueError):
+                    continue
+                poses = (_to_world(T_w_c2, a), _to_world(T_w_c2, b))
+                off = _height_misfit(float(poses[0].center[2]), self.z_table)
+                if best is None or off < best[0] - 1e-9:
+                    best = (off, poses)
+            if best is not None:
+                out.append((mk, best[1]))
         return out
 
     def _initial(self, msg: m.CaptureRequest, frame: Frame, T_w_c2: np.ndarray) -> list[m.Message]:
