@@ -66,7 +66,7 @@ def teach_object_cmd(name: str | None, model: str, markers: str, force: bool) ->
     from ..sim.truth import camera_model
 
     c = get_ctx()
-    lab = c.lab()
+    lab = c.writable_lab("a taught object")
     files = _expand_models(model)
     import glob
 
@@ -224,7 +224,7 @@ def remove_cmd(name: str) -> None:
     from ..library.placement import viewing_geometry
     from ..library.storage import refresh_library, remove_object
 
-    lab = get_ctx().lab()
+    lab = get_ctx().writable_lab("a library change")
     path = remove_object(lab.library_dir, name)
     info = refresh_library(lab.library_dir, viewing_geometry(lab))
     emit({"removed": name, "path": path, "library": info},
