@@ -105,7 +105,8 @@ def simulate_run(lab: Lab, ctx: RunContext, spec: TrialSpec, record=None, *, hea
                 meter.carry(m.Heartbeat(role=role, seq=n % 65536, t=t))
             bench.robot.heartbeat()
             next_beat = t + heartbeat_s
-        image = world.render("fixed", t, rng).image
+        # the tracker reads only the red markers, all on the object: render its footprint only
+        image = world.render("fixed", t, rng, window="object").image
         predictor.on_frame(Frame(image, t, n))
         while outbox:
             for reply in recognizer.handle(meter.carry(outbox.pop(0))):
