@@ -178,22 +178,18 @@ _table_cache: dict[tuple, _TableGeometry] = {}
 
 
 def _table_geometry(camera: CameraModel, T_w_c: np.ndarray) -> _TableGeometry:
+    if camera in _window_parent:  # a window: a slice of the full camera's geometry (not cached: windows move)
+        parent, (x0, y0, x1, y1) = _window_parent[camera]
+        full = _table_geometry(parent, T_w_c)
+        hit_mask = full.hit[y0:y1, x0:x1]
+        return _TableGeometry(
+            map_x=full.map_x[y0:y1, x0:x1], map_y=full.map_y[y0:y1, x0:x1],
+            invz=full.invz.reshape(parent.height, parent.width)[y0:y1, x0:x1].ravel(),
+            hit=hit_mask, all_hit=bool(full.all_hit or hit_mask.all()))
     key = (camera, T_w_c.tobytes())
     hit = _table_cache.get(key)
     if hit is not None:
         return hit
-    if camera in _window_rays:  # a window: slice the full camera's geometry (cached per pose)
-        parent, (x0, y0, x1, y1) = _window_parent[camera]
-        full = _table_geometry(parent, T_w_c)
-        hit_mask = full.hit[y0:y1, x0:x1]
-        geometry = _TableGeometry(
-            map_x=np.ascontiguousarray(full.map_x[y0:y1, x0:x1]), map_y=np.ascontiguousarray(full.map_y[y0:y1, x0:x1]),
-            invz=np.ascontiguousarray(full.invz.reshape(parent.height, parent.width)[y0:y1, x0:x1]).ravel(),
-            hit=hit_mask, all_hit=bool(hit_mask.all()))
-        if len(_table_cache) > 64:
-            _table_cache.clear()
-        _table_cache[key] = geometry
-        return geometry
     rays = _pixel_rays(camera)
     R, o = T_w_c[:3, :3], T_w_c[:3, 3]
     x, y = rays.nx64, rays.ny64

@@ -247,13 +247,16 @@ class SimWorld:
 
     # --- seeing -----------------------------------------------------------------------------
     def render(self, role: str, t: float, rng: np.random.Generator | None = None, *,
-               truth: bool = False, window: str | tuple | None = None) -> RenderResult:
+               truth: bool = False, window: str | tuple | None = None,
+               supersample: int | None = None) -> RenderResult:
         """What camera ``role`` sees at time ``t`` (s), noise from ``rng``; optionally with ground truth.
 
         ``window="object"`` renders only the object's image footprint (:meth:`object_window`), the
         rest of the frame a flat table grey: the same pixels there and the same noise draws, for a
         consumer that only looks at the object (the fixed camera's marker tracker, He et al. 1996
-        §4.1); a tuple (x0, y0, x1, y1) px gives the window directly.
+        §4.1); a tuple (x0, y0, x1, y1) px gives the window directly. ``supersample`` overrides
+        the world's anti-aliasing for this frame (1: none; a marker tracker needs none, the
+        silhouette matcher does).
         """
         rig = self.rigs.get(role)
         if rig is None:
@@ -273,7 +276,7 @@ class SimWorld:
             window = self.object_window(role, states)
         return render(rig.model, T_w_c, meshes, table=self.table_surface(t), light_dir_w=self.light_dir_w,
                       noise_sigma=rig.noise_sigma, rng=rng, exposure_motion=blur, truth=truth,
-                      supersample=self.supersample, window=window)
+                      supersample=self.supersample if supersample is None else supersample, window=window)
 
     _WINDOW_MARGIN_PX = 8  # > the marker pass's 3 px and the anti-aliasing's 1 px, plus distortion's bow
 

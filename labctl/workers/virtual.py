@@ -106,7 +106,7 @@ def simulate_run(lab: Lab, ctx: RunContext, spec: TrialSpec, record=None, *, hea
             bench.robot.heartbeat()
             next_beat = t + heartbeat_s
         # the tracker reads only the red markers, all on the object: render its footprint only
-        image = world.render("fixed", t, rng, window="object").image
+        image = world.render("fixed", t, rng, window="object", supersample=1).image
         predictor.on_frame(Frame(image, t, n))
         while outbox:
             for reply in recognizer.handle(meter.carry(outbox.pop(0))):
