@@ -70,6 +70,10 @@ def run_cmd(trajectory, speed, object_name, seed, virtual) -> None:
             "object_name": object_name, "seed": secrets.randbelow(2**31) if seed is None else seed}
     if (problem := lab.mixed_kinds_problem()) is not None:
         raise UserInputError(problem)
+    if not virtual:  # the live run's process server imports the workers while the library loads here
+        from ..workers.live import warm_up
+
+        warm_up()
     ctx = RunContext.load(lab)  # fails early, in one line, without a calibration or a library
     if object_name is not None and object_name not in ctx.library:
         raise UserInputError(f"no object {object_name!r} in the library (have: {', '.join(ctx.names)})")
