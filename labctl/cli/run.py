@@ -60,6 +60,11 @@ def run_cmd(trajectory, speed, object_name, seed, virtual) -> None:
     """A live run: move the table, track, intercept, pose, standard view, identify."""
     import secrets
 
+    if not virtual:  # the live run's process server imports the workers while this process loads the lab
+        from ..workers.live import warm_up
+
+        warm_up()
+
     from ..records import RunRecord, write_report
     from ..workers.context import RunContext
 
@@ -70,10 +75,6 @@ def run_cmd(trajectory, speed, object_name, seed, virtual) -> None:
             "object_name": object_name, "seed": secrets.randbelow(2**31) if seed is None else seed}
     if (problem := lab.mixed_kinds_problem()) is not None:
         raise UserInputError(problem)
-    if not virtual:  # the live run's process server imports the workers while the library loads here
-        from ..workers.live import warm_up
-
-        warm_up()
     ctx = RunContext.load(lab)  # fails early, in one line, without a calibration or a library
     if object_name is not None and object_name not in ctx.library:
         raise UserInputError(f"no object {object_name!r} in the library (have: {', '.join(ctx.names)})")
