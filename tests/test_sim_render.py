@@ -211,3 +211,27 @@ def test_bad_input_raises_render_error(kwargs):
     T, meshes = args.pop("T_w_c"), args.pop("meshes")
     with pytest.raises(RenderError):
         render(FIXED, T, meshes, **args)
+
+
+@pytest.mark.parametrize("camera", [MOBILE, FIXED], ids=["mobile_distorted", "fixed"])
+def test_window_render_is_the_full_frame_there(camera):
+    # a moving table (texture offset), two boxes, markers near the window's edge, noise on: every
+    # pixel of the window equals the full frame's, and the noise generator ends in the same state
+    mk = MarkerDisc(np.array([310.0, 205.0, 30.0]), np.array([0, 0, 1.0]), 8.0)
+    meshes = [box_mesh((60, 40, 30), (300, 200, 15), [mk]), box_mesh((20, 20, 50), (340, 190, 25))]
+    T = look_at([420, 80, 900 if camera is MOBILE else 1800], [300, 200, 0], up=(0, 1, 0))
+    table = TableSurface(origin_w=(123.4, -56.7))
+    ra, rb = np.random.default_rng(5), np.random.default_rng(5)
+    full = render(camera, T, meshes, table=table, rng=ra).image
+    ys, xs = np.nonzero(render(camera, T, meshes, table=table, noise_sigma=0, truth=True).mask)
+    x0, y0, x1, y1 = xs.min() - 8, ys.min() - 8, xs.max() + 9, ys.max() + 9
+    win = render(camera, T, meshes, table=table, rng=rb, window=(x0, y0, x1, y1)).image
+    assert win.shape == full.shape and win.dtype == np.uint8
+    assert np.array_equal(win[y0:y1, x0:x1], full[y0:y1, x0:x1])
+    outside = np.ones(full.shape[:2], bool)
+    outside[y0:y1, x0:x1] = False
+    assert len(np.unique(win[outside])) == 1  # a flat table grey, no noise
+    assert abs(float(win[outside][0, 0]) - float(full[outside].mean())) < 12  # ...the texture mean (blotches σ 7)
+    assert ra.integers(1 << 30) == rb.integers(1 << 30)
+    with pytest.raises(RenderError):
+        render(camera, T, meshes, window=(x0, y0, x1, y1), truth=True)

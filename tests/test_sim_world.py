@@ -349,3 +349,23 @@ def test_mobile_camera_rides_the_robot_emulator(lab):
     assert np.allclose((mid @ invert(T_f_c2))[:3, 3], (home[:3, 3] + target) / 2, atol=1e-6)
     vl.cameras["mobile"].open()
     assert vl.cameras["mobile"].grab().image.shape == (480, 640, 3)
+
+
+def test_object_window_holds_every_red_pixel_of_the_full_frame(lab, block):
+    # the fixed camera's tracker reads only the red markers: the object's window must hold all of them,
+    # with the full frame's pixels there, while the table moves under the camera
+    world = SimWorld.from_lab(lab, obj=block, placement=Placement(0, 0.4, (5.0, -7.0)),
+                              table_position=lambda t: (60.0 + 40.0 * t, 150.0 + 25.0 * t, 0.0))
+    for t in (0.0, 2.5, 5.0):
+        full = world.render("fixed", t, np.random.default_rng(3)).image
+        win = world.render("fixed", t, np.random.default_rng(3), window="object").image
+        x0, y0, x1, y1 = world.object_window("fixed", [(world.T_w_c1, world.meshes_at(t))])
+        assert 0 < x1 - x0 < 200 and 0 < y1 - y0 < 200
+        assert np.array_equal(win[y0:y1, x0:x1], full[y0:y1, x0:x1])
+        img = full.astype(int)
+        red = (img[..., 2] - img[..., 1] > 40)
+        ys, xs = np.nonzero(red)
+        assert len(ys) > 20
+        assert xs.min() >= x0 and xs.max() < x1 and ys.min() >= y0 and ys.max() < y1
+    with pytest.raises(WorldError):
+        world.render("fixed", 0.0, window="everything")

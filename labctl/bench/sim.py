@@ -12,10 +12,14 @@
   table) with a status poll every 6 frames. Baseline: 10 s of real time. Target ratio ≥ 5. The
   process's first trial (building the texture, noise and ray caches, ~0.5 s) is run and reported
   apart; ``cpu_s`` is the process CPU time, which a machine busy with other work inflates less.
+* ``one virtual trial``: whole ``simulate_run`` trials (issue 16), the fixed camera rendered only
+  in the object's window against full frames in the same run; simulated s per CPU s
+  (``virtual_time_factor_cpu``, target ≥ 15) and whether the results are identical.
 """
 
 from __future__ import annotations
 
+import json
 import time
 
 import cv2
@@ -103,6 +107,33 @@ def _trial(lab, seconds: float = 10.0) -> tuple[float, float, float]:
     return time.perf_counter() - t0, time.process_time() - c0, vl.clock.now()
 
 
+def _virtual_trials(lab, quick: bool) -> dict:
+    """Whole trials (``simulate_run``: tracker, planner, emulators, link codec, recogniser) with the
+    fixed camera windowed and, as the baseline in the same run, with full frames: simulated
+    seconds per process-CPU second of each, and whether the results are identical."""
+    from ..workers.context import RunContext
+    from ..workers.virtual import TrialSpec, simulate_run
+
+    ctx = RunContext.load(lab)
+    seeds = [1, 2] if quick else [1, 2, 3, 4]
+    simulate_run(lab, ctx, TrialSpec(seed=0))  # caches (texture, rays, noise bank) out of the timing
+    cpu = {False: [], True: []}
+    sim = {False: [], True: []}
+    results = {False: [], True: []}
+    for seed in seeds:
+        for full in (True, False):
+            c0 = time.process_time()
+            r = simulate_run(lab, ctx, TrialSpec(seed=seed), full_fixed_frames=full)
+            cpu[full].append(time.process_time() - c0)
+            sim[full].append(r["sim_time_s"])
+            results[full].append(r)
+    same = [json.dumps(a, sort_keys=True, default=str) == json.dumps(b, sort_keys=True, default=str)
+            for a, b in zip(results[False], results[True])]
+    return {"n": len(seeds), "cpu_s": float(np.median(cpu[False])), "cpu_s_full": float(np.median(cpu[True])),
+            "factor": round(sum(sim[False]) / sum(cpu[False]), 2),
+            "factor_full": round(sum(sim[True]) / sum(cpu[True]), 2), "identical": all(same)}
+
+
 def run(quick: bool = False) -> dict:
     from ..config import load_lab
     from ..workspace import sample_lab_path
@@ -166,6 +197,11 @@ def _run(lab, quick, repeat, rows, fps, cpu_fps) -> dict:
     rows.append(row(f"virtual trial {sim_s:.1f} s (fixed camera 30 Hz + GRBL)", wall, baseline="real time",
                     baseline_s=sim_s, faster_than_real_time=round(sim_s / wall, 2),
                     faster_than_real_time_cpu=round(sim_s / cpu, 2), cpu_s=round(cpu, 3)))
+    trial = _virtual_trials(lab, quick)
+    rows.append(row(f"one virtual trial (simulate_run, {trial['n']} seeds), fixed camera windowed", trial["cpu_s"],
+                    baseline="same trials, full fixed frames", baseline_s=trial["cpu_s_full"],
+                    virtual_time_factor_cpu=trial["factor"], virtual_time_factor_cpu_full=trial["factor_full"],
+                    identical=trial["identical"], note="times are process CPU seconds per trial"))
     fixed_fps = [v for k, v in fps.items() if k.startswith("fixed/")]
     return {
         "rows": rows,
@@ -177,5 +213,8 @@ def _run(lab, quick, repeat, rows, fps, cpu_fps) -> dict:
         "trial_speedup": round(sim_s / wall, 2),
         "trial_speedup_cpu_time": round(sim_s / cpu, 2),
         "first_trial_setup_s": round(cold_wall, 3),
-        "targets": {"fixed_fps": 60, "trial_speedup": 5},
+        "virtual_time_factor_cpu": trial["factor"],
+        "virtual_time_factor_cpu_full_frames": trial["factor_full"],
+        "windowed_trials_identical": trial["identical"],
+        "targets": {"fixed_fps": 60, "trial_speedup": 5, "virtual_time_factor_cpu": 15},
     }

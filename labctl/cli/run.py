@@ -60,6 +60,11 @@ def run_cmd(trajectory, speed, object_name, seed, virtual) -> None:
     """A live run: move the table, track, intercept, pose, standard view, identify."""
     import secrets
 
+    if not virtual:  # the live run's process server imports the workers while this process loads the lab
+        from ..workers.live import warm_up
+
+        warm_up()
+
     from ..records import RunRecord, write_report
     from ..workers.context import RunContext
 

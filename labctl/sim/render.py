@@ -106,8 +106,18 @@ class _PixelRays:
     jac: np.ndarray  # (4, H*W) float32 d(nx, ny)/d(u, v): nx_u, ny_u, nx_v, ny_v, for sub-pixel samples
 
 
-@lru_cache(maxsize=8)
+# rays (and table geometry) of a window camera (:func:`_window_camera`): slices of the full camera's, so
+# a window renders bit-for-bit the pixels the full frame would have there; keyed by the window camera
+_window_rays: dict[CameraModel, _PixelRays] = {}
+
+
 def _pixel_rays(camera: CameraModel) -> _PixelRays:
+    rays = _window_rays.get(camera)
+    return rays if rays is not None else _full_pixel_rays(camera)
+
+
+@lru_cache(maxsize=8)
+def _full_pixel_rays(camera: CameraModel) -> _PixelRays:
     u, v = np.meshgrid(np.arange(camera.width, dtype=float), np.arange(camera.height, dtype=float))
     px = np.stack([u, v], axis=-1)
     n = camera.normalized(px)
@@ -168,6 +178,14 @@ _table_cache: dict[tuple, _TableGeometry] = {}
 
 
 def _table_geometry(camera: CameraModel, T_w_c: np.ndarray) -> _TableGeometry:
+    if camera in _window_parent:  # a window: a slice of the full camera's geometry (not cached: windows move)
+        parent, (x0, y0, x1, y1) = _window_parent[camera]
+        full = _table_geometry(parent, T_w_c)
+        hit_mask = full.hit[y0:y1, x0:x1]
+        return _TableGeometry(
+            map_x=full.map_x[y0:y1, x0:x1], map_y=full.map_y[y0:y1, x0:x1],
+            invz=full.invz.reshape(parent.height, parent.width)[y0:y1, x0:x1].ravel(),
+            hit=hit_mask, all_hit=bool(full.all_hit or hit_mask.all()))
     key = (camera, T_w_c.tobytes())
     hit = _table_cache.get(key)
     if hit is not None:
@@ -194,6 +212,30 @@ def _table_geometry(camera: CameraModel, T_w_c: np.ndarray) -> _TableGeometry:
         _table_cache.clear()
     _table_cache[key] = geometry
     return geometry
+
+
+_window_parent: dict[CameraModel, tuple[CameraModel, tuple[int, int, int, int]]] = {}
+
+
+def _window_camera(camera: CameraModel, roi: tuple[int, int, int, int]) -> CameraModel:
+    """The camera that sees only pixels [x0, x1) × [y0, y1) of ``camera`` (same Tsai model, shifted
+    centre), with its rays and table geometry registered as slices of the full camera's."""
+    x0, y0, x1, y1 = roi
+    win = camera.with_(cx=camera.cx - x0, cy=camera.cy - y0, width=x1 - x0, height=y1 - y0)
+    if win not in _window_rays:
+        full = _full_pixel_rays(camera)
+        sl = (slice(y0, y1), slice(x0, x1))
+        jac = full.jac.reshape(4, camera.height, camera.width)[:, y0:y1, x0:x1].reshape(4, -1)
+        if len(_window_rays) > 256:  # windows follow a moving object: keep the registry bounded
+            _window_rays.clear()
+            _window_parent.clear()
+        _window_rays[win] = _PixelRays(
+            nx=np.ascontiguousarray(full.nx.reshape(camera.height, camera.width)[sl]).ravel(),
+            ny=np.ascontiguousarray(full.ny.reshape(camera.height, camera.width)[sl]).ravel(),
+            nx64=np.ascontiguousarray(full.nx64[sl]), ny64=np.ascontiguousarray(full.ny64[sl]),
+            jac=np.ascontiguousarray(jac))
+        _window_parent[win] = (camera, (x0, y0, x1, y1))
+    return win
 
 
 _NOISE_MARGIN = 256
@@ -251,6 +293,14 @@ def _gather_meshes(meshes: Sequence[Mesh]) -> tuple[np.ndarray, np.ndarray, np.n
     return np.concatenate(corners), np.concatenate(colours), np.zeros(0, int)
 
 
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise cross product of (…, 3) arrays: the same products and differences as ``np.cross``
+    (bit-identical) without its axis juggling, which costs more than the arithmetic for small meshes."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+
+
 def _lambert(normals_w: np.ndarray, light_w: np.ndarray) -> np.ndarray:
     return _AMBIENT + (1.0 - _AMBIENT) * np.clip(normals_w @ light_w, 0.0, 1.0)
 
@@ -263,7 +313,7 @@ def _triangle_setup(camera: CameraModel, Pc: np.ndarray):
     of the normalised ray (x, y, 1), integer boxes (K, 4) x0, y0, x1, y1).
     """
     A, B, C = Pc[:, 0], Pc[:, 1], Pc[:, 2]
-    n = np.cross(B - A, C - A)
+    n = _cross(B - A, C - A)
     d = np.einsum("ij,ij->i", n, A)
     keep = (d < 0) & (Pc[:, :, 2].min(axis=1) > _NEAR_MM)  # front-facing, in front of the camera
     idx = np.nonzero(keep)[0]
@@ -419,9 +469,9 @@ def _marker_pass(camera: CameraModel, T_c_w: np.ndarray, light_w: np.ndarray, ma
         return counts
     # disc boundaries → pixel boxes, all markers in one projection
     helper = np.where(np.abs(normals[idx, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]])
-    e1 = np.cross(normals[idx], helper)
+    e1 = _cross(normals[idx], np.broadcast_to(helper, normals[idx].shape))
     e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
-    e2 = np.cross(normals[idx], e1)
+    e2 = _cross(normals[idx], e1)
     ring = (centres[idx, None, :] + radii[idx, None, None]
             * (np.cos(_RING)[None, :, None] * e1[:, None, :] + np.sin(_RING)[None, :, None] * e2[:, None, :]))
     ring_px = camera.project(ring)
@@ -554,7 +604,7 @@ def _render_noiseless(camera: CameraModel, T_w_c: np.ndarray, meshes: Sequence[M
         idx, coef, box = _triangle_setup(camera, Pc)
         if len(idx):
             cw = corners_w[idx]
-            nw = np.cross(cw[:, 1] - cw[:, 0], cw[:, 2] - cw[:, 0])
+            nw = _cross(cw[:, 1] - cw[:, 0], cw[:, 2] - cw[:, 0])
             nw /= np.maximum(np.linalg.norm(nw, axis=1, keepdims=True), 1e-300)
             tri_colour = (base_colour[idx] * _lambert(nw, light_w)[:, None]).astype(np.float32)
             win_pix, win_tri = _rasterise(camera, coef, box, invz)
@@ -572,6 +622,20 @@ def _render_noiseless(camera: CameraModel, T_w_c: np.ndarray, meshes: Sequence[M
     return _Layer(colour=colour, tri_id=tri_id, invz=invz, marker_pixels=counts), T_c_w, markers
 
 
+def _window_fill(table, light_w: np.ndarray) -> int:
+    """Grey level outside a window: the lit table texture's mean (0 without a table)."""
+    if table is False or table is None:
+        return 0
+    surface = table if isinstance(table, TableSurface) else TableSurface()
+    shade = surface.brightness * float(_lambert(np.array([[0.0, 0.0, 1.0]]), light_w)[0])
+    return _texture_mean(surface.texture_seed, int(round(1000 * shade)))
+
+
+@lru_cache(maxsize=8)
+def _texture_mean(seed: int, shade_milli: int) -> int:
+    return int(round(float(_table_texture(seed, shade_milli).mean())))
+
+
 def render(
     camera: CameraModel,
     T_w_c: np.ndarray,
@@ -584,6 +648,7 @@ def render(
     exposure_motion: Sequence[tuple[np.ndarray, Sequence[Mesh]]] | None = None,
     truth: bool = False,
     supersample: int = 3,
+    window: tuple[int, int, int, int] | None = None,
 ) -> RenderResult:
     """Render what ``camera`` at pose ``T_w_c`` (camera → world, mm) sees of ``meshes`` (world frame).
 
@@ -594,7 +659,11 @@ def render(
     ``(T_w_c, meshes)`` states over the exposure; the image is the mean of all sub-frames (motion
     blur); ground truth refers to the main state. ``truth``: also return mask, depth and marker
     poses. ``supersample``: s×s sub-samples on surface boundaries (1 turns anti-aliasing off;
-    marker edges are always analytic).
+    marker edges are always analytic). ``window`` (x0, y0, x1, y1) px, ends exclusive: render only
+    those pixels, bit-for-bit as the full frame has them there (same rays, z-buffer and noise
+    draws from ``rng``); the rest of the image is the lit table's mean grey without noise. For a
+    consumer that reads only the window (the fixed camera's tracker looks for red markers, which
+    are all on the object); not with ``truth``.
 
     Geometry: Tsai's camera model (Tsai 1987 §II) applied per pixel; markers are the circular
     premarks of He et al. 1996 §2.
@@ -610,6 +679,19 @@ def render(
         raise RenderError("light_dir_w must be a finite non-zero vector")
     light_w = light_w / np.linalg.norm(light_w)
     H, W = camera.height, camera.width
+    full_camera, wx0, wy0 = camera, 0, 0
+    if window is not None:
+        if truth:
+            raise RenderError("a windowed render has no ground truth (render the full frame)")
+        try:
+            wx0, wy0, wx1, wy1 = (int(v) for v in window)
+        except (TypeError, ValueError):
+            raise RenderError(f"window must be (x0, y0, x1, y1) px, got {window!r}") from None
+        wx0, wy0, wx1, wy1 = max(wx0, 0), max(wy0, 0), min(wx1, W), min(wy1, H)
+        if wx1 - wx0 < 3 or wy1 - wy0 < 3:  # nothing (or a sliver) to draw: the mean grey, the noise draws kept
+            wx0, wy0, wx1, wy1 = 0, 0, 3, 3
+        camera = _window_camera(full_camera, (wx0, wy0, wx1, wy1))
+    h, w = camera.height, camera.width
 
     layer, T_c_w, markers = _render_noiseless(camera, T_w_c, meshes, table, light_w, supersample)
     img = layer.colour
@@ -621,16 +703,21 @@ def render(
         img = acc / np.float32(1 + len(exposure_motion))
     if noise_sigma > 0:
         rng = rng if rng is not None else np.random.default_rng(0)
-        pos, neg = _noise_bank(H, W, float(noise_sigma))
-        oy = int(rng.integers(0, pos.shape[0] - H + 1))
-        ox = int(rng.integers(0, pos.shape[1] - W + 1))
+        pos, neg = _noise_bank(H, W, float(noise_sigma))  # the full frame's bank: a window takes its part
+        oy = int(rng.integers(0, pos.shape[0] - H + 1)) + wy0
+        ox = int(rng.integers(0, pos.shape[1] - W + 1)) + wx0
         if img.dtype != np.uint8:
             img = cv2.convertScaleAbs(img)  # rounds and saturates; values are never negative
-        image = cv2.subtract(cv2.add(img, pos[oy:oy + H, ox:ox + W]), neg[oy:oy + H, ox:ox + W])
+        image = cv2.subtract(cv2.add(img, pos[oy:oy + h, ox:ox + w]), neg[oy:oy + h, ox:ox + w])
     elif img.dtype != np.uint8:
         image = cv2.convertScaleAbs(img)
     else:
         image = img
+    if window is not None:
+        full = np.empty((H, W, 3), np.uint8)
+        full[...] = _window_fill(table, light_w)
+        full[wy0:wy0 + h, wx0:wx0 + w] = image
+        image = full
     result = RenderResult(image=image)
     if truth:
         result.mask = (layer.tri_id >= 0).reshape(H, W)

@@ -247,8 +247,17 @@ class SimWorld:
 
     # --- seeing -----------------------------------------------------------------------------
     def render(self, role: str, t: float, rng: np.random.Generator | None = None, *,
-               truth: bool = False) -> RenderResult:
-        """What camera ``role`` sees at time ``t`` (s), noise from ``rng``; optionally with ground truth."""
+               truth: bool = False, window: str | tuple | None = None,
+               supersample: int | None = None) -> RenderResult:
+        """What camera ``role`` sees at time ``t`` (s), noise from ``rng``; optionally with ground truth.
+
+        ``window="object"`` renders only the object's image footprint (:meth:`object_window`), the
+        rest of the frame a flat table grey: the same pixels there and the same noise draws, for a
+        consumer that only looks at the object (the fixed camera's marker tracker, He et al. 1996
+        §4.1); a tuple (x0, y0, x1, y1) px gives the window directly. ``supersample`` overrides
+        the world's anti-aliasing for this frame (1: none; a marker tracker needs none, the
+        silhouette matcher does).
+        """
         rig = self.rigs.get(role)
         if rig is None:
             raise WorldError(f"unknown camera role {role!r}; expected one of {CAMERA_ROLES}")
@@ -260,9 +269,40 @@ class SimWorld:
             m = max(rig.blur_samples // 2, 1)
             offsets = [sign * rig.exposure_s / 2 * j / m for j in range(1, m + 1) for sign in (-1.0, 1.0)]
             blur = [(self.T_w_c(role, t + dt), self.meshes_at(t + dt)) for dt in offsets]
+        if isinstance(window, str):
+            if window != "object":
+                raise WorldError(f"unknown window {window!r}; expected 'object' or (x0, y0, x1, y1)")
+            states = [(T_w_c, meshes)] + (blur or [])
+            window = self.object_window(role, states)
         return render(rig.model, T_w_c, meshes, table=self.table_surface(t), light_dir_w=self.light_dir_w,
                       noise_sigma=rig.noise_sigma, rng=rng, exposure_motion=blur, truth=truth,
-                      supersample=self.supersample)
+                      supersample=self.supersample if supersample is None else supersample, window=window)
+
+    _WINDOW_MARGIN_PX = 8  # > the marker pass's 3 px and the anti-aliasing's 1 px, plus distortion's bow
+
+    def object_window(self, role: str, states) -> tuple[int, int, int, int] | None:
+        """Pixel box (x0, y0, x1, y1), ends exclusive, holding every vertex of the meshes of ``states``
+        ``[(T_w_c, meshes), ...]`` as camera ``role`` sees them, plus a margin; None (the full
+        frame) when a vertex is behind the camera or cannot be projected; (0, 0, 0, 0) without meshes.
+        """
+        cam = self.rigs[role].model
+        pts = []
+        for T_w_c, meshes in states:
+            for mesh in meshes:
+                T_c_w = invert(T_w_c)
+                P = np.asarray(mesh.vertices, float) @ T_c_w[:3, :3].T + T_c_w[:3, 3]
+                if not np.all(P[:, 2] > 1.0):
+                    return None
+                pts.append(cam.project(P))
+        if not pts:
+            return (0, 0, 0, 0)
+        px = np.concatenate(pts)
+        if not np.all(np.isfinite(px)):
+            return None
+        m = self._WINDOW_MARGIN_PX
+        lo = np.floor(px.min(axis=0)) - m
+        hi = np.ceil(px.max(axis=0)) + m + 1
+        return (int(max(lo[0], 0)), int(max(lo[1], 0)), int(min(hi[0], cam.width)), int(min(hi[1], cam.height)))
 
     def truth(self, t: float) -> WorldTruth:
         """Ground truth at time t: object identity and pose, marker poses, table and camera poses (W)."""

@@ -28,7 +28,21 @@ from pathlib import Path
 from ..config import load_lab
 from . import messages as m
 
-CTX = mp.get_context("spawn")
+# forkserver: each process still starts from a clean interpreter (no inherited threads or ports),
+# but the heavy imports (scipy.stats via filterpy, trimesh, OpenCV) are paid once, in the server,
+# which :func:`warm_up` starts while the command is still loading the lab: the sim lab and both
+# workers then fork in milliseconds instead of importing for seconds each (issue 16, start-up).
+CTX = mp.get_context("forkserver")
+_PRELOAD = ["labctl.workers.live", "labctl.workers.predictor", "labctl.workers.recognizer",
+            "labctl.workers.simlab", "labctl.workers.context"]
+
+
+def warm_up() -> None:
+    """Start the process server with the workers' modules imported, in the background (idempotent)."""
+    from multiprocessing import forkserver
+
+    CTX.set_forkserver_preload(_PRELOAD)
+    forkserver.ensure_running()
 
 
 @dataclass
@@ -292,6 +306,7 @@ class LiveRun:
     on_status: object = None  # callable(dict) for the live view
 
     def run(self) -> dict:
+        warm_up()
         lab = load_lab(self.lab_root)
         from .transport import local_pair, pty_null_modem
 
