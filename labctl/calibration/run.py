@@ -208,7 +208,7 @@ def run_lab_calibration(cal_dir: Path, devs: Devices, prompt: Prompt, target: Ta
     cap: Captures = capture(devs, prompt, plan, nominal.motion, keep=image_keeper(captures_dir), progress=tick)
     report: dict = {"cameras": cameras, "target": target.kind, "files": [], "captures": str(captures_dir),
                     "images": len(cap.fixed) + len(cap.stations) + len(cap.registration),
-                    "nominal_from": nominal.sources}
+                    "nominal_from": nominal.sources, "robot_moves_recommanded": cap.robot_recovered}
     files: dict[str, str] = {}
     created = _now()
     plot_data = {}
