@@ -81,7 +81,7 @@ class Motion:
     fresh_frame_s: float = 5.0  # how long to wait for a frame exposed after the motion ended
     robot_tol_mm: float = 0.5  # a move ended this close to its pose (the dialect reports 4 decimals)
     robot_tol_deg: float = 0.05
-    robot_retries: int = 2  # re-commands of a move the controller's watchdog cut short
+    robot_retries: int = 5  # re-commands of a move the controller's watchdog cut short (each resumes where it stopped)
 
 
 # --- plan ---------------------------------------------------------------------------------------
