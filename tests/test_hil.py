@@ -25,6 +25,7 @@ from pathlib import Path
 import pytest
 import yaml
 
+from labctl.workers.simlab import TRAJECTORY_STARTS
 from labctl.workspace import sample_lab_path
 
 pytestmark = pytest.mark.skipif(sys.platform != "linux", reason="ptys and the served lab need Linux")
@@ -122,6 +123,10 @@ def _calibrate_served(lab: Path) -> dict:
     assert (lab / "calibration" / "fixed_camera.yaml").read_text() != before  # the new calibration was written
     back = labctl("sim", "scene", "object", lab=lab, timeout=60)  # the run's object back on the table
     assert back.returncode == 0, back.stderr
+    # and the table back where the line starts: a run tracks from its first frame, so the rapid from
+    # where calibration left the table to the start would be taken for the object's motion
+    x, y = TRAJECTORY_STARTS["line"]
+    assert labctl("table", "move", f"{x:g}", f"{y:g}", lab=lab, timeout=60).returncode == 0
     return rep
 
 
