@@ -330,3 +330,58 @@ def test_target_mounted_off_centre_and_turned_still_registers_the_table(tmp_path
     assert rep["fixed_camera"]["error_vs_truth"]["table_plane"]["max_percent_of_fov"] < 0.1
     he = rep["mobile_camera"]["error_vs_truth"]["hand_eye"]
     assert he["rotation_deg"] < 0.2 and he["translation_mm"] < 1.0
+
+
+class _StopsShortRobot:
+    """A robot (the Robot interface plus the dialect's ``clear``) whose controller's watchdog cuts the
+    first ``trips`` segments short halfway, latching E40 until CLEAR, as on an overloaded host."""
+
+    def __init__(self, trips: int):
+        from labctl.geometry import make_T
+
+        self.T, self.trips, self.cleared, self.seg, self.fault = make_T(None, [0.0, 0.0, 1000.0]), trips, 0, 0, False
+
+    def status(self):
+        from labctl.drivers.interfaces import RobotStatus
+
+        return RobotStatus(T_base_flange=self.T.copy(), moving=False, segment_id=self.seg, t=0.0)
+
+    def segment(self, T, duration_s, segment_id):
+        from labctl.drivers.robot import RobotError
+
+        if self.fault:
+            raise RobotError(40, "stopped by the watchdog: send CLEAR", "SEG")
+        self.seg = segment_id
+        if self.trips > 0:
+            self.trips -= 1
+            self.fault = True
+            self.T[:3, 3] = (self.T[:3, 3] + np.asarray(T)[:3, 3]) / 2  # stopped halfway
+        else:
+            self.T = np.asarray(T, float).copy()
+
+    def clear(self):
+        self.fault, self.cleared = False, self.cleared + 1
+
+    def heartbeat(self):
+        pass
+
+
+@pytest.mark.parametrize("trips, ok", [(0, True), (2, True), (6, False)])
+def test_a_move_the_watchdog_cut_short_is_commanded_again_or_fails_never_grabs_off_pose(trips, ok):
+    from labctl.calibration.procedure import Devices, Motion, _Robot
+    from labctl.errors import DeviceError
+    from labctl.geometry import make_T
+
+    robot = _StopsShortRobot(trips)
+    t = [0.0]
+    devs = Devices(table=None, robot=robot, fixed=None, mobile=None, sleep=lambda s: t.__setitem__(0, t[0] + s),
+                   now=lambda: t[0])
+    mover = _Robot(devs, Motion(robot_retries=5))
+    goal = make_T(None, [300.0, -200.0, 900.0])
+    if ok:
+        assert np.allclose(mover.move(goal), goal)
+        assert robot.cleared == trips and len(mover.recovered) == trips
+    else:
+        with pytest.raises(DeviceError, match="did not reach its pose"):
+            mover.move(goal)
+        assert not np.allclose(robot.T, goal)

@@ -4,7 +4,9 @@
 emulators on ptys (or on TCP ports, as ser2net serves a serial device) and both cameras as
 MJPEG-over-HTTP streams rendering what those served controllers do. ``DIR`` is a lab whose
 driver files say ``grbl``, ``serial`` and ``stream`` only. Then, as separate processes, the
-real commands against it: ``labctl devices`` (all OK) and ``labctl run --trajectory line`` with
+real commands against it: ``labctl devices`` (all OK), ``labctl calibrate`` (both cameras,
+hand-eye and table, the spacers placed through the serve's scene control, checked against the
+served truth; on its own served lab) and ``labctl run --trajectory line`` with
 two worker processes over TCP, and again with the serial host link over a pty null modem; the
 identity must be the served world's object (``served_truth.json``), which the run cannot see.
 """
@@ -13,6 +15,7 @@ from __future__ import annotations
 
 import json
 import queue
+import shlex
 import subprocess
 import sys
 import threading
@@ -92,6 +95,44 @@ def _run_identifies(lab: Path, truth: dict) -> dict:
     return result
 
 
+def _calibrate_served(lab: Path) -> dict:
+    """``labctl calibrate`` through the served devices (grbl, serial, stream), the spacers placed by
+    ``labctl sim place-target`` (the served world's stand-in for a person), checked against the served
+    truth with issue 12's limits. A shortened plan (2 table positions × 2 spacers, 5 robot stations,
+    3 registration positions: 12 images instead of 25) keeps the step short. Writes the lab's calibration."""
+    target_file = lab / "calibration" / "target.yaml"
+    target = yaml.safe_load(target_file.read_text())
+    target.update(fixed_positions_mm=[[300.0, 200.0], [440.0, 290.0]], robot_stations=5,
+                  registration_positions_mm=[[300.0, 200.0], [120.0, 80.0], [480.0, 80.0]])
+    target_file.write_text(yaml.safe_dump(target))
+    before = (lab / "calibration" / "fixed_camera.yaml").read_text()
+    # GRBL powers up locked until homed: leave the lock with a move ($X), as a homed lab would be ready
+    assert labctl("table", "move", "300", "200", lab=lab, timeout=60).returncode == 0
+    prompt = shlex.join([sys.executable, "-m", "labctl", "--lab", str(lab), "sim", "place-target"])
+    r = labctl("--json", "calibrate", "--prompt-command", prompt, "--truth", str(lab / "served_truth.json"),
+               lab=lab, timeout=400)
+    assert r.returncode == 0, r.stderr[-2000:]
+    rep = json.loads(r.stdout)
+    assert rep["images"] == 12 and len(list(Path(rep["captures"]).glob("*.png"))) == 12
+    fixed = rep["fixed_camera"]["error_vs_truth"]["table_plane"]
+    hand_eye = rep["mobile_camera"]["error_vs_truth"]["hand_eye"]
+    assert fixed["max_percent_of_fov"] < 0.1, fixed
+    assert hand_eye["rotation_deg"] < 0.2 and hand_eye["translation_mm"] < 1.0, hand_eye
+    assert rep["table"]["error_vs_truth"]["origin_mm"] < 1.0, rep["table"]
+    assert (lab / "calibration" / "fixed_camera.yaml").read_text() != before  # the new calibration was written
+    return rep
+
+
+@pytest.mark.timeout(300)
+def test_hil_calibrate_both_cameras_hand_eye_and_table(tmp_path):
+    """Build 6's calibrate step on its own served lab (the calibration target from the start): about
+    80 s at load 16-20 on 2 cores, most of it the robot's real-time moves between stations."""
+    lab = tmp_path / "served"
+    with Served(lab, "--scene", "calibration", "--seed", "4") as served:
+        assert served.truth["scene"] == "calibration" and served.info["scene_control"].endswith("/control/scene")
+        _calibrate_served(lab)
+
+
 def test_hil_devices_and_run_two_workers_over_tcp(tmp_path):
     lab = tmp_path / "served"
     with Served(lab, "--object", "tee", "--seed", "3") as served:
@@ -104,10 +145,6 @@ def test_hil_devices_and_run_two_workers_over_tcp(tmp_path):
         assert all(d["ok"] for d in rows.values()), rows
         assert rows["table"]["identity"].startswith("Grbl 1.1") and rows["fixed_camera"]["status"]["frame"] == [
             480, 640, 3]
-        # the hook for `labctl calibrate` on hardware (Build 3, the calibration work) goes here:
-        # calibrate both cameras, hand-eye and table through these served devices and compare with
-        # served.truth ("fixed_camera.T_w_c", "mobile_camera.T_f_c", "table_origin_w_mm"); the run
-        # below uses the calibration copied from the sample lab the served world is rendered from.
         result = _run_identifies(lab, served.truth)
         assert result["link"]["transport"] == "tcp" and result["link"]["messages_received"] > 0
 

@@ -175,3 +175,89 @@ def test_stream_timestamps_align_with_the_served_motion():
     assert abs(dt_header) < 0.012, errors  # within a third of a frame at 30 frames/s
     assert dt_arrival > dt_header + 0.005, errors  # arrival stamps carry the render/encode/transfer delay
     print(f"timestamp error: header {1e3 * dt_header:.1f} ms, arrival {1e3 * dt_arrival:.1f} ms (medians)")
+
+
+def _plate_centroid(image: np.ndarray) -> np.ndarray:
+    """Centroid (u, v) of the bright calibration plate's silhouette: a plain grey-level rule and the filled
+    outer contour (OpenCV moments), independent of labctl's dot detection."""
+    import cv2
+
+    mask = (image.min(axis=2) > 150).astype(np.uint8)
+    contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    assert contours, "no plate visible"
+    m = cv2.moments(max(contours, key=cv2.contourArea))
+    return np.array([m["m10"] / m["m00"], m["m01"] / m["m00"]])
+
+
+def _polygon_centroid(p: np.ndarray) -> np.ndarray:
+    x, y = p[:, 0], p[:, 1]
+    cross = x * np.roll(y, -1) - np.roll(x, -1) * y
+    a = cross.sum() / 2
+    return np.array([((x + np.roll(x, -1)) * cross).sum(), ((y + np.roll(y, -1)) * cross).sum()]) / (6 * a)
+
+
+def test_served_scene_control_puts_the_calibration_target_on_a_spacer_and_back():
+    """``/control/scene`` (what ``labctl sim place-target`` posts): the fixed camera's stream shows the plate
+    where the true camera projects it on a 0 and a 60 mm spacer, then the run's object again; bad values are 400."""
+    import urllib.error
+    import urllib.request
+
+    from labctl.calibration.run import lab_target
+    from labctl.drivers.cameras import StreamCamera
+    from labctl.geometry import invert, make_T
+    from labctl.sim import truth
+    from labctl.workers.simlab import ServedLab
+
+    lab = load_lab(sample_lab_path())
+    target = lab_target(lab.calibration_dir)
+    model, T_w_c = truth.camera_model(lab.fixed_camera), truth.fixed_camera_pose(lab.fixed_camera)
+    spec = {"seed": 1, "object_name": "block", "trajectory": "line", "speed_mm_s": 8.0, "scene": "calibration",
+            "fps": 15}
+    start = (150.0, 200.0)  # the line trajectory's start: where the served table is
+    seen, expected = {}, {}
+    with ServedLab(lab, spec) as served:
+        url = served.endpoints()["scene_control"]
+
+        def post(query):
+            with urllib.request.urlopen(urllib.request.Request(f"{url}?{query}", method="POST"), timeout=10) as r:
+                return json.loads(r.read())
+
+        cam = StreamCamera(served.endpoints()["fixed_camera"], timestamps="header", timeout_s=10.0)
+        with cam:
+            for h in (0.0, 60.0):
+                info = post(f"scene=calibration&spacer_mm={h:g}")
+                assert info["scene"] == "calibration" and info["spacer_mm"] == h
+                cam.grab()  # a whole frame after the change, then the one to measure
+                seen[h] = _plate_centroid(cam.grab().image)
+                solid = target.solid().transformed(make_T(None, served.world.table_origin_w) @
+                                                   target.T_table_t(start, h))
+                top = solid.vertices[solid.vertices[:, 2] > solid.vertices[:, 2].max() - 1e-6]
+                px = model.project_world(invert(T_w_c), top)
+                order = np.argsort(np.arctan2(*(px - px.mean(axis=0)).T[::-1]))
+                expected[h] = _polygon_centroid(px[order])
+            assert post("scene=object")["scene"] == "object"
+            cam.grab()
+            image = cam.grab().image
+            with pytest.raises(urllib.error.HTTPError) as bad:
+                post("spacer_mm=-5")
+            assert bad.value.code == 400 and "spacer_mm" in json.loads(bad.value.read())["error"]
+    _red_centroid(image)  # the object's red markers are back (the target has none: dark dots, blue fiducials)
+    for h in seen:
+        assert np.linalg.norm(seen[h] - expected[h]) < 1.5, (h, seen[h], expected[h])
+    shift_seen, shift_expected = seen[60.0] - seen[0.0], expected[60.0] - expected[0.0]
+    assert np.linalg.norm(shift_expected) > 3  # the spacer visibly moves the plate in the image
+    assert np.linalg.norm(shift_seen - shift_expected) < 0.5, (shift_seen, shift_expected)
+
+
+def test_place_target_without_a_served_lab_is_one_line_and_exit_3_or_2(tmp_path):
+    import subprocess
+    import sys
+
+    def run(*args):
+        return subprocess.run([sys.executable, "-m", "labctl", "--lab", str(sample_lab_path()), "sim", *args],
+                              capture_output=True, text=True, timeout=60)
+
+    r = run("place-target", "60", "2", "2", "--url", "http://127.0.0.1:9/control/scene")
+    assert r.returncode == 3 and len(r.stderr.strip().splitlines()) == 1 and "127.0.0.1:9" in r.stderr, r.stderr
+    r = run("place-target", "60")  # the sample lab is not a served lab: no served_truth.json
+    assert r.returncode == 2 and "served_truth.json" in r.stderr and "Traceback" not in r.stderr, r.stderr

@@ -78,6 +78,10 @@ class Motion:
     robot_timeout_s: float = 60.0
     poll_s: float = 0.2  # status polls while moving; every robot request also feeds its watchdog
     position_tol_mm: float = 0.02
+    fresh_frame_s: float = 5.0  # how long to wait for a frame exposed after the motion ended
+    robot_tol_mm: float = 0.5  # a move ended this close to its pose (the dialect reports 4 decimals)
+    robot_tol_deg: float = 0.05
+    robot_retries: int = 5  # re-commands of a move the controller's watchdog cut short (each resumes where it stopped)
 
 
 # --- plan ---------------------------------------------------------------------------------------
@@ -213,6 +217,7 @@ class Captures:
     fixed: list[tuple[float, tuple[float, float], np.ndarray]] = field(default_factory=list)
     stations: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)  # (image, reported T_b_f)
     registration: list[tuple[tuple[float, float], np.ndarray, np.ndarray]] = field(default_factory=list)
+    robot_recovered: list[str] = field(default_factory=list)  # moves re-commanded after a watchdog stop
 
 
 def move_table(devs: Devices, xy, motion: Motion) -> None:
@@ -245,20 +250,50 @@ def segment_duration(T_from: np.ndarray, T_to: np.ndarray, motion: Motion) -> fl
 
 
 class _Robot:
-    """Moves the robot one segment at a time through the Robot interface (heartbeats by polling)."""
+    """Moves the robot one segment at a time through the Robot interface (heartbeats by polling).
+
+    A move ends only when the controller reports the segment done *at the commanded pose*. If it
+    stopped short — its watchdog brought it to rest because a request came late, as happens on
+    an overloaded host — and the driver can ``clear()`` the latched fault, the move is commanded
+    again from where it stopped, up to ``motion.robot_retries`` times per move (counted in
+    ``recovered``); otherwise it is a DeviceError. The target does not move meanwhile, so an
+    image is only ever taken at a planned pose."""
 
     def __init__(self, devs: Devices, motion: Motion):
         self.devs, self.motion, self.seg = devs, motion, 0
+        self.recovered: list[str] = []
 
     def move(self, T_b_f: np.ndarray) -> np.ndarray:
-        """Move to ``T_b_f`` and wait until the controller reports it done; returns the reported pose."""
+        """Move to ``T_b_f`` and wait until the controller reports it done there; returns the reported pose."""
+        robot = self.devs.robot
+        for attempt in range(self.motion.robot_retries + 1):
+            try:
+                T_rep = self._move_once(T_b_f)
+                why = _pose_miss(T_rep, T_b_f, self.motion)
+            except DeviceError as exc:
+                if getattr(exc, "code", None) != 40:  # the dialect's E40: stopped by the watchdog, needs CLEAR
+                    raise
+                why = str(exc)
+            if why is None:
+                return T_rep
+            if attempt == self.motion.robot_retries or not hasattr(robot, "clear"):
+                raise DeviceError(f"robot: segment {self.seg} did not reach its pose ({why})")
+            robot.clear()
+            self.recovered.append(f"segment {self.seg}: {why}")
+        raise AssertionError("unreachable")
+
+    def _move_once(self, T_b_f: np.ndarray) -> np.ndarray:
         robot, devs = self.devs.robot, self.devs
         here = robot.status().T_base_flange
         self.seg += 1
         robot.segment(T_b_f, segment_duration(here, T_b_f, self.motion), self.seg)
         deadline = devs.now() + self.motion.robot_timeout_s
+        asked = devs.now()
         while True:
-            devs.sleep(self.motion.poll_s)
+            # requests start poll_s apart (not poll_s after the last reply): a status exchange takes
+            # ~0.1 s at 9600 bps, and the controller's watchdog counts from one request to the next
+            devs.sleep(max(0.0, self.motion.poll_s - (devs.now() - asked)))
+            asked = devs.now()
             st = robot.status()  # every request feeds the controller's watchdog
             if not st.moving and st.segment_id == self.seg:
                 return st.T_base_flange
@@ -266,11 +301,31 @@ class _Robot:
                 raise DeviceError(f"robot: segment {self.seg} not done after {self.motion.robot_timeout_s:g} s")
 
 
+def _pose_miss(T_rep: np.ndarray, T_cmd: np.ndarray, motion: Motion) -> str | None:
+    """Why the reported pose is not the commanded one (None: it is, within ``motion``'s tolerances)."""
+    d = float(np.linalg.norm(T_rep[:3, 3] - T_cmd[:3, 3]))
+    a = float(np.degrees(rotation_angle(T_cmd[:3, :3].T @ T_rep[:3, :3])))
+    if d <= motion.robot_tol_mm and a <= motion.robot_tol_deg:
+        return None
+    return f"stopped {d:.2f} mm / {a:.3f}° from it"
+
+
 def _grab(devs: Devices, camera, motion: Motion) -> np.ndarray:
+    """An image exposed after the devices came to rest: wait ``settle_s``, then grab until a frame's
+    timestamp (the camera's exposure time on the devices' clock) is no older than the moment the
+    motion ended — a network camera's pipeline may still hold frames exposed during the motion."""
+    at_rest = devs.now()
     devs.sleep(motion.settle_s)
-    if devs.robot is not None:
-        devs.robot.heartbeat()
-    return np.asarray(camera.grab().image)
+    deadline = devs.now() + motion.fresh_frame_s
+    while True:
+        if devs.robot is not None:
+            devs.robot.heartbeat()
+        frame = camera.grab()
+        if frame.t >= at_rest:
+            return np.asarray(frame.image)
+        if devs.now() > deadline:
+            raise DeviceError(f"camera: no frame exposed after the motion ended within {motion.fresh_frame_s:g} s "
+                              f"(newest exposed {at_rest - frame.t:.3f} s before); check its clock/latency_s")
 
 
 def capture(devs: Devices, prompt: Prompt, plan: Plan, motion: Motion = Motion(), *,
@@ -316,6 +371,8 @@ def capture(devs: Devices, prompt: Prompt, plan: Plan, motion: Motion = Motion()
                 store(f"table_x{xy[0]:g}_y{xy[1]:g}", img)
                 tick(f"table registration: {xy[0]:g}, {xy[1]:g}")
             robot.move(start)
+    if robot is not None:
+        cap.robot_recovered = list(robot.recovered)
     return cap
 
 

@@ -138,7 +138,8 @@ def nominal_for(lab) -> Nominal:
             T_w_c1, src["fixed_pose"] = None, "unknown (not checked)"
     r = lab.robot
     motion = Motion(v_max_mm_s=r.v_max_mm_s, a_max_mm_s2=r.a_max_mm_s2, w_max_deg_s=r.w_max_deg_s,
-                    table_timeout_s=max(30.0, 4 * lab.table.timeout_s), poll_s=min(0.2, r.heartbeat_s))
+                    table_timeout_s=max(30.0, 4 * lab.table.timeout_s),
+                    poll_s=min(0.2, r.heartbeat_s) / 2)  # margin: the watchdog counts from request to request
     return Nominal(fixed, T_w_c1, mobile, X, T_w_table, tuple(lab.table.travel_mm),
                    (r.workspace_min_mm, r.workspace_max_mm), motion, src)
 
@@ -208,7 +209,7 @@ def run_lab_calibration(cal_dir: Path, devs: Devices, prompt: Prompt, target: Ta
     cap: Captures = capture(devs, prompt, plan, nominal.motion, keep=image_keeper(captures_dir), progress=tick)
     report: dict = {"cameras": cameras, "target": target.kind, "files": [], "captures": str(captures_dir),
                     "images": len(cap.fixed) + len(cap.stations) + len(cap.registration),
-                    "nominal_from": nominal.sources}
+                    "nominal_from": nominal.sources, "robot_moves_recommanded": cap.robot_recovered}
     files: dict[str, str] = {}
     created = _now()
     plot_data = {}

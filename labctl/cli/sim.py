@@ -37,13 +37,18 @@ def sim_group() -> None:
 @click.option("--jpeg-quality", type=click.IntRange(1, 100), default=90, show_default=True)
 @click.option("--fps", type=click.FloatRange(min=1, max=120), default=None,
               help="Frame rate of both served cameras (default: driver files).")
+@click.option("--scene", type=click.Choice(["object", "calibration"]), default="object", show_default=True,
+              help="What the table carries at first: the run's object, or the lab's calibration target "
+                   "(switch later with `labctl sim place-target` / `labctl sim scene`).")
 @json_option
 def sim_serve(baud, tcp, lab_out, force, seed, object_name, trajectory, conveyor, conveyor_delay, speed, http_port,
-              jpeg_quality, fps) -> None:
+              jpeg_quality, fps, scene) -> None:
     """Serve the simulated lab out of process in real time, from one world, until Ctrl-C.
 
     The GRBL table and robot controller emulators on pseudo-terminals (or TCP ports), and both
-    cameras as MJPEG-over-HTTP streams showing what the served table and robot do.
+    cameras as MJPEG-over-HTTP streams showing what the served table and robot do. The HTTP
+    server's /control/scene endpoint swaps the object for the calibration target and puts it on
+    a spacer (`labctl calibrate --prompt-command "labctl --lab DIR sim place-target"`).
     """
     import signal
     import time
@@ -67,7 +72,8 @@ def sim_serve(baud, tcp, lab_out, force, seed, object_name, trajectory, conveyor
         raise UserInputError(f"--lab-out {lab_out} is not empty; not overwriting it")
     spec = {"seed": seed, "object_name": object_name, "trajectory": conveyor or trajectory,
             "speed_mm_s": speed or lab.config.run.speed_mm_s, "tcp": tcp, "baud": baud, "http_port": http_port,
-            "jpeg_quality": jpeg_quality, "conveyor": conveyor, "conveyor_delay_s": conveyor_delay, "fps": fps}
+            "jpeg_quality": jpeg_quality, "conveyor": conveyor, "conveyor_delay_s": conveyor_delay, "fps": fps,
+            "scene": scene}
 
     def stop(signum, _frame):
         raise KeyboardInterrupt
@@ -95,6 +101,74 @@ def sim_serve(baud, tcp, lab_out, force, seed, object_name, trajectory, conveyor
         from ..errors import LabctlError
 
         raise LabctlError(str(exc)) from None
+
+
+def _scene_control_url(url: str | None) -> str:
+    """``--url``, else the served lab's control endpoint from ``served_truth.json`` in the lab folder."""
+    import json
+
+    from ..errors import UserInputError
+
+    if url:
+        return url
+    path = get_ctx().lab_root / "served_truth.json"
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))["endpoints"]["scene_control"]
+    except (OSError, ValueError, KeyError, TypeError):
+        raise UserInputError(f"no served scene control in {path} (a lab written by `labctl sim serve --lab-out`); "
+                             "give --url") from None
+
+
+def _post_scene(url: str, **params) -> dict:
+    """POST the scene change to the served lab; one-line errors (2: refused as bad input, 3: unreachable)."""
+    import json
+    import urllib.error
+    import urllib.parse
+    import urllib.request
+
+    from ..errors import DeviceError, UserInputError
+
+    full = f"{url}?{urllib.parse.urlencode(params)}"
+    try:
+        with urllib.request.urlopen(urllib.request.Request(full, method="POST"), timeout=10) as r:
+            return json.loads(r.read())
+    except urllib.error.HTTPError as exc:
+        try:
+            why = json.loads(exc.read()).get("error") or exc.reason
+        except ValueError:
+            why = exc.reason
+        raise (UserInputError if exc.code == 400 else DeviceError)(f"the served lab refused: {why}") from None
+    except (urllib.error.URLError, OSError, ValueError) as exc:
+        raise DeviceError(f"cannot reach the served lab at {url}: {getattr(exc, 'reason', exc)}") from None
+
+
+@sim_group.command("place-target")
+@click.argument("spacer_mm", type=click.FloatRange(0, 1000))
+@click.argument("index", type=int, required=False)
+@click.argument("count", type=int, required=False)
+@click.option("--url", default=None, help="The served lab's /control/scene URL (default: from the lab's "
+              "served_truth.json).")
+@json_option
+def sim_place_target(spacer_mm: float, index, count, url) -> None:
+    """Put the calibration target on its pins on a SPACER_MM spacer in a served lab (`sim serve`).
+
+    The simulator's answer to `labctl calibrate`'s prompt: use it as
+    `--prompt-command "labctl --lab DIR sim place-target"` (called with SPACER_MM INDEX COUNT).
+    """
+    info = _post_scene(_scene_control_url(url), scene="calibration", spacer_mm=f"{spacer_mm:g}")
+    emit(info, lambda c: c.print(f"target on {info['spacer_mm']:g} mm" + (f" ({index}/{count})" if index else "")))
+
+
+@sim_group.command("scene")
+@click.argument("scene", type=click.Choice(["object", "calibration"]))
+@click.option("--spacer", "spacer_mm", type=click.FloatRange(0, 1000), default=0.0, show_default=True,
+              help="With calibration: the spacer under the target (mm).")
+@click.option("--url", default=None, help="The served lab's /control/scene URL (default: from served_truth.json).")
+@json_option
+def sim_scene(scene: str, spacer_mm: float, url) -> None:
+    """Switch a served lab (`sim serve`) between the run's object and the calibration target."""
+    info = _post_scene(_scene_control_url(url), scene=scene, spacer_mm=f"{spacer_mm:g}")
+    emit(info, lambda c: c.print(f"scene: {info['scene']}"))
 
 
 @sim_group.command("snapshot")

@@ -7,6 +7,11 @@
 (``grab()`` of any :class:`~labctl.drivers.interfaces.Camera`), encodes them once and hands the
 newest to every client; it renders only while a client is connected. A slow client skips
 frames rather than delaying the others (latest-frame semantics, as the real servers do).
+
+``controls={name: fn}`` adds ``/control/<name>``: ``POST`` (or ``GET``) with query parameters
+calls ``fn({key: value})`` and answers its dict as JSON (400 with the message if it raises
+ValueError) — the served simulator's stand-in for what a person does at the lab (e.g. put the
+calibration target on a spacer).
 """
 
 from __future__ import annotations
@@ -82,7 +87,40 @@ class _Handler(BaseHTTPRequestHandler):
     def log_message(self, fmt, *args) -> None:  # quiet: the serve command prints its own lines
         log.debug("mjpeg %s: " + fmt, self.client_address[0], *args)
 
+    def _control(self) -> bool:
+        """Serve ``/control/<name>?k=v…`` if that is the path; True if it was."""
+        import json
+        from urllib.parse import parse_qs, urlsplit
+
+        parts = urlsplit(self.path)
+        head, _, name = parts.path.strip("/").partition("/")
+        if head != "control":
+            return False
+        fn = self.server.controls.get(name)
+        if fn is None:
+            self.send_error(404, f"no control {name!r} (have: {', '.join(self.server.controls) or 'none'})")
+            return True
+        params = {k: v[-1] for k, v in parse_qs(parts.query, keep_blank_values=True).items()}
+        try:
+            body = json.dumps(fn(params)).encode()
+        except ValueError as exc:
+            body = json.dumps({"error": str(exc)}).encode()
+            self.send_response(400)
+        else:
+            self.send_response(200)
+        self.send_header("Content-Type", "application/json")
+        self.send_header("Content-Length", str(len(body)))
+        self.end_headers()
+        self.wfile.write(body)
+        return True
+
+    def do_POST(self) -> None:  # noqa: N802 (http.server's name)
+        if not self._control():
+            self.send_error(405, "POST only to /control/<name>")
+
     def do_GET(self) -> None:  # noqa: N802 (http.server's name)
+        if self._control():
+            return
         path = self.path.split("?")[0].strip("/")
         name, _, ext = path.partition(".")
         stream = self.server.streams.get(name)
@@ -142,16 +180,19 @@ class _Server(ThreadingHTTPServer):
     daemon_threads = True
     allow_reuse_address = True
     streams: dict[str, _Stream]
+    controls: dict[str, Callable[[dict], dict]]
     stopping: threading.Event
 
 
 class MjpegServer:
-    """Serve cameras ``{name: Camera}`` (opened by the caller) over HTTP on ``host:port`` (0: any free)."""
+    """Serve cameras ``{name: Camera}`` (opened by the caller) over HTTP on ``host:port`` (0: any free),
+    and ``controls`` ``{name: fn(params) -> dict}`` at ``/control/<name>``."""
 
     def __init__(self, cameras: dict, clock: Callable[[], float], host: str = "127.0.0.1", port: int = 0,
-                 quality: int = 90):
+                 quality: int = 90, controls: dict | None = None):
         self._server = _Server((host, port), _Handler)
         self._server.streams = {n: _Stream(n, cam, clock, quality) for n, cam in cameras.items()}
+        self._server.controls = dict(controls or {})
         self._server.stopping = threading.Event()
         self.host, self.port = self._server.server_address[:2]
         self._thread = threading.Thread(target=self._server.serve_forever, kwargs={"poll_interval": 0.1},
@@ -159,6 +200,9 @@ class MjpegServer:
 
     def url(self, name: str) -> str:
         return f"http://{self.host}:{self.port}/{name}.mjpg"
+
+    def control_url(self, name: str) -> str:
+        return f"http://{self.host}:{self.port}/control/{name}"
 
     @property
     def urls(self) -> dict[str, str]:

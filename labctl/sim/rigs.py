@@ -13,33 +13,64 @@ from __future__ import annotations
 import numpy as np
 
 
-def target_world(lab, target, *, table_position, flange_pose_at, supersample: int = 3):
+def target_world(lab, target, *, table_position, flange_pose_at, supersample: int = 3, obj=None, placement=None):
     """A :class:`~labctl.sim.world.SimWorld` of ``lab`` whose only object is the calibration
     ``target`` on its locating pins on the carriage, raised by ``world.spacer_mm`` (a light
-    block under it): ``T_w_target = T_w_table(t) · (0, 0, spacer) · T_table_mount``."""
+    block under it): ``T_w_target = T_w_table(t) · (0, 0, spacer) · T_table_mount``.
+
+    With ``obj``/``placement`` the world holds the run's object as well and can switch between
+    the two scenes: ``world.set_scene(t, calibration, spacer_mm)`` takes effect for frames
+    exposed at or after ``t`` (s, the world's clock), so a frame never shows a change made after
+    its exposure (the served lab's control endpoint, :class:`labctl.workers.simlab.ServedLab`).
+    Without a change, the scene is ``world.calibration`` (default True) on ``world.spacer_mm``.
+    """
+    import bisect
+    import threading
+
     from .render import MarkerDisc, Mesh
     from .world import SimWorld
 
     class _World(SimWorld):
         spacer_mm = 0.0
+        calibration = True
+
+        def set_scene(self, t: float, calibration: bool, spacer_mm: float = 0.0) -> None:
+            """From time ``t`` on: the target on a ``spacer_mm`` spacer (``calibration``) or the object."""
+            with self._changes_lock:
+                if self._changes and t < self._changes[-1][0]:
+                    t = self._changes[-1][0]  # changes are in time order: never rewrite the past
+                self._changes.append((float(t), bool(calibration), float(spacer_mm)))
+
+        def scene_at(self, t: float) -> tuple[bool, float]:
+            """``(calibration, spacer_mm)`` of the frame exposed at ``t``."""
+            with self._changes_lock:
+                i = bisect.bisect_right([c[0] for c in self._changes], t)
+                if i == 0:
+                    return self.calibration, self.spacer_mm
+                return self._changes[i - 1][1:]
 
         def meshes_at(self, t):
-            T = self.T_w_t(t) @ target.T_table_t((0.0, 0.0), self.spacer_mm)
+            calibration, spacer = self.scene_at(t)
+            if not calibration:
+                return super().meshes_at(t)
+            T = self.T_w_t(t) @ target.T_table_t((0.0, 0.0), spacer)
             s = target.solid().transformed(T)
             marks = [MarkerDisc(c, n, r, col) for c, n, r, col in zip(s.dots, s.normals, s.radii, target.dot_colours())]
             meshes = [Mesh(s.vertices, s.faces, tuple(target.plate_colour_bgr), marks)]
-            if self.spacer_mm > 0:  # the spacer: a grey block under the target's footprint
+            if spacer > 0:  # the spacer: a grey block under the target's footprint
                 import trimesh
 
                 w, length = target.footprint_mm
-                box = trimesh.creation.box([w, length, self.spacer_mm])  # outward winding, centred
-                V = np.asarray(box.vertices) + [0.0, 0.0, self.spacer_mm / 2.0]
+                box = trimesh.creation.box([w, length, spacer])  # outward winding, centred
+                V = np.asarray(box.vertices) + [0.0, 0.0, spacer / 2.0]
                 Tm = self.T_w_t(t) @ target.T_table_mount
                 meshes.append(Mesh(V @ Tm[:3, :3].T + Tm[:3, 3], np.asarray(box.faces), (120, 120, 120)))
             return meshes
 
-    return _World.from_lab(lab, table_position=table_position, flange_pose_at=flange_pose_at,
-                           supersample=supersample)
+    world = _World.from_lab(lab, table_position=table_position, flange_pose_at=flange_pose_at,
+                            supersample=supersample, obj=obj, placement=placement)
+    world._changes, world._changes_lock = [], threading.Lock()
+    return world
 
 
 class SimCalibrationLab:

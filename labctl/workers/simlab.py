@@ -182,7 +182,7 @@ class LiveSimLab:
         from ..sim.emulators.grbl import GrblEmulator
         from ..sim.emulators.pty import run_on_pty
         from ..sim.emulators.robot import RobotEmulator
-        from ..sim.world import SimWorld, home_flange_pose
+        from ..sim.world import home_flange_pose
 
         lab = self.lab
         rng = np.random.default_rng(self.spec.get("seed", 0))
@@ -203,9 +203,8 @@ class LiveSimLab:
         self.robot_pty = run_on_pty(self.robot_emu, baud or lab.robot.baud, clock=clock.now)
         self._stack.callback(self.robot_pty.stop)
         # the cameras see what the served controllers do: positions read from the emulators, under their locks
-        self.world = SimWorld.from_lab(
-            lab, obj=obj, placement=placement,
-            table_position=_locked(self.table_pty.lock, self.grbl.position_at),
+        self.world = self._make_world(
+            obj, placement, table_position=_locked(self.table_pty.lock, self.grbl.position_at),
             flange_pose_at=_locked(self.robot_pty.lock, self.robot_emu.flange_pose_at))
         seed = int(self.spec.get("seed", 0))
         cams = {role: SimCamera(self.world, role, clock, fps=self.spec.get("fps") or getattr(lab, f"{role}_camera").fps,
@@ -225,6 +224,12 @@ class LiveSimLab:
             self.conveyor = Conveyor(self.grbl, self.table_pty.lock, lines, delay)
             cams["fixed"] = self.conveyor.watch(cams["fixed"])
         return cams
+
+    def _make_world(self, obj, placement, *, table_position, flange_pose_at):
+        from ..sim.world import SimWorld
+
+        return SimWorld.from_lab(self.lab, obj=obj, placement=placement, table_position=table_position,
+                                 flange_pose_at=flange_pose_at)
 
     def __exit__(self, *exc) -> None:
         self._stack.close()
@@ -255,8 +260,57 @@ class ServedLab(LiveSimLab):
     (:class:`labctl.sim.mjpeg.MjpegServer`) rendering the world whose table and flange poses
     are read from those same emulators. Spec keys: ``seed``, ``object_name``, ``trajectory``
     and ``speed_mm_s`` (only where the table starts), ``table_start_mm``, ``tcp``, ``baud``,
-    ``http_port``, ``jpeg_quality``, ``fps`` (both cameras; default the driver files').
+    ``http_port``, ``jpeg_quality``, ``fps`` (both cameras; default the driver files'), ``scene``
+    (``"object"``, default, or ``"calibration"``: the lab's calibration target on the carriage).
+
+    The world holds both the object and the lab's calibration target (``calibration/target.yaml``,
+    :func:`labctl.sim.rigs.target_world`); the HTTP server's control endpoint
+    ``POST /control/scene?calibration=1&spacer_mm=H`` (:meth:`set_scene`) switches between them and
+    puts the target on a spacer — what a person does at a real lab when ``labctl calibrate`` prompts.
     """
+
+    def _make_world(self, obj, placement, *, table_position, flange_pose_at):
+        from ..calibration.run import lab_target
+        from ..sim.rigs import target_world
+
+        self.target = lab_target(self.lab.calibration_dir)
+        world = target_world(self.lab, self.target, table_position=table_position, flange_pose_at=flange_pose_at,
+                             obj=obj, placement=placement)
+        world.calibration = self.spec.get("scene") == "calibration"
+        return world
+
+    def set_scene(self, params: dict) -> dict:
+        """The control endpoint ``/control/scene``: with ``calibration`` (1/0, yes/no, true/false,
+        or ``scene=calibration|object``) and ``spacer_mm`` (≥ 0, mm) change the scene for every
+        frame exposed from now on; without parameters report it. Returns the scene and the time
+        of the change (``t``: the served clock, s; ``t_wall``: wall clock, s). Raises ValueError
+        for a bad parameter (the server answers 400)."""
+        now = self.clock.now()
+        calibration, spacer = self.world.scene_at(now)
+        if params:
+            unknown = set(params) - {"calibration", "scene", "spacer_mm"}
+            if unknown:
+                raise ValueError(f"unknown parameter(s) {', '.join(sorted(unknown))} (have: calibration, scene, "
+                                 "spacer_mm)")
+            if "scene" in params:
+                if params["scene"] not in ("calibration", "object"):
+                    raise ValueError(f"scene must be calibration or object, got {params['scene']!r}")
+                calibration = params["scene"] == "calibration"
+            if "calibration" in params:
+                word = params["calibration"].strip().lower()
+                if word not in ("1", "0", "yes", "no", "true", "false"):
+                    raise ValueError(f"calibration must be 1 or 0, got {params['calibration']!r}")
+                calibration = word in ("1", "yes", "true")
+            if "spacer_mm" in params:
+                try:
+                    spacer = float(params["spacer_mm"])
+                except ValueError:
+                    raise ValueError(f"spacer_mm must be a number, got {params['spacer_mm']!r}") from None
+                if not (np.isfinite(spacer) and 0 <= spacer <= 1000):
+                    raise ValueError(f"spacer_mm must be between 0 and 1000 mm, got {spacer:g}")
+            self.world.set_scene(now, calibration, spacer)
+        return {"scene": "calibration" if calibration else "object", "spacer_mm": spacer, "t": now,
+                "t_wall": time.time() - (self.clock.now() - now)}
 
     def __enter__(self) -> ServedLab:
         from ..sim.mjpeg import MjpegServer
@@ -271,7 +325,8 @@ class ServedLab(LiveSimLab):
                     self._stack.callback(bridge.stop)
                     self.ports[role] = bridge.url
             self.mjpeg = MjpegServer(cams, self.clock.now, port=int(self.spec.get("http_port") or 0),
-                                     quality=int(self.spec.get("jpeg_quality") or 90)).start()
+                                     quality=int(self.spec.get("jpeg_quality") or 90),
+                                     controls={"scene": self.set_scene}).start()
             self._stack.callback(self.mjpeg.stop)
         except BaseException:
             self._stack.close()
@@ -280,7 +335,8 @@ class ServedLab(LiveSimLab):
 
     def endpoints(self) -> dict:
         return {"table": self.ports["table"], "robot": self.ports["robot"],
-                "fixed_camera": self.mjpeg.url("fixed"), "mobile_camera": self.mjpeg.url("mobile")}
+                "fixed_camera": self.mjpeg.url("fixed"), "mobile_camera": self.mjpeg.url("mobile"),
+                "scene_control": self.mjpeg.control_url("scene")}
 
     def check_alive(self) -> None:
         """Raise if an emulator's thread died (the served lab would silently stop answering)."""
@@ -308,6 +364,8 @@ class ServedLab(LiveSimLab):
             "T_w_b": np.eye(4).tolist(),
             "endpoints": self.endpoints(),
             "timestamps": "the cameras' X-Timestamp is the exposure time on the wall clock (time.time, s)",
+            "scene": self.spec.get("scene") or "object",
+            "calibration_target": self.target.kind,
         }
 
 
