@@ -215,9 +215,11 @@ def _exit_reason(role: str, exc: BaseException) -> tuple[int, str]:
     return getattr(exc, "exit_code", 1), f"{role}: {type(exc).__name__}: {exc}"
 
 
-def _release(log, role: str, reason: str, *, stop: dict, close=(), link=None, tell_peer: bool = False) -> list[dict]:
+def _release(log, role: str, reason: str, *, stop: dict, close=(), link=None, tell_peer: bool = False,
+             t: float | None = None) -> list[dict]:
     """A worker's exit path: stop and confirm each moving device (every one is tried, every outcome
-    recorded), tell the peer why when leaving abnormally, close everything; never raises."""
+    recorded), tell the peer why when leaving abnormally, close everything; never raises.
+    ``t`` is when the stop began on the run's clock (s), for the record."""
     from .stopping import close_all, stop_devices
 
     _shield()
@@ -227,7 +229,7 @@ def _release(log, role: str, reason: str, *, stop: dict, close=(), link=None, te
             link.send(m.Stop.short(reason))
     errors = close_all([*close, link])
     with contextlib.suppress(Exception):  # the record may be what failed
-        log("devices_stopped", role=role, reason=reason, outcomes=outcomes, close_errors=errors)
+        log("devices_stopped", role=role, t=t, reason=reason, outcomes=outcomes, close_errors=errors)
     return outcomes
 
 
@@ -276,7 +278,7 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
     hl = lab.host_link
     record = _open_record(args)
     log = record.event if record is not None else (lambda *a, **k: None)
-    log("worker_started", role="predictor", pid=os.getpid())
+    log("worker_started", role="predictor", pid=os.getpid(), origin=args.origin)
     table = robot = camera = link = None
     code, reason = 0, "run finished"
     try:
@@ -291,10 +293,8 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
         planner = PredictorPlanner(ctx, robot, link.send, log, t_start=now, clock=lambda: _now(args.origin))
         table.stream(trajectory_program(args.spec["trajectory"], args.spec["speed_mm_s"], lab)[1])
         log("table_program", t=now, trajectory=args.spec["trajectory"], speed_mm_s=args.spec["speed_mm_s"])
-        # the first message starts the peer's dead_after_s clock: send it when the beats begin
-        link.send(m.Hello(role="predictor", pid=os.getpid()))
         peer = PeerWatch("recognizer", hl.dead_after_s, hl.start_timeout_s)
-        t_beat = 0.0
+        t_beat, hello = 0.0, False
         while not planner.finished:
             frame = camera.grab()
             planner.on_frame(frame)
@@ -309,6 +309,9 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
                     planner.on_message(msg, _now(args.origin))
             now = _now(args.origin)
             planner.tick(now)
+            if not hello:  # the first message starts the peer's dead_after_s clock: only once the loop runs
+                link.send(m.Hello(role="predictor", pid=os.getpid()))
+                hello = True
             if now - t_beat >= lab.robot.heartbeat_s:
                 robot.heartbeat()
                 link.send(m.Heartbeat(role="predictor", seq=int(now * 10) % 65536, t=now))
@@ -335,7 +338,7 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
                 log("worker_error", role="predictor", error=reason, traceback=traceback.format_exc())
     finally:
         outcomes = _release(log, "predictor", reason, stop={"robot": robot, "table": table},
-                            close=(camera, robot, table), link=link, tell_peer=code != 0)
+                            close=(camera, robot, table), link=link, tell_peer=code != 0, t=_now(args.origin))
         from .stopping import summary
 
         if code != 0:
@@ -358,7 +361,7 @@ def recognizer_main(args: WorkerArgs, link_end, control) -> int:
     record = _open_record(args)
     log = record.event if record is not None else (lambda *a, **k: None)
     save = record.save_image if record is not None else None
-    log("worker_started", role="recognizer", pid=os.getpid())
+    log("worker_started", role="recognizer", pid=os.getpid(), origin=args.origin)
     camera = link = None
     code, reason = 0, "run finished"
     try:
@@ -395,7 +398,8 @@ def recognizer_main(args: WorkerArgs, link_end, control) -> int:
             with contextlib.suppress(Exception):
                 log("worker_error", role="recognizer", error=reason, traceback=traceback.format_exc())
     finally:
-        _release(log, "recognizer", reason, stop={}, close=(camera,), link=link, tell_peer=code != 0)
+        _release(log, "recognizer", reason, stop={}, close=(camera,), link=link, tell_peer=code != 0,
+                 t=_now(args.origin))
         if code != 0:
             ctl.send("error", reason)
         if record is not None:
@@ -436,8 +440,19 @@ class _TruthLog:
         elif key != self.last:
             self.last = key
             with contextlib.suppress(Exception):
-                self.log("sim_truth", t=st["t"], robot_moving=key[0], table_moving=key[1], table_state=key[2])
+                self.log("sim_truth", t=st["t"], robot_moving=key[0], table_moving=key[1], table_state=key[2],
+                         robot_stop=self._robot_stop())
         return {**st, "robot_still_since": self.still_since["robot"], "table_still_since": self.still_since["table"]}
+
+    def _robot_stop(self) -> list[float] | None:
+        """[received, still] (s, run clock) of the robot controller's latest STOP: the emulator brakes
+        on its own profile (a quintic of max(2v/a_max, 1.5ω/ω_max) s), which no controller can shorten."""
+        emu = getattr(self.sim, "robot_emu", None)
+        if emu is None:
+            return None
+        with self.sim.robot_pty.lock:
+            stops = [(s.t0, s.t1) for s in emu.segments if s.seg_id == -1]
+        return list(stops[-1]) if stops else None
 
     def still_for(self) -> float:
         return time.monotonic() - self.t_moving
@@ -507,6 +522,15 @@ def _ask(conn, request: str, timeout_s: float = 5.0):
         if conn.poll(timeout_s):
             return conn.recv()[1]
     return None
+
+
+def _stopped(pid: int) -> bool:
+    """Whether a process is stopped (SIGSTOP: state T in /proc); a stopped worker cannot act on SIGTERM."""
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            return fh.read().rsplit(")", 1)[1].split()[0] in ("T", "t")
+    except (OSError, IndexError):
+        return False
 
 
 class WorkerDied(Exception):
@@ -650,7 +674,7 @@ class LiveRun:
         hung = exc.role if isinstance(exc, WorkerDied) and exc.hung else None
         for role, p in procs.items():  # a live worker stops its own devices on SIGTERM; a hung one is killed
             if p.is_alive():
-                p.kill() if role == hung else p.terminate()
+                p.kill() if role == hung or _stopped(p.pid) else p.terminate()
         deadline = time.monotonic() + 8.0
         for p in procs.values():
             p.join(timeout=max(0.0, deadline - time.monotonic()))
