@@ -91,7 +91,8 @@ def recover_dir(path: Path | str) -> bool:
     if path.exists():
         shutil.rmtree(bak, ignore_errors=True)
     else:
-        os.replace(bak, path)
+        with contextlib.suppress(FileNotFoundError):  # another reader recovered it first
+            os.replace(bak, path)
     fsync_dir(path.parent)
     return True
 

@@ -28,7 +28,7 @@ import trimesh
 import yaml
 
 from ..errors import UserInputError
-from ..fsutil import atomic_dir
+from ..fsutil import atomic_dir, recover_dir, recover_dirs
 from ..vision.shape import ShapeError, ShapeFeatures, silhouette_mask
 from .placement import Marker
 from .views import StandardView, contact_sheet
@@ -129,6 +129,7 @@ def load_object(folder: Path | str) -> LibraryObject:
     """Read one object folder; raise :class:`LibraryError` (naming folder and file) if it is corrupt."""
     folder = Path(folder)
     name = folder.name
+    recover_dir(folder)  # a save that crashed between its two renames left the old version aside
     if not folder.is_dir():
         raise LibraryError(f"library object {name!r} not found in {folder.parent}")
     info = _read_yaml(folder / "object.yaml", "name")
@@ -177,6 +178,7 @@ def load_library(library_dir: Path | str) -> dict[str, LibraryObject]:
     root = Path(library_dir)
     if not root.is_dir():
         raise LibraryError(f"object library folder not found: {root}")
+    recover_dirs(root)  # saves that crashed half-way (labctl.fsutil.atomic_dir)
     out = {}
     for d in sorted(root.iterdir()):
         if d.is_dir() and not d.name.startswith("."):
