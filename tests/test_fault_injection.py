@@ -209,11 +209,11 @@ def test_stop_outcomes_never_hide_a_failure():
     from labctl.workers.stopping import stop_devices, summary
 
     class BadRobot:
-        def stop(self):
-            raise TimeoutError("no reply to STOP")
-
         def emergency_stop(self):
             pass
+
+        def stop(self):
+            raise TimeoutError("no reply to STOP")
 
         def status(self):
             import numpy as np
@@ -222,6 +222,9 @@ def test_stop_outcomes_never_hide_a_failure():
 
     class GoodTable:
         calls: list = []
+
+        def feed_hold(self):
+            self.calls.append("hold")
 
         def stop(self):
             self.calls.append("stop")
@@ -233,6 +236,7 @@ def test_stop_outcomes_never_hide_a_failure():
     assert [o["device"] for o in out] == ["robot", "table"]  # every device is tried
     assert out[0]["confirmed"] is False and "no reply to STOP" in out[0]["error"]
     assert out[1]["confirmed"] is True and out[1]["state"] == "Alarm"
+    assert GoodTable.calls == ["hold", "stop"]  # the immediate hold went out before any round trip
     line = summary(out)
     assert "table stopped (confirmed)" in line and "robot NOT confirmed" in line
 

@@ -117,6 +117,7 @@ class HostLinkConfig:
     dead_after_s: float = 3.0  # a worker whose peer (other worker, supervisor) is silent this long stops its devices
     stall_after_s: float = 4.0  # the supervisor: a worker silent this long after its first beat is hung (SIGSTOP)
     start_timeout_s: float = 60.0  # grace before a worker's (or peer's) first beat: imports, device opening
+    key_file: str | None = None  # tcp: file holding the shared HMAC key (or $LABCTL_LINK_KEY); relative to the lab
 
     def validate(self):
         if self.baud <= 0:

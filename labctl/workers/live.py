@@ -200,6 +200,25 @@ def _load_lab(args: WorkerArgs):
     return lab
 
 
+def plausible(msg: m.Message, ctx) -> bool:
+    """Whether a message from the recognizer names only objects of this library (a corrupt or foreign
+    message that decodes is dropped here, before the planner sees it)."""
+    n = len(ctx.names)
+    if isinstance(msg, m.Identity):
+        return msg.object_id < n and all(i < n for i in msg.candidates)
+    if isinstance(msg, m.Ambiguous):
+        return all(i < n for i in msg.candidates)
+    return True
+
+
+def _authkey(args: WorkerArgs, lab) -> bytes | None:
+    """The TCP link's shared key: one the supervisor made for this run, else the lab's (env or file)."""
+    from .transport import link_key
+
+    key = args.extra.get("link_key")
+    return key.encode() if key else link_key(lab.host_link, lab.root)
+
+
 def _exit_reason(role: str, exc: BaseException) -> tuple[int, str]:
     """A worker's exit status and one-line reason for how it left."""
     from .transport import LinkClosed
@@ -283,7 +302,8 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
     code, reason = 0, "run finished"
     try:
         ctx = RunContext.load(lab)
-        link = open_link(hl, "predictor", local_end=link_end)
+        link = open_link(hl, "predictor", local_end=link_end, authkey=_authkey(args, lab),
+                         on_refused=lambda line: log("link_refused", line=line))
         table = GrblTable.from_config(lab.table, port=args.table_port)
         robot = SerialRobot.from_config(lab.robot, port=args.robot_port)
         camera = _fixed_camera(args, lab)
@@ -306,7 +326,10 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
                 if isinstance(msg, m.Stop):
                     raise PeerLost(f"the recognizer stopped: {msg.reason}")
                 if not isinstance(msg, m.Heartbeat | m.Hello):
-                    planner.on_message(msg, _now(args.origin))
+                    if plausible(msg, ctx):
+                        planner.on_message(msg, _now(args.origin))
+                    else:
+                        log("message_dropped", t=_now(args.origin), message=repr(msg)[:200])
             now = _now(args.origin)
             planner.tick(now)
             if not hello:  # the first message starts the peer's dead_after_s clock: only once the loop runs
@@ -366,7 +389,8 @@ def recognizer_main(args: WorkerArgs, link_end, control) -> int:
     code, reason = 0, "run finished"
     try:
         ctx = RunContext.load(lab)
-        link = open_link(hl, "recognizer", local_end=link_end)
+        link = open_link(hl, "recognizer", local_end=link_end, authkey=_authkey(args, lab),
+                         on_refused=lambda line: log("link_refused", line=line))
         camera = _mobile_camera(args, lab)
         camera.open()
         recognizer = Recognizer(ctx, camera.grab, log, save)
@@ -603,6 +627,14 @@ class LiveRun:
                 origin = endpoints["origin"]
             a_end, b_end = local_pair() if lab.host_link.transport == "local" else (None, None)
             extra = {"predictor": {}, "recognizer": {}}
+            if lab.host_link.transport == "tcp":  # both workers on this PC: a fresh key for this run alone
+                import secrets
+
+                from .transport import link_key
+
+                key = (link_key(lab.host_link, lab.root) or secrets.token_hex(32).encode()).decode()
+                for role in extra:
+                    extra[role]["link_key"] = key
             if lab.host_link.transport == "serial" and not lab.host_link.port:
                 # one PC, RS-232 as in 1996: a pty null modem paced at the link's baud rate
                 modem = stack.enter_context(pty_null_modem(lab.host_link.baud))
@@ -777,5 +809,5 @@ def run_live(lab_root: Path, spec: dict, run_dir: Path | None, on_status=None) -
     return LiveRun(Path(lab_root), spec, run_dir, on_status).run()
 
 
-__all__ = ["LiveRun", "WorkerArgs", "WorkerDied", "RunAborted", "PeerWatch", "PeerLost", "Terminated",
+__all__ = ["LiveRun", "WorkerArgs", "plausible", "WorkerDied", "RunAborted", "PeerWatch", "PeerLost", "Terminated",
            "predictor_main", "recognizer_main", "run_live", "asdict"]

@@ -83,7 +83,21 @@ def stop_robot(robot) -> dict:
 def stop_devices(devices: Mapping[str, object]) -> list[dict]:
     """Stop and confirm each open device (``{"robot": r, "table": t}``; ``None`` entries skipped).
 
-    Never raises: every device is tried and every outcome returned, in the order given."""
+    First every device gets its immediate stop, without waiting for any reply (GRBL feed hold, the
+    robot's unacknowledged STOP), so that no device keeps moving while another one's round trips
+    run; then each is stopped properly and its status read back. Never raises: every device is
+    tried and every outcome returned, in the order given."""
+    quick_errors: dict[str, str] = {}
+    for name, dev in devices.items():
+        if dev is None:
+            continue
+        try:
+            if name == "table":
+                dev.feed_hold()
+            elif name == "robot":
+                dev.emergency_stop()
+        except Exception as exc:  # noqa: BLE001 — recorded below; the full stop still follows
+            quick_errors[name] = f"immediate stop: {_err(exc)}"
     out = []
     for name, dev in devices.items():
         if dev is None:
@@ -92,6 +106,10 @@ def stop_devices(devices: Mapping[str, object]) -> list[dict]:
             out.append(stop_table(dev))
         elif name == "robot":
             out.append(stop_robot(dev))
+        else:
+            continue
+        if name in quick_errors:
+            out[-1]["error"] = "; ".join(filter(None, [quick_errors[name], out[-1]["error"]]))
     return out
 
 
