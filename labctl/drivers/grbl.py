@@ -94,7 +94,7 @@ class GrblTable(OpenClose):
         self._last_query_t = -1e18
         self._wco = (0.0, 0.0, 0.0)
         self.info: dict = {}
-        self.messages: list[str] = []
+        self.messages: deque[str] = deque(maxlen=200)  # the newest [MSG:…] lines (bounded)
         self._alarm: int | None = None
         self._reset_seen = False
         self.connected_by = ""

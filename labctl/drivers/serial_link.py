@@ -43,6 +43,8 @@ class ProtocolError(DeviceError):
 class SerialLink(OpenClose):
     """A polled line link over a pyserial port (or anything pyserial-like passed as ``port``)."""
 
+    MAX_BUF = 65536  # bytes kept while no line end arrives (the longest legitimate line is ~100 B)
+
     def __init__(self, url: str | None = None, baud: int = 9600, timeout_s: float = 2.0, *, port=None,
                  clock: Callable[[], float] = time.monotonic, sleep: Callable[[float], None] = time.sleep,
                  name: str = "", pace_baud: int | None = None, eol: bytes = b"\n", poll_s: float = 0.005,
@@ -147,6 +149,8 @@ class SerialLink(OpenClose):
             data = self._read_available()
             if data:
                 self._buf += data
+                if len(self._buf) > self.MAX_BUF:  # a device sending no line end: keep only the newest bytes
+                    del self._buf[:-self.MAX_BUF]
                 return True
             now = self.clock()
             if now >= deadline:
