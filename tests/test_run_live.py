@@ -116,9 +116,11 @@ def test_ctrl_c_stops_robot_and_table_and_keeps_the_record(lab):
     finally:
         if p.poll() is None:
             p.kill()
-    assert p.returncode != 0 and "interrupted" in err and "record kept" in err
+    assert p.returncode == 130 and "interrupted" in err and "record kept" in err
+    assert len(err.strip().splitlines()) == 1, err
     run = load_run(run_dir)
     a = run.of("run_aborted")[-1]
     assert set(a["devices_stopped"]) == {"robot", "table"}
+    assert all(o["confirmed"] for o in a["stop_outcomes"])  # status read back after the stop
     assert not a["devices_after_stop"]["robot_moving"] and not a["devices_after_stop"]["table_moving"]
     assert run.result["identity"] is None and "interrupted" in run.result["failure"]
