@@ -499,7 +499,23 @@ def sim_server_main(lab_root: str, spec: dict, conn, run_dir: str | None = None)
         from ..records import RunRecord
 
         record = RunRecord.open(run_dir)
-    log = record.event if record is not None else (lambda *a, **k: None)
+    # the record opens with the workers' own events: ground truth waits for the supervisor's "record"
+    pending: list[tuple[str, dict]] = []
+    live_log = record.event if record is not None else (lambda *a, **k: None)
+
+    def log(name, **fields):
+        if pending is not None and not getattr(log, "on", False):
+            pending.append((name, fields))
+            del pending[:-200]
+        else:
+            live_log(name, **fields)
+
+    def start_logging():
+        log.on = True
+        for name, fields in pending:
+            live_log(name, **fields)
+        pending.clear()
+
     ppid = os.getppid()
     try:
         with LiveSimLab(load_lab(lab_root), spec) as sim:
@@ -509,6 +525,7 @@ def sim_server_main(lab_root: str, spec: dict, conn, run_dir: str | None = None)
             while True:
                 state = truth.sample()
                 if orphaned is not None:
+                    start_logging()
                     if truth.still_for() > 1.0 or time.monotonic() - orphaned > 10.0:
                         log("sim_stopped", t=state["t"], reason="supervisor gone", **{
                             k: state[k] for k in ("robot_moving", "table_moving", "table_state")})
@@ -524,7 +541,10 @@ def sim_server_main(lab_root: str, spec: dict, conn, run_dir: str | None = None)
                 except (EOFError, OSError):
                     orphaned = time.monotonic()
                     continue
-                if req == "state?":
+                if req == "record":
+                    start_logging()
+                elif req == "state?":
+                    start_logging()
                     conn.send(("state", state))
                 elif req == "truth?":
                     conn.send(("truth", sim.truth()))
@@ -655,7 +675,7 @@ class LiveRun:
                     if end is not None:
                         with contextlib.suppress(Exception):
                             end.close()
-                result = self._supervise(lab, procs, controls)
+                result = self._supervise(lab, procs, controls, sim_conn)
                 result["devices_stopped"] = self._await_stopped(lab, procs, controls)
             except (WorkerDied, KeyboardInterrupt, Terminated) as exc:
                 _shield()
@@ -757,7 +777,7 @@ class LiveRun:
                 break
         return []
 
-    def _supervise(self, lab, procs, controls) -> dict:
+    def _supervise(self, lab, procs, controls, sim_conn=None) -> dict:
         """Watch the workers until the predictor's result: a worker that dies, reports an error or
         goes silent for ``stall_after_s`` after its first beat (before it: ``start_timeout_s``) ends
         the run. The supervisor's own beats go to each worker every ``heartbeat_s``."""
@@ -766,7 +786,12 @@ class LiveRun:
         started = time.monotonic()
         t_sent = 0.0
         result = None
+        truth_on = sim_conn is None
         while True:
+            if not truth_on and all(t is not None for t in last_beat.values()):
+                truth_on = True  # both workers run: the simulator's ground truth may join the record
+                with contextlib.suppress(OSError):
+                    sim_conn.send("record")
             for role, conn in controls.items():
                 while True:
                     try:
