@@ -158,6 +158,12 @@ def inject(lab: Path, fault: str, target: str, stage: str, seed: int = 3) -> dic
 def test_fault_stops_everything_within_half_a_second(lab, fault, target, stage):
     got = inject(lab, fault, target, stage)
     assert got["left"] == [], f"processes left behind: {got['left']}"
+    if (fault, target) == ("SIGSTOP", "supervisor") and got["code"] == 0:
+        # struck near the end: the workers finished the run while the supervisor was stopped
+        events = read_events(got["run_dir"], strict=True)
+        stops = [e for e in events if e["event"] == "devices_stopped" and e["role"] == "predictor"]
+        assert stops and all(o["confirmed"] for o in stops[-1]["outcomes"])
+        return
     assert got["code"] == EXPECTED[(fault, target)], got["stderr"]
     lines = [x for x in got["stderr"].splitlines() if x.strip()]
     if (fault, target) == ("SIGKILL", "supervisor"):

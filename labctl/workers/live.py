@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import logging
 import multiprocessing as mp
 import os
 import signal
@@ -219,6 +220,30 @@ def _authkey(args: WorkerArgs, lab) -> bytes | None:
     return key.encode() if key else link_key(lab.host_link, lab.root)
 
 
+class _RecordLog(logging.Handler):
+    """Driver and link warnings go to the run record as ``log`` events, not to the terminal: a run
+    ends with exactly one line on stderr (a port another process left mid-conversation yields
+    stale replies that a driver rightly warns about)."""
+
+    def __init__(self, record, role: str):
+        super().__init__(logging.INFO)
+        self.record, self.role = record, role
+
+    def emit(self, rec: logging.LogRecord) -> None:
+        with contextlib.suppress(Exception):
+            self.record.event("log", role=self.role, level=rec.levelname, logger=rec.name, message=rec.getMessage())
+
+
+def _log_to_record(record, role: str):
+    """Route the ``labctl`` loggers to ``record`` (unless -v gave the root logger a handler)."""
+    lg = logging.getLogger("labctl")
+    if record is None or logging.getLogger().handlers:
+        return None
+    handler = _RecordLog(record, role)
+    lg.addHandler(handler)
+    return handler
+
+
 def _exit_reason(role: str, exc: BaseException) -> tuple[int, str]:
     """A worker's exit status and one-line reason for how it left."""
     from .transport import LinkClosed
@@ -298,6 +323,7 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
     record = _open_record(args)
     log = record.event if record is not None else (lambda *a, **k: None)
     log("worker_started", role="predictor", pid=os.getpid(), origin=args.origin)
+    _log_to_record(record, "predictor")
     table = robot = camera = link = None
     code, reason = 0, "run finished"
     try:
@@ -385,6 +411,7 @@ def recognizer_main(args: WorkerArgs, link_end, control) -> int:
     log = record.event if record is not None else (lambda *a, **k: None)
     save = record.save_image if record is not None else None
     log("worker_started", role="recognizer", pid=os.getpid(), origin=args.origin)
+    _log_to_record(record, "recognizer")
     camera = link = None
     code, reason = 0, "run finished"
     try:
@@ -607,9 +634,14 @@ class LiveRun:
         old = signal.getsignal(signal.SIGTERM) if _in_main_thread() else None
         if _in_main_thread():
             signal.signal(signal.SIGTERM, _raise_terminated)
+        handler = _log_to_record(self._record(), "supervisor")
         try:
             return self._run(lab)
         finally:
+            if handler is not None:
+                logging.getLogger("labctl").removeHandler(handler)
+                with contextlib.suppress(Exception):
+                    handler.record.close()
             if _in_main_thread():
                 signal.signal(signal.SIGTERM, old)
                 signal.signal(signal.SIGINT, signal.default_int_handler)
@@ -787,6 +819,7 @@ class LiveRun:
         t_sent = 0.0
         result = None
         truth_on = sim_conn is None
+        stopped_since: dict[str, float] = {}
         while True:
             if not truth_on and all(t is not None for t in last_beat.values()):
                 truth_on = True  # both workers run: the simulator's ground truth may join the record
@@ -820,6 +853,13 @@ class LiveRun:
             for role, p in procs.items():
                 if not p.is_alive():
                     raise WorkerDied(f"the {role} worker died (exit code {p.exitcode})", role)
+                if _stopped(p.pid):  # SIGSTOP: caught even during the start-up grace
+                    stopped_since.setdefault(role, now)
+                    if now - stopped_since[role] > hl.stall_after_s:
+                        raise WorkerDied(f"the {role} worker is stopped (SIGSTOP, {now - stopped_since[role]:.1f} s)",
+                                         role, hung=True)
+                else:
+                    stopped_since.pop(role, None)
                 if last_beat[role] is None:
                     if now - started > hl.start_timeout_s:
                         raise WorkerDied(f"the {role} worker did not start within {hl.start_timeout_s:g} s",
