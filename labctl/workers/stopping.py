@@ -57,8 +57,14 @@ def stop_table(table) -> dict:
     return out
 
 
-def stop_robot(robot) -> dict:
-    """The robot's ``STOP`` (acknowledged), then one ``STATUS`` read: the robot's outcome."""
+#: how long a robot may take to brake after STOP before it counts as not stopped (s); the simulated
+#: controller brakes on a quintic of up to 1.5 s
+ROBOT_BRAKE_LIMIT_S = 3.0
+
+
+def stop_robot(robot, brake_limit_s: float = ROBOT_BRAKE_LIMIT_S) -> dict:
+    """The robot's ``STOP`` (acknowledged), then ``STATUS`` reads until it reports no motion (it
+    brakes on its own profile) or ``brake_limit_s`` passes: the robot's outcome."""
     out = {"device": "robot", "stopped": False, "confirmed": False, "state": None, "error": None}
     try:
         robot.stop()
@@ -69,12 +75,18 @@ def stop_robot(robot) -> dict:
             robot.emergency_stop()
         except Exception as exc2:  # noqa: BLE001
             out["error"] += f"; emergency stop: {_err(exc2)}"
+    sleep = getattr(getattr(robot, "link", None), "sleep", time.sleep)
     try:
-        st = robot.status()
+        polls = max(1, int(brake_limit_s / 0.05))
+        for i in range(polls):
+            st = robot.status()
+            if not st.moving or i == polls - 1:
+                break
+            sleep(0.05)
         out["state"] = "moving" if st.moving else "still"
         out["confirmed"] = not st.moving
         if st.moving and out["error"] is None:
-            out["error"] = "still moving after STOP"
+            out["error"] = f"still moving {brake_limit_s:g} s after STOP"
     except Exception as exc:  # noqa: BLE001
         out["error"] = (out["error"] + "; " if out["error"] else "") + f"status: {_err(exc)}"
     return out
