@@ -187,6 +187,12 @@ def test_fault_stops_everything_within_half_a_second(lab, fault, target, stage):
     # the simulator's ground truth: both devices still within 0.5 s of the first stop command
     t_stop = _first_stop_t(events)
     lag = still_after(events, t_stop)
+    report = os.environ.get("LABCTL_FAULT_REPORT")
+    if report:  # one JSON line per case, for the notes' table
+        with open(report, "a") as fh:
+            fh.write(json.dumps({"fault": fault, "target": target, "stage": stage, "code": got["code"],
+                                 "detect_s": round(t_stop - got["t_fault"], 3),
+                                 **{k: round(v, 3) for k, v in lag.items()}}) + "\n")
     assert lag["robot"] < 0.5 and lag["table"] < 0.5, lag
     assert t_stop >= got["t_fault"] - 0.05  # the stop answers the fault, it did not precede it
 
