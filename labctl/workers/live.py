@@ -390,8 +390,8 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
                             close=(camera, robot, table), link=link, tell_peer=code != 0, t=_now(args.origin))
         from .stopping import summary
 
-        if code != 0:
-            ctl.send("error", f"{reason}; {summary(outcomes)}")
+        if code != 0:  # a supervisor confirms the stop itself and says so; a lone worker says it here
+            ctl.send("error", reason if getattr(ctl, "supervised", True) else f"{reason}; {summary(outcomes)}")
         ctl.send("stopped", outcomes)
         if record is not None:
             record.close()
