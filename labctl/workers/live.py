@@ -677,6 +677,10 @@ class LiveRun:
                     raise WorkerDied(str(payload))
                 endpoints = payload
                 origin = endpoints["origin"]
+            from .stopping import open_stop_lines
+
+            self._stop_fds = open_stop_lines(lab, endpoints)
+            stack.callback(self._close_stop_lines)
             a_end, b_end = local_pair() if lab.host_link.transport == "local" else (None, None)
             extra = {"predictor": {}, "recognizer": {}}
             if lab.host_link.transport == "tcp":  # both workers on this PC: a fresh key for this run alone
@@ -738,12 +742,20 @@ class LiveRun:
                     sim_proc.kill()
                     sim_proc.join(timeout=2)
 
+    _stop_fds: dict = field(default_factory=dict)
+
+    def _close_stop_lines(self) -> None:
+        for fd in self._stop_fds.values():
+            with contextlib.suppress(OSError):
+                os.close(fd)
+        self._stop_fds = {}
+
     def _abort(self, lab, exc, endpoints, procs, controls, sim_conn, origin) -> RunAborted:
         """Stop everything after a dead/hung worker, Ctrl-C or SIGTERM; confirm it; record it."""
         from .stopping import confirm_stopped, confirmed, send_stop_bytes, summary
 
         t0 = time.monotonic()
-        sent = send_stop_bytes(lab, endpoints)  # motion ends now, whatever the workers are doing
+        sent = send_stop_bytes(lab, endpoints, fds=self._stop_fds)  # motion ends now, whatever the workers do
         t_sent = time.monotonic() - t0
         after = None
         if sim_conn is not None:  # the simulator can tell when the devices really stood still

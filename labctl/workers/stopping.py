@@ -164,10 +164,31 @@ def _ports(lab, endpoints: Mapping) -> dict[str, tuple[str | None, int]]:
             "robot": (endpoints.get("robot") or lab.robot.port, lab.robot.baud)}
 
 
-def send_stop_bytes(lab, endpoints: Mapping, timeout_s: float = 0.3) -> list[dict]:
+def open_stop_lines(lab, endpoints: Mapping) -> dict[str, int]:
+    """Write-only descriptors on the table's and robot's device files, opened while the run starts so
+    that an emergency stop is one ``write`` with nothing to open (the worker keeps the port settings;
+    nothing here ever reads, so no reply is taken from the worker). Ports that are URLs or cannot be
+    opened are left out (:func:`send_stop_bytes` then opens them)."""
+    import os
+
+    fds = {}
+    for name, (port, _baud) in _ports(lab, endpoints).items():
+        if port and port.startswith("/dev/"):
+            try:
+                fds[name] = os.open(port, os.O_WRONLY | os.O_NOCTTY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
+            except OSError:
+                continue
+    return fds
+
+
+def send_stop_bytes(lab, endpoints: Mapping, timeout_s: float = 0.3, fds: Mapping[str, int] | None = None
+                    ) -> list[dict]:
     """Write the stop bytes straight to the table's and robot's ports, in parallel, without waiting
-    for replies (the emergency stop of paper §5.1's supervisor role). Returns one outcome per device
-    with ``stopped`` (bytes written) and ``error``; nothing is confirmed here."""
+    for replies (the emergency stop of paper §5.1's supervisor role), through ``fds`` from
+    :func:`open_stop_lines` where given. Returns one outcome per device with ``stopped`` (bytes
+    written) and ``error``; nothing is confirmed here."""
+    import os
+
     import serial
 
     from ..drivers.robot import STOP_LINE
@@ -175,10 +196,19 @@ def send_stop_bytes(lab, endpoints: Mapping, timeout_s: float = 0.3) -> list[dic
     # "\n" first: ends any half-written line a killed worker left in the controller's buffer
     payloads = {"table": [b"!"], "robot": [b"\n" + STOP_LINE]}
     results: dict[str, dict] = {}
+    fds = fds or {}
 
     def send(name: str, port: str, baud: int) -> None:
         out = {"device": name, "stopped": False, "confirmed": False, "state": None, "error": None}
         results[name] = out
+        if name in fds:
+            try:
+                for p in payloads[name]:
+                    os.write(fds[name], p)
+                out["stopped"] = True
+                return
+            except OSError as exc:  # fall back to opening the port
+                out["error"] = f"stop bytes on the open line: {_err(exc)}"
         try:
             with serial.serial_for_url(port, baudrate=baud, timeout=timeout_s, write_timeout=timeout_s) as s:
                 for p in payloads[name]:
@@ -186,7 +216,7 @@ def send_stop_bytes(lab, endpoints: Mapping, timeout_s: float = 0.3) -> list[dic
                     s.flush()
             out["stopped"] = True
         except (serial.SerialException, OSError, ValueError) as exc:
-            out["error"] = f"stop bytes: {_err(exc)}"
+            out["error"] = "; ".join(filter(None, [out["error"], f"stop bytes: {_err(exc)}"]))
 
     threads = []
     for name, (port, baud) in _ports(lab, endpoints).items():
