@@ -462,8 +462,13 @@ def _worker_process(role: str, args: WorkerArgs, link_end, conn) -> None:
     """Entry point of a supervised worker process: signals, then the worker; exits with its status."""
     _child_signals(supervised=True)
     target = predictor_main if role == "predictor" else recognizer_main
-    lab_link = load_lab(args.lab_root).host_link
-    code = target(args, link_end, _Control(conn, role, lab_link.dead_after_s))
+    try:
+        lab_link = load_lab(args.lab_root).host_link
+        code = target(args, link_end, _Control(conn, role, lab_link.dead_after_s))
+    except BaseException as exc:  # before the worker's own handlers (lab, record): one line via the supervisor
+        code, reason = _exit_reason(role, exc)
+        with contextlib.suppress(Exception):
+            conn.send(("error", reason))
     sys.exit(code)
 
 
