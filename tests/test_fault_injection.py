@@ -23,6 +23,7 @@ from pathlib import Path
 import pytest
 
 from labctl.records import read_events
+from labctl.workers.stopping import still_after
 from labctl.workspace import init_workspace
 
 STAGES = {  # when to strike: the first event of the run that matches
@@ -86,34 +87,6 @@ def _wait_for_stage(lab: Path, before: set, stage: str, p, timeout_s: float) -> 
                 return run_dir, events
         time.sleep(0.05)
     raise AssertionError(f"the run never reached stage {stage}")
-
-
-def still_after(events: list[dict], t_stop: float) -> dict[str, float]:
-    """Seconds after ``t_stop`` at which the ground truth last saw each device stop for good (0 if it
-    was already still); raises if a device is still moving at the end of the log.
-
-    The robot's entry discounts the controller's own braking: the emulator brings the flange to rest
-    on a quintic of max(2v/a_max, 1.5ω/ω_max) s (up to 1.5 s at full turning speed) once STOP is
-    received; what the labctl side controls is how soon that STOP arrives (``robot_stop`` =
-    [received, still] in the ground truth)."""
-    truth = [e for e in events if e["event"] == "sim_truth"]
-    out = {}
-    for dev in ("robot", "table"):
-        moving = [i for i, e in enumerate(truth) if e[f"{dev}_moving"]]
-        if not moving:
-            out[dev] = 0.0
-            continue
-        last = moving[-1]
-        assert last + 1 < len(truth), f"the {dev} is still moving at the end of the ground truth"
-        t_still = truth[last + 1]["t"]
-        # the first STOP the robot controller received after the stop command, and the braking that followed
-        stops = sorted({tuple(e["robot_stop"]) for e in truth if dev == "robot" and e.get("robot_stop")
-                        and e["robot_stop"][0] >= t_stop - 0.05})
-        if stops and t_still <= max(s[1] for s in stops) + 0.3:
-            out["robot_braking_s"] = t_still - stops[0][0]
-            t_still = stops[0][0]  # at rest once the controller's braking profile ends, as sampled
-        out[dev] = max(0.0, t_still - t_stop)
-    return out
 
 
 def _first_stop_t(events: list[dict]) -> float:
@@ -205,7 +178,7 @@ def test_still_after_reads_the_ground_truth():
           {"event": "sim_truth", "t": 2.2, "robot_moving": False, "table_moving": True},
           {"event": "sim_truth", "t": 2.4, "robot_moving": False, "table_moving": False}]
     assert still_after(ev, 2.0) == pytest.approx({"robot": 0.2, "table": 0.4})
-    with pytest.raises(AssertionError):
+    with pytest.raises(ValueError):
         still_after(ev[:2], 2.0)  # the table never stopped
 
 
