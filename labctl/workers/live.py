@@ -826,6 +826,15 @@ class LiveRun:
                 break
         return []
 
+    @staticmethod
+    def _raise_dead(procs, skip: str) -> None:
+        """A worker that reports its peer gone usually means the peer died: name the dead one."""
+        for role, p in procs.items():
+            if role != skip:
+                p.join(timeout=0.2)
+                if not p.is_alive():
+                    raise WorkerDied(f"the {role} worker died (exit code {p.exitcode})", role)
+
     def _supervise(self, lab, procs, controls, sim_conn=None) -> dict:
         """Watch the workers until the predictor's result: a worker that dies, reports an error or
         goes silent for ``stall_after_s`` after its first beat (before it: ``start_timeout_s``) ends
@@ -858,6 +867,7 @@ class LiveRun:
                     elif kind == "result":
                         result = msg[1]
                     elif kind == "error":
+                        self._raise_dead(procs, skip=role)  # the root cause: a peer that died, if one did
                         raise WorkerDied(msg[1], role)
             if result is not None:
                 return result
