@@ -832,7 +832,7 @@ class LiveRun:
         for role, p in procs.items():
             if role != skip:
                 p.join(timeout=0.2)
-                if not p.is_alive():
+                if not p.is_alive() and (p.exitcode or 0) < 0:  # killed by a signal, not a worker that left
                     raise WorkerDied(f"the {role} worker died (exit code {p.exitcode})", role)
 
     def _supervise(self, lab, procs, controls, sim_conn=None) -> dict:
