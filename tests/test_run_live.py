@@ -13,6 +13,7 @@ from pathlib import Path
 import pytest
 
 from labctl.records import load_run
+from labctl.workers.stopping import still_after
 from labctl.workspace import init_workspace
 
 
@@ -83,7 +84,10 @@ def test_killed_worker_stops_robot_and_table(lab, role):
     assert set(a["devices_stopped"]) == {"robot", "table"}
     after = a["devices_after_stop"]
     assert after is not None and not after["robot_moving"] and not after["table_moving"]
-    assert after["still_after_s"] < 0.5
+    # the simulator's ground truth: table still, robot's controller told to stop, within 0.5 s (the robot
+    # then brakes on its own profile, up to 1.5 s: see docs/notes/link_and_records.md)
+    lag = still_after(run.events, a["t_stop_sent"])
+    assert lag["table"] < 0.5 and lag["robot"] < 0.5, lag
     # the record is complete up to the failure: every line is valid JSON, the run's start is there
     assert [e["event"] for e in run.events[:2]] == ["worker_started", "worker_started"]
 
@@ -116,9 +120,11 @@ def test_ctrl_c_stops_robot_and_table_and_keeps_the_record(lab):
     finally:
         if p.poll() is None:
             p.kill()
-    assert p.returncode != 0 and "interrupted" in err and "record kept" in err
+    assert p.returncode == 130 and "interrupted" in err and "record kept" in err
+    assert len(err.strip().splitlines()) == 1, err
     run = load_run(run_dir)
     a = run.of("run_aborted")[-1]
     assert set(a["devices_stopped"]) == {"robot", "table"}
+    assert all(o["confirmed"] for o in a["stop_outcomes"])  # status read back after the stop
     assert not a["devices_after_stop"]["robot_moving"] and not a["devices_after_stop"]["table_moving"]
     assert run.result["identity"] is None and "interrupted" in run.result["failure"]

@@ -175,12 +175,12 @@ def test_tcp_connect_retries_until_the_listener_appears():
     def late_listener():
         time.sleep(0.3)
         cfg = HostLinkConfig(transport="tcp", host="127.0.0.1", tcp_port=port)
-        result["server"] = open_link(cfg, "predictor", connect_timeout=5.0)
+        result["server"] = open_link(cfg, "predictor", connect_timeout=5.0, authkey=b"a-shared-test-key-123")
 
     th = threading.Thread(target=late_listener)
     th.start()
     cfg = HostLinkConfig(transport="tcp", host="127.0.0.1", tcp_port=port)
-    client = open_link(cfg, "recognizer", connect_timeout=5.0)
+    client = open_link(cfg, "recognizer", connect_timeout=5.0, authkey=b"a-shared-test-key-123")
     th.join(timeout=10.0)
     server = result["server"]
     with client, server:

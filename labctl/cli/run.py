@@ -67,6 +67,7 @@ def run_cmd(trajectory, speed, object_name, seed, virtual) -> None:
 
     from ..records import RunRecord, write_report
     from ..workers.context import RunContext
+    from ..workers.live import RunAborted
 
     c = get_ctx()
     lab = c.lab()
@@ -91,9 +92,16 @@ def run_cmd(trajectory, speed, object_name, seed, virtual) -> None:
                                                       object_name=object_name), record)
         else:
             result = _run_live(c, lab, spec, record)
-    except KeyboardInterrupt:
-        record.finish({"identity": None, "failure": "interrupted (Ctrl-C): robot and table stopped"})
-        raise LabctlError(f"interrupted: robot and table stopped; record kept in {record.path}") from None
+    except RunAborted as exc:  # Ctrl-C, SIGTERM or a dead/hung worker: devices stopped and confirmed
+        record.finish({"identity": None, "failure": str(exc), "cause": exc.cause, "devices_stopped": exc.outcomes})
+        err = LabctlError(f"{exc}; record kept in {record.path}")
+        err.exit_code = exc.exit_code
+        raise err from None
+    except KeyboardInterrupt:  # before any device moved (or a virtual run: nothing physical)
+        record.finish({"identity": None, "failure": "interrupted (Ctrl-C)"})
+        err = LabctlError(f"interrupted; record kept in {record.path}")
+        err.exit_code = 130
+        raise err from None
     except LabctlError as exc:
         record.finish({"identity": None, "failure": str(exc)})
         with contextlib.suppress(Exception):  # a report that cannot be drawn must not hide the error
@@ -118,7 +126,7 @@ def _run_live(c, lab, spec, record) -> dict:
         with view:
             return run_live(lab.root, spec, record.path, on_status=view.update)
     except WorkerDied as exc:
-        raise LabctlError(f"{exc}; robot and table stopped") from None
+        raise LabctlError(str(exc)) from None
 
 
 class _LiveView:

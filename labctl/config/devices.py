@@ -132,8 +132,10 @@ class HostLinkConfig:
     port: str | None = None  # serial device or pyserial URL; null on one PC: a paced pty null modem
     baud: int = 9600
     heartbeat_s: float = 0.2
-    dead_after_s: float = 0.5  # a worker process gone: robot and table stopped within this
-    stall_after_s: float = 3.0  # a worker alive but silent this long counts as dead too
+    dead_after_s: float = 3.0  # a worker whose peer (other worker, supervisor) is silent this long stops its devices
+    stall_after_s: float = 4.0  # the supervisor: a worker silent this long after its first beat is hung (SIGSTOP)
+    start_timeout_s: float = 60.0  # grace before a worker's (or peer's) first beat: imports, device opening
+    key_file: str | None = None  # tcp: file holding the shared HMAC key (or $LABCTL_LINK_KEY); relative to the lab
 
     def validate(self):
         if self.baud <= 0:

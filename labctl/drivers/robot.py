@@ -12,6 +12,7 @@ from __future__ import annotations
 import logging
 import re
 import time
+from collections import deque
 from collections.abc import Callable
 
 import numpy as np
@@ -56,8 +57,8 @@ class SerialRobot(OpenClose):
         self.clock = clock
         self.retries = retries
         self._seq = 0
-        self.done_ids: list[int] = []
-        self.faults: list[str] = []
+        self.done_ids: deque[int] = deque(maxlen=256)  # newest DONE reports; a waited-for id is recent
+        self.faults: deque[str] = deque(maxlen=32)
         self.ident = ""
         self.dialect = "1.0"
         self._commanded = False  # a segment or HOME was sent: a @BOOT from now on loses motion

@@ -48,6 +48,7 @@ class ProtocolError(DeviceError):
 class SerialLink(OpenClose):
     """A polled line link over a pyserial port (or anything pyserial-like passed as ``port``)."""
 
+
     def __init__(self, url: str | None = None, baud: int = 9600, timeout_s: float = 2.0, *, port=None,
                  clock: Callable[[], float] = time.monotonic, sleep: Callable[[float], None] = time.sleep,
                  name: str = "", pace_baud: int | None = None, eol: bytes = b"\n", poll_s: float = 0.005,

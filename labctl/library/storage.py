@@ -34,7 +34,7 @@ import trimesh
 import yaml
 
 from ..errors import UserInputError
-from ..fsutil import atomic_dir, atomic_write_bytes, atomic_write_text
+from ..fsutil import atomic_dir, atomic_write_bytes, atomic_write_text, recover_dir, recover_dirs
 from ..vision.shape import ShapeError, ShapeFeatures, silhouette_mask
 from .placement import Marker
 from .views import StandardView, contact_sheet
@@ -188,6 +188,7 @@ def load_object(folder: Path | str) -> LibraryObject:
     """Read one object folder; raise :class:`LibraryError` (one line naming the object and file) if it is corrupt."""
     folder = Path(folder)
     name = folder.name
+    recover_dir(folder)  # a save that crashed between its two renames left the old version aside
     if not folder.is_dir():
         raise LibraryError(f"library object {name!r} not found in {folder.parent}")
     meta, info = _read_yaml(folder / "object.yaml", "name")
@@ -240,6 +241,7 @@ def load_library_checked(library_dir: Path | str) -> tuple[dict[str, LibraryObje
     root = Path(library_dir)
     if not root.is_dir():
         raise LibraryError(f"object library folder not found: {root}")
+    recover_dirs(root)  # saves that crashed half-way (labctl.fsutil.atomic_dir)
     out, bad = {}, {}
     for d in object_folders(root):
         try:

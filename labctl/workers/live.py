@@ -18,14 +18,19 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import logging
 import multiprocessing as mp
 import os
+import signal
+import sys
+import threading
 import time
 import traceback
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from ..config import load_lab
+from ..errors import LabctlError
 from . import messages as m
 
 # forkserver: each process still starts from a clean interpreter (no inherited threads or ports),
@@ -64,12 +69,111 @@ def _now(origin: float) -> float:
     return time.monotonic() - origin
 
 
-class _Control:
-    """The worker's end of its control pipe: heartbeats and status to the supervisor."""
+EXIT_INTERRUPTED = 130  # SIGINT (Ctrl-C)
+EXIT_TERMINATED = 143  # SIGTERM: 128 + 15, as a shell reports it
+EXIT_DEVICE = 3  # a device, the host link or the peer failed
 
-    def __init__(self, conn, role: str):
+
+class Terminated(BaseException):
+    """SIGTERM, raised in the main thread as Python raises KeyboardInterrupt for SIGINT."""
+
+
+def _raise_terminated(signum, frame):
+    raise Terminated()
+
+
+class PeerLost(LabctlError):
+    """The other worker or the supervisor went silent or away: stop our devices and leave."""
+
+    exit_code = EXIT_DEVICE
+
+
+def _in_main_thread() -> bool:
+    return threading.current_thread() is threading.main_thread()
+
+
+def _shield() -> None:
+    """Ignore further SIGINT/SIGTERM: the stop path itself must run to its end."""
+    if _in_main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, signal.SIG_IGN)
+
+
+def _child_signals(supervised: bool) -> None:
+    """A worker's signals. Under a supervisor SIGINT is ignored (Ctrl-C reaches the whole process
+    group; the supervisor alone answers it); SIGTERM raises :class:`Terminated` so the worker stops
+    its own devices on the way out. Children start with both blocked (see :func:`_start_quietly`)."""
+    if not _in_main_thread():
+        return
+    signal.signal(signal.SIGTERM, _raise_terminated)
+    signal.signal(signal.SIGINT, signal.SIG_IGN if supervised else signal.default_int_handler)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM})
+
+
+def _start_quietly(proc) -> None:
+    """Start a child process that ignores SIGINT and SIGTERM from its first instruction.
+
+    The child inherits ignored dispositions and the blocked mask across fork and exec, so a
+    Ctrl-C to the process group while it imports cannot print a traceback; a signal arriving
+    at the supervisor meanwhile stays pending and is delivered as soon as the child is started."""
+    if not _in_main_thread():
+        proc.start()
+        return
+    sigs = {signal.SIGINT, signal.SIGTERM}
+    old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, sigs)
+    old = {sig: signal.signal(sig, signal.SIG_IGN) for sig in sigs}
+    try:
+        proc.start()
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
+        signal.pthread_sigmask(signal.SIG_SETMASK, old_mask)
+
+
+class PeerWatch:
+    """Silence of the other worker on the host link (paper §5.1: two hosts, one RS-232 line).
+
+    Any message counts as a sign of life. Before the first one the peer may take up to
+    ``start_timeout_s`` (imports, device opening); after it, ``dead_after_s`` of silence means the
+    peer is dead or hung. ``clock`` is injectable (s)."""
+
+    def __init__(self, peer: str, dead_after_s: float, start_timeout_s: float, clock=time.monotonic):
+        self.peer, self.dead_after_s, self.start_timeout_s, self.clock = peer, dead_after_s, start_timeout_s, clock
+        self.t0 = clock()
+        self.t_last: float | None = None
+        self.max_gap_s = 0.0
+
+    def heard(self) -> None:
+        now = self.clock()
+        if self.t_last is not None:
+            self.max_gap_s = max(self.max_gap_s, now - self.t_last)
+        self.t_last = now
+
+    def lost(self) -> str | None:
+        """Why the peer counts as lost, or None while it is alive."""
+        now = self.clock()
+        if self.t_last is None:
+            if now - self.t0 > self.start_timeout_s:
+                return f"the {self.peer} worker never answered within {self.start_timeout_s:g} s"
+            return None
+        if now - self.t_last > self.dead_after_s:
+            silent = now - self.t_last
+            return f"the {self.peer} worker went silent ({silent:.1f} s > dead_after_s {self.dead_after_s:g} s)"
+        return None
+
+
+class _Control:
+    """The worker's end of its control pipe: heartbeats and status to the supervisor, and the
+    supervisor's own heartbeats back (a worker whose supervisor dies or hangs stops its devices)."""
+
+    supervised = True
+
+    def __init__(self, conn, role: str, dead_after_s: float = 2.0):
         self.conn, self.role, self.seq = conn, role, 0
         self.t_last = 0.0
+        self.dead_after_s = dead_after_s
+        self.ppid = os.getppid()
+        self.t_supervisor: float | None = None
 
     def beat(self, now: float, status: dict | None = None, period: float = 0.1) -> None:
         if now - self.t_last < period and status is None:
@@ -82,6 +186,21 @@ class _Control:
     def send(self, *msg) -> None:
         with contextlib.suppress(OSError, BrokenPipeError):
             self.conn.send(msg)
+
+    def supervisor_lost(self) -> str | None:
+        """Why the supervisor counts as gone (pipe closed, parent exited, silent), or None."""
+        try:
+            while self.conn.poll(0):
+                msg = self.conn.recv()
+                if msg and msg[0] == "beat":
+                    self.t_supervisor = time.monotonic()
+        except (EOFError, OSError):
+            return "the supervisor is gone (control pipe closed)"
+        if os.getppid() != self.ppid:
+            return "the supervisor is gone (parent process exited)"
+        if self.t_supervisor is not None and time.monotonic() - self.t_supervisor > self.dead_after_s:
+            return f"the supervisor went silent ({time.monotonic() - self.t_supervisor:.1f} s)"
+        return None
 
 
 def _load_lab(args: WorkerArgs):
@@ -96,12 +215,80 @@ def _load_lab(args: WorkerArgs):
     return lab
 
 
-def _release(stop=(), close=()) -> None:
-    """Stop the moving devices, then close everything; a worker's exit path must never raise."""
-    for dev, method in [(d, "stop") for d in stop] + [(d, "close") for d in close]:
-        if dev is not None:
-            with contextlib.suppress(Exception):
-                getattr(dev, method)()
+def plausible(msg: m.Message, ctx) -> bool:
+    """Whether a message from the recognizer names only objects of this library (a corrupt or foreign
+    message that decodes is dropped here, before the planner sees it)."""
+    n = len(ctx.names)
+    if isinstance(msg, m.Identity):
+        return msg.object_id < n and all(i < n for i in msg.candidates)
+    if isinstance(msg, m.Ambiguous):
+        return all(i < n for i in msg.candidates)
+    return True
+
+
+def _authkey(args: WorkerArgs, lab) -> bytes | None:
+    """The TCP link's shared key: one the supervisor made for this run, else the lab's (env or file)."""
+    from .transport import link_key
+
+    key = args.extra.get("link_key")
+    return key.encode() if key else link_key(lab.host_link, lab.root)
+
+
+class _RecordLog(logging.Handler):
+    """Driver and link warnings go to the run record as ``log`` events, not to the terminal: a run
+    ends with exactly one line on stderr (a port another process left mid-conversation yields
+    stale replies that a driver rightly warns about)."""
+
+    def __init__(self, record, role: str):
+        super().__init__(logging.INFO)
+        self.record, self.role = record, role
+
+    def emit(self, rec: logging.LogRecord) -> None:
+        with contextlib.suppress(Exception):
+            self.record.event("log", role=self.role, level=rec.levelname, logger=rec.name, message=rec.getMessage())
+
+
+def _log_to_record(record, role: str):
+    """Route the ``labctl`` loggers to ``record`` (unless -v gave the root logger a handler)."""
+    lg = logging.getLogger("labctl")
+    if record is None or logging.getLogger().handlers:
+        return None
+    handler = _RecordLog(record, role)
+    lg.addHandler(handler)
+    return handler
+
+
+def _exit_reason(role: str, exc: BaseException) -> tuple[int, str]:
+    """A worker's exit status and one-line reason for how it left."""
+    from .transport import LinkClosed
+
+    if isinstance(exc, Terminated):
+        return EXIT_TERMINATED, f"{role}: terminated (SIGTERM)"
+    if isinstance(exc, KeyboardInterrupt):
+        return EXIT_INTERRUPTED, f"{role}: interrupted"
+    if isinstance(exc, PeerLost):
+        return EXIT_DEVICE, f"{role}: {exc}"
+    if isinstance(exc, LinkClosed):
+        return EXIT_DEVICE, f"{role}: the host link closed ({exc})"
+    return getattr(exc, "exit_code", 1), f"{role}: {type(exc).__name__}: {exc}"
+
+
+def _release(log, role: str, reason: str, *, stop: dict, close=(), link=None, tell_peer: bool = False,
+             t: float | None = None) -> list[dict]:
+    """A worker's exit path: stop and confirm each moving device (every one is tried, every outcome
+    recorded), tell the peer why when leaving abnormally, close everything; never raises.
+    ``t`` is when the stop began on the run's clock (s), for the record."""
+    from .stopping import close_all, stop_devices
+
+    _shield()
+    outcomes = stop_devices(stop)
+    if tell_peer and link is not None:
+        with contextlib.suppress(Exception):
+            link.send(m.Stop.short(reason))
+    errors = close_all([*close, link])
+    with contextlib.suppress(Exception):  # the record may be what failed
+        log("devices_stopped", role=role, t=t, reason=reason, outcomes=outcomes, close_errors=errors)
+    return outcomes
 
 
 def _open_record(args: WorkerArgs):
@@ -133,24 +320,31 @@ def _mobile_camera(args: WorkerArgs, lab):
     return _camera(args, lab, "mobile")
 
 
-def predictor_main(args: WorkerArgs, link_end, control) -> None:
-    """Host 1's process: fixed camera → Kalman filter → planners → robot and table."""
+def predictor_main(args: WorkerArgs, link_end, control) -> int:
+    """Host 1's process: fixed camera → Kalman filter → planners → robot and table.
+
+    Returns its exit status (0 ok, 1 job failed, 3 device/peer lost, 130/143 interrupted). On every
+    way out it stops the robot and the table and records each outcome (``devices_stopped``)."""
     from ..drivers.grbl import GrblTable
     from ..drivers.robot import SerialRobot
     from .context import RunContext
     from .predictor import PredictorPlanner, ProgramProgress
     from .simlab import trajectory_program
-    from .transport import LinkClosed, open_link
+    from .transport import open_link
 
-    ctl = _Control(control, "predictor")
+    ctl = control
     lab = _load_lab(args)
+    hl = lab.host_link
     record = _open_record(args)
     log = record.event if record is not None else (lambda *a, **k: None)
-    log("worker_started", role="predictor", pid=os.getpid())
+    log("worker_started", role="predictor", pid=os.getpid(), origin=args.origin)
+    _log_to_record(record, "predictor")
     table = robot = camera = link = None
+    code, reason = 0, "run finished"
     try:
         ctx = RunContext.load(lab)
-        link = open_link(lab.host_link, "predictor", local_end=link_end)
+        link = open_link(hl, "predictor", local_end=link_end, authkey=_authkey(args, lab),
+                         on_refused=lambda line: log("link_refused", line=line))
         # the sim lab's ports when it serves them, else the driver files' (None keeps the file's port);
         # no table to drive when the parts move by something else (--trajectory external)
         external = args.spec["trajectory"] == "external" or lab.table is None
@@ -160,7 +354,6 @@ def predictor_main(args: WorkerArgs, link_end, control) -> None:
         for dev in (table, robot, camera):
             if dev is not None:
                 dev.open()
-        link.send(m.Hello(role="predictor", pid=os.getpid()))
         now = _now(args.origin)
         planner = PredictorPlanner(ctx, robot, link.send, log, t_start=now, clock=lambda: _now(args.origin))
         progress = None
@@ -176,7 +369,8 @@ def predictor_main(args: WorkerArgs, link_end, control) -> None:
             progress = ProgramProgress(program, log)
         else:
             log("table_program", t=now, trajectory=args.spec["trajectory"], speed_mm_s=args.spec["speed_mm_s"])
-        t_beat = 0.0
+        peer = PeerWatch("recognizer", hl.dead_after_s, hl.start_timeout_s)
+        t_beat, hello = 0.0, False
         while not planner.finished:
             if progress is not None:
                 progress.pump(_now(args.origin))
@@ -186,93 +380,236 @@ def predictor_main(args: WorkerArgs, link_end, control) -> None:
                 msg = link.recv(timeout=0)
                 if msg is None:
                     break
+                peer.heard()
+                if isinstance(msg, m.Stop):
+                    raise PeerLost(f"the recognizer stopped: {msg.reason}")
                 if not isinstance(msg, m.Heartbeat | m.Hello):
-                    planner.on_message(msg, _now(args.origin))
+                    if plausible(msg, ctx):
+                        planner.on_message(msg, _now(args.origin))
+                    else:
+                        log("message_dropped", t=_now(args.origin), message=repr(msg)[:200])
             now = _now(args.origin)
             planner.tick(now)
+            if not hello:  # the first message starts the peer's dead_after_s clock: only once the loop runs
+                link.send(m.Hello(role="predictor", pid=os.getpid()))
+                hello = True
             if now - t_beat >= lab.robot.heartbeat_s:
                 robot.heartbeat()
                 link.send(m.Heartbeat(role="predictor", seq=int(now * 10) % 65536, t=now))
                 t_beat = now
+            lost = peer.lost() or ctl.supervisor_lost()
+            if lost:
+                raise PeerLost(lost)
             est = planner.tracker.estimate()[0].tolist() if planner.tracker.initialized else None
             ctl.beat(now, {"stage": planner.stage, "estimate": est, "views": planner.views_used,
                            "link": {"sent": link.bytes_sent, "received": link.bytes_received},
                            "robot": planner.robot_path[-1][1] if planner.robot_path else None})
         result = planner.result(_now(args.origin))
         link.send(m.Stop(reason="run finished"))
-        result["link"] = {**link.stats(), "baud": lab.host_link.baud, "duration_s": _now(args.origin) - planner.t_start}
-        if lab.host_link.transport == "serial":
+        result["link"] = {**link.stats(), "baud": hl.baud, "duration_s": _now(args.origin) - planner.t_start}
+        result["link"]["max_peer_gap_s"] = round(peer.max_gap_s, 3)
+        if hl.transport == "serial":
             bits = 10.0 * max(link.bytes_sent, link.bytes_received)  # full duplex: the busier direction
-            result["link"]["utilisation"] = bits / lab.host_link.baud / max(result["link"]["duration_s"], 1e-9)
+            result["link"]["utilisation"] = bits / hl.baud / max(result["link"]["duration_s"], 1e-9)
         ctl.send("result", result)
-    except LinkClosed:
-        ctl.send("error", "predictor: the host link to the recognizer closed")
-    except Exception as exc:  # the supervisor reports it in one line; the record keeps the traceback
-        log("worker_error", role="predictor", error=f"{type(exc).__name__}: {exc}", traceback=traceback.format_exc())
-        ctl.send("error", f"predictor: {type(exc).__name__}: {exc}", getattr(exc, "exit_code", 1))
+    except BaseException as exc:  # every way out, SIGTERM and Ctrl-C included, ends in the stop below
+        code, reason = _exit_reason("predictor", exc)
+        if code not in (EXIT_INTERRUPTED, EXIT_TERMINATED) and not isinstance(exc, PeerLost):
+            with contextlib.suppress(Exception):
+                log("worker_error", role="predictor", error=reason, traceback=traceback.format_exc())
     finally:
-        _release(stop=(robot, table), close=(camera, robot, table, link))
+        outcomes = _release(log, "predictor", reason, stop={"robot": robot, "table": table},
+                            close=(camera, robot, table), link=link, tell_peer=code != 0, t=_now(args.origin))
+        from .stopping import summary
+
+        if code != 0:  # a supervisor confirms the stop itself and says so; a lone worker says it here
+            ctl.send("error", reason if getattr(ctl, "supervised", True) else f"{reason}; {summary(outcomes)}")
+        ctl.send("stopped", outcomes)
+        if record is not None:
+            record.close()
+    return code
 
 
-def recognizer_main(args: WorkerArgs, link_end, control) -> None:
-    """Host 2's process: mobile camera → marker pose → standard-view matching."""
+def recognizer_main(args: WorkerArgs, link_end, control) -> int:
+    """Host 2's process: mobile camera → marker pose → standard-view matching. Returns its exit status."""
     from .context import RunContext
     from .recognizer import Recognizer
-    from .transport import LinkClosed, open_link
+    from .transport import open_link
 
-    ctl = _Control(control, "recognizer")
+    ctl = control
     lab = _load_lab(args)
+    hl = lab.host_link
     record = _open_record(args)
     log = record.event if record is not None else (lambda *a, **k: None)
     save = record.save_image if record is not None else None
-    log("worker_started", role="recognizer", pid=os.getpid())
+    log("worker_started", role="recognizer", pid=os.getpid(), origin=args.origin)
+    _log_to_record(record, "recognizer")
     camera = link = None
+    code, reason = 0, "run finished"
     try:
         ctx = RunContext.load(lab)
-        link = open_link(lab.host_link, "recognizer", local_end=link_end)
+        link = open_link(hl, "recognizer", local_end=link_end, authkey=_authkey(args, lab),
+                         on_refused=lambda line: log("link_refused", line=line))
         camera = _mobile_camera(args, lab)
         camera.open()
-        link.send(m.Hello(role="recognizer", pid=os.getpid()))
         recognizer = Recognizer(ctx, camera.grab, log, save)
+        link.send(m.Hello(role="recognizer", pid=os.getpid()))
+        peer = PeerWatch("predictor", hl.dead_after_s, hl.start_timeout_s)
         t_beat = 0.0
         while True:
             msg = link.recv(timeout=0.05)
             now = _now(args.origin)
+            if msg is not None:
+                peer.heard()
             if isinstance(msg, m.Stop):
+                reason = f"the predictor stopped the run ({msg.reason})"
                 break
             if msg is not None and not isinstance(msg, m.Heartbeat | m.Hello):
                 for reply in recognizer.handle(msg):
                     link.send(reply)
-            if now - t_beat >= lab.host_link.heartbeat_s:
+            now = _now(args.origin)
+            if now - t_beat >= hl.heartbeat_s:
                 link.send(m.Heartbeat(role="recognizer", seq=int(now * 10) % 65536, t=now))
                 t_beat = now
+            lost = peer.lost() or ctl.supervisor_lost()
+            if lost:
+                raise PeerLost(lost)
             ctl.beat(now)
-    except LinkClosed:
-        ctl.send("done", "recognizer: host link closed")
-    except Exception as exc:
-        log("worker_error", role="recognizer", error=f"{type(exc).__name__}: {exc}",
-            traceback=traceback.format_exc())
-        ctl.send("error", f"recognizer: {type(exc).__name__}: {exc}", getattr(exc, "exit_code", 1))
+    except BaseException as exc:
+        code, reason = _exit_reason("recognizer", exc)
+        if code not in (EXIT_INTERRUPTED, EXIT_TERMINATED) and not isinstance(exc, PeerLost):
+            with contextlib.suppress(Exception):
+                log("worker_error", role="recognizer", error=reason, traceback=traceback.format_exc())
     finally:
-        _release(close=(camera, link))
+        _release(log, "recognizer", reason, stop={}, close=(camera,), link=link, tell_peer=code != 0,
+                 t=_now(args.origin))
+        if code != 0:
+            ctl.send("error", reason)
+        if record is not None:
+            record.close()
+    return code
 
 
-def sim_server_main(lab_root: str, spec: dict, conn) -> None:
+def _worker_process(role: str, args: WorkerArgs, link_end, conn) -> None:
+    """Entry point of a supervised worker process: signals, then the worker; exits with its status."""
+    _child_signals(supervised=True)
+    target = predictor_main if role == "predictor" else recognizer_main
+    try:
+        lab_link = load_lab(args.lab_root).host_link
+        code = target(args, link_end, _Control(conn, role, lab_link.dead_after_s))
+    except BaseException as exc:  # before the worker's own handlers (lab, record): one line via the supervisor
+        code, reason = _exit_reason(role, exc)
+        with contextlib.suppress(Exception):
+            conn.send(("error", reason))
+    sys.exit(code)
+
+
+class _TruthLog:
+    """The simulator's ground truth of motion, logged to the record as ``sim_truth`` transitions
+    (``t`` on the run's shared clock, s): an oracle independent of every driver and worker."""
+
+    def __init__(self, sim, log):
+        self.sim, self.log = sim, log
+        self.last: tuple | None = None  # the first sample sets it silently: the log holds changes only
+        self.t_moving = time.monotonic()
+        self.still_since: dict[str, float | None] = {"robot": None, "table": None}
+
+    def sample(self) -> dict:
+        st = self.sim.device_state()
+        key = (st["robot_moving"], st["table_moving"], st["table_state"])
+        for dev in ("robot", "table"):
+            if st[f"{dev}_moving"]:
+                self.still_since[dev] = None
+                self.t_moving = time.monotonic()
+            elif self.still_since[dev] is None:
+                self.still_since[dev] = st["t"]
+        if self.last is None:
+            self.last = key
+        elif key != self.last:
+            self.last = key
+            with contextlib.suppress(Exception):
+                self.log("sim_truth", t=st["t"], robot_moving=key[0], table_moving=key[1], table_state=key[2],
+                         robot_stop=self._robot_stop())
+        return {**st, "robot_still_since": self.still_since["robot"], "table_still_since": self.still_since["table"]}
+
+    def _robot_stop(self) -> list[float] | None:
+        """[received, still] (s, run clock) of the robot controller's latest STOP: the emulator brakes
+        on its own profile (a quintic of max(2v/a_max, 1.5ω/ω_max) s), which no controller can shorten."""
+        emu = getattr(self.sim, "robot_emu", None)
+        if emu is None:
+            return None
+        with self.sim.robot_pty.lock:
+            stops = [(s.t0, s.t1) for s in emu.segments if s.seg_id == -1]
+        return list(stops[-1]) if stops else None
+
+    def still_for(self) -> float:
+        return time.monotonic() - self.t_moving
+
+
+def sim_server_main(lab_root: str, spec: dict, conn, run_dir: str | None = None) -> None:
     """The simulated lab for a live run: world + emulators on ptys + frame server, in real time.
 
-    Answers the supervisor's ``"state?"`` (are the robot and table moving), ``"truth?"`` (the
-    simulator's ground truth) and ``"stop"``."""
+    Answers the supervisor's ``"state?"`` (are the robot and table moving, since when still),
+    ``"truth?"`` (the simulator's ground truth) and ``"stop"``. Like real hardware it ignores
+    SIGINT/SIGTERM aimed at the controller; if the supervisor vanishes it keeps simulating until
+    the robot and table have been still for a second (at most 10 s), so that the workers can stop
+    them and the record keeps the ground truth of when they did."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
     from .simlab import LiveSimLab
 
+    record = None
+    if run_dir is not None:
+        from ..records import RunRecord
+
+        record = RunRecord.open(run_dir)
+    # the record opens with the workers' own events: ground truth waits for the supervisor's "record"
+    pending: list[tuple[str, dict]] = []
+    live_log = record.event if record is not None else (lambda *a, **k: None)
+
+    def log(name, **fields):
+        if pending is not None and not getattr(log, "on", False):
+            pending.append((name, fields))
+            del pending[:-200]
+        else:
+            live_log(name, **fields)
+
+    def start_logging():
+        log.on = True
+        for name, fields in pending:
+            live_log(name, **fields)
+        pending.clear()
+
+    ppid = os.getppid()
     try:
         with LiveSimLab(load_lab(lab_root), spec) as sim:
             conn.send(("ready", sim.endpoints()))
+            truth = _TruthLog(sim, log)
+            orphaned = None
             while True:
-                if not conn.poll(0.2):
+                state = truth.sample()
+                if orphaned is not None:
+                    start_logging()
+                    if truth.still_for() > 1.0 or time.monotonic() - orphaned > 10.0:
+                        log("sim_stopped", t=state["t"], reason="supervisor gone", **{
+                            k: state[k] for k in ("robot_moving", "table_moving", "table_state")})
+                        return
+                    time.sleep(0.02)
                     continue
-                req = conn.recv()
-                if req == "state?":
-                    conn.send(("state", sim.device_state()))
+                try:
+                    if not conn.poll(0.02):
+                        if os.getppid() != ppid:
+                            orphaned = time.monotonic()
+                        continue
+                    req = conn.recv()
+                except (EOFError, OSError):
+                    orphaned = time.monotonic()
+                    continue
+                if req == "record":
+                    start_logging()
+                elif req == "state?":
+                    start_logging()
+                    conn.send(("state", state))
                 elif req == "truth?":
                     conn.send(("truth", sim.truth()))
                 else:
@@ -282,6 +619,9 @@ def sim_server_main(lab_root: str, spec: dict, conn) -> None:
     except Exception as exc:
         with contextlib.suppress(OSError):
             conn.send(("error", f"sim lab: {type(exc).__name__}: {exc}"))
+    finally:
+        if record is not None:
+            record.close()
 
 
 def _ask(conn, request: str, timeout_s: float = 5.0):
@@ -292,8 +632,29 @@ def _ask(conn, request: str, timeout_s: float = 5.0):
     return None
 
 
+def _stopped(pid: int) -> bool:
+    """Whether a process is stopped (SIGSTOP: state T in /proc); a stopped worker cannot act on SIGTERM."""
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            return fh.read().rsplit(")", 1)[1].split()[0] in ("T", "t")
+    except (OSError, IndexError):
+        return False
+
+
 class WorkerDied(Exception):
-    pass
+    """A worker died, hung or reported an error; ``role`` names it, ``hung`` if it is alive but silent."""
+
+    def __init__(self, message: str, role: str | None = None, hung: bool = False):
+        super().__init__(message)
+        self.role, self.hung = role, hung
+
+
+class RunAborted(LabctlError):
+    """A live run ended early: how (``cause``), what the stop did (``outcomes``), the exit status."""
+
+    def __init__(self, message: str, exit_code: int, outcomes: list[dict], cause: str):
+        super().__init__(message)
+        self.exit_code, self.outcomes, self.cause = exit_code, outcomes, cause
 
 
 @dataclass
@@ -308,6 +669,29 @@ class LiveRun:
     def run(self) -> dict:
         warm_up()
         lab = load_lab(self.lab_root)
+        old = signal.getsignal(signal.SIGTERM) if _in_main_thread() else None
+        if _in_main_thread():
+            signal.signal(signal.SIGTERM, _raise_terminated)
+        handler = _log_to_record(self._record(), "supervisor")
+        try:
+            return self._run(lab)
+        finally:
+            if handler is not None:
+                logging.getLogger("labctl").removeHandler(handler)
+                with contextlib.suppress(Exception):
+                    handler.record.close()
+            if _in_main_thread():
+                signal.signal(signal.SIGTERM, old)
+                signal.signal(signal.SIGINT, signal.default_int_handler)
+
+    def _record(self):
+        if self.run_dir is None:
+            return None
+        from ..records import RunRecord
+
+        return RunRecord.open(self.run_dir)
+
+    def _run(self, lab) -> dict:
         from .transport import local_pair, pty_null_modem
 
         stack = contextlib.ExitStack()
@@ -319,9 +703,10 @@ class LiveRun:
         try:
             if lab.is_simulated:
                 sim_conn, child = CTX.Pipe()
-                sim_proc = CTX.Process(target=sim_server_main, args=(str(lab.root), self.spec, child),
-                                       name="labctl-sim", daemon=True)
-                sim_proc.start()
+                sim_proc = CTX.Process(target=sim_server_main, name="labctl-sim", daemon=True,
+                                       args=(str(lab.root), self.spec, child,
+                                             str(self.run_dir) if self.run_dir else None))
+                _start_quietly(sim_proc)
                 child.close()
                 if not sim_conn.poll(60):
                     raise WorkerDied("the simulated lab did not start within 60 s")
@@ -330,8 +715,20 @@ class LiveRun:
                     raise WorkerDied(str(payload))
                 endpoints = payload
                 origin = endpoints["origin"]
+            from .stopping import open_stop_lines
+
+            self._stop_fds = open_stop_lines(lab, endpoints)
+            stack.callback(self._close_stop_lines)
             a_end, b_end = local_pair() if lab.host_link.transport == "local" else (None, None)
             extra = {"predictor": {}, "recognizer": {}}
+            if lab.host_link.transport == "tcp":  # both workers on this PC: a fresh key for this run alone
+                import secrets
+
+                from .transport import link_key
+
+                key = (link_key(lab.host_link, lab.root) or secrets.token_hex(32).encode()).decode()
+                for role in extra:
+                    extra[role]["link_key"] = key
             if lab.host_link.transport == "serial" and not lab.host_link.port:
                 # one PC, RS-232 as in 1996: a pty null modem paced at the link's baud rate
                 modem = stack.enter_context(pty_null_modem(lab.host_link.baud))
@@ -340,45 +737,23 @@ class LiveRun:
             base = dict(lab_root=str(lab.root), run_dir=str(self.run_dir) if self.run_dir else None,
                         spec=self.spec, origin=origin, table_port=endpoints.get("table"),
                         robot_port=endpoints.get("robot"), frame_server=endpoints.get("frame_server"))
-            for role, target, end in (("predictor", predictor_main, a_end), ("recognizer", recognizer_main, b_end)):
-                parent, child = CTX.Pipe()
-                p = CTX.Process(target=target, args=(WorkerArgs(role=role, extra=extra[role], **base), end, child),
-                                name=f"labctl-{role}", daemon=True)
-                p.start()
-                child.close()
-                procs[role], controls[role] = p, parent
-            for end in (a_end, b_end):
-                if end is not None:
-                    with contextlib.suppress(Exception):
-                        end.close()
             try:
-                result = self._supervise(lab, procs, controls, origin)
-            except (WorkerDied, KeyboardInterrupt) as exc:
-                from .simlab import emergency_stop
-
-                t0 = time.monotonic()
-                stopped = emergency_stop(lab, endpoints)
-                t_sent = time.monotonic() - t0
-                for p in procs.values():
-                    if p.is_alive():
-                        p.terminate()
-                after = None
-                if sim_conn is not None:  # the simulator can tell when the devices really stood still
-                    deadline = time.monotonic() + 2.0
-                    while time.monotonic() < deadline:
-                        after = _ask(sim_conn, "state?")
-                        if after is None or not (after["robot_moving"] or after["table_moving"]):
-                            break
-                        time.sleep(0.01)
-                    if after is not None:
-                        after["still_after_s"] = time.monotonic() - t0
-                if self.run_dir is not None:
-                    from ..records import RunRecord
-
-                    RunRecord.open(self.run_dir).event(
-                        "run_aborted", reason=str(exc) or "interrupted", devices_stopped=stopped,
-                        stop_commands_sent_s=t_sent, devices_after_stop=after)
-                raise
+                for role, end in (("predictor", a_end), ("recognizer", b_end)):
+                    parent, child = CTX.Pipe()
+                    p = CTX.Process(target=_worker_process, name=f"labctl-{role}", daemon=True,
+                                    args=(role, WorkerArgs(role=role, extra=extra[role], **base), end, child))
+                    _start_quietly(p)
+                    child.close()
+                    procs[role], controls[role] = p, parent
+                for end in (a_end, b_end):
+                    if end is not None:
+                        with contextlib.suppress(Exception):
+                            end.close()
+                result = self._supervise(lab, procs, controls, sim_conn)
+                result["devices_stopped"] = self._await_stopped(lab, procs, controls)
+            except (WorkerDied, KeyboardInterrupt, Terminated) as exc:
+                _shield()
+                raise self._abort(lab, exc, endpoints, procs, controls, sim_conn, origin) from None
             if sim_conn is not None:
                 truth = _ask(sim_conn, "truth?")
                 if truth is not None:
@@ -386,29 +761,134 @@ class LiveRun:
                     result["correct"] = result.get("identity") == truth["true_identity"]
             return result
         finally:
+            _shield()
             for p in procs.values():
                 if p.is_alive():
                     p.terminate()
-                p.join(timeout=2)
+            for p in procs.values():
+                p.join(timeout=5)
+                if p.is_alive():
+                    p.kill()
+                    p.join(timeout=2)
             stack.close()
             if sim_proc is not None:
                 if sim_proc.is_alive():
                     with contextlib.suppress(OSError):
                         sim_conn.send("stop")
                     sim_proc.join(timeout=3)
-                if sim_proc.is_alive():
-                    sim_proc.terminate()
+                if sim_proc.is_alive():  # it ignores SIGTERM, like the hardware it stands for
+                    sim_proc.kill()
                     sim_proc.join(timeout=2)
 
-    def _supervise(self, lab, procs, controls, origin) -> dict:
-        last_beat = {r: time.monotonic() for r in procs}
-        stall_after = lab.host_link.stall_after_s
-        started = time.monotonic()
-        result = None
-        while True:
-            for role, conn in controls.items():
+    _stop_fds: dict = field(default_factory=dict)
+
+    def _close_stop_lines(self) -> None:
+        for fd in self._stop_fds.values():
+            with contextlib.suppress(OSError):
+                os.close(fd)
+        self._stop_fds = {}
+
+    def _abort(self, lab, exc, endpoints, procs, controls, sim_conn, origin) -> RunAborted:
+        """Stop everything after a dead/hung worker, Ctrl-C or SIGTERM; confirm it; record it."""
+        from .stopping import confirm_stopped, confirmed, send_stop_bytes, summary
+
+        t0 = time.monotonic()
+        sent = send_stop_bytes(lab, endpoints, fds=self._stop_fds)  # motion ends now, whatever the workers do
+        t_sent = time.monotonic() - t0
+        after = None
+        if sim_conn is not None:  # the simulator can tell when the devices really stood still
+            deadline = time.monotonic() + 2.0
+            while time.monotonic() < deadline:
+                after = _ask(sim_conn, "state?")
+                if after is None or not (after["robot_moving"] or after["table_moving"]):
+                    break
+                time.sleep(0.01)
+            if after is not None:
+                after["still_after_s"] = time.monotonic() - t0
+        hung = exc.role if isinstance(exc, WorkerDied) and exc.hung else None
+        for role, p in procs.items():  # a live worker stops its own devices on SIGTERM; a hung one is killed
+            if p.is_alive():
+                p.kill() if role == hung or _stopped(p.pid) else p.terminate()
+        deadline = time.monotonic() + 8.0
+        for p in procs.values():
+            p.join(timeout=max(0.0, deadline - time.monotonic()))
+            if p.is_alive():
+                p.kill()
+                p.join(timeout=2)
+        worker_outcomes = {}
+        for role, conn in controls.items():
+            with contextlib.suppress(EOFError, OSError):
                 while conn.poll(0):
+                    msg = conn.recv()
+                    if msg[0] == "stopped":
+                        worker_outcomes[role] = msg[1]
+        outcomes = confirm_stopped(lab, endpoints)  # the ports are ours alone now
+        if isinstance(exc, KeyboardInterrupt):
+            cause, code, what = "interrupted", EXIT_INTERRUPTED, "interrupted (Ctrl-C)"
+        elif isinstance(exc, Terminated):
+            cause, code, what = "terminated", EXIT_TERMINATED, "terminated (SIGTERM)"
+        else:
+            cause, code, what = "worker", 1, str(exc)
+        if len(confirmed(outcomes)) < len(outcomes):
+            code = EXIT_DEVICE
+        record = self._record()
+        if record is not None:
+            with contextlib.suppress(Exception):
+                record.event("run_aborted", t=time.monotonic() - origin, reason=what, cause=cause,
+                             devices_stopped=confirmed(outcomes), stop_outcomes=outcomes,
+                             stop_bytes=sent, worker_stop_outcomes=worker_outcomes, stop_commands_sent_s=t_sent,
+                             t_stop_sent=t0 - origin, devices_after_stop=after, exit_code=code)
+                record.close()
+        return RunAborted(f"{what}: {summary(outcomes)}", code, outcomes, cause)
+
+    def _await_stopped(self, lab, procs, controls, timeout_s: float = 15.0) -> list[str]:
+        """After the result: the predictor's report that it stopped and confirmed its devices."""
+        from .stopping import confirmed
+
+        conn = controls["predictor"]
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            try:
+                if conn.poll(0.05):
+                    msg = conn.recv()
+                    if msg[0] == "stopped":
+                        return confirmed(msg[1])
+                    if msg[0] == "error":
+                        raise WorkerDied(msg[1], "predictor")
+            except (EOFError, OSError):
+                break
+        return []
+
+    @staticmethod
+    def _raise_dead(procs, skip: str) -> None:
+        """A worker that reports its peer gone usually means the peer died: name the dead one."""
+        for role, p in procs.items():
+            if role != skip:
+                p.join(timeout=0.2)
+                if not p.is_alive() and (p.exitcode or 0) < 0:  # killed by a signal, not a worker that left
+                    raise WorkerDied(f"the {role} worker died (exit code {p.exitcode})", role)
+
+    def _supervise(self, lab, procs, controls, sim_conn=None) -> dict:
+        """Watch the workers until the predictor's result: a worker that dies, reports an error or
+        goes silent for ``stall_after_s`` after its first beat (before it: ``start_timeout_s``) ends
+        the run. The supervisor's own beats go to each worker every ``heartbeat_s``."""
+        hl = lab.host_link
+        last_beat: dict[str, float | None] = {r: None for r in procs}
+        started = time.monotonic()
+        t_sent = 0.0
+        result = None
+        truth_on = sim_conn is None
+        stopped_since: dict[str, float] = {}
+        while True:
+            if not truth_on and all(t is not None for t in last_beat.values()):
+                truth_on = True  # both workers run: the simulator's ground truth may join the record
+                with contextlib.suppress(OSError):
+                    sim_conn.send("record")
+            for role, conn in controls.items():
+                while True:
                     try:
+                        if not conn.poll(0):
+                            break
                         msg = conn.recv()
                     except (EOFError, OSError):
                         break
@@ -420,21 +900,39 @@ class LiveRun:
                     elif kind == "result":
                         result = msg[1]
                     elif kind == "error":
-                        raise WorkerDied(msg[1])
+                        self._raise_dead(procs, skip=role)  # the root cause: a peer that died, if one did
+                        raise WorkerDied(msg[1], role)
             if result is not None:
                 return result
             now = time.monotonic()
+            if now - t_sent >= hl.heartbeat_s / 2:
+                t_sent = now
+                for conn in controls.values():
+                    with contextlib.suppress(OSError):
+                        conn.send(("beat", now))
             for role, p in procs.items():
-                grace = 15.0 if now - started < 15.0 else 0.0  # imports and device opening
                 if not p.is_alive():
-                    raise WorkerDied(f"the {role} worker died (exit code {p.exitcode})")
-                if now - last_beat[role] > stall_after + grace:
-                    raise WorkerDied(f"the {role} worker stopped answering ({now - last_beat[role]:.1f} s)")
-            time.sleep(min(0.02, lab.host_link.dead_after_s / 10))
+                    raise WorkerDied(f"the {role} worker died (exit code {p.exitcode})", role)
+                if _stopped(p.pid):  # SIGSTOP: caught even during the start-up grace
+                    stopped_since.setdefault(role, now)
+                    if now - stopped_since[role] > hl.stall_after_s:
+                        raise WorkerDied(f"the {role} worker is stopped (SIGSTOP, {now - stopped_since[role]:.1f} s)",
+                                         role, hung=True)
+                else:
+                    stopped_since.pop(role, None)
+                if last_beat[role] is None:
+                    if now - started > hl.start_timeout_s:
+                        raise WorkerDied(f"the {role} worker did not start within {hl.start_timeout_s:g} s",
+                                         role, hung=True)
+                elif now - last_beat[role] > hl.stall_after_s:
+                    raise WorkerDied(f"the {role} worker stopped answering ({now - last_beat[role]:.1f} s)",
+                                     role, hung=True)
+            time.sleep(0.02)
 
 
 def run_live(lab_root: Path, spec: dict, run_dir: Path | None, on_status=None) -> dict:
     return LiveRun(Path(lab_root), spec, run_dir, on_status).run()
 
 
-__all__ = ["LiveRun", "WorkerArgs", "WorkerDied", "predictor_main", "recognizer_main", "run_live", "asdict"]
+__all__ = ["LiveRun", "WorkerArgs", "plausible", "WorkerDied", "RunAborted", "PeerWatch", "PeerLost", "Terminated",
+           "predictor_main", "recognizer_main", "run_live", "asdict"]

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import contextlib
 import os
-import threading
 import time
 
 import numpy as np
@@ -101,10 +100,11 @@ class SimBench:
         self.grbl.advance(t)
         self.robot_emu.advance(t)
 
-    def stop(self) -> None:
-        for dev in (self.robot, self.table):
-            with contextlib.suppress(Exception):
-                dev.stop()
+    def stop(self) -> list[dict]:
+        """Stop and confirm both devices; every outcome returned (labctl.workers.stopping)."""
+        from .stopping import stop_devices
+
+        return stop_devices({"robot": self.robot, "table": self.table})
 
 
 class Conveyor:
@@ -448,33 +448,9 @@ def write_served_lab(lab: Lab, out, served: ServedLab, *, force: bool = False):
     return out
 
 
-def emergency_stop(lab: Lab, endpoints: dict, timeout_s: float = 0.3) -> list[str]:
-    """Stop the table (GRBL feed hold, then soft reset) and the robot (its stop command) by writing
-    straight to their ports — the supervisor's last resort when a worker died holding them.
-    Returns the devices it reached."""
-    import serial
+def emergency_stop(lab: Lab, endpoints: dict, timeout_s: float = 0.3) -> list[dict]:
+    """The supervisor's stop bytes straight to the table's and robot's ports, one outcome per device
+    (see :func:`labctl.workers.stopping.send_stop_bytes`; failures are reported, never dropped)."""
+    from .stopping import send_stop_bytes
 
-    from ..drivers.robot import STOP_LINE
-
-    done = []
-    table = table_config(lab)
-    targets = (("table", endpoints.get("table") or (lab.table.port if lab.table is not None else None), table.baud,
-                [b"!", b"\x18"]),
-               ("robot", endpoints.get("robot") or lab.robot.port, lab.robot.baud, [STOP_LINE]))
-
-    def stop(role, port, baud, payloads):
-        try:
-            with serial.serial_for_url(port, baudrate=baud, timeout=timeout_s, write_timeout=timeout_s) as s:
-                for p in payloads:
-                    s.write(p)
-                    s.flush()
-            done.append(role)
-        except (serial.SerialException, OSError, ValueError):
-            pass
-
-    threads = [threading.Thread(target=stop, args=t, daemon=True) for t in targets if t[1]]
-    for th in threads:
-        th.start()
-    for th in threads:
-        th.join(timeout=timeout_s + 0.2)
-    return done
+    return send_stop_bytes(lab, endpoints, timeout_s)

@@ -3,7 +3,9 @@
 On two PCs (as in the paper, §5.1) each host runs one worker; they meet over TCP
 (``--link tcp://HOST:PORT``: the predictor listens, the recognizer connects) or over an RS-232
 line (``--link /dev/ttyS0``). Each host reads the same lab workspace (calibration, library).
-There is no supervisor process: each worker stops its own devices when the other goes silent.
+There is no supervisor process: each worker tracks the other's heartbeats and, after
+``host_link.dead_after_s`` of silence, stops its own devices, confirms it and exits non-zero
+(3) saying why. Ctrl-C (exit 130) and SIGTERM (exit 143) stop the devices the same way.
 """
 
 from __future__ import annotations
@@ -14,34 +16,38 @@ from urllib.parse import urlparse
 
 from ..config import Lab
 from ..errors import LabctlError, UserInputError
-from .live import WorkerArgs, predictor_main, recognizer_main
-
-
-class _NoSupervisor:
-    """Stands in for the control pipe when no supervisor runs: keeps the worker's error or result."""
-
-    def __init__(self):
-        self.error: tuple[str, int] | None = None
-        self.result: dict | None = None
-        self.done: str | None = None
-
-    def send(self, msg) -> None:
-        if not msg:
-            return
-        if msg[0] == "error":
-            self.error = (str(msg[1]), int(msg[2]) if len(msg) > 2 else 1)
-        elif msg[0] == "result":
-            self.result = msg[1]
-        elif msg[0] == "done":
-            self.done = str(msg[1])
+from .live import WorkerArgs, _child_signals, predictor_main, recognizer_main
 
 
 class WorkerFailed(LabctlError):
-    """A standalone worker could not start or stopped on an error; exits with the error's own code."""
+    """A standalone worker ended abnormally; ``exit_code`` is its status (1, 3, 130, 143)."""
 
-    def __init__(self, message: str, exit_code: int = 1):
+    def __init__(self, message: str, exit_code: int):
         super().__init__(message)
         self.exit_code = exit_code
+
+
+class _NoSupervisor:
+    """Stands in for the control pipe when no supervisor runs: keeps the worker's last error for
+    the one line the CLI prints; there is no supervisor to lose."""
+
+    supervised = False
+
+    def __init__(self) -> None:
+        self.errors: list[str] = []
+        self.result: dict | None = None
+
+    def beat(self, *args, **kw) -> None:
+        pass
+
+    def send(self, *msg) -> None:
+        if msg and msg[0] == "error":
+            self.errors.append(str(msg[1]))
+        elif msg and msg[0] == "result":
+            self.result = msg[1]
+
+    def supervisor_lost(self) -> None:
+        return None
 
 
 def link_config(lab: Lab, link: str | None):
@@ -73,8 +79,9 @@ def run_worker(lab: Lab, role: str, spec: dict, link: str | None) -> dict:
     args = WorkerArgs(role=role, lab_root=str(lab.root), run_dir=None, spec=spec, origin=time.monotonic(),
                       extra={"host_link": dataclasses.asdict(cfg)})
     target = predictor_main if role == "predictor" else recognizer_main
-    control = _NoSupervisor()
-    target(args, None, control)
-    if control.error is not None:  # the device's (or link's) own message, and its exit code (3: device)
-        raise WorkerFailed(*control.error)
-    return control.result if control.result is not None else {"role": role, "ended": control.done or "stopped"}
+    _child_signals(supervised=False)  # Ctrl-C and SIGTERM end in the worker's stop path, not a traceback
+    ctl = _NoSupervisor()
+    code = target(args, None, ctl)
+    if code:
+        raise WorkerFailed(ctl.errors[-1] if ctl.errors else f"{role} worker failed", code)
+    return ctl.result if ctl.result is not None else {"role": role, "ended": "stopped"}

@@ -5,10 +5,16 @@ The paper joins Host 1 (predictor/planner) and Host 2 (recognizer) with a 9600-b
 
 * ``local``  — a ``multiprocessing.Pipe`` between two processes on one PC (the default). The
   supervisor makes both ends with :func:`local_pair` and hands one to each worker.
-* ``tcp``    — two PCs: the predictor listens on ``host:tcp_port``, the recognizer connects.
-  Frames are a 2-byte big-endian length and the message. Connecting retries until
-  ``connect_timeout``; once up there is **no silent reconnect**: a broken connection is a dead
-  peer (:class:`LinkClosed`), and the supervisor must stop the robot and table.
+* ``tcp``    — two PCs: the predictor listens on ``host:tcp_port`` (``127.0.0.1`` unless the lab
+  says otherwise), the recognizer connects. Before any message both sides prove that they hold
+  the shared key (:func:`link_key`: ``$LABCTL_LINK_KEY`` or the file ``host_link.key_file``) by
+  a mutual HMAC-SHA256 challenge — the scheme of ``multiprocessing.connection``'s ``authkey``:
+  each side sends 32 random bytes, the other answers ``HMAC(key, tag ‖ challenge)``. A peer
+  that fails (or stays silent for ``AUTH_TIMEOUT_S``) is refused, logged in one line, and the
+  listener waits on for the real one; no byte from it is ever decoded. Frames are a 2-byte
+  big-endian length and the message. Connecting retries until ``connect_timeout``; once up there
+  is **no silent reconnect**: a broken connection is a dead peer (:class:`LinkClosed`), and the
+  supervisor must stop the robot and table.
 * ``serial`` — RS-232 via pyserial ``serial_for_url`` (a device, ``socket://``, ``rfc2217://``,
   ``loop://``…) at ``baud``. Each frame is ``00 COBS(message ‖ CRC-16/GENIBUS) 00``:
   COBS removes every zero from the body so ``00`` only ever delimits, the leading ``00`` ends
@@ -29,7 +35,11 @@ from __future__ import annotations
 
 import binascii
 import contextlib
+import hashlib
+import hmac
+import logging
 import os
+import secrets
 import select
 import socket
 import struct
@@ -43,7 +53,10 @@ from dataclasses import dataclass
 from ..errors import DeviceError
 from .messages import Message, MessageError, decode, encode
 
+log = logging.getLogger("labctl.link")
+
 __all__ = [
+    "AuthError", "authenticate", "link_key", "KEY_ENV",
     "LinkError", "LinkClosed", "Link", "LocalLink", "TcpLink", "TcpListener", "SerialLink", "local_pair",
     "tcp_listen", "tcp_connect", "open_link", "cobs_encode", "cobs_decode", "crc16", "serial_frame",
     "SerialDeframer", "SERIAL_OVERHEAD", "BITS_PER_BYTE", "wire_time_s", "pty_null_modem", "NullModem",
@@ -63,6 +76,87 @@ class LinkError(DeviceError):
 
 class LinkClosed(LinkError):
     """The peer closed the link or the connection broke."""
+
+
+class AuthError(LinkError):
+    """The TCP peer did not prove that it holds the link's shared key."""
+
+
+# ---- authentication: a mutual HMAC challenge (as multiprocessing.connection's authkey) ------------
+
+KEY_ENV = "LABCTL_LINK_KEY"
+AUTH_MAGIC = b"labctl-link-1\n"
+AUTH_CHALLENGE = 32
+AUTH_TIMEOUT_S = 5.0
+
+
+def link_key(cfg, lab_root=None) -> bytes | None:
+    """The host link's shared key: ``$LABCTL_LINK_KEY``, else the file named by ``cfg.key_file``
+    (relative to the lab folder), else None. A key shorter than 16 bytes is refused."""
+    from pathlib import Path
+
+    raw = os.environ.get(KEY_ENV)
+    where = f"${KEY_ENV}"
+    if not raw and getattr(cfg, "key_file", None):
+        path = Path(cfg.key_file).expanduser()
+        if not path.is_absolute() and lab_root is not None:
+            path = Path(lab_root) / path
+        try:
+            raw = path.read_text(encoding="utf-8").strip()
+        except OSError as exc:
+            raise LinkError(f"cannot read the host link key file {path}: {exc.strerror or exc}") from None
+        where = str(path)
+    if not raw:
+        return None
+    key = raw.encode("utf-8")
+    if len(key) < 16:
+        raise LinkError(f"the host link key from {where} is too short ({len(key)} bytes; use at least 16)")
+    return key
+
+
+def _digest(key: bytes, tag: bytes, challenge: bytes) -> bytes:
+    return hmac.new(key, AUTH_MAGIC + tag + challenge, hashlib.sha256).digest()
+
+
+def _recv_exact(sock: socket.socket, n: int) -> bytes:
+    buf = bytearray()
+    while len(buf) < n:
+        chunk = sock.recv(n - len(buf))
+        if not chunk:
+            raise AuthError("the peer closed the connection during authentication")
+        buf += chunk
+    return bytes(buf)
+
+
+def authenticate(sock: socket.socket, key: bytes, *, server: bool, timeout_s: float = AUTH_TIMEOUT_S) -> None:
+    """Mutual challenge-response over a fresh connection; AuthError if the peer does not hold ``key``.
+
+    Server: sends magic ‖ challenge, checks the client's HMAC, answers the client's challenge.
+    Client: answers, then challenges the server (so a fake listener cannot steer the recognizer)."""
+    sock.settimeout(timeout_s)
+    try:
+        if server:
+            c1 = secrets.token_bytes(AUTH_CHALLENGE)
+            sock.sendall(AUTH_MAGIC + c1)
+            if not hmac.compare_digest(_recv_exact(sock, 32), _digest(key, b"C", c1)):
+                raise AuthError("wrong key")
+            c2 = _recv_exact(sock, AUTH_CHALLENGE)
+            sock.sendall(_digest(key, b"S", c2))
+        else:
+            hello = _recv_exact(sock, len(AUTH_MAGIC) + AUTH_CHALLENGE)
+            if not hello.startswith(AUTH_MAGIC):
+                raise AuthError("the listener does not speak the labctl host link")
+            c2 = secrets.token_bytes(AUTH_CHALLENGE)
+            sock.sendall(_digest(key, b"C", hello[len(AUTH_MAGIC):]) + c2)
+            if not hmac.compare_digest(_recv_exact(sock, 32), _digest(key, b"S", c2)):
+                raise AuthError("the listener does not hold the link key")
+    except TimeoutError:
+        raise AuthError(f"no authentication within {timeout_s:g} s") from None
+    except OSError as exc:
+        raise AuthError(f"connection failed during authentication: {exc.strerror or exc}") from None
+    finally:
+        with contextlib.suppress(OSError):
+            sock.settimeout(None)
 
 
 def wire_time_s(nbytes: int, baud: int = 9600) -> float:
@@ -422,13 +516,32 @@ class TcpListener:
         self.host = host
         self.port = self._sock.getsockname()[1]
 
-    def accept(self, timeout: float | None = 30.0, log_hook: LogHook | None = None) -> TcpLink:
-        """Wait up to ``timeout`` s for the peer to connect; LinkError if it does not."""
-        ready, _, _ = select.select([self._sock], [], [], timeout)
-        if not ready:
-            raise LinkError(f"no peer connected to {self.host}:{self.port} within {timeout:g} s")
-        conn, _ = self._sock.accept()
-        return TcpLink(conn, log_hook)
+    def accept(self, timeout: float | None = 30.0, log_hook: LogHook | None = None, *,
+               authkey: bytes | None = None, on_refused: Callable[[str], None] | None = None) -> TcpLink:
+        """Wait up to ``timeout`` s for the peer to connect; LinkError if it does not.
+
+        With ``authkey`` the peer must pass :func:`authenticate`; a peer that fails is closed, logged
+        in one line (``labctl.link`` warning, and ``on_refused(line)``) and the wait goes on."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while True:
+            ready, _, _ = select.select([self._sock], [], [], _remaining(deadline))
+            if not ready:
+                raise LinkError(f"no peer connected to {self.host}:{self.port} within {timeout:g} s")
+            conn, addr = self._sock.accept()
+            if authkey is None:
+                return TcpLink(conn, log_hook)
+            try:
+                authenticate(conn, authkey, server=True)
+            except AuthError as exc:
+                line = f"host link: refused peer {addr[0]}:{addr[1]} ({exc})"
+                log.warning(line)
+                if on_refused is not None:
+                    with contextlib.suppress(Exception):
+                        on_refused(line)
+                with contextlib.suppress(OSError):
+                    conn.close()
+                continue
+            return TcpLink(conn, log_hook)
 
     def close(self) -> None:
         self._sock.close()
@@ -445,8 +558,9 @@ def tcp_listen(host: str, port: int) -> TcpListener:
 
 
 def tcp_connect(host: str, port: int, timeout: float = 30.0, retry_s: float = 0.1,
-                log_hook: LogHook | None = None) -> TcpLink:
-    """Connect to ``host:port``, retrying every ``retry_s`` while refused, for up to ``timeout`` s."""
+                log_hook: LogHook | None = None, *, authkey: bytes | None = None) -> TcpLink:
+    """Connect to ``host:port``, retrying every ``retry_s`` while refused, for up to ``timeout`` s;
+    with ``authkey``, then prove the key and check that the listener holds it (AuthError if not)."""
     deadline = time.monotonic() + timeout
     last: OSError | None = None
     while True:
@@ -455,10 +569,17 @@ def tcp_connect(host: str, port: int, timeout: float = 30.0, retry_s: float = 0.
             break
         try:
             sock = socket.create_connection((host, port), timeout=min(left, 5.0))
-            return TcpLink(sock, log_hook)
         except OSError as exc:
             last = exc
             time.sleep(min(retry_s, max(0.0, deadline - time.monotonic())))
+            continue
+        if authkey is not None:
+            try:
+                authenticate(sock, authkey, server=False)
+            except AuthError as exc:
+                sock.close()
+                raise AuthError(f"host link to {host}:{port}: {exc} (same LABCTL_LINK_KEY on both hosts?)") from None
+        return TcpLink(sock, log_hook)
     why = (last.strerror or str(last)) if last else "timed out"
     raise LinkError(f"could not connect to {host}:{port} within {timeout:g} s ({why})")
 
@@ -533,12 +654,14 @@ class SerialLink(Link):
 
 
 def open_link(cfg, role: str, *, local_end: LocalLink | None = None, connect_timeout: float = 30.0,
-              log_hook: LogHook | None = None) -> Link:
+              log_hook: LogHook | None = None, authkey: bytes | None = None,
+              on_refused: Callable[[str], None] | None = None) -> Link:
     """Open this worker's end of the host link described by ``cfg`` (a ``HostLinkConfig``).
 
     ``role`` is ``"predictor"`` (Host 1: listens for TCP) or ``"recognizer"`` (Host 2: connects).
     The local transport cannot be opened from one side alone: pass the end that the supervisor
-    made with :func:`local_pair` as ``local_end``.
+    made with :func:`local_pair` as ``local_end``. TCP always authenticates: ``authkey`` (see
+    :func:`link_key`) is required, and refused peers are reported to ``on_refused``.
     """
     if role not in ("predictor", "recognizer"):
         raise LinkError(f"link role must be 'predictor' or 'recognizer', not {role!r}")
@@ -549,10 +672,13 @@ def open_link(cfg, role: str, *, local_end: LocalLink | None = None, connect_tim
         local_end.log_hook = log_hook or local_end.log_hook
         return local_end
     if kind == "tcp":
+        if not authkey:
+            raise LinkError(f"the TCP host link needs a shared key: set ${KEY_ENV} (16+ characters) on both "
+                            "hosts, or name a key file in drivers/host_link.yaml (key_file)")
         if role == "predictor":
             with tcp_listen(cfg.host, cfg.tcp_port) as listener:
-                return listener.accept(connect_timeout, log_hook)
-        return tcp_connect(cfg.host, cfg.tcp_port, connect_timeout, log_hook=log_hook)
+                return listener.accept(connect_timeout, log_hook, authkey=authkey, on_refused=on_refused)
+        return tcp_connect(cfg.host, cfg.tcp_port, connect_timeout, log_hook=log_hook, authkey=authkey)
     if kind == "serial":
         if not cfg.port:
             raise LinkError("a serial host link needs a port (drivers/host_link.yaml: port)")
