@@ -6,7 +6,6 @@ undistortion of marker_pose_candidates vs CameraModel.undistort_pixels."""
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
