@@ -112,7 +112,7 @@ def _ours(img, cam, disc, truth_px, tol_px, cond, opts):
         poses = marker_poses(hit, camera, disc.radius)
     except ValueError:
         return True, None, False, fp, None
-    return True, poses.candidates, hit.quality.trusted, fp, poses
+    return True, poses.candidates, poses.trusted, fp, poses
 
 
 def _baseline(img, cam, disc, truth_px, tol_px, cond, opts):

@@ -231,6 +231,8 @@ def marker_pose_candidates(marker, camera, radius: float) -> tuple[CirclePose, C
 # inflated by this factor (≈ correlation length in points), and the per-point σ has a floor.
 NOISE_INFLATION = 4.0
 POINT_SIGMA_FLOOR_PX = 0.05
+# a pose whose normal σ exceeds this is flagged ``uncertain_normal`` (a third of the 3° gross error)
+MAX_TRUSTED_NORMAL_SIGMA_RAD = math.radians(1.0)
 
 
 @dataclass(frozen=True)
@@ -241,7 +243,8 @@ class MarkerPoses:
     standard deviation (rad, √trace of its 3×3 covariance); ``normal_cov`` / ``center_cov``:
     2×3×3 covariances (unit-less / mm², camera frame) propagated from the ellipse's covariance
     (boundary-point noise σ from the fit residual, inflated by :data:`NOISE_INFLATION`);
-    ``trusted`` and ``flags`` copied from the marker's quality."""
+    ``flags``: the marker's quality flags, plus ``uncertain_normal`` when a normal's σ exceeds
+    :data:`MAX_TRUSTED_NORMAL_SIGMA_RAD`; ``trusted``: no flag."""
 
     candidates: tuple[CirclePose, CirclePose]
     normal_sigma_rad: tuple[float, float]
@@ -325,6 +328,8 @@ def marker_poses(marker, camera, radius: float) -> MarkerPoses:
                 ccov[j] += np.outer(dc, dc)
     sig = tuple(float(math.sqrt(max(np.trace(c), 0.0))) for c in ncov)
     q = getattr(marker, "quality", None)
-    flags = tuple(q.flags) if q is not None else ()
-    trusted = q is not None and q.trusted
+    flags = tuple(q.flags) if q is not None else ("no_quality",)
+    if not max(sig) <= MAX_TRUSTED_NORMAL_SIGMA_RAD:  # e.g. a marker facing the camera: its tilt is ill-defined
+        flags += ("uncertain_normal",)
+    trusted = not flags
     return MarkerPoses(base, sig, ncov, ccov, trusted, flags)

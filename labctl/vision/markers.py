@@ -208,6 +208,29 @@ def _hull_support(pts: np.ndarray, contour: np.ndarray, max_edge: float) -> np.n
     return (d <= 1.5) & (length <= max_edge)
 
 
+def _straight(pts: np.ndarray, kept: np.ndarray, m: int, tol: float = 0.2) -> np.ndarray:
+    """True for boundary points (closed contour order, N×2) whose window of ``m`` neighbours
+    on either side is a straight line to within ``tol`` px RMS: an occluder's edge, a cut, a
+    bar's side. A rim arc of the same length bends by far more (the window is chosen so)."""
+    n = len(pts)
+    if n < 2 * m + 1 or m < 3:
+        return np.zeros(n, bool)
+    k = kept.astype(np.float64)
+    x, y = pts[:, 0] * k, pts[:, 1] * k
+    cols = np.stack([k, x, y, x * pts[:, 0], y * pts[:, 1], x * pts[:, 1]], axis=1)
+    ext = np.concatenate([cols[-m:], cols, cols[:m + 1]])
+    c = np.cumsum(ext, axis=0)
+    win = c[2 * m + 1:2 * m + 1 + n] - c[:n]  # sums over [i − m, i + m]
+    cnt = np.maximum(win[:, 0], 1.0)
+    mx, my = win[:, 1] / cnt, win[:, 2] / cnt
+    sxx = win[:, 3] / cnt - mx * mx
+    syy = win[:, 4] / cnt - my * my
+    sxy = win[:, 5] / cnt - mx * my
+    half_tr = 0.5 * (sxx + syy)
+    small = half_tr - np.sqrt(np.maximum(0.25 * (sxx - syy) ** 2 + sxy * sxy, 0.0))
+    return kept & (win[:, 0] >= 1.5 * m) & (small < tol * tol)
+
+
 def _scans(signal: np.ndarray, seeds: np.ndarray, normals: np.ndarray, half: int, shift=None):
     """Pixel scans across the edge at each seed (N×2 int, crop pixels): along the row where the
     outward normal is closer to horizontal, along the column otherwise, in the outward direction,
@@ -257,11 +280,14 @@ def _sampson(conic, pts: np.ndarray) -> np.ndarray:
 
 
 def _robust_fit(pts: np.ndarray, w: np.ndarray, start: np.ndarray, scale: float):
-    """Weighted ellipse fit (paper eq. 2) with outlier rejection: fit the ``start`` points, then
-    repeatedly keep every point within max(3σ, 0.35 px) of the ellipse (σ = 1.48 × median
-    absolute distance of the current inliers) and refit. Returns (conic, inlier mask)."""
-    inl = start
+    """Weighted ellipse fit (paper eq. 2) with outlier rejection, in two stages so the inlier
+    set cannot creep along an occluder's edge: (1) fit the ``start`` points (those that can be
+    rim), trimming any farther than max(3σ, 0.35 px) (σ = 1.48 × median absolute distance) and
+    refitting until stable; (2) admit every point within max(2.5σ₁, 0.25 px) of that fit (σ₁ of
+    stage 1's inliers). Returns (conic of the stage-1 fit, final inlier mask)."""
+    inl = start.copy()
     conic = None
+    sigma = 0.0
     for _ in range(6):
         if np.count_nonzero(inl) < 6:
             break
@@ -270,13 +296,14 @@ def _robust_fit(pts: np.ndarray, w: np.ndarray, start: np.ndarray, scale: float)
             raise EllipseFitError("hyperbolic fit")
         d = np.abs(_sampson(conic, pts))
         sigma = 1.4826 * float(np.median(d[inl]))
-        new = d <= max(3.0 * sigma, 0.35)
+        new = inl & (d <= max(3.0 * sigma, 0.35))
         if np.array_equal(new, inl):
             break
         inl = new
     if conic is None or np.count_nonzero(inl) < 6:
         raise EllipseFitError("too few consistent boundary points")
-    return conic, inl
+    d = np.abs(_sampson(conic, pts))
+    return conic, inl | (d <= max(2.5 * sigma, 0.25))
 
 
 def _conic_is_ellipse(q) -> bool:
@@ -336,14 +363,25 @@ def _analyse_contour(img8: np.ndarray, linear_crop, contour: np.ndarray, touches
     # own direction, so shading, shadows, texture and highlights of the background (which scale
     # or add to grey) leave it unchanged
     diff = ci - co
-    on = float(np.linalg.norm(co))
-    d = diff - (diff @ co) / (on * on) * co if on > 1e-6 else diff
-    if float(np.linalg.norm(d)) < 0.25 * float(np.linalg.norm(diff)):
-        d = diff
-    dn = float(np.linalg.norm(d))
+    dn = float(np.linalg.norm(diff))
     if not dn > 1e-6:
         raise _Reject("no colour contrast at the edge")
-    d = (d / dn).astype(np.float32)
+    # two candidate signals: the full colour difference (sharpest: carries luminance, which
+    # JPEG and Bayer keep at full resolution), and its part orthogonal to the background's own
+    # colour (blind to background texture, shadows and highlights, which scale or add to
+    # grey); take the one with the better contrast against the ring's spread
+    on = float(np.linalg.norm(co))
+    ring_px = lin[ring > 0]
+    best = None
+    for cand in (diff, diff - (diff @ co) / (on * on) * co if on > 1e-6 else diff):
+        n_ = float(np.linalg.norm(cand))
+        if not n_ > 0.05 * dn:
+            continue
+        u = cand / n_
+        cnr = float(diff @ u) / (float(np.std(ring_px @ u)) + 0.004)
+        if best is None or cnr > best[0] * 1.15:
+            best = (cnr, u)
+    d = best[1].astype(np.float32)
     contrast = float(diff @ d)
     if not contrast > 0.01:
         raise _Reject("no colour contrast at the edge")
@@ -383,6 +421,8 @@ def _analyse_contour(img8: np.ndarray, linear_crop, contour: np.ndarray, touches
     n_kept = int(np.count_nonzero(kept))
     if n_kept < 8:
         raise _Reject("too few clean edge profiles")
+    m_win = int(math.ceil(0.5 * math.sqrt(8.0 * ra * ra / max(rb, 0.5))))
+    support &= ~_straight(edge, kept, m_win)
     p = edge[kept]
     w = arc[kept]
     start = support[kept]
@@ -546,7 +586,7 @@ def why_no_marker(image_bgr, *, hue_range_deg=(-15.0, 15.0), min_saturation: flo
 
 def find_markers(image_bgr, *, hue_range_deg=(-15.0, 15.0), min_saturation: float = 0.45,
                  min_value: float = 0.15, window=None, min_area_px: int = 12, keep_border: bool = False,
-                 max_fit_rms_px: float = 0.6, max_markers: int = 32, response="linear",
+                 max_fit_rms_px: float = 1.5, max_markers: int = 32, response="linear",
                  min_axis_ratio: float = 0.2, max_residual_rel: float = 0.12) -> MarkerSearch:
     """Find circular markers of the configured colour in a BGR image, with each one's quality
     and, when none is found, the reason (paper §3.1 and §4.1's marker thresholding).
@@ -648,7 +688,7 @@ def find_markers(image_bgr, *, hue_range_deg=(-15.0, 15.0), min_saturation: floa
 
 def detect_markers(image_bgr, *, hue_range_deg=(-15.0, 15.0), min_saturation: float = 0.45,
                    min_value: float = 0.15, window=None, min_area_px: int = 12, keep_border: bool = False,
-                   max_fit_rms_px: float = 0.6, max_markers: int = 32, refine: bool = True,
+                   max_fit_rms_px: float = 1.5, max_markers: int = 32, refine: bool = True,
                    response="linear") -> list[Marker]:
     """The markers of :func:`find_markers` (sorted by decreasing area, possibly empty).
 
