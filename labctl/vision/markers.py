@@ -152,8 +152,9 @@ class MarkerQuality:
     trusted (empty: trusted). Flags: ``border`` (cut by the image edge), ``partial`` (under 85 %
     of the rim measured: occluded, shadowed or cut), ``rough`` (residual over 4 % of the minor
     semi-axis), ``outliers`` (under 75 % of the boundary fits the ellipse), ``low_contrast``
-    (edge contrast under 0.04), ``merged`` (the colour blob is much larger than its ellipse: a
-    neighbour touches it)."""
+    (edge contrast under 0.04), ``blurred`` (a quarter of the edge transitions wider than
+    max(3 px, 0.3 × minor semi-axis): motion or defocus smears the shape), ``merged`` (the
+    colour blob is much larger than its ellipse: a neighbour touches it)."""
 
     arc_coverage: float
     residual_rel: float
@@ -173,10 +174,11 @@ class MarkerQuality:
 
 
 _SCAN_HALF = 4  # px: scans run 8 px across the edge (covers 2–3 px of blur), shorter on small blobs
+_SCAN_HALF_MAX = 9  # px: how far scans may grow on a blurred edge
 _SECTORS = 24
 _K5 = np.ones((5, 5), np.uint8)
 _K9 = np.ones((9, 9), np.uint8)
-_PAD = 8  # crop margin around a blob: profiles reach 4.5 px out, the ring 4 px
+_PAD = _SCAN_HALF_MAX + 4  # crop margin around a blob: scans reach half + 2 px out, the ring 4 px
 
 
 def _outward_normals(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -245,6 +247,14 @@ def _scans(signal: np.ndarray, seeds: np.ndarray, normals: np.ndarray, half: int
     xs = np.clip(seeds[:, 0:1] + np.where(row, sgn, 0)[:, None] * k, 0, W - 1)
     ys = np.clip(seeds[:, 1:2] + np.where(row, 0, sgn)[:, None] * k, 0, H - 1)
     return row, sgn, k0, signal[ys, xs]
+
+
+def _transition_width(prof: np.ndarray) -> np.ndarray:
+    """Pixels of each scan between 10 % and 90 % of the way from its outside to its inside level."""
+    p = 2 if prof.shape[1] >= 6 else 1
+    lo, hi = prof[:, -p:].mean(axis=1), prof[:, :p].mean(axis=1)
+    c = (prof - lo[:, None]) / np.maximum(hi - lo, 1e-6)[:, None]
+    return np.count_nonzero((c > 0.1) & (c < 0.9), axis=1)
 
 
 def _edge_offsets(prof: np.ndarray, k0: np.ndarray, contrast: float):
@@ -396,6 +406,15 @@ def _analyse_contour(img8: np.ndarray, linear_crop, contour: np.ndarray, touches
     seeds = contour[:, 0, :].astype(np.int64) - (x0, y0)
     row, sgn, k0, prof = _scans(signal, seeds, normals, half)
     off, kept, local = _edge_offsets(prof, k0, contrast)
+    if np.count_nonzero(kept) >= 8:
+        # a blurred edge (defocus, motion) whose transition reaches the plateaus biases the area
+        # rule: lengthen the scans to cover it (as far as the blob's size allows)
+        width = float(np.median(_transition_width(prof[kept])))
+        longer = int(min(_SCAN_HALF_MAX, max(2, math.floor(1.0 + rb)), math.ceil(0.5 * width) + 3))
+        if width > 2 * half - 5 and longer > half:
+            half = longer
+            row, sgn, k0, prof = _scans(signal, seeds, normals, half)
+            off, kept, local = _edge_offsets(prof, k0, contrast)
     # second pass centred on the edge found: a symmetric scan removes the truncation bias
     shift = np.clip(np.rint(off - 0.5).astype(np.int64), -2, 2)
     if np.any(shift):
@@ -415,9 +434,11 @@ def _analyse_contour(img8: np.ndarray, linear_crop, contour: np.ndarray, touches
     along = np.maximum(np.abs(normals[:, 0]), np.abs(normals[:, 1]))
     kept &= along > 0.5  # a degenerate normal (a one-pixel spur) has no scan direction
     arc = 1.0 / np.maximum(along, 0.5)  # arc length per scan (eq. 2 weights)
-    if touches:
+    if touches:  # scans at the image edge measure the frame, not the marker: not part of the rim
         gx, gy = edge[:, 0] + x0, edge[:, 1] + y0
-        kept &= (gx > 1.5) & (gy > 1.5) & (gx < W - 2.5) & (gy < H - 2.5)
+        in_frame = (gx > 1.5) & (gy > 1.5) & (gx < W - 2.5) & (gy < H - 2.5)
+        kept &= in_frame
+        once &= in_frame
     n_kept = int(np.count_nonzero(kept))
     if n_kept < 8:
         raise _Reject("too few clean edge profiles")
@@ -453,6 +474,7 @@ def _analyse_contour(img8: np.ndarray, linear_crop, contour: np.ndarray, touches
     if coverage < 0.5:
         raise _Reject(f"too little elliptical rim ({100 * coverage:.0f} %)")
     inlier_fraction = float(bw_.sum() / arc[once].sum())
+    blur_px = float(np.percentile(_transition_width(prof[kept]), 75))
     edge_contrast = float(np.median(local[kept][inl]))
     flags = []
     if touches:
@@ -465,6 +487,8 @@ def _analyse_contour(img8: np.ndarray, linear_crop, contour: np.ndarray, touches
         flags.append("outliers")
     if edge_contrast < 0.04:
         flags.append("low_contrast")
+    if blur_px > max(3.0, 0.3 * b):  # motion or defocus blur wide against the marker: its shape is smeared
+        flags.append("blurred")
     if area_fill > 1.3 * ell.area + 2.0 * math.pi * (a + b) * 0.5:
         flags.append("merged")
     quality = MarkerQuality(coverage, residual_rel, inlier_fraction, solidity, edge_contrast, tuple(flags))
@@ -640,39 +664,49 @@ def find_markers(image_bgr, *, hue_range_deg=(-15.0, 15.0), min_saturation: floa
     bx, by, bw, bh = cv2.boundingRect(mask)
     if bw == 0 or bh == 0:
         return MarkerSearch([], [], why_no_marker(sub, min_area_px=min_area_px, **kw))
-    contours = cv2.findContours(mask[by:by + bh, bx:bx + bw], cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE,
-                                offset=(bx + ox, by + oy))[0]
-    sized = sorted(((cv2.contourArea(c) + 0.5 * len(c), c) for c in contours), key=lambda ac: -ac[0])
 
     def linear_crop(y0, y1, x0, x1):
         return resp.linearise(src[y0:y1, x0:x1])
 
-    found: list[Marker] = []
-    rejected: list = []
-    largest = sized[0][0] if sized else 0.0
-    for area, c in sized:
-        if area < min_area_px:
-            break
-        x, y, w, h = cv2.boundingRect(c)
-        box = (int(x), int(y), int(x + w), int(y + h))
-        at_image_edge = x <= 0 or y <= 0 or x + w >= W or y + h >= H
-        at_window_edge = x - ox <= 0 or y - oy <= 0 or x + w - ox >= sw or y + h - oy >= sh
-        if at_window_edge and not at_image_edge:
-            rejected.append((box, "cut by the search window"))
-            continue
-        if at_image_edge and not keep_border:
-            rejected.append((box, "cut by the image border"))
-            continue
-        try:
-            mk = _analyse_contour(img, linear_crop, c, at_image_edge, min_axis_ratio, max_residual_rel)
-            if not mk.fit_rms_px <= max_fit_rms_px:
-                raise _Reject(f"boundary residual {mk.fit_rms_px:.2f} px > {max_fit_rms_px:g} px")
-        except _Reject as exc:
-            rejected.append((box, str(exc)))
-            continue
-        found.append(mk)
-        if len(found) >= max_markers:
-            break
+    def search(mask):
+        contours = cv2.findContours(mask[by:by + bh, bx:bx + bw], cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE,
+                                    offset=(bx + ox, by + oy))[0]
+        sized = sorted(((cv2.contourArea(c) + 0.5 * len(c), c) for c in contours), key=lambda ac: -ac[0])
+        found: list[Marker] = []
+        rejected: list = []
+        for area, c in sized:
+            if area < min_area_px:
+                break
+            x, y, w, h = cv2.boundingRect(c)
+            box = (int(x), int(y), int(x + w), int(y + h))
+            at_image_edge = x <= 0 or y <= 0 or x + w >= W or y + h >= H
+            at_window_edge = x - ox <= 0 or y - oy <= 0 or x + w - ox >= sw or y + h - oy >= sh
+            if at_window_edge and not at_image_edge:
+                rejected.append((box, "cut by the search window"))
+                continue
+            if at_image_edge and not keep_border:
+                rejected.append((box, "cut by the image border"))
+                continue
+            try:
+                mk = _analyse_contour(img, linear_crop, c, at_image_edge, min_axis_ratio, max_residual_rel)
+                if not mk.fit_rms_px <= max_fit_rms_px:
+                    raise _Reject(f"boundary residual {mk.fit_rms_px:.2f} px > {max_fit_rms_px:g} px")
+            except _Reject as exc:
+                rejected.append((box, str(exc)))
+                continue
+            found.append(mk)
+            if len(found) >= max_markers:
+                break
+        return found, rejected, (sized[0][0] if sized else 0.0), len(sized)
+
+    found, rejected, largest, n_blobs = search(mask)
+    if not any(m.trusted for m in found) and n_blobs > 1:
+        # a noisy, dim image breaks a marker's colour mask into fragments: threshold a 3×3 mean
+        # instead (the sub-pixel edge still reads the original pixels)
+        found2, rejected2, largest2, _ = search(_red_mask(cv2.blur(sub, (3, 3)), hue_range_deg, min_saturation,
+                                                          min_value))
+        if sum(m.trusted for m in found2) > sum(m.trusted for m in found) or (found2 and not found):
+            found, rejected, largest = found2, rejected2, largest2
     found.sort(key=lambda m: -m.area)
     reason = None
     if not found:
@@ -689,17 +723,22 @@ def find_markers(image_bgr, *, hue_range_deg=(-15.0, 15.0), min_saturation: floa
 def detect_markers(image_bgr, *, hue_range_deg=(-15.0, 15.0), min_saturation: float = 0.45,
                    min_value: float = 0.15, window=None, min_area_px: int = 12, keep_border: bool = False,
                    max_fit_rms_px: float = 1.5, max_markers: int = 32, refine: bool = True,
-                   response="linear") -> list[Marker]:
-    """The markers of :func:`find_markers` (sorted by decreasing area, possibly empty).
+                   response="linear", include_suspect: bool = False) -> list[Marker]:
+    """The trusted markers of :func:`find_markers` (sorted by decreasing area, possibly empty);
+    with ``include_suspect`` also those carrying a quality flag (partial, rough, …), and with
+    ``keep_border`` those cut by the image edge (flagged ``border``).
 
     ``refine=False`` is the tracker's centroid-only mode (paper §4.1): the centroid, area and
     moment ellipse of each thresholded blob (8-connected), no boundary, no shape check, no
     quality. Raises :class:`MarkerImageError` only for an array that is not an image.
     """
     if refine:
-        return find_markers(image_bgr, hue_range_deg=hue_range_deg, min_saturation=min_saturation,
-                            min_value=min_value, window=window, min_area_px=min_area_px, keep_border=keep_border,
-                            max_fit_rms_px=max_fit_rms_px, max_markers=max_markers, response=response).markers
+        found = find_markers(image_bgr, hue_range_deg=hue_range_deg, min_saturation=min_saturation,
+                             min_value=min_value, window=window, min_area_px=min_area_px, keep_border=keep_border,
+                             max_fit_rms_px=max_fit_rms_px, max_markers=max_markers, response=response).markers
+        if include_suspect:
+            return found
+        return [m for m in found if m.trusted or (keep_border and set(m.quality.flags) <= {"border", "partial"})]
     img = _as_bgr(image_bgr)
     H, W = img.shape[:2]
     ox = oy = 0
