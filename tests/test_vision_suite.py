@@ -44,7 +44,8 @@ def test_oracle_coverage_is_the_exact_disc_area():
         assert cov.min() >= 0.0 and cov.max() <= 1.0
 
 
-# condition → (Conditions, camera overrides, options); a few pairs each keep this under ~20 s
+# condition → (Conditions, camera overrides, options); three pairs each keep this under ~20 s
+# (the full suite, 25 pairs × 70 cases, is `labctl bench vision`)
 FAST = {
     "clean": (oracle.Conditions(), {}, {}),
     "shadow": (oracle.Conditions(shadow=0.6), {}, {}),
@@ -56,13 +57,14 @@ FAST = {
     "lone bar": (oracle.Conditions(lone_bar=(5, 40)), {}, {}),
     "webcam": (oracle.Conditions(response="srgb", jpeg_quality=70, noise_std=4.0, bayer="bilinear",
                                  vignetting=0.3), {}, {}),
+    "dim workcell": (oracle.Conditions(response="gamma 2.2", exposure=0.15, photons=300, noise_std=3.0), {}, {}),
 }
 
 
 @pytest.mark.parametrize("name", list(FAST))
 def test_degradation_suite_fast(name):
     cond, cam_over, opts = FAST[name]
-    res = run_case(cond, cam_over, opts, n_pairs=4, seed=100 + len(name))
+    res = run_case(cond, cam_over, opts, n_pairs=3, seed=100 + len(name))
     ours, base = res["labctl"], res["opencv"]
     # no confident wrong answer: gross errors and wrong dualities all carry a flag
     assert ours["confident_wrong"] == 0.0, ours
@@ -156,7 +158,7 @@ def test_pose_covariance_is_calibrated_and_duality_waits_for_the_noise():
 
     rng = np.random.default_rng(11)
     z = []
-    for _ in range(12):
+    for _ in range(8):
         cam = oracle.Cam(f=float(rng.uniform(1200, 2500)))
         disc = _frontalish(rng, cam)
         img, _ = oracle.render(cam, disc, oracle.Conditions(noise_std=8.0), rng)

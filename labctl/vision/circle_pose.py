@@ -229,7 +229,7 @@ def marker_pose_candidates(marker, camera, radius: float) -> tuple[CirclePose, C
 # Boundary residuals are correlated along the rim (blur, demosaicing, JPEG blocks span several
 # points), so N points carry fewer than N independent errors: the point-noise covariance is
 # inflated by this factor (≈ correlation length in points), and the per-point σ has a floor.
-NOISE_INFLATION = 4.0
+NOISE_INFLATION = 2.0
 POINT_SIGMA_FLOOR_PX = 0.05
 # a pose whose normal σ exceeds this is flagged ``uncertain_normal`` (a third of the 3° gross error)
 MAX_TRUSTED_NORMAL_SIGMA_RAD = math.radians(1.0)
