@@ -153,7 +153,7 @@ class MarkerQuality:
     of the rim measured: occluded, shadowed or cut), ``rough`` (residual over 4 % of the minor
     semi-axis), ``outliers`` (under 75 % of the boundary fits the ellipse), ``low_contrast``
     (edge contrast under 0.04), ``blurred`` (a quarter of the edge transitions wider than
-    max(3 px, 0.3 × minor semi-axis): motion or defocus smears the shape), ``merged`` (the
+    max(3 px, 0.2 × minor semi-axis): motion or defocus smears the shape), ``merged`` (the
     colour blob is much larger than its ellipse: a neighbour touches it)."""
 
     arc_coverage: float
@@ -264,7 +264,7 @@ def _edge_offsets(prof: np.ndarray, k0: np.ndarray, contrast: float):
     two pixels), c = (s − out)/(in − out), which removes shading, shadows and smooth background
     changes; the edge then sits at (k₀ − ½) + Σc along the scan (exact for a straight edge at
     any sub-pixel phase and angle up to 45°, and for any symmetric blur whose transition fits
-    the scan). A scan is kept when its local contrast is at least 35 % of the blob's and its
+    the scan). A scan is kept when its local contrast is at least 20 % of the blob's and its
     normalised samples stay within [−0.45, 1.45] (no second edge inside). Returns (offset from
     the seed in px along the scan, kept, local contrast)."""
     p = 2 if prof.shape[1] >= 6 else 1
@@ -275,7 +275,7 @@ def _edge_offsets(prof: np.ndarray, k0: np.ndarray, contrast: float):
     c = (prof - outside[:, None]) / safe[:, None]
     offset = (k0 - 0.5) + c.sum(axis=1)
     sm = 0.5 * c[:, 1:-1] + 0.25 * (c[:, :-2] + c[:, 2:])
-    kept = (local > 0.35 * contrast) & (sm.min(axis=1) > -0.45) & (sm.max(axis=1) < 1.45)
+    kept = (local > 0.2 * contrast) & (sm.min(axis=1) > -0.45) & (sm.max(axis=1) < 1.45)
     return offset, kept, local
 
 
@@ -474,7 +474,8 @@ def _analyse_contour(img8: np.ndarray, linear_crop, contour: np.ndarray, touches
     if coverage < 0.5:
         raise _Reject(f"too little elliptical rim ({100 * coverage:.0f} %)")
     inlier_fraction = float(bw_.sum() / arc[once].sum())
-    blur_px = float(np.percentile(_transition_width(prof[kept]), 75))
+    widths = _transition_width(prof[kept])
+    blur_px = float(np.percentile(widths, 75))
     edge_contrast = float(np.median(local[kept][inl]))
     flags = []
     if touches:
@@ -487,7 +488,7 @@ def _analyse_contour(img8: np.ndarray, linear_crop, contour: np.ndarray, touches
         flags.append("outliers")
     if edge_contrast < 0.04:
         flags.append("low_contrast")
-    if blur_px > max(3.0, 0.3 * b):  # motion or defocus blur wide against the marker: its shape is smeared
+    if blur_px > max(3.0, 0.2 * b):  # motion or defocus blur wide against the marker: its shape is smeared
         flags.append("blurred")
     if area_fill > 1.3 * ell.area + 2.0 * math.pi * (a + b) * 0.5:
         flags.append("merged")
