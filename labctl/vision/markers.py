@@ -599,13 +599,16 @@ def why_no_marker(image_bgr, *, hue_range_deg=(-15.0, 15.0), min_saturation: flo
         return f"no pixels in the colour window ({window}) and no saturated colour in the image"
     hist = np.bincount((h[sat] / 2.0).astype(int) % 180, minlength=180)
     hues = (np.arange(180) + 0.5) * 2.0
-    ok = hist >= n_min
-    if not ok.any():
-        ok = hist > 0
-    dist = np.where(ok, _hue_distance(hues, lo, hi), np.inf)
+    # significant colours: local peaks of the (circularly smoothed) histogram holding ≥ n_min px
+    # and ≥ 10 % of the largest peak; report the one nearest the window
+    sm = hist + 0.5 * (np.roll(hist, 1) + np.roll(hist, -1))
+    peak = (sm >= np.roll(sm, 1)) & (sm >= np.roll(sm, -1)) & (hist >= n_min) & (sm >= 0.1 * sm.max())
+    if not peak.any():
+        peak = hist == hist.max()
+    dist = np.where(peak, _hue_distance(hues, lo, hi), np.inf)
     k = int(np.argmin(dist))
     return (f"no pixels in the colour window ({window}); the nearest saturated colour seen is hue "
-            f"{hues[k]:.0f}° ({int(hist[k]) * 4} px), {dist[k]:.0f}° outside it "
+            f"{hues[k]:.0f}° (≈{int(sm[k]) * 4} px), {dist[k]:.0f}° outside it "
             "(`labctl vision learn-color` measures the window)")
 
 
