@@ -132,7 +132,8 @@ def _baseline(img, cam, disc, truth_px, tol_px, cond, opts):
 
 
 def _pct(v, q):
-    return float(np.percentile(v, q)) if len(v) else math.nan
+    """Percentile, or None when nothing was measured (JSON has no NaN)."""
+    return float(np.percentile(v, q)) if len(v) else None
 
 
 def run_case(cond: oracle.Conditions, cam_over: dict, opts: dict, n_pairs: int, seed: int) -> dict:
@@ -243,9 +244,10 @@ def acceptance(rows: list[dict]) -> dict:
         if r["visible"] >= 0.8 and o["detected"] < b["detected"] - 0.01:
             fails.append(f"{tag}: detected {100 * o['detected']:.1f} % vs baseline {100 * b['detected']:.1f} %")
         for key in ("normal_deg_p95", "centre_pct_median"):
-            if math.isfinite(b[key]) and math.isfinite(o[key]) and o[key] > b[key]:
+            if b[key] is not None and o[key] is not None and o[key] > b[key]:
                 fails.append(f"{tag}: {key} {o[key]:.3g} vs baseline {b[key]:.3g}")
-        if r["condition"] == "clean" and not (o["normal_deg_median"] <= 0.05 and o["centre_pct_median"] <= 0.05):
+        if r["condition"] == "clean" and not (o["normal_deg_median"] is not None and o["normal_deg_median"] <= 0.05
+                                              and o["centre_pct_median"] <= 0.05):
             fails.append(f"{tag}: clean accuracy {o['normal_deg_median']:.3f}° / {o['centre_pct_median']:.3f} %")
     return {"ok": not fails, "failures": fails}
 
