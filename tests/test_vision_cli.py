@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 
 import cv2
 import numpy as np
@@ -38,10 +39,13 @@ def scene(tmp_path):
 
 
 def _run(capsys, *args):
-    with pytest.raises(SystemExit) as exc:
+    code = 0
+    try:
         main(list(args))
+    except SystemExit as exc:
+        code = exc.code or 0
     out = capsys.readouterr()
-    return exc.value.code, out.out, out.err
+    return code, out.out, out.err
 
 
 def test_one_image_json(scene, capsys, monkeypatch):
@@ -86,3 +90,48 @@ def test_errors_are_one_line_with_exit_2(scene, capsys):
     assert code == 2 and "cannot read image" in err
     code, _, err = _run(capsys, "vision", "pose", str(d / "a.png"), "--radius", "-1", "--camera", cam)
     assert code == 2 and "radius" in err
+
+
+def test_no_marker_says_why(scene, capsys):
+    d = scene[0]
+    img = cv2.imread(str(d / "a.png"))
+    hsv = cv2.cvtColor(img, cv2.COLOR_BGR2HSV_FULL)
+    hsv[..., 0] = (hsv[..., 0].astype(int) + 25) % 256  # the marker turns orange (hue +35°)
+    cv2.imwrite(str(d / "orange.png"), cv2.cvtColor(hsv, cv2.COLOR_HSV2BGR_FULL))
+    code, _, err = _run(capsys, "vision", "pose", str(d / "orange.png"), "--radius", "10", "--camera",
+                        str(d / "cam.yaml"))
+    assert code == 2 and err.count("\n") == 1
+    seen = int(err.split("nearest saturated colour seen is hue ")[1].split("°")[0])
+    assert 30 <= seen <= 38  # the disc's hue, 358° + 35°
+
+
+def test_learn_color_writes_the_window_into_the_driver_file(scene, tmp_path, capsys):
+    from labctl.workspace import sample_lab_path
+
+    d = scene[0]
+    lab = tmp_path / "lab"
+    shutil.copytree(sample_lab_path(), lab)
+    img = cv2.imread(str(d / "a.png"))
+    hsv = cv2.cvtColor(img, cv2.COLOR_BGR2HSV_FULL)
+    hsv[..., 0] = (hsv[..., 0].astype(int) + 25) % 256  # orange-red paint under this light
+    cv2.imwrite(str(d / "orange.png"), cv2.cvtColor(hsv, cv2.COLOR_HSV2BGR_FULL))
+    driver = lab / "drivers" / "fixed_camera.yaml"
+    before = driver.read_text()
+    # dry run: measured, checked, nothing written
+    code, out, err = _run(capsys, "--lab", str(lab), "--json", "vision", "learn-color", str(d / "orange.png"),
+                          "--camera", "fixed", "--dry-run")
+    assert code == 0, err
+    res = json.loads(out)
+    lo, hi = res["hue_range_deg"]
+    assert lo < 35 < hi and hi - lo < 40 and res["markers_found"] == 1 and res["markers_found_before"] == 0
+    assert driver.read_text() == before
+    code, out, err = _run(capsys, "--lab", str(lab), "--json", "vision", "learn-color", str(d / "orange.png"),
+                          "--camera", "fixed")
+    assert code == 0 and json.loads(out)["written"]
+    cfg = yaml.safe_load(driver.read_text())
+    assert cfg["marker_hue_deg"] == [lo, hi] and cfg["marker_min_saturation"] == res["min_saturation"]
+    assert "# Overhead camera C1" in driver.read_text()  # comments kept
+    # an image without the colour: one line, exit 2, the file untouched
+    written = driver.read_text()
+    code, _, err = _run(capsys, "--lab", str(lab), "vision", "learn-color", str(d / "empty.png"), "--camera", "fixed")
+    assert code == 2 and err.count("\n") == 1 and driver.read_text() == written

@@ -1,8 +1,14 @@
 """``labctl bench vision``: marker detection, fit + pose and the ellipse fitters, timed against
-baselines in the same run (medians). Synthetic 640×480 images of the issue's test scene."""
+baselines in the same run (medians), on synthetic 640×480 images of the issue's test scene; and
+the degradation suite of issue 14 (:mod:`._vision_suite`: ours vs the plain OpenCV pipeline on
+images of the independent renderer :mod:`._vision_oracle`), with its acceptance checks.
+
+The suite's size is ``LABCTL_BENCH_VISION_PAIRS`` image pairs per case (default 25; 3 with
+``--quick``); ``LABCTL_BENCH_VISION_ONLY`` restricts it to conditions containing that text."""
 
 from __future__ import annotations
 
+import os
 import statistics
 import time
 
@@ -108,8 +114,15 @@ def run(quick: bool = False) -> dict:
             accuracy[name][fname] = {"centre_rms_px": float(np.sqrt(np.mean(np.square(errs))))}
             t = median_time(lambda p=pts0, fn=fn: fn(p), repeat * 2)
             rows.append(row(f"ellipse fit {name}, 360 pts: {fname}", t, "cv2.fitEllipse", t_cv))
+    from ._vision_suite import acceptance, run_suite
+
+    n_pairs = 3 if quick else int(os.environ.get("LABCTL_BENCH_VISION_PAIRS", "25"))
+    suite = run_suite(n_pairs=n_pairs, only=os.environ.get("LABCTL_BENCH_VISION_ONLY") or None)
     return {
         "rows": rows,
+        "suite_pairs_per_case": n_pairs,
+        "suite": suite,
+        "suite_acceptance": acceptance(suite),
         "windowed_speedup": tm["full"] / tm["win"],
         "windowed_speedup_centroid_only": tm["full_c"] / tm["win_c"],
         "fit_pose_median_us": tm["pose"] * 1e6,

@@ -41,9 +41,12 @@ def _read_image(path: Path):
 @click.option("--hue", "hue_deg", nargs=2, type=float, default=(-15.0, 15.0), show_default=True,
               help="Marker hue window (degrees).")
 @click.option("--min-saturation", type=float, default=0.45, show_default=True)
+@click.option("--response", default="linear", show_default=True,
+              help="Camera response: linear, srgb or 'gamma G' (frames are linearised before sub-pixel work).")
 @json_option
 def vision_pose(image: Path, image2: Path | None, radius_mm: float, camera_file: Path, out: Path | None,
-                motion: str, plane_normal, min_margin_deg: float | None, hue_deg, min_saturation: float) -> None:
+                motion: str, plane_normal, min_margin_deg: float | None, hue_deg, min_saturation: float,
+                response: str) -> None:
     """Pose the red markers in IMAGE; with IMAGE2, resolve the pose duality of one marker."""
     import math
 
@@ -55,9 +58,11 @@ def vision_pose(image: Path, image2: Path | None, radius_mm: float, camera_file:
     from ..vision import (
         CirclePoseError,
         EllipseFitError,
-        detect_markers,
-        marker_pose_candidates,
-        resolve_duality_detailed,
+        ResponseError,
+        find_markers,
+        marker_poses,
+        parse_response,
+        resolve_duality_noise_aware,
     )
     from ..vision.annotate import annotate_marker, circle_centre_pixel
     from ..vision.duality import DEFAULT_MIN_MARGIN_RAD
@@ -71,6 +76,10 @@ def vision_pose(image: Path, image2: Path | None, radius_mm: float, camera_file:
         raise UserInputError(msg if str(camera_file) in msg else f"{camera_file}: not a camera file ({msg})") from None
     if motion == "planar" and not plane_normal:
         raise UserInputError("--motion planar needs --plane-normal X Y Z")
+    try:
+        resp = parse_response(response)
+    except ResponseError as exc:
+        raise UserInputError(f"--response: {exc}") from None
 
     paths = [image] + ([image2] if image2 else [])
     images, per_image = [], []
@@ -79,15 +88,16 @@ def vision_pose(image: Path, image2: Path | None, radius_mm: float, camera_file:
         if img.shape[1] != camera.width or img.shape[0] != camera.height:
             raise UserInputError(f"{path}: image is {img.shape[1]}×{img.shape[0]}, camera file says "
                                  f"{camera.width}×{camera.height}")
-        markers = detect_markers(img, hue_range_deg=tuple(hue_deg), min_saturation=min_saturation)
+        search = find_markers(img, hue_range_deg=tuple(hue_deg), min_saturation=min_saturation, response=resp)
+        markers = search.markers
         if not markers:
-            raise UserInputError(f"{path}: no marker found")
+            raise UserInputError(f"{path}: no marker found: {search.reason}")
         if image2 and len(markers) > 1:
             raise UserInputError(f"{path}: {len(markers)} markers found; resolving the duality needs exactly one")
         posed = []
         for m in markers:
             try:
-                posed.append((m, marker_pose_candidates(m, camera, radius_mm)))
+                posed.append((m, marker_poses(m, camera, radius_mm)))
             except (CirclePoseError, EllipseFitError) as exc:
                 raise UserInputError(f"{path}: marker at {m.centroid[0]:.1f}, {m.centroid[1]:.1f}: {exc}") from None
         images.append(img)
@@ -96,22 +106,24 @@ def vision_pose(image: Path, image2: Path | None, radius_mm: float, camera_file:
     result: dict = {"camera": str(camera_file), "radius_mm": radius_mm, "images": []}
     for path, posed in zip(paths, per_image, strict=True):
         result["images"].append({"image": str(path), "markers": [
-            {**m.to_dict(), "candidates": [c.to_dict() for c in cands]} for m, cands in posed]})
+            {**m.to_dict(), **cands.to_dict()} for m, cands in posed]})
     chosen = None
     if image2:
         margin = DEFAULT_MIN_MARGIN_RAD if min_margin_deg is None else math.radians(min_margin_deg)
-        res = resolve_duality_detailed(per_image[0][0][1], per_image[1][0][1], motion=motion,
-                                       plane_normal=plane_normal or None, min_margin_rad=margin)
+        res = resolve_duality_noise_aware(per_image[0][0][1], per_image[1][0][1], motion=motion,
+                                          plane_normal=plane_normal or None, min_margin_rad=margin)
         result["duality"] = {**res.to_dict(), "motion": motion}
         chosen = res
 
     # annotate the last image (Fig. 5(a)): ellipse, axes, centre, and where the circle's centre projects
     drawn = images[-1]
     for k, (m, cands) in enumerate(per_image[-1]):
-        pose = chosen.best if chosen is not None else cands[0]
+        pose = chosen.best if chosen is not None else cands.candidates[0]
         tag = f"#{k} z={pose.center[2]:.0f}mm"
         if chosen is not None:
             tag += " (ambiguous)" if chosen.ambiguous else f" margin {math.degrees(chosen.margin_rad):.2f} deg"
+        if not m.trusted:
+            tag += " SUSPECT: " + ",".join(m.quality.flags)
         drawn = annotate_marker(drawn, m.ellipse, boundary=m.boundary, label=tag,
                                 circle_centre_px=circle_centre_pixel(pose, camera))
     out = out or paths[-1].with_name(paths[-1].stem + "_pose.png")
@@ -126,14 +138,16 @@ def vision_pose(image: Path, image2: Path | None, radius_mm: float, camera_file:
 
         for entry in result["images"]:
             t = Table("marker", "centroid px", "ellipse axes px", "candidate", "centre mm (camera)", "normal",
-                      title=entry["image"])
+                      "σ normal", "quality", title=entry["image"])
             for k, mk in enumerate(entry["markers"]):
                 for j, c in enumerate(mk["candidates"]):
                     t.add_row(str(k) if j == 0 else "",
                               "{:.2f}, {:.2f}".format(*mk["centroid_px"]) if j == 0 else "",
                               "{:.2f} × {:.2f}".format(*mk["ellipse"]["axes"]) if j == 0 else "", str(j),
                               "{:.1f}, {:.1f}, {:.1f}".format(*c["center_mm"]),
-                              "{:.3f}, {:.3f}, {:.3f}".format(*c["normal"]))
+                              "{:.3f}, {:.3f}, {:.3f}".format(*c["normal"]),
+                              f"{mk['normal_sigma_deg'][j]:.2f}°",
+                              ("trusted" if mk["trusted"] else "suspect: " + ", ".join(mk["flags"])) if j == 0 else "")
             console.print(t)
         if "duality" in result:
             d = result["duality"]
@@ -141,8 +155,79 @@ def vision_pose(image: Path, image2: Path | None, radius_mm: float, camera_file:
                 console.print(f"duality ({d['motion']}): candidate {d['index']} of the second image, "
                               f"margin {d['margin_deg']:.2f}°")
             else:
-                console.print(f"duality ({d['motion']}): [yellow]ambiguous[/] (margin {d['margin_deg']:.3f}°); "
-                              "no candidate chosen")
+                console.print(f"duality ({d['motion']}): [yellow]ambiguous[/] (margin {d['margin_deg']:.3f}° < "
+                              f"{d['threshold_deg']:.3f}° needed over the noise); no candidate chosen")
         console.print(f"annotated image: {result['annotated']}")
+
+    emit(result, human)
+
+
+def _set_yaml_keys(text: str, values: dict) -> str:
+    """``text`` (a driver file) with top-level ``key: value`` lines replaced (or appended),
+    keeping every other line and comment as it was."""
+    import re
+
+    lines = text.splitlines()
+    for key, val in values.items():
+        pat = re.compile(rf"^{re.escape(key)}\s*:")
+        for i, line in enumerate(lines):
+            if pat.match(line):
+                comment = line[line.index(" #") + 1:] if " #" in line else ""
+                lines[i] = f"{key}: {val}" + (f"  {comment}" if comment else "")
+                break
+        else:
+            lines.append(f"{key}: {val}")
+    return "\n".join(lines) + "\n"
+
+
+@vision_group.command("learn-color")
+@click.argument("image", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.option("--camera", "role", type=click.Choice(["fixed", "mobile"]), required=True,
+              help="Whose driver file gets the window (fixed_camera or mobile_camera).")
+@click.option("--near-hue", "nominal", type=float, default=0.0, show_default=True,
+              help="Nominal marker hue (degrees) to search around.")
+@click.option("--dry-run", is_flag=True, help="Measure and check, but do not write the driver file.")
+@json_option
+def vision_learn_color(image: Path, role: str, nominal: float, dry_run: bool) -> None:
+    """Learn the marker hue/saturation window from IMAGE of the lab's markers and write it into
+    the camera's driver file (marker_hue_deg, marker_min_saturation)."""
+    from ..errors import LabctlError, UserInputError
+    from ..fsutil import atomic_write_text
+    from ..vision import find_markers
+    from ..vision.colour import ColourLearnError, learn_marker_colour
+    from ._common import get_ctx
+
+    img = _read_image(image)
+    lab = get_ctx().lab()
+    key = f"{role}_camera"
+    cam_cfg = getattr(lab, key)
+    path = lab.driver_paths[key]
+    try:
+        learned = learn_marker_colour(img, nominal_hue_deg=nominal)
+    except ColourLearnError as exc:
+        raise UserInputError(f"{image}: {exc}") from None
+    lo, hi = learned["hue_range_deg"]
+    search = find_markers(img, hue_range_deg=(lo, hi), min_saturation=learned["min_saturation"],
+                          response=cam_cfg.response)
+    before = find_markers(img, hue_range_deg=tuple(cam_cfg.marker_hue_deg),
+                          min_saturation=cam_cfg.marker_min_saturation, response=cam_cfg.response)
+    result = {"image": str(image), "driver_file": str(path), **learned,
+              "markers_found": len(search.markers), "trusted": sum(m.trusted for m in search.markers),
+              "markers_found_before": len(before.markers), "written": False}
+    if not search.markers:
+        raise LabctlError(f"{image}: the learned window (hue {lo:g}…{hi:g}°, saturation ≥ "
+                          f"{learned['min_saturation']:g}) finds no marker ({search.reason}); driver file unchanged")
+    if not dry_run:
+        text = path.read_text(encoding="utf-8")
+        atomic_write_text(path, _set_yaml_keys(text, {"marker_hue_deg": f"[{lo:g}, {hi:g}]",
+                                                      "marker_min_saturation": f"{learned['min_saturation']:g}"}))
+        result["written"] = True
+
+    def human(console):
+        console.print(f"marker colour: hue {lo:g}…{hi:g}° (peak {learned['peak_hue_deg']:g}°), saturation ≥ "
+                      f"{learned['min_saturation']:g}; {learned['blobs']} blob(s), {learned['pixels']} px")
+        console.print(f"markers found with it: {result['markers_found']} ({result['trusted']} trusted); "
+                      f"with the old window: {result['markers_found_before']}")
+        console.print(f"written to {path}" if result["written"] else "dry run: driver file unchanged")
 
     emit(result, human)

@@ -100,6 +100,8 @@ class CameraConfig:
     exposure: float | None = None
     marker_hue_deg: tuple[float, float] = (-15.0, 15.0)  # red straddles 0°
     marker_min_saturation: float = 0.45
+    # the camera's response (labctl.vision.response): linear | srgb | "gamma G" | G | 256-entry LUT
+    response: str | float | list[float] = "linear"
     lens: LensConfig = field(default_factory=LensConfig)
     # sim: the fixed camera's true pose (eye and look-at target, W frame)
     eye_w_mm: tuple[float, float, float] | None = None
@@ -119,6 +121,11 @@ class CameraConfig:
             return "folder", "a replay camera needs a folder of stamped frames"
         if self.width <= 0 or self.height <= 0:
             return "width", "image size must be positive"
+        r = self.response.strip().lower() if isinstance(self.response, str) else self.response
+        if isinstance(r, str) and not (r in ("linear", "srgb") or r.startswith("gamma")):
+            return "response", f"expected linear, srgb, 'gamma G', a number or a 256-entry list, got {r!r}"
+        if isinstance(r, list) and len(r) != 256:
+            return "response", f"a response lookup table needs 256 entries, got {len(r)}"
         return None
 
 

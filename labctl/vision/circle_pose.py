@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .ellipse import Ellipse, _fit, _null_vector3, _validate
+from .ellipse import Ellipse, EllipseFitError, _fit, _null_vector3, _validate
 
 
 class CirclePoseError(ValueError):
@@ -189,6 +189,26 @@ def circle_poses(ellipse: Ellipse, radius: float, K) -> tuple[CirclePose, Circle
     return _poses_from_cone(_cone(ellipse.conic.tolist(), _camera_matrix(K)), radius)
 
 
+def _undistorted_boundary(marker, camera):
+    """(boundary N×2, weights N, K as nested lists) of a marker in undistorted pixels: Tsai's κ1
+    model of ``camera`` (the same mapping as ``camera.undistort_pixels``), taken relative to the
+    principal point when κ1 ≠ 0 (then K loses its c; the fit is translation invariant)."""
+    boundary, weights = marker.boundary, marker.weights
+    if not (isinstance(boundary, np.ndarray) and boundary.dtype == np.float64 and boundary.ndim == 2
+            and boundary.shape[1] == 2 and boundary.shape[0] >= 5 and isinstance(weights, np.ndarray)
+            and weights.dtype == np.float64 and weights.shape == (boundary.shape[0],)):
+        boundary, weights = _validate(boundary, weights)
+    K = camera.K.tolist()
+    kappa1 = camera.kappa1
+    if kappa1 != 0.0:
+        # Tsai: x_u − c = (x_d − c)(1 + κ1 r²), r² in mm on the sensor (camera.undistort_pixels)
+        sx, sy = camera.dpx / camera.sx, camera.dpy
+        boundary = boundary - (K[0][2], K[1][2])
+        boundary *= (1.0 + np.square(boundary) @ (kappa1 * sx * sx, kappa1 * sy * sy))[:, None]
+        K = [[K[0][0], K[0][1], 0.0], [K[1][0], K[1][1], 0.0], K[2]]
+    return boundary, weights, K
+
+
 def marker_pose_candidates(marker, camera, radius: float) -> tuple[CirclePose, CirclePose]:
     """Both pose candidates of a detected marker (:class:`labctl.vision.Marker`).
 
@@ -199,22 +219,118 @@ def marker_pose_candidates(marker, camera, radius: float) -> tuple[CirclePose, C
     :class:`EllipseFitError` for a degenerate boundary, :class:`CirclePoseError` for no pose.
     """
     radius = _check_radius(radius)
-    boundary, weights = marker.boundary, marker.weights
-    if not (isinstance(boundary, np.ndarray) and boundary.dtype == np.float64 and boundary.ndim == 2
-            and boundary.shape[1] == 2 and boundary.shape[0] >= 5 and isinstance(weights, np.ndarray)
-            and weights.dtype == np.float64 and weights.shape == (boundary.shape[0],)):
-        boundary, weights = _validate(boundary, weights)
-    K = camera.K.tolist()
-    kappa1 = camera.kappa1
-    if kappa1 != 0.0:
-        # Tsai: x_u − c = (x_d − c)(1 + κ1 r²), r² in mm on the sensor (camera.undistort_pixels);
-        # fitted relative to the principal point c (the fit is translation invariant), so K
-        # loses its c
-        sx, sy = camera.dpx / camera.sx, camera.dpy
-        boundary = boundary - (K[0][2], K[1][2])
-        boundary *= (1.0 + np.square(boundary) @ (kappa1 * sx * sx, kappa1 * sy * sy))[:, None]
-        K = [[K[0][0], K[0][1], 0.0], [K[1][0], K[1][1], 0.0], K[2]]
+    boundary, weights, K = _undistorted_boundary(marker, camera)
     # normalise about a boundary point (one radius off the centre: well conditioned, and cheaper
     # than the weighted centroid)
     conic = _fit(boundary, weights, None, origin=boundary[0].tolist())[0]
     return _poses_from_cone(_cone(conic, K), radius)
+
+
+# Boundary residuals are correlated along the rim (blur, demosaicing, JPEG blocks span several
+# points), so N points carry fewer than N independent errors: the point-noise covariance is
+# inflated by this factor (≈ correlation length in points), and the per-point σ has a floor.
+NOISE_INFLATION = 2.0
+POINT_SIGMA_FLOOR_PX = 0.05
+# a pose whose normal σ exceeds this is flagged ``uncertain_normal``: a sixth of the 3° gross error, since
+# highlights and blur add systematic errors of up to ~6 σ (measured on the degradation suite)
+MAX_TRUSTED_NORMAL_SIGMA_RAD = math.radians(0.5)
+
+
+@dataclass(frozen=True)
+class MarkerPoses:
+    """Both pose candidates of one marker with their uncertainty (paper §3.2).
+
+    ``candidates``: the two :class:`CirclePose`; ``normal_sigma_rad``: each candidate's normal
+    standard deviation (rad, √trace of its 3×3 covariance); ``normal_cov`` / ``center_cov``:
+    2×3×3 covariances (unit-less / mm², camera frame) propagated from the ellipse's covariance
+    (boundary-point noise σ from the fit residual, inflated by :data:`NOISE_INFLATION`);
+    ``flags``: the marker's quality flags, plus ``uncertain_normal`` when a normal's σ exceeds
+    :data:`MAX_TRUSTED_NORMAL_SIGMA_RAD`; ``trusted``: no flag."""
+
+    candidates: tuple[CirclePose, CirclePose]
+    normal_sigma_rad: tuple[float, float]
+    normal_cov: np.ndarray
+    center_cov: np.ndarray
+    trusted: bool = True
+    flags: tuple[str, ...] = ()
+
+    def to_dict(self) -> dict:
+        return {"candidates": [c.to_dict() for c in self.candidates],
+                "normal_sigma_deg": [math.degrees(s) for s in self.normal_sigma_rad],
+                "center_sigma_mm": [float(math.sqrt(max(np.trace(c), 0.0))) for c in self.center_cov],
+                "trusted": self.trusted, "flags": list(self.flags)}
+
+
+def marker_poses(marker, camera, radius: float) -> MarkerPoses:
+    """Both pose candidates of a marker (as :func:`marker_pose_candidates`) with their covariance.
+
+    The ellipse's five parameters (centre, semi-axes, angle) get the covariance σ² (JᵀJ)⁻¹ of a
+    least-squares fit, J the Jacobian of the points' geometric (Sampson) distances, σ² the
+    weighted mean squared residual (floor :data:`POINT_SIGMA_FLOOR_PX`) × :data:`NOISE_INFLATION`.
+    It is propagated to each candidate's normal and centre by central differences along its
+    principal axes (sigma points). Raises as :func:`marker_pose_candidates`.
+    """
+    radius = _check_radius(radius)
+    boundary, weights, K = _undistorted_boundary(marker, camera)
+    conic = _fit(boundary, weights, None, origin=boundary[0].tolist())[0]
+    base = _poses_from_cone(_cone(conic, K), radius)
+    ell = Ellipse.from_conic(conic)
+    params = np.array([ell.center[0], ell.center[1], ell.axes[0], ell.axes[1], ell.angle])
+
+    def distances(p):
+        e = Ellipse.from_params(p[:2], p[2:4], p[4])
+        a, b, c, d, ee, f = e.conic
+        x, y = boundary[:, 0], boundary[:, 1]
+        gx, gy = 2 * a * x + b * y + d, b * x + 2 * c * y + ee
+        return (a * x * x + b * x * y + c * y * y + d * x + ee * y + f) / np.sqrt(np.maximum(gx * gx + gy * gy,
+                                                                                              1e-300))
+
+    r0 = distances(params)
+    steps = np.array([1e-3, 1e-3, 1e-3, 1e-3, 1e-4])
+    J = np.empty((len(r0), 5))
+    for k in range(5):
+        dp = np.zeros(5)
+        dp[k] = steps[k]
+        J[:, k] = (distances(params + dp) - distances(params - dp)) / (2 * steps[k])
+    sigma2 = max(float(weights @ (r0 * r0)) / float(weights.sum()), POINT_SIGMA_FLOOR_PX**2) * NOISE_INFLATION
+    try:
+        cov = sigma2 * np.linalg.inv(J.T @ J)
+    except np.linalg.LinAlgError:
+        cov = np.diag(np.full(5, np.inf))
+    lam, vec = np.linalg.eigh(0.5 * (cov + cov.T))
+    ncov = np.zeros((2, 3, 3))
+    ccov = np.zeros((2, 3, 3))
+    if not np.all(np.isfinite(lam)):
+        ncov[:] = np.eye(3)
+        ccov[:] = np.eye(3) * 1e6
+    else:
+        for k in range(5):
+            dp = math.sqrt(max(float(lam[k]), 0.0)) * vec[:, k]
+            dp[4] = max(-0.5 * math.pi, min(0.5 * math.pi, dp[4]))  # the angle of a near-circle is free
+            out = []
+            for sgn in (1.0, -1.0):
+                p = params + sgn * dp
+                try:
+                    pair = _poses_from_cone(_cone(Ellipse.from_params(p[:2], p[2:4], p[4]).conic.tolist(), K), radius)
+                except (CirclePoseError, EllipseFitError, ValueError):
+                    pair = None
+                out.append(pair)
+            for j in range(2):
+                if out[0] is None or out[1] is None:
+                    ncov[j] += np.eye(3)
+                    ccov[j] += np.eye(3) * 1e4
+                    continue
+                ref = base[j].normal
+                plus = max(out[0], key=lambda c: float(c.normal @ ref))
+                minus = max(out[1], key=lambda c: float(c.normal @ ref))
+                dn = 0.5 * (plus.normal - minus.normal)
+                dc = 0.5 * (plus.center - minus.center)
+                ncov[j] += np.outer(dn, dn)
+                ccov[j] += np.outer(dc, dc)
+    sig = tuple(float(math.sqrt(max(np.trace(c), 0.0))) for c in ncov)
+    q = getattr(marker, "quality", None)
+    flags = tuple(q.flags) if q is not None else ("no_quality",)
+    if not max(sig) <= MAX_TRUSTED_NORMAL_SIGMA_RAD:  # e.g. a marker facing the camera: its tilt is ill-defined
+        flags += ("uncertain_normal",)
+    trusted = not flags
+    return MarkerPoses(base, sig, ncov, ccov, trusted, flags)

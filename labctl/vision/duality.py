@@ -44,9 +44,12 @@ class DualityResult:
     margin_rad: float
     scores_rad: tuple[float, float]
     ambiguous: bool
+    threshold_rad: float = DEFAULT_MIN_MARGIN_RAD  # the margin it had to reach
+    suspect: bool = False  # a marker behind it carries a quality flag: never silently trusted
 
     def to_dict(self) -> dict:
         return {"resolved": not self.ambiguous, "index": self.index, "margin_deg": math.degrees(self.margin_rad),
+                "threshold_deg": math.degrees(self.threshold_rad), "suspect": self.suspect,
                 "scores_deg": [math.degrees(s) for s in self.scores_rad], "pose": self.best.to_dict()}
 
 
@@ -98,7 +101,37 @@ def resolve_duality_detailed(first, second, motion: str = "translation", plane_n
     margin = abs(scores[1] - scores[0])
     ambiguous = not (margin >= min_margin_rad)
     best = second[index]
-    return DualityResult(None if ambiguous else best, best, index, margin, scores, ambiguous)
+    return DualityResult(None if ambiguous else best, best, index, margin, scores, ambiguous, min_margin_rad)
+
+
+DEFAULT_K_SIGMA = 3.0
+
+
+def resolve_duality_noise_aware(first, second, motion: str = "translation", plane_normal=None, *,
+                                R_first_second=None, k_sigma: float = DEFAULT_K_SIGMA,
+                                min_margin_rad: float = DEFAULT_MIN_MARGIN_RAD) -> DualityResult:
+    """Pick the true pose of the second image from two :class:`~.circle_pose.MarkerPoses`
+    (paper §3.3), deciding only when the margin stands out of the noise.
+
+    Under noise each candidate's score (its mismatch with the first image) wanders by about
+    σ = √(σ₁² + σ₂²), σᵢ the larger normal standard deviation of image i's candidates (their
+    covariances, :func:`~.circle_pose.marker_poses`), and the margin — the difference of two such
+    scores — by about √2 σ. The choice is made only when the margin exceeds
+    max(``k_sigma`` · √2 σ, ``min_margin_rad``); otherwise the result is ambiguous. ``suspect``
+    is set when either marker carries a quality flag. Other arguments as
+    :func:`resolve_duality_detailed`.
+    """
+    s1 = max(first.normal_sigma_rad)
+    s2 = max(second.normal_sigma_rad)
+    sigma = math.sqrt(s1 * s1 + s2 * s2)
+    threshold = max(k_sigma * math.sqrt(2.0) * sigma, min_margin_rad)
+    if not math.isfinite(threshold):
+        threshold = math.inf
+    res = resolve_duality_detailed(first.candidates, second.candidates, motion, plane_normal,
+                                   R_first_second=R_first_second, min_margin_rad=threshold)
+    suspect = not (first.trusted and second.trusted)
+    return DualityResult(res.pose, res.best, res.index, res.margin_rad, res.scores_rad, res.ambiguous, threshold,
+                         suspect)
 
 
 def resolve_duality(first, second, motion: str = "translation", plane_normal=None, *,

@@ -55,19 +55,39 @@ class Marker:
     bbox: tuple[int, int, int, int]
     touches_border: bool = False
     fit_rms_px: float = 0.0
+    quality: MarkerQuality | None = None  # None in the tracker's centroid-only mode
+
+    @property
+    def trusted(self) -> bool:
+        """A sub-pixel marker with no quality flag (see :class:`MarkerQuality`)."""
+        return self.quality is not None and self.quality.trusted
 
     def to_dict(self) -> dict:
-        return {"centroid_px": [float(v) for v in self.centroid], "area_px": float(self.area),
-                "bbox": list(self.bbox), "touches_border": bool(self.touches_border),
-                "fit_rms_px": float(self.fit_rms_px), "boundary_points": int(len(self.boundary)),
-                "ellipse": self.ellipse.to_dict()}
+        out = {"centroid_px": [float(v) for v in self.centroid], "area_px": float(self.area),
+               "bbox": list(self.bbox), "touches_border": bool(self.touches_border),
+               "fit_rms_px": float(self.fit_rms_px), "boundary_points": int(len(self.boundary)),
+               "ellipse": self.ellipse.to_dict()}
+        if self.quality is not None:
+            out["quality"] = self.quality.to_dict()
+        return out
 
 
-def _as_bgr(image) -> np.ndarray:
+def _check_image(image) -> np.ndarray:
     img = np.asarray(image) if image is not None else None
     if img is None or img.ndim != 3 or img.shape[2] != 3 or img.size == 0:
         shape = None if img is None else img.shape
         raise MarkerImageError(f"expected an H×W×3 BGR image, got shape {shape}")
+    if img.dtype != np.uint8 and not np.issubdtype(img.dtype, np.number):
+        raise MarkerImageError(f"unsupported image dtype {img.dtype}")
+    return img
+
+
+def _as_bgr(image) -> np.ndarray:
+    """8-bit BGR for the colour threshold: uint8 as is, uint16 scaled by 1/257 (full range, not
+    clipped), floats in [0, 1] scaled by 255 (otherwise taken as 0–255)."""
+    img = _check_image(image)
+    if img.dtype == np.uint16:
+        return cv2.convertScaleAbs(img, alpha=1.0 / 257.0)
     if img.dtype != np.uint8:
         if not np.issubdtype(img.dtype, np.number):
             raise MarkerImageError(f"unsupported image dtype {img.dtype}")
@@ -120,181 +140,361 @@ def red_mask(image_bgr: np.ndarray, hue_range_deg=(-15.0, 15.0), min_saturation:
     return _red_mask(_as_bgr(image_bgr), hue_range_deg, min_saturation, min_value)
 
 
-_SCAN = 6  # pixels per area-rule scan across an edge (3 on each side of the crossing)
-_SCAN_SUMS = np.zeros((_SCAN, 3), np.float32)  # profile → (sum, first − last, first + last)
-_SCAN_SUMS[:, 0] = 1.0
-_SCAN_SUMS[0, 1:] = 1.0
-_SCAN_SUMS[-1, 1:] = (-1.0, 1.0)
-_K5 = np.ones((5, 5), np.uint8)  # 3×3 dilated twice
-_NEAR_PX = 4  # a blob's neighbourhood: its pixels dilated by 4 (covers every scan's outer plateau)
-_K_NEAR = np.ones((2 * _NEAR_PX + 1, 2 * _NEAR_PX + 1), np.uint8)
-_PAD = _NEAR_PX + _SCAN // 2  # crop margin: the coverage is zero in its outer _SCAN // 2 pixels
+@dataclass(frozen=True)
+class MarkerQuality:
+    """How far a marker can be trusted (paper §3.1's fit, judged).
+
+    ``arc_coverage``: fraction of the ellipse's perimeter (24 equal-angle sectors in its own
+    frame) that has inlier boundary points; ``residual_rel``: inlier RMS distance to the ellipse
+    ÷ its minor semi-axis; ``inlier_fraction``: inlier share of the measured boundary (by arc
+    length); ``solidity``: hole-filled blob area ÷ its convex hull area; ``edge_contrast``:
+    median linear colour contrast across the edge (0–1 of full scale); ``flags``: why it is not
+    trusted (empty: trusted). Flags: ``border`` (cut by the image edge), ``partial`` (under 85 %
+    of the rim measured: occluded, shadowed or cut), ``rough`` (residual over 4 % of the minor
+    semi-axis), ``outliers`` (under 75 % of the boundary fits the ellipse), ``low_contrast``
+    (edge contrast under 0.04), ``blurred`` (a quarter of the edge transitions wider than
+    max(3 px, 0.2 × minor semi-axis): motion or defocus smears the shape), ``merged`` (the
+    colour blob is much larger than its ellipse: a neighbour touches it)."""
+
+    arc_coverage: float
+    residual_rel: float
+    inlier_fraction: float
+    solidity: float
+    edge_contrast: float
+    flags: tuple[str, ...] = ()
+
+    @property
+    def trusted(self) -> bool:
+        return not self.flags
+
+    def to_dict(self) -> dict:
+        return {"arc_coverage": round(float(self.arc_coverage), 4), "residual_rel": float(self.residual_rel),
+                "inlier_fraction": round(float(self.inlier_fraction), 4), "solidity": round(float(self.solidity), 4),
+                "edge_contrast": float(self.edge_contrast), "flags": list(self.flags), "trusted": self.trusted}
 
 
-def _boundary(c: np.ndarray, center: tuple[float, float], quad: np.ndarray, padded: bool = False):
-    """Weighted sub-pixel boundary points of the blob in coverage image ``c`` (float32, ROI
-    pixels), paper §3.1: every row and column crossing the 50 % level gives one point by the
-    area rule over a 6-px scan, (start − ½) + Σc, kept only where the scan runs from plateau
-    (> 0.8) to plateau (< 0.2). Rows take the edge where it is closer to vertical, columns where
-    it is closer to horizontal, judged by the normal of a rough ellipse (``center``, symmetric
-    2×2 matrix ``quad`` of its quadratic form in (x − x0, y − y0)). Weight wᵢ = arc length
-    per point = 1/|cos(scan, normal)| ∈ [1, √2] (the paper's non-uniform sampling weights, eq. 2).
-
-    Vectorised over rows and columns at once on the flat image. ``c`` must be zero in its outer
-    ``_SCAN // 2`` pixels (then every scan stays in its own row / column) unless ``padded`` is
-    False, when such a margin is added here. Returns (points N×2 as (x, y) relative to
-    ``center``, weights N)."""
-    half = _SCAN // 2
-    cp = c if padded else cv2.copyMakeBorder(c, half, half, half, half, cv2.BORDER_CONSTANT, value=0.0)
-    margin = 0 if padded else half
-    w = cp.shape[1]
-    size = cp.size
-    flat = cp.ravel()
-    inside = flat > 0.5
-    # flat index t of each scan's first pixel: a row scan covers t … t + 5 and crosses 50 %
-    # between t + 2 and t + 3; a column scan covers t, t + w, … t + 5w. The zero margin keeps
-    # every scan inside its own row / column.
-    kr = np.flatnonzero(inside[half:] != inside[half - 1:-1])
-    kc = np.flatnonzero(inside[half * w:] != inside[(half - 1) * w:-w])
-    nr = kr.shape[0]
-    n = nr + kc.shape[0]
-    if n == 0:
-        return np.empty((0, 2)), np.empty(0)
-    # all row scans / column scans as strided views of the flat image (no copies)
-    item = flat.itemsize
-    row_scans = np.ndarray((size - _SCAN + 1, _SCAN), flat.dtype, flat, 0, (item, item))
-    col_scans = np.ndarray((size - (_SCAN - 1) * w, _SCAN), flat.dtype, flat, 0, (item, item * w))
-    prof = np.concatenate((row_scans[kr], col_scans[kc])) @ _SCAN_SUMS  # per scan: Σc, first − last, first + last
-    total, drop, ends = prof[:, 0], prof[:, 1], prof[:, 2]
-    # the edge's position along the scan from its first pixel: Σc − ½ for a falling edge
-    # (marker first), _SCAN − ½ − Σc for a rising one
-    offset = (total - 0.5 * _SCAN) * np.sign(drop) + 0.5 * (_SCAN - 1)
-    # plateau to plateau, max(first, last) > 0.8 and min(first, last) < 0.2, else another edge
-    # or a tip is inside the scan
-    clean = np.abs(drop) - np.abs(ends - 1.0) > 0.6
-    pts = np.empty((n, 2))
-    pts[:, 1], pts[:, 0] = np.divmod(np.concatenate((kr, kc)), w)
-    pts[:nr, 0] += offset[:nr]
-    pts[nr:, 1] += offset[nr:]
-    pts -= (margin + center[0], margin + center[1])  # relative to the rough centre
-    # rough normal ∝ ∇Q; rows keep |nx| > |ny|, columns |ny| > |nx|
-    normal2 = np.square(pts @ quad)
-    norm2 = normal2[:, 0] + normal2[:, 1]
-    along2 = np.concatenate((normal2[:nr, 0], normal2[nr:, 1]))
-    keep = clean & (along2 + along2 > norm2)
-    return pts[keep], np.sqrt(norm2[keep] / along2[keep])
+_SCAN_HALF = 4  # px: scans run 8 px across the edge (covers 2–3 px of blur), shorter on small blobs
+_SCAN_HALF_MAX = 9  # px: how far scans may grow on a blurred edge
+_SECTORS = 24
+_K5 = np.ones((5, 5), np.uint8)
+_K9 = np.ones((9, 9), np.uint8)
+_PAD = _SCAN_HALF_MAX + 4  # crop margin around a blob: scans reach half + 2 px out, the ring 4 px
 
 
-def _levels(roi: np.ndarray, blob: np.ndarray, near: np.ndarray) -> tuple[tuple, tuple] | None:
-    """Inside and outside colours (BGR means) of one blob (uint8 mask): over its core (eroded
-    twice by 3×3) and over the ring 3…4 px around it (``near`` minus the blob dilated twice),
-    i.e. over clean pixels well inside and well outside the anti-aliased edge."""
-    core = cv2.erode(blob, _K5)
-    if cv2.countNonZero(core) < 3:
-        core = cv2.erode(blob, _K3)
-        if cv2.countNonZero(core) < 3:
-            core = blob
-    ring = cv2.subtract(near, cv2.dilate(blob, _K5))
-    if not cv2.countNonZero(ring):
-        return None
-    return cv2.mean(roi, mask=core)[:3], cv2.mean(roi, mask=ring)[:3]
+def _outward_normals(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unit outward normals of a closed contour (N×2) from the chord over ±3 points, and each
+    point's arc length (mean of its two steps: 1 or √2 on an 8-connected contour)."""
+    fwd = np.roll(pts, -3, axis=0) - np.roll(pts, 3, axis=0)
+    x, y = pts[:, 0], pts[:, 1]
+    area2 = float(x @ np.roll(y, -1) - y @ np.roll(x, -1))  # > 0: counter-clockwise in image axes
+    n = np.stack([fwd[:, 1], -fwd[:, 0]], axis=1) * (1.0 if area2 > 0 else -1.0)
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    step = np.linalg.norm(np.roll(pts, -1, axis=0) - pts, axis=1)
+    return n, 0.5 * (step + np.roll(step, 1))
 
 
-def _sampson_rms(conic: list[float], pts: np.ndarray, weights: np.ndarray) -> float:
-    """Weighted RMS first-order geometric distance |Q|/|∇Q| of ``pts`` to ``conic`` (px)."""
+def _hull_support(pts: np.ndarray, contour: np.ndarray, max_edge: float) -> np.ndarray:
+    """True for contour points on the convex hull (within 1.5 px of it) and not on a long
+    straight hull edge (longer than ``max_edge`` px: an occluder's chord, a bar's side or a
+    cut): the points that can belong to a convex, smooth rim. Highlight notches, shadow bites
+    and the necks of merged neighbours are concave and drop out."""
+    idx = np.sort(cv2.convexHull(contour, returnPoints=False).ravel())
+    if idx.size < 3:
+        return np.zeros(len(pts), bool)
+    seg = np.searchsorted(idx, np.arange(len(pts)), side="right") - 1  # hull edge k: idx[k] → idx[k + 1]
+    a = pts[idx[seg % idx.size]]
+    b = pts[idx[(seg + 1) % idx.size]]
+    ab = b - a
+    length = np.linalg.norm(ab, axis=1)
+    d = np.abs(ab[:, 0] * (pts[:, 1] - a[:, 1]) - ab[:, 1] * (pts[:, 0] - a[:, 0])) / np.maximum(length, 1e-9)
+    return (d <= 1.5) & (length <= max_edge)
+
+
+def _straight(pts: np.ndarray, kept: np.ndarray, m: int, tol: float = 0.2) -> np.ndarray:
+    """True for boundary points (closed contour order, N×2) whose window of ``m`` neighbours
+    on either side is a straight line to within ``tol`` px RMS: an occluder's edge, a cut, a
+    bar's side. A rim arc of the same length bends by far more (the window is chosen so)."""
+    n = len(pts)
+    if n < 2 * m + 1 or m < 3:
+        return np.zeros(n, bool)
+    k = kept.astype(np.float64)
+    x, y = pts[:, 0] * k, pts[:, 1] * k
+    cols = np.stack([k, x, y, x * pts[:, 0], y * pts[:, 1], x * pts[:, 1]], axis=1)
+    ext = np.concatenate([cols[-m:], cols, cols[:m + 1]])
+    c = np.cumsum(ext, axis=0)
+    win = c[2 * m + 1:2 * m + 1 + n] - c[:n]  # sums over [i − m, i + m]
+    cnt = np.maximum(win[:, 0], 1.0)
+    mx, my = win[:, 1] / cnt, win[:, 2] / cnt
+    sxx = win[:, 3] / cnt - mx * mx
+    syy = win[:, 4] / cnt - my * my
+    sxy = win[:, 5] / cnt - mx * my
+    half_tr = 0.5 * (sxx + syy)
+    small = half_tr - np.sqrt(np.maximum(0.25 * (sxx - syy) ** 2 + sxy * sxy, 0.0))
+    return kept & (win[:, 0] >= 1.5 * m) & (small < tol * tol)
+
+
+def _scans(signal: np.ndarray, seeds: np.ndarray, normals: np.ndarray, half: int, shift=None):
+    """Pixel scans across the edge at each seed (N×2 int, crop pixels): along the row where the
+    outward normal is closer to horizontal, along the column otherwise, in the outward direction,
+    over offsets k = −half+1 … half (+ ``shift``) from the seed. Returns (row?, sign, k₀ per
+    scan, N×S samples)."""
+    row = np.abs(normals[:, 0]) >= np.abs(normals[:, 1])
+    sgn = np.where(row, np.sign(normals[:, 0]), np.sign(normals[:, 1])).astype(np.int64)
+    sgn[sgn == 0] = 1
+    k0 = np.full(len(seeds), 1 - half, np.int64) if shift is None else 1 - half + shift
+    k = k0[:, None] + np.arange(2 * half)
+    H, W = signal.shape
+    xs = np.clip(seeds[:, 0:1] + np.where(row, sgn, 0)[:, None] * k, 0, W - 1)
+    ys = np.clip(seeds[:, 1:2] + np.where(row, 0, sgn)[:, None] * k, 0, H - 1)
+    return row, sgn, k0, signal[ys, xs]
+
+
+def _transition_width(prof: np.ndarray) -> np.ndarray:
+    """Pixels of each scan between 10 % and 90 % of the way from its outside to its inside level."""
+    p = 2 if prof.shape[1] >= 6 else 1
+    lo, hi = prof[:, -p:].mean(axis=1), prof[:, :p].mean(axis=1)
+    c = (prof - lo[:, None]) / np.maximum(hi - lo, 1e-6)[:, None]
+    return np.count_nonzero((c > 0.1) & (c < 0.9), axis=1)
+
+
+def _edge_offsets(prof: np.ndarray, k0: np.ndarray, contrast: float):
+    """Edge position along each scan by the area rule with locally normalised plateaus.
+
+    Each scan is normalised by its *own* inside and outside levels (means of its first and last
+    two pixels), c = (s − out)/(in − out), which removes shading, shadows and smooth background
+    changes; the edge then sits at (k₀ − ½) + Σc along the scan (exact for a straight edge at
+    any sub-pixel phase and angle up to 45°, and for any symmetric blur whose transition fits
+    the scan). A scan is kept when its local contrast is at least 20 % of the blob's and its
+    normalised samples stay within [−0.45, 1.45] (no second edge inside). Returns (offset from
+    the seed in px along the scan, kept, local contrast)."""
+    p = 2 if prof.shape[1] >= 6 else 1
+    inside = prof[:, :p].mean(axis=1)
+    outside = prof[:, -p:].mean(axis=1)
+    local = inside - outside
+    safe = np.where(np.abs(local) > 1e-6, local, 1e-6)
+    c = (prof - outside[:, None]) / safe[:, None]
+    offset = (k0 - 0.5) + c.sum(axis=1)
+    sm = 0.5 * c[:, 1:-1] + 0.25 * (c[:, :-2] + c[:, 2:])
+    kept = (local > 0.2 * contrast) & (sm.min(axis=1) > -0.45) & (sm.max(axis=1) < 1.45)
+    return offset, kept, local
+
+
+def _sampson(conic, pts: np.ndarray) -> np.ndarray:
+    """Signed first-order geometric distance Q/|∇Q| of each point to the conic (px)."""
     a, b, c, d, e, f = conic
     x, y = pts[:, 0], pts[:, 1]
-    gx = (2.0 * a) * x + b * y + d
-    gy = b * x + (2.0 * c) * y + e
-    q = 0.5 * (gx * x + gy * y + d * x + e * y) + f  # Q = ½ (x·∇Q + d x + e y) + f
-    d2 = q * q / np.maximum(gx * gx + gy * gy, 1e-300)
-    return math.sqrt(float(weights @ d2) / float(weights.sum()))
+    gx = 2.0 * a * x + b * y + d
+    gy = b * x + 2.0 * c * y + e
+    q = a * x * x + b * x * y + c * y * y + d * x + e * y + f
+    return q / np.sqrt(np.maximum(gx * gx + gy * gy, 1e-300))
 
 
-def _analyse_blob(img: np.ndarray, labels: np.ndarray, label: int, bbox, label_origin,
-                  max_fit_rms_px: float, refine: bool) -> Marker | None:
-    """Measure one connected component: ``bbox`` (x, y, w, h) in ``labels``' pixels, whose
-    top-left pixel is ``label_origin`` in the full image ``img``. All work is on a small crop
-    (the blob's bounding box plus the scan length)."""
-    x, y, w, h = bbox
-    lx, ly = label_origin
-    H, W = img.shape[:2]
-    pad = _PAD
-    gx, gy = x + lx, y + ly  # blob bbox in image pixels
-    touches = bool(gx <= 0 or gy <= 0 or gx + w >= W or gy + h >= H)
-    bbox_img = (int(gx), int(gy), int(gx + w), int(gy + h))
-    if not refine:  # tracker mode (paper §4.1): centroid and moment ellipse of the thresholded blob
-        blob = (labels[y:y + h, x:x + w] == label).view(np.uint8)
-        mb = cv2.moments(blob)  # 0/1 values: the binary moments, without binaryImage's cost
-        rough = _moment_conic(mb, gx, gy)
-        if rough is None:
-            return None
-        try:
-            ell = Ellipse.from_conic(rough)
-        except EllipseFitError:
-            return None
-        centroid = (mb["m10"] / mb["m00"] + gx, mb["m01"] / mb["m00"] + gy)
-        return Marker(centroid, ell, float(mb["m00"]), np.empty((0, 2)), np.empty(0), bbox_img, touches, float("nan"))
-    x0, y0 = max(gx - pad, 0), max(gy - pad, 0)
-    x1, y1 = min(gx + w + pad, W), min(gy + h + pad, H)
-    part = labels[y:y + h, x:x + w]
-    if part.dtype != np.uint8:  # a label image: this label's pixels as 0/255
-        part = cv2.compare(part, label, cv2.CMP_EQ)
-    blob = cv2.copyMakeBorder(part, gy - y0, y1 - gy - h, gx - x0, x1 - gx - w, cv2.BORDER_CONSTANT, value=0)
-    roi = img[y0:y1, x0:x1]
-    near = cv2.dilate(blob, _K_NEAR)  # the blob's neighbourhood: other blobs in the crop must not add edges
-    levels = _levels(roi, blob, near)
-    if levels is None:
-        return None
-    (bi, gi, ri), (bo, go, ro) = levels
-    contrast = (bi - bo, gi - go, ri - ro)
-    c2 = contrast[0] ** 2 + contrast[1] ** 2 + contrast[2] ** 2
-    if not c2 >= 100.0:  # under 10 grey levels of colour contrast: no measurable edge
-        return None
-    # coverage: each pixel's colour projected on the outside→inside colour difference
-    # ÷ 255: the neighbourhood mask it is multiplied by is 0/255
-    k = 1.0 / (255.0 * c2)
-    g0, g1, g2 = contrast[0] * k, contrast[1] * k, contrast[2] * k
-    project = np.array([[g0, g1, g2, -(g0 * bo + g1 * go + g2 * ro)]], np.float32)
-    c = cv2.transform(roi.astype(np.float32), project)
-    np.multiply(c, near, out=c)
-    m = cv2.moments(cv2.threshold(cv2.threshold(c, 1.0, 1.0, cv2.THRESH_TRUNC)[1], 0.0, 0.0, cv2.THRESH_TOZERO)[1])
-    area = m["m00"]
-    if area < 3:
-        return None
-    cx, cy = m["m10"] / area, m["m01"] / area
-    # rough ellipse: the coverage's second moments; its quadratic form ∝ covariance⁻¹
-    mu20, mu11, mu02 = m["mu20"], m["mu11"], m["mu02"]
-    if not mu20 * mu02 - mu11 * mu11 > 1e-12 * (mu20 * mu20 + mu02 * mu02):
-        return None
-    unclipped = x0 == gx - pad and y0 == gy - pad and x1 == gx + w + pad and y1 == gy + h + pad
-    rel, wts = _boundary(c, (cx, cy), np.array([[mu02, -mu11], [-mu11, mu20]]), padded=unclipped)
-    ox, oy = cx + x0, cy + y0  # the rough centre in image pixels
-    if touches:  # drop points near the image edge: the boundary there is the frame, not the marker
-        gp = rel + (ox, oy)
-        inner = (gp[:, 0] > 1.5) & (gp[:, 1] > 1.5) & (gp[:, 0] < W - 2.5) & (gp[:, 1] < H - 2.5)
-        rel, wts = rel[inner], wts[inner]
-    if len(rel) < 6:
-        return None
-    try:  # fit relative to the rough centre (well conditioned), then move to image pixels
-        # RMS boundary radius of the rough ellipse ≈ √(2 (μ20 + μ02) / m00)
-        conic, rms = _fit(rel, wts, 3 if touches else 0, origin=(0.0, 0.0), scale=math.sqrt(area / (mu20 + mu02)))
-    except EllipseFitError:
-        return None
-    if touches:  # after the Sampson refinement the fit's own first-order residual is not available
-        rms = _sampson_rms(conic, rel, wts)
-    if not (rms <= max_fit_rms_px):
-        return None
+def _robust_fit(pts: np.ndarray, w: np.ndarray, start: np.ndarray, scale: float):
+    """Weighted ellipse fit (paper eq. 2) with outlier rejection, in two stages so the inlier
+    set cannot creep along an occluder's edge: (1) fit the ``start`` points (those that can be
+    rim), trimming any farther than max(3σ, 0.35 px) (σ = 1.48 × median absolute distance) and
+    refitting until stable; (2) admit every point within max(2.5σ₁, 0.25 px) of that fit (σ₁ of
+    stage 1's inliers). Returns (conic of the stage-1 fit, final inlier mask)."""
+    inl = start.copy()
+    conic = None
+    sigma = 0.0
+    for _ in range(6):
+        if np.count_nonzero(inl) < 6:
+            break
+        conic, _ = _fit(pts[inl], w[inl], 0, origin=(0.0, 0.0), scale=scale)
+        if not _conic_is_ellipse(conic):
+            raise EllipseFitError("hyperbolic fit")
+        d = np.abs(_sampson(conic, pts))
+        sigma = 1.4826 * float(np.median(d[inl]))
+        new = inl & (d <= max(3.0 * sigma, 0.35))
+        if np.array_equal(new, inl):
+            break
+        inl = new
+    if conic is None or np.count_nonzero(inl) < 6:
+        raise EllipseFitError("too few consistent boundary points")
+    d = np.abs(_sampson(conic, pts))
+    return conic, inl | (d <= max(2.5 * sigma, 0.25))
+
+
+def _conic_is_ellipse(q) -> bool:
+    a, b, c = q[0], q[1], q[2]
+    return bool(np.all(np.isfinite(q)) and 4.0 * a * c - b * b > 0)
+
+
+def _arc_coverage(ell: Ellipse, pts: np.ndarray) -> float:
+    """Fraction of :data:`_SECTORS` equal sectors of the ellipse's eccentric angle holding points."""
+    (a, b), th = ell.axes, ell.angle
+    d = pts - ell.center
+    ct, st = math.cos(th), math.sin(th)
+    u = (d[:, 0] * ct + d[:, 1] * st) / a
+    v = (-d[:, 0] * st + d[:, 1] * ct) / b
+    k = ((np.arctan2(v, u) + np.pi) * (_SECTORS / (2 * np.pi))).astype(int) % _SECTORS
+    return np.unique(k).size / _SECTORS
+
+
+class _Reject(Exception):
+    """A blob that is no marker: the reason goes into the search report."""
+
+
+def _analyse_contour(img8: np.ndarray, linear_crop, contour: np.ndarray, touches: bool,
+                     min_axis_ratio: float, max_residual_rel: float) -> Marker:
+    """Sub-pixel boundary, robust fit and quality of one hole-filled colour blob (its external
+    ``contour`` in image pixels), paper §3.1. Works on a crop around the blob."""
+    H, W = img8.shape[:2]
+    bx, by, bw, bh = cv2.boundingRect(contour)
+    x0, y0 = max(bx - _PAD, 0), max(by - _PAD, 0)
+    x1, y1 = min(bx + bw + _PAD, W), min(by + bh + _PAD, H)
+    pts = contour[:, 0, :].astype(np.float64) - (x0, y0)
+    filled = np.zeros((y1 - y0, x1 - x0), np.uint8)
+    cv2.drawContours(filled, [contour], -1, 255, -1, offset=(-x0, -y0))
+    mfill = cv2.moments(filled, binaryImage=True)
+    area_fill = mfill["m00"]
+    rough = _moment_conic(mfill, 0.0, 0.0)
+    if rough is None:
+        raise _Reject("degenerate blob")
     try:
-        ell = Ellipse.from_conic(_shift_conic(conic, ox, oy))
+        rough_ell = Ellipse.from_conic(rough)
     except EllipseFitError:
-        return None
-    if not touches:  # the blob must look like its ellipse (not two touching discs, not a bar)
-        ratio = area / ell.area
-        if not 0.8 < ratio < 1.2:
-            return None
-    rel += (ox, oy)
-    return Marker((ox, oy), ell, area, rel, wts, bbox_img, touches, rms)
+        raise _Reject("degenerate blob") from None
+    ra, rb = rough_ell.axes
+    hull_area = cv2.contourArea(cv2.convexHull(contour))
+    solidity = float(cv2.contourArea(contour) / hull_area) if hull_area > 0 else 0.0
+    lin = linear_crop(y0, y1, x0, x1)
+    # inside / outside colours: medians over the core and over a ring 3–4 px outside the blob
+    core = cv2.erode(filled, _K5)
+    if cv2.countNonZero(core) < 4:
+        core = filled
+    ring = cv2.subtract(cv2.dilate(filled, _K9), cv2.dilate(filled, _K5))
+    if not cv2.countNonZero(ring):
+        raise _Reject("no background around the blob")
+    ci = np.median(lin[core > 0], axis=0)
+    co = np.median(lin[ring > 0], axis=0)
+    # the signal: colour along the inside−outside difference, made blind to the outside colour's
+    # own direction, so shading, shadows, texture and highlights of the background (which scale
+    # or add to grey) leave it unchanged
+    diff = ci - co
+    dn = float(np.linalg.norm(diff))
+    if not dn > 1e-6:
+        raise _Reject("no colour contrast at the edge")
+    # two candidate signals: the full colour difference (sharpest: carries luminance, which
+    # JPEG and Bayer keep at full resolution), and its part orthogonal to the background's own
+    # colour (blind to background texture, shadows and highlights, which scale or add to
+    # grey); take the one with the better contrast against the ring's spread
+    on = float(np.linalg.norm(co))
+    ring_px = lin[ring > 0]
+    best = None
+    for cand in (diff, diff - (diff @ co) / (on * on) * co if on > 1e-6 else diff):
+        n_ = float(np.linalg.norm(cand))
+        if not n_ > 0.05 * dn:
+            continue
+        u = cand / n_
+        cnr = float(diff @ u) / (float(np.std(ring_px @ u)) + 0.004)
+        if best is None or cnr > best[0] * 1.15:
+            best = (cnr, u)
+    d = best[1].astype(np.float32)
+    contrast = float(diff @ d)
+    if not contrast > 0.01:
+        raise _Reject("no colour contrast at the edge")
+    signal = cv2.transform(lin, d.reshape(1, 3))
+    normals, _ = _outward_normals(pts)
+    max_edge = 3.2 * math.sqrt(ra * ra / max(rb, 0.5))
+    support = _hull_support(pts, contour - (x0, y0), max_edge)
+    if touches:  # the image edge is no marker edge
+        gx, gy = pts[:, 0] + x0, pts[:, 1] + y0
+        support &= (gx > 2.5) & (gy > 2.5) & (gx < W - 3.5) & (gy < H - 3.5)
+    half = int(min(_SCAN_HALF, max(2, math.floor(1.0 + rb))))
+    seeds = contour[:, 0, :].astype(np.int64) - (x0, y0)
+    row, sgn, k0, prof = _scans(signal, seeds, normals, half)
+    off, kept, local = _edge_offsets(prof, k0, contrast)
+    if np.count_nonzero(kept) >= 8:
+        # a blurred edge (defocus, motion) whose transition reaches the plateaus biases the area
+        # rule: lengthen the scans to cover it (as far as the blob's size allows)
+        width = float(np.median(_transition_width(prof[kept])))
+        longer = int(min(_SCAN_HALF_MAX, max(2, math.floor(1.0 + rb)), math.ceil(0.5 * width) + 3))
+        if width > 2 * half - 5 and longer > half:
+            half = longer
+            row, sgn, k0, prof = _scans(signal, seeds, normals, half)
+            off, kept, local = _edge_offsets(prof, k0, contrast)
+    # second pass centred on the edge found: a symmetric scan removes the truncation bias
+    shift = np.clip(np.rint(off - 0.5).astype(np.int64), -2, 2)
+    if np.any(shift):
+        row, sgn, k0, prof = _scans(signal, seeds, normals, half, shift)
+        off, kept2, local = _edge_offsets(prof, k0, contrast)
+        kept &= kept2
+    kept &= np.abs(off - 0.5) < 2.0
+    step = np.where(row[:, None], np.stack([sgn, 0 * sgn], 1), np.stack([0 * sgn, sgn], 1))
+    edge = seeds + off[:, None] * step
+    # one point per scan line: 8-connected contours can put two seeds on one row or column
+    key = np.stack([row, seeds[:, 1] * row + seeds[:, 0] * ~row, sgn, np.rint(4 * off * sgn
+                    + 4 * (seeds[:, 0] * row + seeds[:, 1] * ~row))], 1)
+    _, first = np.unique(key, axis=0, return_index=True)
+    once = np.zeros(len(seeds), bool)
+    once[first] = True
+    kept &= once
+    along = np.maximum(np.abs(normals[:, 0]), np.abs(normals[:, 1]))
+    kept &= along > 0.5  # a degenerate normal (a one-pixel spur) has no scan direction
+    arc = 1.0 / np.maximum(along, 0.5)  # arc length per scan (eq. 2 weights)
+    if touches:  # scans at the image edge measure the frame, not the marker: not part of the rim
+        gx, gy = edge[:, 0] + x0, edge[:, 1] + y0
+        in_frame = (gx > 1.5) & (gy > 1.5) & (gx < W - 2.5) & (gy < H - 2.5)
+        kept &= in_frame
+        once &= in_frame
+    n_kept = int(np.count_nonzero(kept))
+    if n_kept < 8:
+        raise _Reject("too few clean edge profiles")
+    m_win = int(math.ceil(0.5 * math.sqrt(8.0 * ra * ra / max(rb, 0.5))))
+    support &= ~_straight(edge, kept, m_win)
+    p = edge[kept]
+    w = arc[kept]
+    start = support[kept]
+    if np.count_nonzero(start) < 8:
+        start = np.ones(len(p), bool)
+    cx, cy = mfill["m10"] / area_fill, mfill["m01"] / area_fill
+    rel = p - (cx, cy)
+    scale = math.sqrt(2.0) / max(math.sqrt(ra * rb), 1.0)
+    try:
+        _, inl = _robust_fit(rel, w, start, scale)
+        conic, _ = _fit(rel[inl], w[inl], None, origin=(0.0, 0.0), scale=scale)
+        if not _conic_is_ellipse(conic):
+            raise EllipseFitError("hyperbolic fit")
+        ell = Ellipse.from_conic(_shift_conic(conic, cx + x0, cy + y0))
+    except EllipseFitError:
+        raise _Reject("boundary is not an ellipse") from None
+    a, b = ell.axes
+    if not (b / a >= min_axis_ratio):
+        raise _Reject(f"too elongated (axis ratio {b / a:.2f} < {min_axis_ratio:.2f})")
+    bpts = rel[inl] + (cx + x0, cy + y0)
+    bw_ = w[inl]
+    resid = _sampson(ell.conic, bpts)
+    rms = math.sqrt(float(bw_ @ (resid * resid)) / float(bw_.sum()))
+    residual_rel = rms / b
+    if residual_rel > max_residual_rel:
+        raise _Reject(f"not elliptical (boundary residual {residual_rel:.2f} of the minor axis)")
+    coverage = _arc_coverage(ell, bpts)
+    if coverage < 0.5:
+        raise _Reject(f"too little elliptical rim ({100 * coverage:.0f} %)")
+    inlier_fraction = float(bw_.sum() / arc[once].sum())
+    widths = _transition_width(prof[kept])
+    blur_px = float(np.percentile(widths, 75))
+    edge_contrast = float(np.median(local[kept][inl]))
+    flags = []
+    if touches:
+        flags.append("border")
+    if coverage < 0.85:
+        flags.append("partial")
+    if residual_rel > 0.04:
+        flags.append("rough")
+    if inlier_fraction < 0.75:
+        flags.append("outliers")
+    if edge_contrast < 0.04:
+        flags.append("low_contrast")
+    if blur_px > max(3.0, 0.2 * b):  # motion or defocus blur wide against the marker: its shape is smeared
+        flags.append("blurred")
+    if area_fill > 1.3 * ell.area + 2.0 * math.pi * (a + b) * 0.5:
+        flags.append("merged")
+    quality = MarkerQuality(coverage, residual_rel, inlier_fraction, solidity, edge_contrast, tuple(flags))
+    return Marker(tuple(ell.center), ell, float(ell.area), bpts, bw_, (int(bx), int(by), int(bx + bw), int(by + bh)),
+                  touches, rms, quality)
 
 
 _K3 = np.ones((3, 3), np.uint8)
@@ -325,24 +525,224 @@ def _shift_conic(q, dx: float, dy: float) -> list[float]:
     return [a, b, c, d2, e2, f2]
 
 
+def _centroid_blob(labels: np.ndarray, label: int, bbox, label_origin, shape) -> Marker | None:
+    """Tracker mode (paper §4.1): centroid and moment ellipse of one thresholded blob (``bbox``
+    (x, y, w, h) in ``labels``' pixels, whose top-left pixel is ``label_origin`` in an image of
+    ``shape``); no boundary points, no quality."""
+    x, y, w, h = bbox
+    lx, ly = label_origin
+    H, W = shape[:2]
+    gx, gy = x + lx, y + ly
+    touches = bool(gx <= 0 or gy <= 0 or gx + w >= W or gy + h >= H)
+    blob = (labels[y:y + h, x:x + w] == label).view(np.uint8)
+    mb = cv2.moments(blob)  # 0/1 values: the binary moments, without binaryImage's cost
+    rough = _moment_conic(mb, gx, gy)
+    if rough is None:
+        return None
+    try:
+        ell = Ellipse.from_conic(rough)
+    except EllipseFitError:
+        return None
+    centroid = (mb["m10"] / mb["m00"] + gx, mb["m01"] / mb["m00"] + gy)
+    return Marker(centroid, ell, float(mb["m00"]), np.empty((0, 2)), np.empty(0),
+                  (int(gx), int(gy), int(gx + w), int(gy + h)), touches, float("nan"))
+
+
+@dataclass(frozen=True)
+class MarkerSearch:
+    """Result of :func:`find_markers`: ``markers`` (largest first); ``rejected``: (bbox, reason)
+    of each colour blob that was not taken as a marker; ``reason``: why ``markers`` is empty
+    (None when it is not)."""
+
+    markers: list[Marker]
+    rejected: list[tuple[tuple[int, int, int, int], str]] = field(default_factory=list)
+    reason: str | None = None
+
+    def to_dict(self) -> dict:
+        return {"markers": [m.to_dict() for m in self.markers], "reason": self.reason,
+                "rejected": [{"bbox": list(b), "reason": r} for b, r in self.rejected]}
+
+
+def _hue_distance(h: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """Degrees from hue ``h`` (0–360) to the window [lo, hi] (circular; 0 inside)."""
+    mid, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
+    d = np.abs((h - mid + 180.0) % 360.0 - 180.0)
+    return np.maximum(d - half, 0.0)
+
+
+def why_no_marker(image_bgr, *, hue_range_deg=(-15.0, 15.0), min_saturation: float = 0.45,
+                  min_value: float = 0.15, min_area_px: int = 12) -> str:
+    """One sentence on why an image holds no pixels of the marker colour window: too dark, too
+    pale (saturation), or no pixels in the hue window with the nearest saturated hue seen."""
+    img = _as_bgr(image_bgr)[::2, ::2]  # every 4th pixel is plenty for a diagnosis
+    hsv = cv2.cvtColor(img, cv2.COLOR_BGR2HSV_FULL).reshape(-1, 3).astype(np.float32)
+    h, s, v = hsv[:, 0] * (360.0 / 256.0), hsv[:, 1] / 255.0, hsv[:, 2] / 255.0
+    lo, hi = (float(x) for x in hue_range_deg)
+    n_min = max(int(math.ceil(min_area_px / 4.0)), 2)
+    in_hue = (_hue_distance(h, lo, hi) == 0) & (s >= 0.15) & (v >= 0.02)
+    window = f"hue {lo:g}…{hi:g}°, saturation ≥ {min_saturation:g}, value ≥ {min_value:g}"
+    if np.count_nonzero(in_hue & (s >= min_saturation)) >= n_min and \
+            np.count_nonzero(in_hue & (s >= min_saturation) & (v >= min_value)) < n_min:
+        top = float(np.percentile(v[in_hue & (s >= min_saturation)], 99))
+        return (f"too dark: pixels of the marker hue reach value {top:.2f} < {min_value:g} "
+                "(raise exposure or gain, or lower min_value)")
+    if np.count_nonzero(in_hue & (v >= min_value)) >= n_min and \
+            np.count_nonzero(in_hue & (v >= min_value) & (s >= min_saturation)) < n_min:
+        top = float(np.percentile(s[in_hue & (v >= min_value)], 99))
+        return (f"too pale: pixels of the marker hue reach saturation {top:.2f} < {min_saturation:g} "
+                "(low contrast, glare or a white-balance cast? `labctl vision learn-color` measures the window)")
+    sat = (s >= min_saturation) & (v >= min_value)
+    if np.count_nonzero(sat) < n_min:
+        vmax = float(np.percentile(v, 99))
+        if vmax < min_value:
+            return f"too dark: the image's 99th-percentile value is {vmax:.2f} < {min_value:g}"
+        return f"no pixels in the colour window ({window}) and no saturated colour in the image"
+    hist = np.bincount((h[sat] / 2.0).astype(int) % 180, minlength=180)
+    hues = (np.arange(180) + 0.5) * 2.0
+    # significant colours: local peaks of the (circularly smoothed) histogram holding ≥ n_min px
+    # and ≥ 10 % of the largest peak; report the one nearest the window
+    sm = hist + 0.5 * (np.roll(hist, 1) + np.roll(hist, -1))
+    peak = (sm >= np.roll(sm, 1)) & (sm >= np.roll(sm, -1)) & (hist >= n_min) & (sm >= 0.1 * sm.max())
+    if not peak.any():
+        peak = hist == hist.max()
+    dist = np.where(peak, _hue_distance(hues, lo, hi), np.inf)
+    k = int(np.argmin(dist))
+    return (f"no pixels in the colour window ({window}); the nearest saturated colour seen is hue "
+            f"{hues[k]:.0f}° (≈{int(sm[k]) * 4} px), {dist[k]:.0f}° outside it "
+            "(`labctl vision learn-color` measures the window)")
+
+
+def find_markers(image_bgr, *, hue_range_deg=(-15.0, 15.0), min_saturation: float = 0.45,
+                 min_value: float = 0.15, window=None, min_area_px: int = 12, keep_border: bool = False,
+                 max_fit_rms_px: float = 1.5, max_markers: int = 32, response="linear",
+                 min_axis_ratio: float = 0.2, max_residual_rel: float = 0.12) -> MarkerSearch:
+    """Find circular markers of the configured colour in a BGR image, with each one's quality
+    and, when none is found, the reason (paper §3.1 and §4.1's marker thresholding).
+
+    1. **Colour threshold** in HSV (``hue_range_deg``, may straddle 0°; ``min_saturation``,
+       ``min_value`` 0–1): shading scales R, G, B together and leaves hue and saturation alone.
+    2. **Blobs** are the external contours of the mask, i.e. of the *hole-filled* mask, so a
+       highlight or a speck inside a marker does not cut it. Blobs smaller than
+       ``min_area_px``, cut by the image (unless ``keep_border``) or by ``window``
+       (x0, y0, x1, y1) are skipped.
+    3. **Linearise** each blob's crop by the camera's ``response`` (:mod:`.response`:
+       ``linear``, ``srgb``, ``gamma G`` or a LUT), so pixel values are linear in coverage.
+    4. **Sub-pixel edge** along the outward normal at every contour pixel: a colour signal blind
+       to the background's own colour direction, each profile normalised by its *own* inside and
+       outside plateaus, the edge by the area rule (twice, the second window centred on the
+       first answer). Profiles without two plateaus (a neighbour, a highlight, a shadow edge
+       crossing) are dropped.
+    5. **Robust fit** (paper eq. 2, arc-length weights): start from the points on the blob's
+       convex hull away from long straight hull edges (occluder chords, bar sides), then keep
+       points within 3σ (robust σ) and refit; arcs get the Sampson refinement.
+    6. **Gates**: axis ratio ≥ ``min_axis_ratio`` (bars), inlier residual ≤ ``max_residual_rel``
+       of the minor semi-axis and ≤ ``max_fit_rms_px``, rim coverage ≥ 50 %; what passes
+       carries a :class:`MarkerQuality` with flags for partial or suspect markers.
+
+    A 16-bit image is scaled (not clipped) for the threshold and linearised at full depth.
+    Raises :class:`MarkerImageError` only for an array that is not an image.
+    """
+    from .response import parse_response
+
+    raw = _check_image(image_bgr)
+    img = _as_bgr(raw)
+    resp = parse_response(response)
+    src = raw if raw.dtype == np.uint16 else img
+    H, W = img.shape[:2]
+    ox = oy = 0
+    sub = img
+    if window is not None:
+        try:
+            wx0, wy0, wx1, wy1 = (int(round(float(v))) for v in window)
+        except (TypeError, ValueError):
+            raise MarkerImageError(f"window must be (x0, y0, x1, y1), got {window!r}") from None
+        wx0, wy0 = max(wx0, 0), max(wy0, 0)
+        wx1, wy1 = min(wx1, W), min(wy1, H)
+        if wx1 - wx0 < 3 or wy1 - wy0 < 3:
+            return MarkerSearch([], [], "the search window is outside the image")
+        sub = img[wy0:wy1, wx0:wx1]
+        ox, oy = wx0, wy0
+    kw = dict(hue_range_deg=hue_range_deg, min_saturation=min_saturation, min_value=min_value)
+    mask = _red_mask(sub, hue_range_deg, min_saturation, min_value)
+    sh, sw = mask.shape
+    bx, by, bw, bh = cv2.boundingRect(mask)
+    if bw == 0 or bh == 0:
+        return MarkerSearch([], [], why_no_marker(sub, min_area_px=min_area_px, **kw))
+
+    def linear_crop(y0, y1, x0, x1):
+        return resp.linearise(src[y0:y1, x0:x1])
+
+    def search(mask):
+        contours = cv2.findContours(mask[by:by + bh, bx:bx + bw], cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE,
+                                    offset=(bx + ox, by + oy))[0]
+        sized = sorted(((cv2.contourArea(c) + 0.5 * len(c), c) for c in contours), key=lambda ac: -ac[0])
+        found: list[Marker] = []
+        rejected: list = []
+        for area, c in sized:
+            if area < min_area_px:
+                break
+            x, y, w, h = cv2.boundingRect(c)
+            box = (int(x), int(y), int(x + w), int(y + h))
+            at_image_edge = x <= 0 or y <= 0 or x + w >= W or y + h >= H
+            at_window_edge = x - ox <= 0 or y - oy <= 0 or x + w - ox >= sw or y + h - oy >= sh
+            if at_window_edge and not at_image_edge:
+                rejected.append((box, "cut by the search window"))
+                continue
+            if at_image_edge and not keep_border:
+                rejected.append((box, "cut by the image border"))
+                continue
+            try:
+                mk = _analyse_contour(img, linear_crop, c, at_image_edge, min_axis_ratio, max_residual_rel)
+                if not mk.fit_rms_px <= max_fit_rms_px:
+                    raise _Reject(f"boundary residual {mk.fit_rms_px:.2f} px > {max_fit_rms_px:g} px")
+            except _Reject as exc:
+                rejected.append((box, str(exc)))
+                continue
+            found.append(mk)
+            if len(found) >= max_markers:
+                break
+        return found, rejected, (sized[0][0] if sized else 0.0), len(sized)
+
+    found, rejected, largest, n_blobs = search(mask)
+    if not any(m.trusted for m in found) and n_blobs > 1:
+        # a noisy, dim image breaks a marker's colour mask into fragments: threshold a 3×3 mean
+        # instead (the sub-pixel edge still reads the original pixels)
+        found2, rejected2, largest2, _ = search(_red_mask(cv2.blur(sub, (3, 3)), hue_range_deg, min_saturation,
+                                                          min_value))
+        if sum(m.trusted for m in found2) > sum(m.trusted for m in found) or (found2 and not found):
+            found, rejected, largest = found2, rejected2, largest2
+    found.sort(key=lambda m: -m.area)
+    reason = None
+    if not found:
+        if rejected:
+            kinds: dict[str, int] = {}
+            for _, r in rejected:
+                kinds[r] = kinds.get(r, 0) + 1
+            reason = "rejected by shape: " + "; ".join(f"{r}" + (f" (×{n})" if n > 1 else "") for r, n in kinds.items())
+        else:
+            reason = f"too small: the largest blob of the marker colour has {largest:.0f} px < {min_area_px} px"
+    return MarkerSearch(found, rejected, reason)
+
+
 def detect_markers(image_bgr, *, hue_range_deg=(-15.0, 15.0), min_saturation: float = 0.45,
                    min_value: float = 0.15, window=None, min_area_px: int = 12, keep_border: bool = False,
-                   max_fit_rms_px: float = 0.6, max_markers: int = 32, refine: bool = True) -> list[Marker]:
-    """Find red circular markers in a BGR image (paper §3.1 and §4.1's marker thresholding).
+                   max_fit_rms_px: float = 1.5, max_markers: int = 32, refine: bool = True,
+                   response="linear", include_suspect: bool = False) -> list[Marker]:
+    """The trusted markers of :func:`find_markers` (sorted by decreasing area, possibly empty);
+    with ``include_suspect`` also those carrying a quality flag (partial, rough, …), and with
+    ``keep_border`` those cut by the image edge (flagged ``border``).
 
-    ``hue_range_deg`` / ``min_saturation`` / ``min_value``: the HSV colour window (the camera's
-    configured marker colour). ``window`` = (x0, y0, x1, y1) px restricts the search to that
-    rectangle (the tracker's one-step-ahead window); blobs cut by its edge are rejected like
-    blobs cut by the image border. ``keep_border=True`` keeps markers that reach the image
-    edge (flagged ``touches_border``, ellipse fitted to the remaining arc). Blobs smaller than
-    ``min_area_px``, non-elliptical ones (boundary RMS distance to the fitted ellipse above
-    ``max_fit_rms_px``, or area unlike the ellipse's) are dropped. ``refine=False`` is the
-    tracker's centroid-only mode (paper §4.1): the centroid, area and moment ellipse of the
-    thresholded pixels, no boundary points, no shape check.
-
-    Returns markers sorted by decreasing area (possibly empty). Raises
-    :class:`MarkerImageError` only for an array that is not an image.
+    ``refine=False`` is the tracker's centroid-only mode (paper §4.1): the centroid, area and
+    moment ellipse of each thresholded blob (8-connected), no boundary, no shape check, no
+    quality. Raises :class:`MarkerImageError` only for an array that is not an image.
     """
+    if refine:
+        found = find_markers(image_bgr, hue_range_deg=hue_range_deg, min_saturation=min_saturation,
+                             min_value=min_value, window=window, min_area_px=min_area_px, keep_border=keep_border,
+                             max_fit_rms_px=max_fit_rms_px, max_markers=max_markers, response=response).markers
+        if include_suspect:
+            return found
+        return [m for m in found if m.trusted or (keep_border and set(m.quality.flags) <= {"border", "partial"})]
     img = _as_bgr(image_bgr)
     H, W = img.shape[:2]
     ox = oy = 0
@@ -384,7 +784,7 @@ def detect_markers(image_bgr, *, hue_range_deg=(-15.0, 15.0), min_saturation: fl
             continue  # cut by the search window: not measurable here
         if at_image_edge and not keep_border:
             continue
-        marker = _analyse_blob(img, labels, label, (x, y, w, h), (ox, oy), max_fit_rms_px, refine)
+        marker = _centroid_blob(labels, label, (x, y, w, h), (ox, oy), img.shape)
         if marker is not None:
             found.append(marker)
             if len(found) >= max_markers:

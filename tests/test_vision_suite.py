@@ -1,0 +1,177 @@
+"""Marker vision on images of an independent renderer (issue 14): the oracle itself, a small
+version of the degradation suite with the acceptance thresholds, and what each marker and each
+empty result says about itself."""
+
+from __future__ import annotations
+
+import ast
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from labctl.bench import _vision_oracle as oracle
+from labctl.bench._vision_suite import run_case
+from labctl.vision import (
+    find_markers,
+    marker_poses,
+    parse_response,
+    resolve_duality_noise_aware,
+)
+from labctl.vision.response import ResponseError
+
+ORACLE = Path(oracle.__file__)
+
+
+def test_oracle_is_independent_of_the_code_under_test():
+    tree = ast.parse(ORACLE.read_text(encoding="utf-8"))
+    mods = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom):
+            mods.add(("." * node.level) + (node.module or ""))
+        elif isinstance(node, ast.Import):
+            mods.update(a.name for a in node.names)
+    assert mods <= {"__future__", "math", "dataclasses", "cv2", "numpy"}, mods
+
+
+def test_oracle_coverage_is_the_exact_disc_area():
+    """A frontal disc on the axis images as a circle of radius f·r/z: its coverage sums to π(f r/z)²."""
+    cam = oracle.Cam(f=2000.0)
+    for z, r in ((800.0, 10.0), (1100.0, 7.5)):
+        cov = oracle.disc_coverage(cam, oracle.Disc((0.0, 0.0, z), (0.0, 0.0, -1.0), r))
+        assert cov.sum() == pytest.approx(math.pi * (cam.f * r / z) ** 2, rel=2e-4)
+        assert cov.min() >= 0.0 and cov.max() <= 1.0
+
+
+# condition → (Conditions, camera overrides, options); three pairs each keep this under ~20 s
+# (the full suite, 25 pairs × 70 cases, is `labctl bench vision`)
+FAST = {
+    "clean": (oracle.Conditions(), {}, {}),
+    "shadow": (oracle.Conditions(shadow=0.6), {}, {}),
+    "texture": (oracle.Conditions(texture_std=45), {}, {}),
+    "gamma + defocus": (oracle.Conditions(response="gamma 2.2", defocus_px=2.0), {}, {}),
+    "highlight": (oracle.Conditions(highlight=300), {}, {}),
+    "occlusion": (oracle.Conditions(occlusion=0.2), {}, {}),
+    "bar 2 px": (oracle.Conditions(bar_gap_px=2.0), {}, {}),
+    "lone bar": (oracle.Conditions(lone_bar=(5, 40)), {}, {}),
+    "webcam": (oracle.Conditions(response="srgb", jpeg_quality=70, noise_std=4.0, bayer="bilinear",
+                                 vignetting=0.3), {}, {}),
+    "dim workcell": (oracle.Conditions(response="gamma 2.2", exposure=0.15, photons=300, noise_std=3.0), {}, {}),
+}
+
+
+@pytest.mark.parametrize("name", list(FAST))
+def test_degradation_suite_fast(name):
+    cond, cam_over, opts = FAST[name]
+    res = run_case(cond, cam_over, opts, n_pairs=3, seed=100 + len(name))
+    ours, base = res["labctl"], res["opencv"]
+    # no confident wrong answer: gross errors and wrong dualities all carry a flag
+    assert ours["confident_wrong"] == 0.0, ours
+    if cond.lone_bar is None and cond.occlusion <= 0.2:
+        assert ours["detected"] >= base["detected"] - 0.01, (ours, base)
+    for key in ("normal_deg_p95", "centre_pct_median"):
+        if base[key] is not None and ours[key] is not None:
+            assert ours[key] <= base[key], (key, ours, base)
+    if name == "clean":
+        assert ours["normal_deg_median"] <= 0.05 and ours["centre_pct_median"] <= 0.05, ours
+
+
+def _frontalish(rng, cam, **kw):
+    return oracle.random_pose(rng, cam, obliquity_deg=(30.0, 60.0), **kw)
+
+
+def test_each_marker_carries_a_quality_verdict_and_partial_ones_are_flagged():
+    rng = np.random.default_rng(7)
+    cam = oracle.Cam(f=2200.0)
+    disc = _frontalish(rng, cam, range_mm=(600.0, 700.0))
+    clean, _ = oracle.render(cam, disc, oracle.Conditions(), rng)
+    (mk,) = find_markers(clean).markers
+    q = mk.quality
+    assert mk.trusted and q.flags == ()
+    assert q.arc_coverage == 1.0 and q.residual_rel < 0.02 and q.solidity > 0.95 and q.edge_contrast > 0.2
+    hidden, _ = oracle.render(cam, disc, oracle.Conditions(occlusion=0.3), rng)
+    found = find_markers(hidden).markers
+    assert found and not found[0].trusted and "partial" in found[0].quality.flags
+
+
+def test_bars_are_rejected_and_the_reason_is_given():
+    rng = np.random.default_rng(8)
+    cam = oracle.Cam(f=2000.0)
+    disc = oracle.random_pose(rng, cam)
+    for size in ((5, 40), (8, 30)):
+        img, _ = oracle.render(cam, disc, oracle.Conditions(lone_bar=size), rng)
+        res = find_markers(img)
+        assert res.markers == [] and res.reason.startswith("rejected by shape"), res.reason
+
+
+def test_empty_results_say_why():
+    rng = np.random.default_rng(9)
+    cam = oracle.Cam(f=2000.0)
+    disc = oracle.random_pose(rng, cam)
+    shifted, _ = oracle.render(cam, disc, oracle.Conditions(hue_shift_deg=-35.0), rng)
+    res = find_markers(shifted)
+    assert res.markers == [] and "nearest saturated colour seen is hue" in res.reason
+    dark, _ = oracle.render(cam, disc, oracle.Conditions(exposure=0.12), rng)
+    assert "too dark" in find_markers(dark).reason
+    pale, _ = oracle.render(cam, disc, oracle.Conditions(contrast=0.3), rng)
+    assert "too pale" in find_markers(pale).reason
+    assert "too small" in find_markers(np.pad(np.full((3, 3, 3), (30, 30, 200), np.uint8),
+                                              ((50, 50), (50, 50), (0, 0)), constant_values=200)).reason
+
+
+def test_sixteen_bit_and_gamma_images_are_linearised_not_clipped():
+    rng = np.random.default_rng(10)
+    cam = oracle.Cam(f=2400.0)
+    disc = _frontalish(rng, cam, range_mm=(600.0, 650.0))
+    lin, _ = oracle.render(cam, disc, oracle.Conditions(noise_std=0.0), rng)
+    wide = lin.astype(np.uint16) * 257  # the same image at 16 bits
+    a, b = find_markers(lin).markers[0], find_markers(wide).markers[0]
+    np.testing.assert_allclose(a.ellipse.center, b.ellipse.center, atol=0.02)
+    # a gamma-encoded image measured with its declared response matches the linear one
+    enc, _ = oracle.render(cam, disc, oracle.Conditions(noise_std=0.0, response="gamma 2.2"), rng)
+    right = find_markers(enc, response="gamma 2.2").markers[0]
+    wrong = find_markers(enc).markers[0]
+    truth = np.asarray(a.ellipse.axes)
+    assert np.abs(np.asarray(right.ellipse.axes) - truth).max() < 0.05
+    assert np.abs(np.asarray(wrong.ellipse.axes) - truth).max() > 2 * np.abs(np.asarray(right.ellipse.axes)
+                                                                              - truth).max()
+
+
+def test_response_specifications():
+    assert parse_response("linear").is_linear
+    assert parse_response({"gamma": 2.2}).gamma == pytest.approx(2.2)
+    assert parse_response("gamma: 1.8").gamma == pytest.approx(1.8)
+    srgb = parse_response("srgb")
+    assert srgb.lut[255] == pytest.approx(1.0) and srgb.lut[128] == pytest.approx(0.2158, abs=1e-3)
+    lut = parse_response(list(np.arange(256) ** 2.0))
+    assert lut.lut[0] == 0.0 and lut.lut[-1] == 1.0
+    for bad in ("log", [1, 2, 3], 0.0, {"gamma": 9}, True):
+        with pytest.raises(ResponseError):
+            parse_response(bad)
+
+
+def test_pose_covariance_is_calibrated_and_duality_waits_for_the_noise():
+    """The normal σ of marker_poses predicts the actual error (within a factor), and a pair whose
+    margin is inside the noise comes out ambiguous rather than wrong."""
+    from labctl.bench._vision_suite import _labctl_camera
+
+    rng = np.random.default_rng(11)
+    z = []
+    for _ in range(8):
+        cam = oracle.Cam(f=float(rng.uniform(1200, 2500)))
+        disc = _frontalish(rng, cam)
+        img, _ = oracle.render(cam, disc, oracle.Conditions(noise_std=8.0), rng)
+        poses = marker_poses(find_markers(img).markers[0], _labctl_camera(cam, False), disc.radius)
+        errs = [math.acos(min(1.0, float(c.normal @ np.asarray(disc.normal)))) for c in poses.candidates]
+        j = int(np.argmin(errs))
+        z.append(errs[j] / poses.normal_sigma_rad[j])
+    assert np.median(z) < 1.5  # σ is not an underestimate
+    assert np.median(z) > 0.05  # nor absurdly large
+    # a frontal marker: candidates merge, σ is large, the duality is ambiguous
+    cam = oracle.Cam(f=2000.0)
+    d1 = oracle.Disc((0.0, 0.0, 900.0), (0.0, 0.0, -1.0))
+    d2 = oracle.translated(d1, (20.0, 0.0, 0.0))
+    p = [marker_poses(find_markers(oracle.render(cam, d, oracle.Conditions(noise_std=4.0), rng)[0]).markers[0],
+                      _labctl_camera(cam, False), 10.0) for d in (d1, d2)]
+    assert resolve_duality_noise_aware(p[0], p[1]).ambiguous
