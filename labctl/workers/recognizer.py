@@ -22,8 +22,8 @@ from ..drivers.interfaces import Frame
 from ..geometry import make_T, rotvec_to_matrix
 from ..library.matching import DEFAULT_THRESHOLD, match
 from ..library.views import mm_per_px
-from ..vision import CirclePose, CirclePoseError, EllipseFitError, detect_markers, marker_pose_candidates
-from ..vision.duality import resolve_duality_detailed
+from ..vision import CirclePose, CirclePoseError, EllipseFitError, detect_markers, marker_poses
+from ..vision.duality import DEFAULT_K_SIGMA, DEFAULT_MIN_MARGIN_RAD, resolve_duality_detailed
 from ..vision.shape import ShapeError, features_from_image, silhouette_mask
 from . import messages as m
 from .context import RunContext
@@ -82,6 +82,12 @@ def _angle(u, v) -> float:
     return float(np.arctan2(np.linalg.norm(np.cross(u, v)), float(np.dot(u, v))))
 
 
+class _Candidates(tuple):
+    """A marker's two world-frame pose candidates, with ``sigma_rad``: their normal's noise (rad)."""
+
+    sigma_rad: float = 0.0
+
+
 class Recognizer:
     """Host 2's logic. ``save_image(name, image)`` and ``log(event, **fields)`` go to the record."""
 
@@ -97,7 +103,9 @@ class Recognizer:
         self.remaining: list[str] | None = None
         self.n_standard = 0
         cam_cfg = ctx.lab.mobile_camera
-        self.detect_kw = dict(hue_range_deg=cam_cfg.marker_hue_deg, min_saturation=cam_cfg.marker_min_saturation)
+        # frames are linearised by the camera's declared response before any sub-pixel work (issue 14)
+        self.detect_kw = dict(hue_range_deg=cam_cfg.marker_hue_deg, min_saturation=cam_cfg.marker_min_saturation,
+                              response=getattr(cam_cfg, "response", "linear"))
 
     def handle(self, msg: m.Message) -> list[m.Message]:
         if not isinstance(msg, m.CaptureRequest):
@@ -111,7 +119,10 @@ class Recognizer:
 
     # -- marker pose (paper §3.1–3.3) -------------------------------------------------------------
     def _candidates(self, frame: Frame, T_w_c2: np.ndarray):
-        """Every complete marker in the frame with its two world-frame candidate poses."""
+        """Every complete marker in the frame with its two world-frame candidate poses.
+
+        Each pair carries ``sigma_rad``, its normal standard deviation (rad, the larger of the two;
+        rotation-invariant, so the camera frame's holds in W), for the duality test."""
         out = []
         for mk in detect_markers(frame.image, **self.detect_kw):
             best = None
@@ -119,16 +130,25 @@ class Recognizer:
             # library (issue 15), take the size that puts the marker on the object, i.e. near the table
             for r in getattr(self.ctx, "marker_radii_mm", ()) or (self.radius,):
                 try:
-                    a, b = marker_pose_candidates(mk, self.ctx.mobile_camera, r)
+                    mp = marker_poses(mk, self.ctx.mobile_camera, r)
                 except (CirclePoseError, EllipseFitError, ValueError):
                     continue
-                poses = (_to_world(T_w_c2, a), _to_world(T_w_c2, b))
+                a, b = mp.candidates
+                poses = _Candidates((_to_world(T_w_c2, a), _to_world(T_w_c2, b)))
+                poses.sigma_rad = max(mp.normal_sigma_rad)
                 off = _height_misfit(float(poses[0].center[2]), self.z_table)
                 if best is None or off < best[0] - 1e-9:
                     best = (off, poses)
             if best is not None:
                 out.append((mk, best[1]))
         return out
+
+    def _duality_threshold(self, poses1, poses2) -> float:
+        """The margin a duality decision must reach (rad): k·√2·σ of the two images' normal noise
+        (vision.duality.resolve_duality_noise_aware), never below the fixed floor."""
+        s1, s2 = poses1.sigma_rad, poses2.sigma_rad
+        t = DEFAULT_K_SIGMA * float(np.sqrt(2.0 * (s1 * s1 + s2 * s2)))
+        return max(t, DEFAULT_MIN_MARGIN_RAD) if np.isfinite(t) else float("inf")
 
     def _initial(self, msg: m.CaptureRequest, frame: Frame, T_w_c2: np.ndarray) -> list[m.Message]:
         found = self._candidates(frame, T_w_c2)
@@ -161,7 +181,8 @@ class Recognizer:
         for k, j in pair_markers([_mid(p) for _, p in self.first], [_mid(p) for _, p in found]):
             mk1, poses1 = self.first[k]
             mk2, poses2 = found[j]
-            res = resolve_duality_detailed(poses1, poses2, motion="translation")
+            res = resolve_duality_detailed(poses1, poses2, motion="translation",
+                                           min_margin_rad=self._duality_threshold(poses1, poses2))
             pose = res.best
             ellipses = {"initial1": _ellipse_row(mk1.ellipse), "initial2": _ellipse_row(mk2.ellipse)}
             self.log("marker_pose", t=frame.t, view_id=msg.view_id, marker=k, ellipses=ellipses,
