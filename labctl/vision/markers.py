@@ -239,7 +239,7 @@ def _analyse_blob(img: np.ndarray, labels: np.ndarray, label: int, bbox, label_o
     x1, y1 = min(gx + w + pad, W), min(gy + h + pad, H)
     part = labels[y:y + h, x:x + w]
     if part.dtype != np.uint8:  # a label image: this label's pixels as 0/255
-        part = cv2.compare(part, label, cv2.CMP_EQ)
+        part = cv2.compare(part, label, cv2.CMP_EQ)  # type: ignore[call-overload]  # cv2 stubs omit scalar src2
     blob = cv2.copyMakeBorder(part, gy - y0, y1 - gy - h, gx - x0, x1 - gx - w, cv2.BORDER_CONSTANT, value=0)
     roi = img[y0:y1, x0:x1]
     near = cv2.dilate(blob, _K_NEAR)  # the blob's neighbourhood: other blobs in the crop must not add edges
@@ -369,7 +369,7 @@ def detect_markers(image_bgr, *, hue_range_deg=(-15.0, 15.0), min_saturation: fl
     if len(cv2.findContours(crop, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)[0]) == 1:
         # one 8-connected blob (the usual tracking window): it is the whole crop, no labelling needed
         labels, order = crop, [255]
-        stats = {255: (0, 0, bw, bh, cv2.countNonZero(crop))}
+        stats: dict[int, tuple[int, int, int, int, int]] | np.ndarray = {255: (0, 0, bw, bh, cv2.countNonZero(crop))}
     else:
         n, labels, stats, _ = cv2.connectedComponentsWithStats(crop, connectivity=8)
         order = (np.argsort(-stats[1:, cv2.CC_STAT_AREA]) + 1).tolist() if n > 1 else []
