@@ -61,13 +61,14 @@ class StatusReport:
     def state_word(self) -> str:
         return self.state if self.substate is None else f"{self.state}:{self.substate}"
 
-    def machine_position(self, wco: tuple[float, float, float] | None = None):
+    def machine_position(self, wco: tuple[float, float, float] | None = None) -> tuple[float, float, float] | None:
         """MPos; from WPos + WCO when the controller reports WPos ($10=0). None when unknown."""
         if self.mpos is not None:
             return self.mpos
         offset = self.wco or wco
         if self.wpos is not None and offset is not None:
-            return tuple(w + o for w, o in zip(self.wpos, offset))
+            w, o = self.wpos, offset
+            return (w[0] + o[0], w[1] + o[1], w[2] + o[2])
         return None
 
 
@@ -87,6 +88,20 @@ class GrblMessage:
     def is_response(self) -> bool:
         """True only for the one reply each sent line gets (``ok`` / ``error:N``)."""
         return self.kind in ("ok", "error")
+
+    @property
+    def report(self) -> StatusReport:
+        """The report of a ``status`` message (``parse_line`` sets one on every such message)."""
+        if self.status is None:
+            raise ValueError(f"not a status report: {self.raw!r}")
+        return self.status
+
+    @property
+    def number(self) -> int:
+        """The code of an ``error``/``alarm`` message or the number of a ``setting`` one."""
+        if self.code is None:
+            raise ValueError(f"a GRBL message without a code: {self.raw!r}")
+        return self.code
 
 
 _NUM = r"[-+]?(?:\d+\.?\d*|\.\d+)"

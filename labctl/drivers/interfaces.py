@@ -6,20 +6,28 @@ Units: mm, s, rad. Poses are 4×4 ``T_<to>_<from>``.
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
+from collections.abc import Iterable
 from dataclasses import dataclass, field
-from typing import Protocol, runtime_checkable
+from typing import Protocol, Self, runtime_checkable
 
 import numpy as np
 
 
-class OpenClose:
+class OpenClose(ABC):
     """``with device:`` opens the device and closes it again (every device has ``open``/``close``)."""
 
-    def __enter__(self):
+    @abstractmethod
+    def open(self) -> None: ...
+
+    @abstractmethod
+    def close(self) -> None: ...
+
+    def __enter__(self) -> Self:
         self.open()
         return self
 
-    def __exit__(self, *exc):
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
 
@@ -58,14 +66,15 @@ class Table(Protocol):
     def open(self) -> None: ...
     def close(self) -> None: ...
     def status(self) -> TableStatus: ...
-    def stream(self, lines: list[str]) -> None:
-        """Queue a G-code program (returns once every line is accepted by the controller)."""
+    def stream(self, lines: Iterable[str]) -> int:
+        """Queue a G-code program; returns the number of lines sent, once every one is accepted."""
         ...
     def feed_hold(self) -> None: ...
     def resume(self) -> None: ...
     def reset(self) -> None: ...
-    def stop(self) -> None:
-        """Stop motion now and discard the rest of the program (feed hold then reset)."""
+    def stop(self) -> TableStatus:
+        """Stop motion now and discard the rest of the program (feed hold then reset); returns the
+        confirmed status afterwards."""
         ...
 
 
@@ -83,8 +92,9 @@ class Robot(Protocol):
 
     def open(self) -> None: ...
     def close(self) -> None: ...
-    def segment(self, T_base_flange: np.ndarray, duration_s: float, segment_id: int) -> None:
-        """Queue a timed task-space segment ending at ``T_base_flange`` (controller interpolates a quintic)."""
+    def segment(self, T_base_flange: np.ndarray, duration_s: float, segment_id: int) -> tuple[float, float]:
+        """Queue a timed task-space segment ending at ``T_base_flange`` (controller interpolates a quintic);
+        returns its (t0, t1) on the controller's clock, s."""
         ...
     def stop(self) -> None: ...
     def status(self) -> RobotStatus: ...

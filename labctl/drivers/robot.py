@@ -14,12 +14,13 @@ import re
 import time
 from collections import deque
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..errors import DeviceError
 from ..geometry import make_T, matrix_to_rotvec, rotvec_to_matrix
-from .interfaces import OpenClose, RobotStatus
+from .interfaces import OpenClose, Robot, RobotStatus
 from .robot_protocol import ERROR_CODES, MAX_SEQ, RobotReply, format_request, parse_reply
 from .serial_link import DeviceTimeout, LinkError, SerialLink
 
@@ -264,3 +265,7 @@ class SerialRobot(OpenClose):
             for line in self.link.lines(min(self.heartbeat_s / 2, 0.05)):
                 self._on_async(line)
             self.maybe_heartbeat()
+
+
+if TYPE_CHECKING:  # mypy (.ci/run) fails here when SerialRobot drifts from the Robot protocol
+    _robot_protocol: type[Robot] = SerialRobot

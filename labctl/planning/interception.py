@@ -222,16 +222,24 @@ def plan_interception(state0, t0: float, G: TargetFn, limits: Limits, horizon_s:
     return Interception(None, None, reason, code, G)
 
 
+def _omega(seg: QuinticSegment, t: float) -> np.ndarray:
+    """Body angular velocity (rad/s) of a segment that carries an orientation."""
+    w = seg.angular_velocity(t)
+    if w is None:
+        raise PlanningError("a segment without orientation has no angular velocity")
+    return w
+
+
 def _rotation_state(traj: Trajectory, t: float):
     seg = traj.segment_at(t)
     if seg.rot_coeffs is None:
         R = traj.orientation(t)
         return R, None, None
     R = seg.orientation(t)
-    w = seg.angular_velocity(t)
+    w = _omega(seg, t)
     h = 1e-4 * seg.duration
     ta, tb = max(seg.t0, t - h), min(seg.t1, t + h)
-    dw = (seg.angular_velocity(tb) - seg.angular_velocity(ta)) / (tb - ta) if tb > ta else np.zeros(3)
+    dw = (_omega(seg, tb) - _omega(seg, ta)) / (tb - ta) if tb > ta else np.zeros(3)
     return R, w, dw
 
 
@@ -292,6 +300,6 @@ def shortest_quintic(p0, v0, a0, p1, v1, a1, limits: Limits, t0: float = 0.0, ma
             return tuple(np.tile(x, (n, 1)) for x in end)
 
     res = plan_interception((p0, v0, a0), t0, _Fixed(), limits, max_duration_s, R0=R0, t_min=1e-3, n_coarse=128)
-    if not res.reachable:
+    if not res.reachable or res.trajectory is None:
         raise PlanningError(f"no quintic within {max_duration_s:.0f} s meets the limits ({res.code})")
     return res.trajectory.segments[0]

@@ -12,6 +12,7 @@ Units: mm, s, rad; world frame.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TypedDict
 
 import numpy as np
 
@@ -128,6 +129,17 @@ def _abs_coeff_sum(c: np.ndarray) -> np.ndarray:
     return np.abs(c).sum(axis=0)
 
 
+class LimitBounds(TypedDict):
+    """:meth:`QuinticSegment.limit_bounds`: the position box (mm, per axis) and the speed, acceleration and
+    rotation-rate maxima."""
+
+    p_min: np.ndarray  # (3,) mm
+    p_max: np.ndarray  # (3,) mm
+    v: float  # mm/s
+    a: float  # mm/s²
+    w: float  # rad/s
+
+
 @dataclass(frozen=True)
 class QuinticSegment:
     """One quintic from ``(p0, v0, a0)`` at ``t0`` to ``(p1, v1, a1)`` at ``t0 + duration`` (mm, s).
@@ -216,7 +228,7 @@ class QuinticSegment:
         """Per-axis (min, max) position over the segment (mm), exact."""
         return _poly_range(self.coeffs)
 
-    def limit_bounds(self) -> dict[str, np.ndarray | float]:
+    def limit_bounds(self) -> LimitBounds:
         """Rigorous upper bounds for the safety check, from 257 samples plus a curvature bound.
 
         Between samples ``h`` apart, a polynomial's extremum exceeds the best sample by at most
@@ -232,7 +244,7 @@ class QuinticSegment:
         d3 = _derivative(d2)
         d4 = _derivative(d3)
         p_slack = _H2_8 * _abs_coeff_sum(d2)
-        out = {
+        out: LimitBounds = {
             "p_min": X[:n].min(axis=0) - p_slack,
             "p_max": X[:n].max(axis=0) + p_slack,
             # ‖f‖ between samples ≤ the larger end sample's norm + h²/8·‖(max|f_d''|)_d‖

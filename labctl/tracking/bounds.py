@@ -165,7 +165,7 @@ def ml_prediction(scn: Scenario, z: np.ndarray, n_frames: int, horizon_s: float)
 
     if fam == "zigzag":
         # linear in the rest for a fixed t_c, only piecewise smooth in t_c: profile t_c on a 5 ms grid (±1 s)
-        best = None
+        best: tuple[float, np.ndarray] | None = None
         for tc in th0[6] + np.linspace(-1.0, 1.0, 401):
             if not t[0] < tc < t[-1]:
                 continue
@@ -178,6 +178,8 @@ def ml_prediction(scn: Scenario, z: np.ndarray, n_frames: int, horizon_s: float)
             cost = float(np.sum((A @ sol - zz.reshape(-1)) ** 2))
             if best is None or cost < best[0]:
                 best = (cost, np.r_[sol, tc])
+        if best is None:
+            raise ValueError(f"no corner time within ±1 s of {th0[6]:g} s lies inside the fitted frames")
         th = best[1]
     else:
         th = least_squares(resid, th0 / sc, method="lm").x * sc

@@ -174,10 +174,10 @@ def compare_with_bound(make_tracker, family: str, speed_mm_s: float, *, runs: in
     instants = sorted({float(t) for t in track_s} | {corner_s + float(t) for t in after_corner_s})
     duration = max(instants)
     rng = np.random.default_rng(seed)
-    errs = {t: [] for t in instants}
-    ml_errs = {t: [] for t in instants}
-    nees = {t: [] for t in instants}
-    crb = {}
+    errs: dict[float, list[np.ndarray]] = {t: [] for t in instants}
+    ml_errs: dict[float, list[np.ndarray]] = {t: [] for t in instants}
+    nees: dict[float, list[float]] = {t: [] for t in instants}
+    crb: dict[float, float] = {}
     for _ in range(runs):
         scn = make_scenario(family, speed_mm_s, duration, rate_hz=rate_hz, sigma_mm=sigma_mm,
                             heading_rad=rng.uniform(-np.pi, np.pi), corner_s=corner_s)

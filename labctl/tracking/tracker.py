@@ -128,8 +128,14 @@ class _KalmanFilter2D(KalmanFilter):
     update of every model. Same value: ``-½ (yᵀ S⁻¹ y + log det(2π S))``.
     """
 
+    _log_likelihood: float | None  # set by filterpy's update() (None until computed)
+    x: np.ndarray
+    P: np.ndarray
+    y: np.ndarray
+    S: np.ndarray
+
     @property
-    def log_likelihood(self):
+    def log_likelihood(self) -> float:
         if self._log_likelihood is None:
             y = self.y.reshape(-1)
             S = self.S
@@ -318,7 +324,7 @@ class MarkerTracker:
             kf.H = self._H.copy()
             kf.R = self._R.copy()
             self._kfs.append(kf)
-        self._imm = None
+        self._imm: _LogIMM | None = None
         self._history: list = []  # IMM only: (t, z, quiet x, P, cumulative NIS, μ) per frame
         self._nis = 0.0
         self._in_corner = False
@@ -392,14 +398,15 @@ class MarkerTracker:
             else:
                 kf.F = F
 
-    def _snapshot(self):
-        snap = [(kf.x.copy(), kf.P.copy()) for kf in self._kfs]
+    def _snapshot(self) -> list[tuple[np.ndarray, ...]]:
+        """Each mode's (x, P), then for the IMM its (μ, c̄, ω, x, P): what :meth:`_restore` puts back."""
+        snap: list[tuple[np.ndarray, ...]] = [(kf.x.copy(), kf.P.copy()) for kf in self._kfs]
         if self._imm is not None:
             imm = self._imm
             snap.append((imm.mu.copy(), imm.cbar.copy(), imm.omega.copy(), imm.x.copy(), imm.P.copy()))
         return snap
 
-    def _restore(self, snap) -> None:
+    def _restore(self, snap: list[tuple[np.ndarray, ...]]) -> None:
         for kf, (x, P) in zip(self._kfs, snap):
             kf.x, kf.P = x, P
         if self._imm is not None:
@@ -470,10 +477,11 @@ class MarkerTracker:
         and the quiet modes are re-run from there with a diffuse velocity, so the new leg is the
         least-squares fit of every frame since the corner, anchored at the corner.
         """
-        quiet = self._kfs[int(np.argmax(self._imm.mu[:2]))]  # the old track: the likelier of CV and CT
+        imm = self._imm_filter()
+        quiet = self._kfs[int(np.argmax(imm.mu[:2]))]  # the old track: the likelier of CV and CT
         Sinv = np.linalg.inv(quiet.S)
         self._nis += float(quiet.y[:, 0] @ Sinv @ quiet.y[:, 0]) + float(np.log(np.linalg.det(quiet.S)))
-        self._history.append((t, z.copy(), quiet.x.copy(), quiet.P.copy(), self._nis, self._imm.mu.copy()))
+        self._history.append((t, z.copy(), quiet.x.copy(), quiet.P.copy(), self._nis, imm.mu.copy()))
         while self._history and t - self._history[0][0] > self._corner_window:
             self._history.pop(0)
         if t - self._t_start < 2 * self._corner_window:
@@ -482,7 +490,7 @@ class MarkerTracker:
             self._refits -= 1
             self._restart_at_corner(self._detect_at)
             return
-        if self._imm.mu[2] < 0.5 and not self._glr_detects():
+        if imm.mu[2] < 0.5 and not self._glr_detects():
             self._in_corner = False
             return
         if self._in_corner or len(self._history) < 4:
@@ -547,15 +555,24 @@ class MarkerTracker:
                 kf.update(zh.reshape(2, 1))
                 tp = th
         quiet = mu0[0] + mu0[1]
-        self._imm.mu = np.array([mu0[0] / quiet * 0.98, mu0[1] / quiet * 0.98, 0.02])
-        self._imm._compute_mixing_probabilities()
-        self._imm._compute_state_estimate()
+        imm = self._imm_filter()
+        imm.mu = np.array([mu0[0] / quiet * 0.98, mu0[1] / quiet * 0.98, 0.02])
+        imm._compute_mixing_probabilities()
+        imm._compute_state_estimate()
 
     # -- estimates and predictions -------------------------------------------------------------
 
-    def _require_track(self) -> None:
+    def _require_track(self) -> float:
+        """The time of the last update (s); TrackingError before the first one."""
         if self._t is None:
             raise TrackingError("no track yet: call update() with a measurement first")
+        return self._t
+
+    def _imm_filter(self) -> _LogIMM:
+        """The IMM estimator; TrackingError when this tracker runs a single model or has no track yet."""
+        if self._imm is None:
+            raise TrackingError(f"the {self.model!r} tracker has no IMM estimator (model 'imm' with a track)")
+        return self._imm
 
     def _model_predictions(self, dt: float):
         """Each mode's (x, P) extrapolated ``dt`` s past the last update, without touching the filter."""
@@ -585,13 +602,13 @@ class MarkerTracker:
         return x, P
 
     def _check_future(self, t: float) -> float:
-        self._require_track()
+        t_last = self._require_track()
         t = float(t)
         if not np.isfinite(t):
             raise TrackingError(f"prediction time must be finite, got {t!r}")
-        dt = t - self._t
+        dt = t - t_last
         if dt < -1e-9:
-            raise TrackingError(f"cannot predict into the past: t={t:.6f} s is before the last update {self._t:.6f} s")
+            raise TrackingError(f"cannot predict into the past: t={t:.6f} s is before the last update {t_last:.6f} s")
         return max(dt, 0.0)
 
     def predict(self, t: float) -> tuple[np.ndarray, np.ndarray]:
@@ -635,12 +652,13 @@ class MarkerTracker:
                          for m, kf, mode in zip(self._weights(), self._kfs, self._modes) if mode.kind == "ct"))
 
     def _mode_path(self, kf, mode: _Mode) -> PredictedPath:
+        t_last = self._require_track()
         x = kf.x[:, 0]
         p, v = x[self._pos], x[self._vel]
         if mode.kind == "ca":
-            return PredictedPath(self._t, p.copy(), v.copy(), x[[2, 5]].copy())
+            return PredictedPath(t_last, p.copy(), v.copy(), x[[2, 5]].copy())
         w = float(x[4] * np.hypot(*v)) if mode.kind == "ct" else 0.0  # ω = κ·|v|
-        return PredictedPath(self._t, p.copy(), v.copy(), np.zeros(2), w)
+        return PredictedPath(t_last, p.copy(), v.copy(), np.zeros(2), w)
 
     def predicted_path(self) -> PredictedPath | MixturePath:
         """The mean predicted path (for G(t), paper §4.3): a line, a parabola (CA) or the turn's arc.
@@ -648,8 +666,8 @@ class MarkerTracker:
         For the IMM, the modes' paths weighted by the mode probabilities at the last update,
         which is exactly the mean :meth:`predict` gives.
         """
-        self._require_track()
+        t_last = self._require_track()
         paths = [self._mode_path(kf, mode) for kf, mode in zip(self._kfs, self._modes)]
         if self._imm is None:
             return paths[0]
-        return MixturePath(self._t, tuple(float(m) for m in self._imm.mu), tuple(paths))
+        return MixturePath(t_last, tuple(float(m) for m in self._imm.mu), tuple(paths))

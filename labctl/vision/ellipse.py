@@ -357,7 +357,7 @@ def _sampson_refine(p: np.ndarray, wk: np.ndarray, mx: float, my: float, s: floa
     design[:, 3] = x
     design[:, 4] = y
     design[:, 5] = 1.0
-    th = np.array(th)
+    theta = np.array(th)
     sw = np.sqrt(wk)
     # ∂(gx, gy)/∂θ for gx = 2ax + by + d, gy = bx + 2cy + e
     dgx = np.zeros_like(design)
@@ -369,27 +369,27 @@ def _sampson_refine(p: np.ndarray, wk: np.ndarray, mx: float, my: float, s: floa
     dgy[:, 2] = 2 * y
     dgy[:, 4] = 1.0
     for _ in range(iterations):
-        a, b, c, d, e, _f = th.tolist()
-        q = design @ th
+        a, b, c, d, e, _f = theta.tolist()
+        q = design @ theta
         gx = 2 * a * x + b * y + d
         gy = b * x + 2 * c * y + e
         ig = 1.0 / np.sqrt(np.maximum(gx * gx + gy * gy, 1e-300))
         r = sw * q * ig
         J = design * (sw * ig)[:, None] - (r * ig * ig)[:, None] * (gx[:, None] * dgx + gy[:, None] * dgy)
-        A = J.T @ J + np.outer(th, th)  # r is scale-free in θ: fix the gauge along θ
+        A = J.T @ J + np.outer(theta, theta)  # r is scale-free in θ: fix the gauge along θ
         solved, step = cv2.solve(A, J.T @ r, flags=cv2.DECOMP_CHOLESKY)
         if not solved:
             break
         step = step.ravel()
-        new = th - step
+        new = theta - step
         new /= math.sqrt(float(new @ new))
         if not _is_ellipse(new):
             break
         done = float(step @ step) < 1e-18
-        th = new
+        theta = new
         if done:
             break
-    return th.tolist()
+    return theta.tolist()
 
 
 def _fit(p: np.ndarray, w: np.ndarray, refine_iterations: int | None = None, origin=None,

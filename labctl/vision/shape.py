@@ -80,7 +80,7 @@ def silhouette_mask(image: np.ndarray, *, min_area_px: int = 200, red_is_object:
     """
     img = np.asarray(image)
     if img.ndim == 2:
-        gray = img.astype(np.uint8)
+        gray: np.ndarray = img.astype(np.uint8)
         red = np.zeros(gray.shape, bool)
     else:
         gray = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
@@ -312,9 +312,12 @@ class ShapeFeatures:
                              f"({len(AOS_SCALES)}, {N_SAMPLES})")
         if code.size and (code.max() > 7):
             raise ValueError("chain code has digits outside 0..7")
+        start = list(d["chain_start"])
+        if len(start) != 2:
+            raise ValueError(f"chain start must be a pixel (column, row), got {start!r}")
         return cls(
             eccentricity=float(d["eccentricity"]), size_mm=float(d["size_mm"]),
-            perimeter_mm=float(d["perimeter_mm"]), chain_start=tuple(int(v) for v in d["chain_start"]),
+            perimeter_mm=float(d["perimeter_mm"]), chain_start=(int(start[0]), int(start[1])),
             chain_code=code.astype(np.uint8), aos=aos, fd=np.asarray(d["fd"], float), hu=np.asarray(d["hu"], float),
         )
 
