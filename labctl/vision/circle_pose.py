@@ -327,7 +327,8 @@ def marker_poses(marker, camera, radius: float) -> MarkerPoses:
                 dc = 0.5 * (plus.center - minus.center)
                 ncov[j] += np.outer(dn, dn)
                 ccov[j] += np.outer(dc, dc)
-    sig = tuple(float(math.sqrt(max(np.trace(c), 0.0))) for c in ncov)
+    sig0, sig1 = (float(math.sqrt(max(np.trace(c), 0.0))) for c in ncov)
+    sig = (sig0, sig1)
     q = getattr(marker, "quality", None)
     flags = tuple(q.flags) if q is not None else ("no_quality",)
     if not max(sig) <= MAX_TRUSTED_NORMAL_SIGMA_RAD:  # e.g. a marker facing the camera: its tilt is ill-defined

@@ -382,7 +382,7 @@ def _analyse_contour(img8: np.ndarray, linear_crop, contour: np.ndarray, touches
     # grey); take the one with the better contrast against the ring's spread
     on = float(np.linalg.norm(co))
     ring_px = lin[ring > 0]
-    best = None
+    best: tuple[float, np.ndarray] | None = None
     for cand in (diff, diff - (diff @ co) / (on * on) * co if on > 1e-6 else diff):
         n_ = float(np.linalg.norm(cand))
         if not n_ > 0.05 * dn:
@@ -391,6 +391,8 @@ def _analyse_contour(img8: np.ndarray, linear_crop, contour: np.ndarray, touches
         cnr = float(diff @ u) / (float(np.std(ring_px @ u)) + 0.004)
         if best is None or cnr > best[0] * 1.15:
             best = (cnr, u)
+    if best is None:
+        raise _Reject("no colour direction separates the marker from its surround")
     d = best[1].astype(np.float32)
     contrast = float(diff @ d)
     if not contrast > 0.01:
@@ -737,12 +739,13 @@ def detect_markers(image_bgr, *, hue_range_deg=(-15.0, 15.0), min_saturation: fl
     quality. Raises :class:`MarkerImageError` only for an array that is not an image.
     """
     if refine:
-        found = find_markers(image_bgr, hue_range_deg=hue_range_deg, min_saturation=min_saturation,
+        every = find_markers(image_bgr, hue_range_deg=hue_range_deg, min_saturation=min_saturation,
                              min_value=min_value, window=window, min_area_px=min_area_px, keep_border=keep_border,
                              max_fit_rms_px=max_fit_rms_px, max_markers=max_markers, response=response).markers
         if include_suspect:
-            return found
-        return [m for m in found if m.trusted or (keep_border and set(m.quality.flags) <= {"border", "partial"})]
+            return every
+        return [m for m in every if m.trusted
+                or (keep_border and m.quality is not None and set(m.quality.flags) <= {"border", "partial"})]
     img = _as_bgr(image_bgr)
     H, W = img.shape[:2]
     ox = oy = 0
@@ -769,10 +772,11 @@ def detect_markers(image_bgr, *, hue_range_deg=(-15.0, 15.0), min_saturation: fl
     if len(cv2.findContours(crop, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)[0]) == 1:
         # one 8-connected blob (the usual tracking window): it is the whole crop, no labelling needed
         labels, order = crop, [255]
-        stats = {255: (0, 0, bw, bh, cv2.countNonZero(crop))}
+        stats: dict[int, tuple[int, ...]] | np.ndarray = {255: (0, 0, bw, bh, cv2.countNonZero(crop))}
     else:
-        n, labels, stats, _ = cv2.connectedComponentsWithStats(crop, connectivity=8)
-        order = (np.argsort(-stats[1:, cv2.CC_STAT_AREA]) + 1).tolist() if n > 1 else []
+        n, labels, cc_stats, _ = cv2.connectedComponentsWithStats(crop, connectivity=8)
+        stats = cc_stats
+        order = (np.argsort(-cc_stats[1:, cv2.CC_STAT_AREA]) + 1).tolist() if n > 1 else []
     found: list[Marker] = []
     for label in order:
         x, y, w, h, area = (int(v) for v in stats[label])
