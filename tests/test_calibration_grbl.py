@@ -38,7 +38,8 @@ def grbl_table(tmp_path):
     table = None
     try:
         port = server.stdout.readline().strip()
-        table = GrblTable(port=port, baud=115200, timeout_s=5.0)
+        _wait_for_first_boot(port)
+        table = GrblTable(port=port, baud=115200, timeout_s=15.0, reset_on_open=False)
         table.open()
         yield table
     finally:
@@ -46,6 +47,19 @@ def grbl_table(tmp_path):
             table.close()
         server.terminate()
         server.wait(timeout=10)
+
+
+def _wait_for_first_boot(port: str, timeout_s: float = 60.0) -> None:
+    """grbl-sim's first boot (error:7, the settings dump, then the banner) at a quarter of real time:
+    the driver would take the silence before it for a dead board."""
+    import serial
+
+    out = ""
+    deadline = time.monotonic() + timeout_s
+    with serial.Serial(port, 115200, timeout=0.1) as s:
+        while "Grbl 1.1h" not in out:
+            assert time.monotonic() < deadline, f"no banner from the firmware; got {out!r}"
+            out += s.read(4096).decode(errors="replace")
 
 
 class _NoPrompt:
