@@ -243,6 +243,11 @@ def test_stream_300_lines_then_an_error_names_the_file_line_and_stops(fw, tmp_pa
 def test_interrupt_stops_the_table(fw, tmp_path, sig, cmd):
     """Ctrl-C / SIGTERM during `table stream|move`: hold, reset, status read back; exit 130, one line."""
     fw.fresh()
+    fw.command("G53G0X0Y0")  # from machine zero, so that the move below is long whatever ran before
+    deadline = time.monotonic() + 60
+    while "<Idle" not in fw.status():
+        assert time.monotonic() < deadline, "the table never came back to machine zero"
+        time.sleep(0.2)
     prog = tmp_path / "long.nc"
     prog.write_text("G21 G90\nG1 F1200\n" + "".join(f"G1 X{i * 2}\n" for i in range(1, 60)))
     args = ["stream", str(prog)] if cmd == "stream" else ["move", "100", "0", "--feed", "1200"]
