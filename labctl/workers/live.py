@@ -349,18 +349,20 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
         # no table to drive when the parts move by something else (--trajectory external)
         external = args.spec["trajectory"] == "external" or lab.table is None
         table = None if external else GrblTable.from_config(lab.table, port=args.table_port)
+        if table is not None:
+            table.open()
+            # a simulated table's power-up lock may be released (the simulator knows where it is); a real
+            # table in Alarm must be homed or unlocked by the operator first (its position may be lost)
+            table.ensure_ready(unlock=lab.table.kind == "sim")
+            _to_start(table, args.spec["trajectory"], log, lambda: _now(args.origin))
         robot = SerialRobot.from_config(lab.robot, port=args.robot_port)
         camera = _fixed_camera(args, lab)
-        for dev in (table, robot, camera):
-            if dev is not None:
-                dev.open()
+        for dev in (robot, camera):
+            dev.open()
         now = _now(args.origin)
         planner = PredictorPlanner(ctx, robot, link.send, log, t_start=now, clock=lambda: _now(args.origin))
         progress = None
         if table is not None:
-            # a simulated table's power-up lock may be released (the simulator knows where it is); a real
-            # table in Alarm must be homed or unlocked by the operator first (its position may be lost)
-            table.ensure_ready(unlock=lab.table.kind == "sim")
             # streamed from the loop: a long G2/G3 is acknowledged only when it leaves GRBL's planner
             program = table.start_program(
                 trajectory_program(args.spec["trajectory"], args.spec["speed_mm_s"], lab)[1])
@@ -428,6 +430,24 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
         if record is not None:
             record.close()
     return code
+
+
+def _to_start(table, trajectory: str, log, now) -> None:
+    """Bring the table to a named trajectory's start and wait there, before tracking begins: a table
+    left elsewhere (after ``labctl calibrate``, say) would otherwise carry the object into view on
+    the program's rapid move, which the tracker cannot tell from the object's own motion. A G-code
+    file starts where its own first move goes."""
+    from .simlab import TRAJECTORY_STARTS
+
+    if trajectory not in TRAJECTORY_STARTS:
+        return
+    x, y = TRAJECTORY_STARTS[trajectory]
+    p = table.status().position
+    if abs(p[0] - x) < 0.5 and abs(p[1] - y) < 0.5:
+        return
+    log("table_to_start", t=now(), start=[x, y], was=list(p[:2]))
+    table.stream(["G21G90", f"G0X{x:.3f}Y{y:.3f}"])
+    table.wait_idle(timeout_s=60.0)
 
 
 def recognizer_main(args: WorkerArgs, link_end, control) -> int:
