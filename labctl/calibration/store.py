@@ -30,7 +30,9 @@ CALIBRATION_DIR = "calibration"
 
 
 class CalibrationFileError(LabctlError):
-    """A calibration file is missing or malformed (exit status 1; names the file)."""
+    """A calibration file is missing, malformed or implausible (bad input: exit status 2; names the file)."""
+
+    exit_code = 2
 
 
 def _plain(v):
@@ -125,9 +127,16 @@ def _camera(path: Path, data: dict) -> CameraModel:
     if not isinstance(cam, dict):
         raise CalibrationFileError(f"{path}: missing 'camera:' mapping")
     try:
-        return CameraModel.from_dict(cam)
+        model = CameraModel.from_dict(cam)
     except TypeError as exc:
         raise CalibrationFileError(f"{path}: camera: {exc}") from None
+    for name in ("f", "kappa1", "sx", "cx", "cy", "dx", "dy", "ncx", "nfx", "width", "height"):
+        value = getattr(model, name)
+        if not isinstance(value, int | float) or isinstance(value, bool) or not np.isfinite(value):
+            raise CalibrationFileError(f"{path}: camera.{name}: expected a finite number, got {value!r}")
+        if name not in ("kappa1", "cx", "cy") and not value > 0:
+            raise CalibrationFileError(f"{path}: camera.{name}: expected a number > 0, got {value!r}")
+    return model
 
 
 def load_fixed_camera(cal_dir: Path | str) -> tuple[CameraModel, np.ndarray, dict]:
@@ -172,5 +181,11 @@ def load_calibration(lab_root: Path | str) -> Calibration:
     c1, T_w_c1, s1 = load_fixed_camera(cal_dir)
     c2, T_f_c2, s2 = load_mobile_camera(cal_dir)
     T_w_table, s3 = load_table(cal_dir)
+    # plausibility: the fixed camera looks down at the table, so the table's origin is in front of it
+    origin_c1 = np.linalg.inv(T_w_c1) @ T_w_table[:, 3]
+    if not origin_c1[2] > 0:
+        raise CalibrationFileError(f"{cal_dir / FIXED_FILE}: T_w_c puts the table behind the fixed camera "
+                                   f"(table origin at z = {origin_c1[2]:.0f} mm in the camera frame); "
+                                   "recalibrate or check the file")
     return Calibration(fixed_camera=c1, T_w_c1=T_w_c1, mobile_camera=c2, T_f_c2=T_f_c2, T_w_table=T_w_table,
                        stats={"fixed_camera": s1, "mobile_camera": s2, "table": s3})

@@ -10,6 +10,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal
 
+from .schema import Fraction, NonNegative, Positive, PositiveInt
+
 
 @dataclass(frozen=True)
 class TableConfig:
@@ -17,16 +19,16 @@ class TableConfig:
 
     kind: Literal["sim", "grbl"] = "sim"
     port: str | None = None  # device path or pyserial URL (socket://, rfc2217://, spy://)
-    baud: int = 9600
-    timeout_s: float = 5.0
+    baud: PositiveInt = 9600
+    timeout_s: Positive = 5.0
     reset_on_open: bool = True  # does opening the port reset the board (DTR)?
     travel_mm: tuple[float, float] = (600.0, 400.0)
-    max_feed_mm_min: float = 6000.0
-    accel_mm_s2: float = 200.0
-    status_hz: float = 5.0
+    max_feed_mm_min: Positive = 6000.0
+    accel_mm_s2: Positive = 200.0
+    status_hz: Positive = 5.0
     stall_reports: int = 25  # Run reports in a row without motion before the table counts as stalled (0: off)
-    homing_timeout_s: float = 120.0  # GRBL sends nothing while homing: give up after this long
-    reconnect_s: float = 0.0  # after the port drops, retry opening it (with backoff) for this long
+    homing_timeout_s: Positive = 120.0  # GRBL sends nothing while homing: give up after this long
+    reconnect_s: NonNegative = 0.0  # after the port drops, retry opening it (with backoff) for this long
     # sim: T_w_table of the table's machine zero (the table plane is z = 0 in W)
     origin_w_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
@@ -50,15 +52,15 @@ class RobotConfig:
 
     kind: Literal["sim", "serial"] = "sim"
     port: str | None = None
-    baud: int = 9600
-    timeout_s: float = 2.0
-    heartbeat_s: float = 0.2  # controller stops if no heartbeat for watchdog_s
-    watchdog_s: float = 0.5
+    baud: PositiveInt = 9600
+    timeout_s: Positive = 2.0
+    heartbeat_s: Positive = 0.2  # controller stops if no heartbeat for watchdog_s
+    watchdog_s: Positive = 0.5
     workspace_min_mm: tuple[float, float, float] = (-800.0, -900.0, -150.0)
     workspace_max_mm: tuple[float, float, float] = (1400.0, 1300.0, 1300.0)
-    v_max_mm_s: float = 500.0
-    a_max_mm_s2: float = 1500.0
-    w_max_deg_s: float = 120.0
+    v_max_mm_s: Positive = 500.0
+    a_max_mm_s2: Positive = 1500.0
+    w_max_deg_s: Positive = 120.0
     home_mm: tuple[float, float, float] = (300.0, -450.0, 900.0)
 
     def validate(self):
@@ -66,6 +68,11 @@ class RobotConfig:
             return "port", "a serial robot needs a port (device path or pyserial URL)"
         if any(lo >= hi for lo, hi in zip(self.workspace_min_mm, self.workspace_max_mm)):
             return "workspace_min_mm", "each minimum must be below its maximum"
+        if not self.heartbeat_s < self.watchdog_s:
+            return "heartbeat_s", (f"the heartbeat ({self.heartbeat_s:g} s) must be shorter than the controller's "
+                                   f"watchdog ({self.watchdog_s:g} s), or the controller stops between beats")
+        if not all(lo <= h <= hi for lo, h, hi in zip(self.workspace_min_mm, self.home_mm, self.workspace_max_mm)):
+            return "home_mm", f"home {list(self.home_mm)} is outside the workspace box"
         return None
 
 
@@ -73,13 +80,13 @@ class RobotConfig:
 class LensConfig:
     """Nominal sensor and lens (Tsai's parameters); the sim uses them as the true camera."""
 
-    f_mm: float = 25.0
-    dx_mm: float = 0.013
-    dy_mm: float = 0.013
-    ncx: float = 640.0
-    nfx: float = 640.0
+    f_mm: Positive = 25.0
+    dx_mm: Positive = 0.013
+    dy_mm: Positive = 0.013
+    ncx: Positive = 640.0
+    nfx: Positive = 640.0
     kappa1: float = 0.0
-    sx: float = 1.0
+    sx: Positive = 1.0
     cx: float | None = None  # default: image centre
     cy: float | None = None
 
@@ -91,22 +98,22 @@ class CameraConfig:
     url: str | None = None  # stream: http://host:8080/?action=stream (MJPEG), rtsp://… (OpenCV/FFmpeg)
     backend: Literal["auto", "http", "opencv"] = "auto"  # stream: http(s) read by labctl, others by OpenCV
     timestamps: Literal["arrival", "header"] = "arrival"  # stream: capture time = arrival − latency, or X-Timestamp
-    latency_s: float = 0.0  # exposure-to-arrival delay subtracted from the arrival time (v4l2, stream)
-    timeout_s: float = 2.0  # no frame for this long: the camera has stalled
+    latency_s: NonNegative = 0.0  # exposure-to-arrival delay subtracted from the arrival time (v4l2, stream)
+    timeout_s: Positive = 2.0  # no frame for this long: the camera has stalled
     folder: str | None = None  # replay: folder of stamped frames
-    width: int = 640
-    height: int = 480
-    fps: float = 30.0
+    width: PositiveInt = 640
+    height: PositiveInt = 480
+    fps: Positive = 30.0
     exposure: float | None = None
     marker_hue_deg: tuple[float, float] = (-15.0, 15.0)  # red straddles 0°
-    marker_min_saturation: float = 0.45
+    marker_min_saturation: Fraction = 0.45
     # the camera's response (labctl.vision.response): linear | srgb | "gamma G" | G | 256-entry LUT
     response: str | float | list[float] = "linear"
     lens: LensConfig = field(default_factory=LensConfig)
     # sim: the fixed camera's true pose (eye and look-at target, W frame)
     eye_w_mm: tuple[float, float, float] | None = None
     target_w_mm: tuple[float, float, float] | None = None
-    noise_sigma: float = 2.0  # sim: grey levels
+    noise_sigma: NonNegative = 2.0  # sim: grey levels
     hand_eye_mm: tuple[float, float, float] = (0.0, 60.0, 80.0)  # sim: C2 origin in flange F
     hand_eye_rpy_deg: tuple[float, float, float] = (1.5, -1.0, 90.0)  # sim: C2 axes in F
 
@@ -135,18 +142,21 @@ class HostLinkConfig:
 
     transport: Literal["local", "tcp", "serial"] = "local"
     host: str = "127.0.0.1"
-    tcp_port: int = 5757
+    tcp_port: PositiveInt = 5757
     port: str | None = None  # serial device or pyserial URL; null on one PC: a paced pty null modem
-    baud: int = 9600
-    heartbeat_s: float = 0.2
-    dead_after_s: float = 3.0  # a worker whose peer (other worker, supervisor) is silent this long stops its devices
-    stall_after_s: float = 4.0  # the supervisor: a worker silent this long after its first beat is hung (SIGSTOP)
-    start_timeout_s: float = 60.0  # grace before a worker's (or peer's) first beat: imports, device opening
+    baud: PositiveInt = 9600
+    heartbeat_s: Positive = 0.2
+    dead_after_s: Positive = 3.0  # a worker whose peer (other worker, supervisor) is silent this long stops its devices
+    stall_after_s: Positive = 4.0  # the supervisor: a worker silent this long after its first beat is hung (SIGSTOP)
+    start_timeout_s: Positive = 60.0  # grace before a worker's (or peer's) first beat: imports, device opening
     key_file: str | None = None  # tcp: file holding the shared HMAC key (or $LABCTL_LINK_KEY); relative to the lab
 
     def validate(self):
         if self.baud <= 0:
             return "baud", f"expected a positive baud rate, got {self.baud}"
+        if not self.heartbeat_s < min(self.dead_after_s, self.stall_after_s):
+            return "heartbeat_s", (f"the heartbeat ({self.heartbeat_s:g} s) must be shorter than dead_after_s "
+                                   f"({self.dead_after_s:g} s) and stall_after_s ({self.stall_after_s:g} s)")
         return None
 
 

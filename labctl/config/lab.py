@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Literal
 
 from .devices import ROLE_TYPES, CameraConfig, HostLinkConfig, RobotConfig, TableConfig
-from .schema import ConfigError, from_mapping, read_yaml
+from .schema import ConfigError, NonNegative, Positive, PositiveInt, from_mapping, read_yaml
 
 LAB_FILE = "lab.yaml"
 
@@ -27,11 +27,11 @@ class DriverFiles:
 
 @dataclass(frozen=True)
 class MarkerConfig:
-    radius_mm: float = 8.0
+    radius_mm: Positive = 8.0
     # faces too small for radius_mm get smaller markers, radius_mm·size_ratio^k, down to the one whose
     # face-on image at the initial viewing distance is min_image_diameter_px across (issue 15)
-    min_image_diameter_px: float = 16.0
-    size_ratio: float = 0.8
+    min_image_diameter_px: Positive = 16.0
+    size_ratio: Positive = 0.8
 
     def validate(self):
         if self.radius_mm <= 0:
@@ -47,34 +47,34 @@ class MarkerConfig:
 class ViewingConfig:
     """Paper §4.1, §5.3: initial view ~1 m from the marker at 63°; standard view along the normal."""
 
-    initial_distance_mm: float = 1000.0
+    initial_distance_mm: Positive = 1000.0
     initial_angle_deg: float = 63.0
-    standoff_mm: float = 800.0
+    standoff_mm: Positive = 800.0
     max_obliquity_deg: float = 75.0  # a marker seen more obliquely than this does not count as visible
 
 
 @dataclass(frozen=True)
 class TrackingConfig:
     model: Literal["cv", "ct", "ca", "imm"] = "imm"  # chosen by measurement: docs/notes/planning.md
-    process_noise: float = 0.01  # sqrt of the white-acceleration spectral density (mm/s^1.5); near 0: exact paths
-    measurement_noise_mm: float = 0.7
-    gate_sigma: float = 4.0
-    window_px: int = 48
-    plane_height_mm: float = 30.0  # height of the plane the fixed camera's centroids are mapped onto
-    min_track_s: float = 1.0  # plan the interception after tracking this long at the latest
-    commit_margin_mm: float = 10.0  # ... or sooner, once the 3-sigma prediction error at commit_horizon_s is this small
-    commit_horizon_s: float = 1.5  # about the interception's duration
+    process_noise: NonNegative = 0.01  # sqrt of the white-acceleration spectral density (mm/s^1.5); near 0: exact paths
+    measurement_noise_mm: Positive = 0.7
+    gate_sigma: Positive = 4.0
+    window_px: PositiveInt = 48
+    plane_height_mm: NonNegative = 30.0  # height of the plane the fixed camera's centroids are mapped onto
+    min_track_s: Positive = 1.0  # plan the interception after tracking this long at the latest
+    commit_margin_mm: Positive = 10.0  # ... or sooner, once the 3-sigma error at commit_horizon_s is this small
+    commit_horizon_s: Positive = 1.5  # about the interception's duration
 
 
 @dataclass(frozen=True)
 class RunConfig:
     trajectory: str = "line"
-    speed_mm_s: float = 8.0
-    timeout_s: float = 90.0
+    speed_mm_s: Positive = 8.0
+    timeout_s: Positive = 90.0
     ambiguity_threshold: float | None = None  # None: the library's own default
-    max_views: int = 3
+    max_views: PositiveInt = 3
     second_image_azimuth_deg: float = 25.0  # camera moves this far round the marker between the two images
-    fps: float = 30.0
+    fps: Positive = 30.0
 
 
 @dataclass(frozen=True)

@@ -61,6 +61,7 @@ class Range:
 Positive = Annotated[float, Range(gt=0)]
 PositiveInt = Annotated[int, Range(gt=0)]
 NonNegative = Annotated[float, Range(ge=0)]
+Fraction = Annotated[float, Range(ge=0, le=1)]
 
 # YAML 1.2 numbers that PyYAML (YAML 1.1) leaves as strings: 1e9, 1E-3, +2.5e3
 _YAML12_FLOAT = re.compile(r"^[-+]?(\d+\.?\d*|\.\d+)[eE][-+]?\d+$")
