@@ -5,3 +5,10 @@ active vision" (ICRA 1996) as an installable lab controller. Nothing runs at imp
 """
 
 __version__ = "0.1.0"
+
+import logging as _logging
+
+# A library's loggers stay silent unless the application configures logging (`labctl -v` does; a
+# run routes them to its record): never Python's last-resort stderr handler, which would break the
+# one-line-per-failure contract with tracebacks.
+_logging.getLogger("labctl").addHandler(_logging.NullHandler())

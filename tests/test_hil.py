@@ -14,6 +14,7 @@ identity must be the served world's object (``served_truth.json``), which the ru
 from __future__ import annotations
 
 import json
+import os
 import queue
 import shlex
 import subprocess
@@ -87,6 +88,12 @@ def _kinds(lab: Path) -> dict:
             for role in ("table", "robot", "fixed_camera", "mobile_camera")}
 
 
+def _unlock_at(lab: Path, x: float, y: float) -> None:
+    """The served GRBL powers up homing-locked, as a real board does: the operator homes it or, as here,
+    vouches for its position (`--unlock`) and moves it; a run never clears an alarm by itself."""
+    assert labctl("table", "move", str(x), str(y), "--unlock", lab=lab, timeout=60).returncode == 0
+
+
 def _run_identifies(lab: Path, truth: dict) -> dict:
     r = labctl("--json", "run", "--trajectory", "line", lab=lab, timeout=180)
     assert r.returncode == 0, r.stderr[-2000:]
@@ -107,7 +114,7 @@ def _calibrate_served(lab: Path) -> dict:
     target_file.write_text(yaml.safe_dump(target))
     before = (lab / "calibration" / "fixed_camera.yaml").read_text()
     # GRBL powers up locked until homed: leave the lock with a move ($X), as a homed lab would be ready
-    assert labctl("table", "move", "300", "200", lab=lab, timeout=60).returncode == 0
+    assert labctl("table", "move", "300", "200", "--unlock", lab=lab, timeout=60).returncode == 0
     prompt = shlex.join([sys.executable, "-m", "labctl", "--lab", str(lab), "sim", "place-target"])
     r = labctl("--json", "calibrate", "--prompt-command", prompt, "--truth", str(lab / "served_truth.json"),
                lab=lab, timeout=400)
@@ -145,6 +152,7 @@ def test_hil_devices_and_run_two_workers_over_tcp(tmp_path):
         assert all(d["ok"] for d in rows.values()), rows
         assert rows["table"]["identity"].startswith("Grbl 1.1") and rows["fixed_camera"]["status"]["frame"] == [
             480, 640, 3]
+        _unlock_at(lab, 150, 200)
         result = _run_identifies(lab, served.truth)
         assert result["link"]["transport"] == "tcp" and result["link"]["messages_received"] > 0
 
@@ -158,7 +166,7 @@ def test_hil_run_with_serial_host_link_over_pty_null_modem_and_devices_on_tcp(tm
         link.update(transport="serial", port=None)  # one PC, RS-232 as in 1996: a paced pty null modem
         link_file.write_text(yaml.safe_dump(link))
         # the table left elsewhere (as after `labctl calibrate`): the run brings it to the start before tracking
-        assert labctl("table", "move", "420", "300", "--unlock", lab=lab, timeout=60).returncode == 0
+        _unlock_at(lab, 420, 300)
         result = _run_identifies(lab, served.truth)
         assert result["link"]["transport"] == "serial" and 0 < result["link"]["utilisation"] < 1
 
@@ -177,10 +185,11 @@ def test_hil_external_motion_no_table_two_labctl_worker_processes(tmp_path):
             port = s.getsockname()[1]
         link = f"tcp://127.0.0.1:{port}"
         cmd = [sys.executable, "-m", "labctl", "--lab", str(lab), "--json", "worker"]
+        env = {**os.environ, "LABCTL_LINK_KEY": "hil-test-shared-key-0123"}  # the two hosts' shared secret
         pred = subprocess.Popen(cmd + ["predictor", "--link", link], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                text=True)
+                                text=True, env=env)
         rec = subprocess.Popen(cmd + ["recognizer", "--link", link], stdout=subprocess.PIPE,
-                               stderr=subprocess.PIPE, text=True)
+                               stderr=subprocess.PIPE, text=True, env=env)
         try:
             out, err = pred.communicate(timeout=150)
             rec.wait(timeout=30)

@@ -41,7 +41,7 @@ def test_served_fixed_stream_shows_the_table_where_the_served_grbl_put_it():
         table = GrblTable(ep["table"], 115200, reset_on_open=False, timeout_s=10.0)
         seen = []
         with table, cam:
-            table.ensure_ready()
+            table.ensure_ready(unlock=True)  # the served board powers up homing-locked; the test vouches
             for xy in ((200.0, 150.0), (300.0, 250.0)):
                 st = table.move_to(*xy)
                 assert st.position[:2] == pytest.approx(xy, abs=0.01)
@@ -150,7 +150,7 @@ def test_stream_timestamps_align_with_the_served_motion():
         arrival = StreamCamera(ep["fixed_camera"], timestamps="arrival", clock=clock, timeout_s=10.0)
         table = GrblTable(ep["table"], 115200, reset_on_open=False, timeout_s=10.0)
         with table, header, arrival:
-            table.ensure_ready()
+            table.ensure_ready(unlock=True)  # the served board powers up homing-locked; the test vouches
             table.move_to(150.0, 200.0)
             header.grab()
             c0 = _red_centroid(header.grab().image)

@@ -96,7 +96,8 @@ class Recognizer:
         self.ctx, self.grab, self.log = ctx, grab, log
         self.save_image = save_image or (lambda name, image: None)
         self.radius = ctx.lab.config.marker.radius_mm
-        self.z_table = float(ctx.lab.table.origin_w_mm[2])
+        # the surface the parts ride on (z in W): the table's, or W's z = 0 plane for a conveyor lab with no table
+        self.z_table = float(ctx.lab.table.origin_w_mm[2]) if ctx.lab.table is not None else 0.0
         self.threshold = ctx.lab.config.run.ambiguity_threshold or DEFAULT_THRESHOLD
         self.first: list | None = None  # (marker, (pose, pose) in W) of the first image, preferred first
         self.resolved_normals: list[np.ndarray] = []

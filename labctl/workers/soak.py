@@ -106,6 +106,10 @@ def soak(lab, hours: float = 1.0, runs_dir: Path | str | None = None, *, fps: fl
                 samples.append((round(t), rss_bytes()))
         gc.collect()
         rss_end = rss_bytes()
+        # measured before the final stop: the stop itself leaves its own (expected) fault report
+        buffers = {"robot.done_ids": len(bench.robot.done_ids), "robot.faults": len(bench.robot.faults),
+                   "table.messages": len(bench.table.messages), "table.link._buf": len(bench.table.link._buf),
+                   "robot.link._buf": len(bench.robot.link._buf)}
     finally:
         bench.stop()
         record.close()
@@ -117,9 +121,7 @@ def soak(lab, hours: float = 1.0, runs_dir: Path | str | None = None, *, fps: fl
         "rss_growth_mb": round((rss_end - (rss_start or rss_end)) / 2**20, 2),
         "rss_samples_mb": [(t, round(r / 2**20, 2)) for t, r in samples],
         "record_fsyncs": record.fsyncs, "record_events": n, "segments": seg_id,
-        "buffers": {"robot.done_ids": len(bench.robot.done_ids), "robot.faults": len(bench.robot.faults),
-                    "table.messages": len(bench.table.messages), "table.link._buf": len(bench.table.link._buf),
-                    "robot.link._buf": len(bench.robot.link._buf)},
+        "buffers": buffers,
         "peer_lost": lost[:5],
     }
     if own_dir is not None:
