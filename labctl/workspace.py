@@ -1,4 +1,4 @@
-"""Finding, creating and describing lab workspaces (DESIGN §2)."""
+"""Finding, creating and describing lab workspaces (README "The lab workspace")."""
 
 from __future__ import annotations
 

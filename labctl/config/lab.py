@@ -1,7 +1,7 @@
 """The lab workspace: ``lab.yaml`` plus the driver files it names.
 
 A workspace is a folder holding ``lab.yaml``, ``drivers/``, ``calibration/``,
-``object_library/`` and ``runs/`` (DESIGN §2). :func:`load_lab` resolves and validates it.
+``object_library/`` and ``runs/`` (README "The lab workspace"). :func:`load_lab` resolves and validates it.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The NC X-Y table behind a GRBL 1.1 controller (DESIGN §3), over :class:`SerialLink`.
+"""The NC X-Y table behind a GRBL 1.1 controller (docs/architecture.md, the `drivers` layer), over :class:`SerialLink`.
 
 * Connecting works whether or not opening the port resets the board: it waits briefly for the
   ``Grbl 1.1h`` banner while querying ``?``; a status report proves the controller is alive

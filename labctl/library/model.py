@@ -1,6 +1,6 @@
 """Object models: loading and validating CAD meshes (STL/OBJ, mm), stable resting poses, extrusion.
 
-Paper §4.1 / DESIGN §1 "Offline": markers are planned from the object's CAD model. Models are
+Paper §4.1 (offline marker planning): markers are planned from the object's CAD model. Models are
 ``trimesh.Trimesh`` in millimetres in the object frame O. Stable poses come from trimesh's
 quasi-static computation (``trimesh.poses.compute_stable_poses``: the convex-hull facets the
 centre of mass projects into, with the probability of landing on each estimated from the solid

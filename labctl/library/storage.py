@@ -1,4 +1,4 @@
-"""The object library on disk: ``object_library/NAME/`` (DESIGN §2).
+"""The object library on disk: ``object_library/NAME/`` (README "The lab workspace").
 
 One folder per object, written atomically (:func:`labctl.fsutil.atomic_dir`)::
 

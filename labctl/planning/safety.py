@@ -1,4 +1,4 @@
-"""The last gate before a segment leaves the planner (DESIGN §3, issue 6 "Safety").
+"""The last gate before a segment leaves the planner (docs/architecture.md "Frames and units"; issue 6 "Safety").
 
 Every segment the planners return has passed :func:`check_segment`: its whole position range
 inside the workspace box, and its speed, acceleration (Euclidean norms) and rotation rate within

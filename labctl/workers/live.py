@@ -1,4 +1,4 @@
-"""The live runtime: real time, two worker processes and a supervisor (DESIGN §3, paper §5.1).
+"""The live runtime: real time, two worker processes and a supervisor (docs/architecture.md "Runtimes", paper §5.1).
 
 ```
 supervisor (the CLI process)                       — run record, live view, watchdog

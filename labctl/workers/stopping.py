@@ -1,4 +1,4 @@
-"""Stopping the robot and the table on every exit path, and confirming it (DESIGN §3; issue 13).
+"""Stopping the robot and the table on every exit path, and confirming it (docs/architecture.md "Runtimes"; issue 13).
 
 A machine controller's first promise is that motion stops when the controller stops. Three
 layers, each used by whoever holds the devices at that moment:
