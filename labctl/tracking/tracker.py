@@ -25,10 +25,11 @@ the cubature rule (2n points, Arasaratnam & Haykin 2009), which keeps the banana
 uncertainty of a poorly known turn rate honest; the manoeuvre mode extrapolates with the quiet
 CV noise (a corner is a transient, not a motion that continues).
 
-Built on filterpy 2.0.0 with its pitfalls avoided (docs/architecture.md "Hand-written versus library code"): measurements always go in as
-(2, 1) column vectors, ``update`` is never given an ``H`` override, H is built by hand rather
-than by ``kinematic_kf``, and ``batch_filter`` is not used. Frames: table-plane / world X-Y,
-millimetres; times in seconds (any monotonic clock; frames may be dropped).
+Built on filterpy 2.0.0 with its pitfalls avoided (docs/architecture.md, "Hand-written versus
+library code"): measurements always go in as (2, 1) column vectors, ``update`` is never given
+an ``H`` override, H is built by hand rather than by ``kinematic_kf``, and ``batch_filter`` is
+not used. Frames: table-plane / world X-Y, millimetres; times in seconds (any monotonic clock;
+frames may be dropped).
 """
 
 from __future__ import annotations
