@@ -565,6 +565,21 @@ class MarkerSearch:
                 "rejected": [{"bbox": list(b), "reason": r} for b, r in self.rejected]}
 
 
+def _clip_window(window, W: int, H: int) -> tuple[int, int, int, int] | None:
+    """``window`` (x0, y0, x1, y1; pixels, None: the whole image) clipped to a W×H image, or None
+    when less than 3×3 pixels of it are inside. Raises MarkerImageError for a malformed window."""
+    if window is None:
+        return 0, 0, W, H
+    try:
+        wx0, wy0, wx1, wy1 = (int(round(float(v))) for v in window)
+    except (TypeError, ValueError):
+        raise MarkerImageError(f"window must be (x0, y0, x1, y1), got {window!r}") from None
+    wx0, wy0, wx1, wy1 = max(wx0, 0), max(wy0, 0), min(wx1, W), min(wy1, H)
+    if wx1 - wx0 < 3 or wy1 - wy0 < 3:
+        return None
+    return wx0, wy0, wx1, wy1
+
+
 def _hue_distance(h: np.ndarray, lo: float, hi: float) -> np.ndarray:
     """Degrees from hue ``h`` (0–360) to the window [lo, hi] (circular; 0 inside)."""
     mid, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
@@ -651,19 +666,11 @@ def find_markers(image_bgr, *, hue_range_deg=(-15.0, 15.0), min_saturation: floa
     resp = parse_response(response)
     src = raw if raw.dtype == np.uint16 else img
     H, W = img.shape[:2]
-    ox = oy = 0
-    sub = img
-    if window is not None:
-        try:
-            wx0, wy0, wx1, wy1 = (int(round(float(v))) for v in window)
-        except (TypeError, ValueError):
-            raise MarkerImageError(f"window must be (x0, y0, x1, y1), got {window!r}") from None
-        wx0, wy0 = max(wx0, 0), max(wy0, 0)
-        wx1, wy1 = min(wx1, W), min(wy1, H)
-        if wx1 - wx0 < 3 or wy1 - wy0 < 3:
-            return MarkerSearch([], [], "the search window is outside the image")
-        sub = img[wy0:wy1, wx0:wx1]
-        ox, oy = wx0, wy0
+    clipped = _clip_window(window, W, H)
+    if clipped is None:
+        return MarkerSearch([], [], "the search window is outside the image")
+    ox, oy, x1, y1 = clipped
+    sub = img[oy:y1, ox:x1]
     kw = dict(hue_range_deg=hue_range_deg, min_saturation=min_saturation, min_value=min_value)
     mask = _red_mask(sub, hue_range_deg, min_saturation, min_value)
     sh, sw = mask.shape
@@ -748,19 +755,11 @@ def detect_markers(image_bgr, *, hue_range_deg=(-15.0, 15.0), min_saturation: fl
                 or (keep_border and m.quality is not None and set(m.quality.flags) <= {"border", "partial"})]
     img = _as_bgr(image_bgr)
     H, W = img.shape[:2]
-    ox = oy = 0
-    sub = img
-    if window is not None:
-        try:
-            wx0, wy0, wx1, wy1 = (int(round(float(v))) for v in window)
-        except (TypeError, ValueError):
-            raise MarkerImageError(f"window must be (x0, y0, x1, y1), got {window!r}") from None
-        wx0, wy0 = max(wx0, 0), max(wy0, 0)
-        wx1, wy1 = min(wx1, W), min(wy1, H)
-        if wx1 - wx0 < 3 or wy1 - wy0 < 3:
-            return []
-        sub = img[wy0:wy1, wx0:wx1]
-        ox, oy = wx0, wy0
+    clipped = _clip_window(window, W, H)
+    if clipped is None:
+        return []
+    ox, oy, x1, y1 = clipped
+    sub = img[oy:y1, ox:x1]
     mask = _red_mask(sub, hue_range_deg, min_saturation, min_value)
     sh, sw = mask.shape
     # label only the bounding box of all red pixels: labelling costs per pixel, markers are small
