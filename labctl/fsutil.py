@@ -100,7 +100,7 @@ def recover_dir(path: Path | str) -> bool:
 def recover_dirs(parent: Path | str) -> list[str]:
     """:func:`recover_dir` for every interrupted swap in ``parent``; returns the names recovered."""
     parent = Path(parent)
-    out = []
+    out: list[str] = []
     if not parent.is_dir():
         return out
     for bak in sorted(parent.glob(f".*{BACKUP_SUFFIX}")):
