@@ -223,12 +223,11 @@ def run_sweep(lab, *, n: int, trajectory: str, speeds: Sequence[float], objects:
     else:
         from .context import RunContext
 
-        names = list(objects) if objects else list(RunContext.load(lab).names)
-        library = RunContext.load(lab).library if objects else None
-        if library is not None:
-            missing = [o for o in names if o not in library]
-            if missing:
-                raise UserInputError(f"no object {missing[0]!r} in the library (have: {', '.join(sorted(library))})")
+        ctx = RunContext.load(lab)  # fails early, in one line, without a calibration or a library
+        names = list(objects) if objects else list(ctx.names)
+        missing = [o for o in names if o not in ctx.library]
+        if missing:
+            raise UserInputError(f"no object {missing[0]!r} in the library (have: {', '.join(ctx.names)})")
         spec = {"lab": str(lab.root), "trajectory": trajectory, "speeds": [float(v) for v in speeds],
                 "objects": names, "n": n, "seed": seed, "record": record,
                 "trials": plan_specs(n, trajectory, speeds, names, seed)}
