@@ -93,9 +93,11 @@ def _pool(lab_root: str, jobs: list[Job], records_dir: str | None, n_jobs: int) 
     import multiprocessing as mp
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 
-    # forkserver: a clean interpreter per worker (no inherited threads or open ports), imports paid once.
-    with ProcessPoolExecutor(max_workers=n_jobs, mp_context=mp.get_context("forkserver"),
-                             initializer=_ignore_sigint) as pool:
+    # forkserver: a clean interpreter per worker (no inherited threads or open ports); the server
+    # imports the runtime once and every worker forks from it with everything imported
+    ctx = mp.get_context("forkserver")
+    ctx.set_forkserver_preload(["labctl.workers.trials", "labctl.workers.virtual", "labctl.workers.context"])
+    with ProcessPoolExecutor(max_workers=n_jobs, mp_context=ctx, initializer=_ignore_sigint) as pool:
         pending = {pool.submit(run_one, lab_root, i, s, records_dir) for i, s in jobs}
         try:
             while pending:
