@@ -196,6 +196,16 @@ def _polygon_centroid(p: np.ndarray) -> np.ndarray:
     return np.array([((x + np.roll(x, -1)) * cross).sum(), ((y + np.roll(y, -1)) * cross).sum()]) / (6 * a)
 
 
+def _fresh_frame(cam, distinct: int = 4):
+    """A frame exposed after a scene change: frames already on their way (encoded, in the socket,
+    in the grabber) show the old scene, so wait for several new ones and keep the last."""
+    seqs, frame = set(), None
+    while len(seqs) < distinct:
+        frame = cam.grab()
+        seqs.add(frame.seq)
+    return frame
+
+
 def test_served_scene_control_puts_the_calibration_target_on_a_spacer_and_back():
     """``/control/scene`` (what ``labctl sim place-target`` posts): the fixed camera's stream shows the plate
     where the true camera projects it on a 0 and a 60 mm spacer, then the run's object again; bad values are 400."""
@@ -227,8 +237,7 @@ def test_served_scene_control_puts_the_calibration_target_on_a_spacer_and_back()
             for h in (0.0, 60.0):
                 info = post(f"scene=calibration&spacer_mm={h:g}")
                 assert info["scene"] == "calibration" and info["spacer_mm"] == h
-                cam.grab()  # a whole frame after the change, then the one to measure
-                seen[h] = _plate_centroid(cam.grab().image)
+                seen[h] = _plate_centroid(_fresh_frame(cam).image)
                 solid = target.solid().transformed(make_T(None, served.world.table_origin_w) @
                                                    target.T_table_t(start, h))
                 top = solid.vertices[solid.vertices[:, 2] > solid.vertices[:, 2].max() - 1e-6]
@@ -236,8 +245,7 @@ def test_served_scene_control_puts_the_calibration_target_on_a_spacer_and_back()
                 order = np.argsort(np.arctan2(*(px - px.mean(axis=0)).T[::-1]))
                 expected[h] = _polygon_centroid(px[order])
             assert post("scene=object")["scene"] == "object"
-            cam.grab()
-            image = cam.grab().image
+            image = _fresh_frame(cam).image
             with pytest.raises(urllib.error.HTTPError) as bad:
                 post("spacer_mm=-5")
             assert bad.value.code == 400 and "spacer_mm" in json.loads(bad.value.read())["error"]
