@@ -5,19 +5,9 @@ from __future__ import annotations
 import json
 
 import pytest
-from fakes import fake_grbl
+from fakes import fake_grbl, run_cli
 
-from labctl.cli import main
-
-
-def run(capsys, *args) -> tuple[int, str, str]:
-    code = 0
-    try:
-        main(list(args))
-    except SystemExit as exc:
-        code = exc.code or 0
-    out, err = capsys.readouterr()
-    return code, out, err
+run = run_cli
 
 
 def test_devices_in_the_sample_lab_checks_in_process_emulators(capsys):

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import pytest
 import serial
+from fakes import run_cli
 
 from labctl.drivers.grbl import GrblAlarm, GrblTable
 
@@ -121,16 +122,9 @@ def table(fw, **kw) -> GrblTable:
 @pytest.fixture
 def labctl(capsys):
     """``labctl …`` in this process (the signal tests start their own): (exit code, stdout, stderr)."""
-    from labctl.cli import main
 
     def run(*args, timeout=None):
-        code = 0
-        try:
-            main(list(args))
-        except SystemExit as exc:
-            code = exc.code or 0
-        out, err = capsys.readouterr()
-        return code, out, err
+        return run_cli(capsys, *args)
 
     return run
 

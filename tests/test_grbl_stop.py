@@ -12,22 +12,14 @@ import time
 from pathlib import Path
 
 import pytest
-from fakes import fake_grbl
+from fakes import fake_grbl, run_cli
 
-from labctl.cli import main
 from labctl.drivers.grbl import GrblTable, TableStall
 
 REPO = Path(__file__).resolve().parents[1]
 
 
-def run(capsys, *args):
-    code = 0
-    try:
-        main(list(args))
-    except SystemExit as exc:
-        code = exc.code or 0
-    out, err = capsys.readouterr()
-    return code, out, err
+run = run_cli
 
 
 def labctl_popen(*args):

@@ -148,3 +148,16 @@ def robot_test_limits() -> RobotConfig:
     return RobotConfig(workspace_min_mm=(-300.0, -700.0, 80.0), workspace_max_mm=(900.0, 700.0, 1200.0),
                        v_max_mm_s=500.0, a_max_mm_s2=1500.0, w_max_deg_s=120.0, watchdog_s=0.5,
                        home_mm=(300.0, -450.0, 900.0))
+
+
+def run_cli(capsys, *args) -> tuple[int, str, str]:
+    """``labctl ARGS`` in process: (exit status, stdout, stderr)."""
+    from labctl.cli import main
+
+    code = 0
+    try:
+        main(list(args))
+    except SystemExit as exc:
+        code = exc.code or 0
+    out, err = capsys.readouterr()
+    return code, out, err

@@ -321,14 +321,19 @@ class RobotEmulator:
         self.advance(max(self.now, self.clock()))
         return self._moving_at(self.now)
 
-    def state_at(self, t: float):
-        """(p, v, a, R, ω) of the flange at time t (mm, mm/s, mm/s², 3×3, rad/s; ω base frame)."""
+    def _segment_at(self, t: float):
+        """The last segment started by time t (None before the first)."""
         seg = None
         for s in self.segments:
             if s.t0 <= t:
                 seg = s
             else:
                 break
+        return seg
+
+    def state_at(self, t: float):
+        """(p, v, a, R, ω) of the flange at time t (mm, mm/s, mm/s², 3×3, rad/s; ω base frame)."""
+        seg = self._segment_at(t)
         if seg is None:
             first = self.segments[0] if self.segments else None
             if first is not None and t < first.t0:
@@ -342,12 +347,7 @@ class RobotEmulator:
 
     def position_at(self, t: float) -> np.ndarray:
         """Flange position (mm) at time t: the position part of :meth:`state_at`, cheaply."""
-        seg = None
-        for s in self.segments:
-            if s.t0 <= t:
-                seg = s
-            else:
-                break
+        seg = self._segment_at(t)
         if seg is None:
             return self.state_at(t)[0]
         return seg.position(t)
