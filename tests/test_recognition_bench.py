@@ -78,3 +78,22 @@ def test_new_cad_models_are_recognised_alongside_the_sample_objects(lab_cam_lib,
     res = _evaluate(mixed, cam, standoff, trials=1, rng=np.random.default_rng(3), max_views=lab.config.run.max_views)
     assert res["objects"] == 12 and res["silhouette_failures"] == 0
     assert res["rates"]["aos_with_extra_views"] == 1.0, res["errors"]
+
+
+def test_a_view_with_no_silhouette_is_followed_by_another_marker_as_in_a_run(lab_cam_lib):
+    """Issue 15: a cropped standard view makes the run look at another marker (predictor
+    ``_next_marker``); the bench does the same, within the run's view budget."""
+    from labctl.bench.recognition import evaluate
+
+    lab, _, lib = lab_cam_lib
+    name = max(lib, key=lambda n: len(lib[n].markers))
+    obj = lib[name]
+    mids = sorted(obj.views)
+    pool = {(n, mid): [v.features] * 2 for n, o in lib.items() for mid, v in o.views.items()}
+    pool[(name, mids[0])] = [None, obj.views[mids[0]].features]  # first render: cropped
+    res = evaluate(lib, pool, np.random.default_rng(0), max_views=lab.config.run.max_views, first_per_view=1)
+    assert res["silhouette_failures"] == 0 and res["recovered_by_another_marker"] == 1
+    assert res["rates"]["aos_with_extra_views"] == 1.0, res["errors"]
+    # with a budget of one view there is no second look: the failure stands
+    res1 = evaluate(lib, pool, np.random.default_rng(0), max_views=1, first_per_view=1)
+    assert res1["silhouette_failures"] == 1 and res1["recovered_by_another_marker"] == 0
