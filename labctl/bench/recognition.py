@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..geometry import invert, make_T, rot_z
-from ..library.matching import DEFAULT_THRESHOLD, LibraryIndex, identify, match
+from ..library.matching import DEFAULT_THRESHOLD, UNUSABLE_VIEW, LibraryIndex, identify, match
 from ..library.views import marker_frame, mm_per_px, perturbed_view_pose, standard_view_pose
 from ..vision.shape import ShapeError, features_from_image, silhouette_mask
 from ._timing import median_time, row
@@ -124,9 +124,10 @@ def evaluate(library: dict, pool: dict, rng: np.random.Generator, *, threshold: 
                 mk = max(_obj.markers, key=lambda qm: float(qm.normal @ want))
                 if float(mk.normal @ want) < np.cos(np.radians(60)):
                     return None
-                others = [g for k, g in enumerate(pool[(_name, mk.id)]) if g is not None and
-                          not (mk.id == _m.id and k == _q)]
-                return others[int(rng.integers(len(others)))] if others else None
+                # another render of that marker, drawn as the run would meet it: it may be unusable
+                others = [g for k, g in enumerate(pool[(_name, mk.id)]) if not (mk.id == _m.id and k == _q)]
+                g = others[int(rng.integers(len(others)))] if others else None
+                return UNUSABLE_VIEW if g is None else g
 
             res = identify(f, index, acquire, threshold=threshold, max_views=max_views - len(tried) + 1,
                            **match_kw)

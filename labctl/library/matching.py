@@ -238,7 +238,12 @@ class Identification:
     requested: list[tuple[str, int]]
 
 
-def identify(first: ShapeFeatures, index: LibraryIndex, acquire: Callable[[str, int], ShapeFeatures | None], *,
+UNUSABLE_VIEW = "unusable view"
+"""What ``acquire`` returns when the camera reached a marker whose standard view shows no usable
+silhouette (cropped by the image edge): the view is spent, and no hypothesis is refuted."""
+
+
+def identify(first: ShapeFeatures, index: LibraryIndex, acquire: Callable[[str, int], ShapeFeatures | str | None], *,
              threshold: float = DEFAULT_THRESHOLD, max_views: int = 3, method: str = "aos",
              margin: float = MARGIN, **weights) -> Identification:
     """Recognise with extra standard views where ambiguous (paper §3.4, §2 stage 2).
@@ -246,7 +251,7 @@ def identify(first: ShapeFeatures, index: LibraryIndex, acquire: Callable[[str, 
     ``acquire(name, marker_id)`` moves the camera towards the standard view of marker
     ``marker_id`` *assuming* the object is ``name`` and returns the features of the standard view
     it then takes of the marker actually there (None if no marker is found there, which refutes
-    hypothesis ``name``). Hypothesis ``name`` stays
+    hypothesis ``name``; :data:`UNUSABLE_VIEW` if the view has no usable silhouette). Hypothesis ``name`` stays
     a candidate if the view matches its view ``marker_id`` within ``threshold``; any other
     candidate if the view matches one of its views. Scores accumulate over the views; the
     surviving candidate with the lowest total is the answer.
@@ -272,6 +277,8 @@ def identify(first: ShapeFeatures, index: LibraryIndex, acquire: Callable[[str, 
         if f is None:
             # the marker hypothesis h predicts is not there: h is refuted (the others stay)
             remaining = [c for c in remaining if c != h] or remaining
+            continue
+        if isinstance(f, str) and f == UNUSABLE_VIEW:
             continue
         s = view_scores(f, index, method=method, **weights)
         step_score = {c: float(s[index.view_index(h, j)]) if c == h else float(np.min(s[names == c]))
