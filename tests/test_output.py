@@ -1,0 +1,116 @@
+"""Output that reads well (issue 17, Build 5): defaults marked in ``lab show``, piped output one key per
+line, ``--json`` unchanged."""
+
+from __future__ import annotations
+
+import json
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from labctl.cli._common import key_lines
+from labctl.config import load_lab
+from labctl.config.lab import LabConfig
+from labctl.config.schema import defaulted_keys
+from labctl.workspace import init_workspace
+from tests.fakes import run_cli
+
+KEY_LINE = re.compile(r"^[^\s:][^:]*: .*$")
+
+
+def labctl(*args):
+    return subprocess.run([sys.executable, "-m", "labctl", *args], capture_output=True, text=True, timeout=120)
+
+
+@pytest.fixture
+def lab(tmp_path) -> Path:
+    root = init_workspace(tmp_path / "lab")
+    text = (root / "lab.yaml").read_text()
+    # leave out one key of run: and the whole tracking: section
+    text = re.sub(r"^  fps: .*\n", "", text, flags=re.M)
+    text = re.sub(r"^tracking:\n(  .*\n)+", "", text, flags=re.M)
+    (root / "lab.yaml").write_text(text)
+    return root
+
+
+def test_defaulted_keys_follow_the_file_not_the_values():
+    # a key set to its default value is set by the file; a missing section is all defaults
+    keys = defaulted_keys(LabConfig, {"run": {"fps": 30.0}, "tracking": None, "marker": {}})
+    assert "run.fps" not in keys and "run.speed_mm_s" in keys
+    assert "tracking.gate_sigma" in keys and "marker.radius_mm" in keys and "name" in keys
+    assert "run" not in keys and "tracking" not in keys  # sections expand to their keys
+    assert "drivers.table" in defaulted_keys(LabConfig, {"drivers": {"robot": "r.yaml"}})
+    assert "drivers.table" not in defaulted_keys(LabConfig, {"drivers": {"table": None}})
+
+
+def test_lab_show_json_lists_the_defaults(lab):
+    r = labctl("--lab", str(lab), "lab", "show", "--json")
+    assert r.returncode == 0, r.stderr
+    info = json.loads(r.stdout)
+    defaults = set(info["defaults"])
+    assert {"config.run.fps", "config.tracking.gate_sigma", "config.tracking.model"} <= defaults
+    assert "config.run.speed_mm_s" not in defaults and "config.marker.radius_mm" not in defaults
+    # every listed key names a value of the same output
+    for key in defaults:
+        node = info
+        for part in key.split("."):
+            node = node[part]
+    assert load_lab(lab).config.run.fps == 30.0  # the default the key came from
+
+
+def test_lab_show_on_a_terminal_marks_defaults(lab, capsys, monkeypatch):
+    monkeypatch.setattr("labctl.cli._common.stdout_is_terminal", lambda: True)
+    code, out, err = run_cli(capsys, "--lab", str(lab), "lab", "show")
+    assert code == 0, err
+    rows = {ln.split()[0]: ln for ln in out.splitlines() if ln.strip()}
+    assert rows["run.fps"].rstrip().endswith("(default)")
+    assert rows["tracking.gate_sigma"].rstrip().endswith("(default)")
+    assert "(default)" not in rows["run.speed_mm_s"] and "(default)" not in rows["marker.radius_mm"]
+
+
+def test_piped_lab_show_is_one_key_per_line(lab):
+    r = labctl("--lab", str(lab), "lab", "show")  # stdout is a pipe
+    assert r.returncode == 0, r.stderr
+    lines = r.stdout.splitlines()
+    assert lines and all(KEY_LINE.match(ln) for ln in lines), r.stdout
+    keys = dict(ln.split(": ", 1) for ln in lines)
+    assert keys["config.run.speed_mm_s"] == "8.0" and keys["drivers.table.kind"] == "sim"
+    assert "config.run.fps" in keys["defaults"].split(", ")
+    assert "┃" not in r.stdout and "\x1b" not in r.stdout  # no table, no colour
+
+
+def test_piped_run_puts_identity_on_its_own_line_and_json_is_unchanged(lab, capsys):
+    code, out, err = run_cli(capsys, "--lab", str(lab), "run", "--virtual", "--seed", "1")  # capsys: not a TTY
+    assert code in (0, 1), err
+    lines = out.splitlines()
+    assert all(KEY_LINE.match(ln) for ln in lines), out
+    ident = [ln for ln in lines if ln.startswith("identity: ")]
+    assert len(ident) == 1
+    assert any(ln.startswith("stages.track: ") for ln in lines) and any(ln.startswith("record: ") for ln in lines)
+    code, out, err = run_cli(capsys, "--lab", str(lab), "--json", "run", "--virtual", "--seed", "1")
+    data = json.loads(out)
+    assert ident[0] == f"identity: {data['identity'] if data['identity'] is not None else 'null'}"
+
+
+_keys = st.text(alphabet="ab_xé7-", min_size=1, max_size=4)
+_leaf = st.none() | st.booleans() | st.integers() | st.floats(allow_nan=False) | st.text(alphabet="a: \n\\\r,", max_size=6)
+_json = st.recursive(_leaf,
+                     lambda inner: st.lists(inner, max_size=3) | st.dictionaries(_keys, inner, max_size=3),
+                     max_leaves=12)
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.dictionaries(_keys, _json, max_size=4))
+def test_key_lines_are_single_lines_that_name_each_leaf(data):
+    lines = key_lines(data)
+    assert all("\n" not in ln and "\r" not in ln and ": " in ln for ln in lines)
+    for ln in lines:  # every line's key leads to a value of the data
+        key = ln.split(": ", 1)[0]
+        node = data
+        for part in re.findall(r"[^.\[\]]+|\[\d+\]", key):
+            node = node[int(part[1:-1])] if part.startswith("[") else node[part]
