@@ -98,7 +98,8 @@ def test_piped_run_puts_identity_on_its_own_line_and_json_is_unchanged(lab, caps
 
 
 _keys = st.text(alphabet="ab_xé7-", min_size=1, max_size=4)
-_leaf = st.none() | st.booleans() | st.integers() | st.floats(allow_nan=False) | st.text(alphabet="a: \n\\\r,", max_size=6)
+_leaf = st.none() | st.booleans() | st.integers() | st.floats(allow_nan=False) \
+    | st.text(alphabet="a: \n\\\r,", max_size=6)
 _json = st.recursive(_leaf,
                      lambda inner: st.lists(inner, max_size=3) | st.dictionaries(_keys, inner, max_size=3),
                      max_leaves=12)
