@@ -115,3 +115,37 @@ def test_key_lines_are_single_lines_that_name_each_leaf(data):
         node = data
         for part in re.findall(r"[^.\[\]]+|\[\d+\]", key):
             node = node[int(part[1:-1])] if part.startswith("[") else node[part]
+
+
+def test_bench_prints_tables_and_what_a_ratio_means_not_a_raw_dict(capsys, monkeypatch):
+    import types
+
+    import labctl.cli.bench as bench_cli
+
+    fake = types.ModuleType("labctl.bench.fake")
+    fake.run = lambda quick: {"rows": [{"case": "fast path", "median_s": 0.002, "baseline": "slow path",
+                                        "ratio": 4.0}],
+                              "accuracy": [{"model": "cv", "rms_mm": 0.31}, {"model": "imm", "rms_mm": 0.27}],
+                              "hit_rate": 0.975, "link": {"bytes": 654}}
+    monkeypatch.setitem(sys.modules, "labctl.bench.fake", fake)
+    monkeypatch.setattr(bench_cli, "_areas", lambda: ["fake"])
+    monkeypatch.setattr("labctl.cli._common.stdout_is_terminal", lambda: True)
+    code, out, err = run_cli(capsys, "bench", "fake")
+    assert code == 0, err
+    assert "{'" not in out and "{\"" not in out  # no raw dict
+    assert [ln for ln in out.splitlines() if ln.startswith("ratio:")] == [
+        f"ratio: {bench_cli.RATIO_MEANS}. Medians; --json gives every number."]
+    assert "4.00×" in out and "imm" in out and "0.27" in out and "link.bytes" in out and "0.975" in out
+    code, out, err = run_cli(capsys, "--json", "bench", "fake")  # the raw data, whole, under --json
+    assert json.loads(out) == {"fake": fake.run(True)}
+
+
+def test_trials_summary_lists_stages_in_pipeline_order():
+    from labctl.workers.predictor import STAGES
+    from labctl.workers.trials import STAGE_ORDER, summarize
+
+    stages = {"match": 0.1, "initial": 1.1, "intercept": 1.2, "standard": 2.0, "track": 0.4, "wait": 0.3}
+    res = {"speed_mm_s": 8.0, "correct": True, "time_to_identity_s": 5.1, "lower_bound_s": 3.0, "views": 1}
+    summary = summarize([{**res, "stages": dict(sorted(stages.items()))}])  # given alphabetically
+    assert list(summary["stage_medians_s"]) == ["wait", "track", "intercept", "initial", "standard", "match"]
+    assert STAGE_ORDER == STAGES  # the order the predictor runs its stages in
