@@ -149,3 +149,29 @@ def test_trials_summary_lists_stages_in_pipeline_order():
     summary = summarize([{**res, "stages": dict(sorted(stages.items()))}])  # given alphabetically
     assert list(summary["stage_medians_s"]) == ["wait", "track", "intercept", "initial", "standard", "match"]
     assert STAGE_ORDER == STAGES  # the order the predictor runs its stages in
+
+
+def test_live_view_shows_start_up_progress_then_the_recorded_byte_counts():
+    import io
+
+    from rich.console import Console
+
+    from labctl.cli.run import _LiveView
+
+    con = Console(file=io.StringIO(), width=100)
+    view = _LiveView(con)
+
+    def text():
+        con.begin_capture()
+        con.print(view._render())
+        return con.end_capture()
+
+    assert "starting" in text() and "s since the command started" in text()
+    view.update({"role": "startup", "stage": "starting the simulated lab"})
+    assert "starting: starting the simulated lab" in text()
+    view.update({"role": "predictor", "t": 2.5, "stage": "track", "estimate": [10.0, 20.0],
+                 "link": {"sent": 394, "received": 538}, "views": 0, "robot": None})
+    assert "track" in text() and "sent 394 B, received 538 B" in text()
+    # the last beat predates the last messages: the end shows result.json's counts
+    view.finish({"identity": "tee", "link": {"bytes_sent": 408, "bytes_received": 538}})
+    assert "sent 408 B, received 538 B" in text()

@@ -704,6 +704,11 @@ class LiveRun:
                 signal.signal(signal.SIGTERM, old)
                 signal.signal(signal.SIGINT, signal.default_int_handler)
 
+    def _say(self, phase: str) -> None:
+        """Tell the live view which start-up phase the run is in (before the workers' first beat)."""
+        if self.on_status:
+            self.on_status({"role": "startup", "stage": phase})
+
     def _record(self):
         if self.run_dir is None:
             return None
@@ -722,6 +727,7 @@ class LiveRun:
         origin = time.monotonic()
         try:
             if lab.is_simulated:
+                self._say("starting the simulated lab")
                 sim_conn, child = CTX.Pipe()
                 sim_proc = CTX.Process(target=sim_server_main, name="labctl-sim", daemon=True,
                                        args=(str(lab.root), self.spec, child,
@@ -754,6 +760,7 @@ class LiveRun:
                 modem = stack.enter_context(pty_null_modem(lab.host_link.baud))
                 for role, port in (("predictor", modem.port_a), ("recognizer", modem.port_b)):
                     extra[role]["host_link"] = dataclasses.asdict(dataclasses.replace(lab.host_link, port=port))
+            self._say("starting the workers")
             base = dict(lab_root=str(lab.root), run_dir=str(self.run_dir) if self.run_dir else None,
                         spec=self.spec, origin=origin, table_port=endpoints.get("table"),
                         robot_port=endpoints.get("robot"), frame_server=endpoints.get("frame_server"))
@@ -769,6 +776,7 @@ class LiveRun:
                     if end is not None:
                         with contextlib.suppress(Exception):
                             end.close()
+                self._say("workers loading calibration and library, opening the devices")
                 result = self._supervise(lab, procs, controls, sim_conn)
                 result["devices_stopped"] = self._await_stopped(lab, procs, controls)
             except (WorkerDied, KeyboardInterrupt, Terminated) as exc:
