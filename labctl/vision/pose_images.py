@@ -100,7 +100,7 @@ def annotate_posed(image: np.ndarray, posed: PosedImages, camera) -> np.ndarray:
             d = posed.duality
             tag += " (ambiguous)" if d.ambiguous else f" margin {math.degrees(d.margin_rad):.2f} deg"
         if not m.trusted:
-            tag += " SUSPECT: " + ",".join(m.quality.flags)
+            tag += " SUSPECT: " + (",".join(m.quality.flags) if m.quality is not None else "not sub-pixel")
         drawn = annotate_marker(drawn, m.ellipse, boundary=m.boundary, label=tag,
                                 circle_centre_px=circle_centre_pixel(pose, camera))
     return drawn
