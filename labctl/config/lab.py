@@ -75,6 +75,15 @@ class RunConfig:
     max_views: PositiveInt = 3
     second_image_azimuth_deg: float = 25.0  # camera moves this far round the marker between the two images
     fps: Positive = 30.0
+    # the predictor's policy (paper §5.2–5.3)
+    max_viewpoints: PositiveInt = 4  # viewpoints tried for a usable marker pose before the run fails
+    next_viewpoint_deg: float = 120.0  # azimuth step round the object to the next viewpoint
+    recognizer_timeout_s: Positive = 10.0  # a view the recognizer has not answered within this fails the run
+    plan_horizon_s: Positive = 15.0  # how far ahead an interception is searched for
+    replan_every_s: Positive = 0.25  # re-plan with the newest prediction at most this often ...
+    replan_until_s: NonNegative = 0.4  # ... and not in the last this-many seconds before arrival
+    marker_lost_s: Positive = 2.0  # no fixed-camera sighting for this long: the marker is lost
+    spare_novelty_deg: NonNegative = 20.0  # a spare marker facing within this of a viewed face is not worth a view
 
 
 @dataclass(frozen=True)
