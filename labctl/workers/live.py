@@ -144,6 +144,7 @@ class PeerWatch:
         self.max_gap_s = 0.0
 
     def heard(self) -> None:
+        """Note a message from the peer now (and the longest gap so far)."""
         now = self.clock()
         if self.t_last is not None:
             self.max_gap_s = max(self.max_gap_s, now - self.t_last)
@@ -687,6 +688,8 @@ class LiveRun:
     on_status: object = None  # callable(dict) for the live view
 
     def run(self) -> dict:
+        """Run the live run: load the lab, start the simulated lab (if any) and both workers, supervise them, and return
+        the predictor's result."""
         warm_up()
         lab = load_lab(self.lab_root)
         old = signal.getsignal(signal.SIGTERM) if _in_main_thread() else None
@@ -959,6 +962,8 @@ class LiveRun:
 
 
 def run_live(lab_root: Path, spec: dict, run_dir: Path | None, on_status=None) -> dict:
+    """A live run of the lab at ``lab_root`` (see :class:`LiveRun`); ``on_status`` receives each status for the live
+    view."""
     return LiveRun(Path(lab_root), spec, run_dir, on_status).run()
 
 

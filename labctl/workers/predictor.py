@@ -46,6 +46,7 @@ class StageClock:
     current: str | None = None
 
     def enter(self, stage: str, now: float) -> None:
+        """Enter ``stage`` at time ``now`` (s), adding the time spent in the previous stage to its duration."""
         if self.current is not None:
             self.durations[self.current] = self.durations.get(self.current, 0.0) + now - self.started[self.current]
         self.current = stage
@@ -125,6 +126,7 @@ class PredictorPlanner:
     # -- helpers ------------------------------------------------------------------------------
     @property
     def finished(self) -> bool:
+        """The run reached ``done`` or ``failed``."""
         return self.stage in ("done", "failed")
 
     def _enter(self, stage: str, now: float) -> None:
@@ -133,6 +135,7 @@ class PredictorPlanner:
         self.log("stage", t=now, stage=stage)
 
     def fail(self, now: float, reason: str) -> None:
+        """End the run as failed with ``reason`` (logged, robot stopped); no-op once finished."""
         if self.finished:
             return
         self.failure = reason
@@ -388,6 +391,8 @@ class PredictorPlanner:
         return self.ctx.plane_to_fixed_pixel(self.tracker.predict(now)[0])
 
     def on_message(self, msg: m.Message, now: float) -> None:
+        """A message from the recognizer at ``now`` (s): frame taken, marker pose, identity or ambiguous match; each
+        moves the state machine on."""
         if self.finished:
             return
         if isinstance(msg, m.FrameTaken):
@@ -474,6 +479,7 @@ class PredictorPlanner:
 
     # -- result ------------------------------------------------------------------------------------
     def result(self, now: float) -> dict:
+        """The run's result: identity, time to identity and its lower bounds (s), views, stage durations, failure."""
         if self.stage_times.current is not None and self.stage_times.current not in ("done", "failed"):
             self.stage_times.enter(self.stage_times.current, now)
         ident = self.identity
@@ -510,6 +516,7 @@ class ProgramProgress:
         self._logged_acked = -1
 
     def pump(self, now: float) -> None:
+        """Keep the table's program streaming, and log its progress at most every ``every_s`` (s)."""
         prog = self.program
         if prog.active:
             prog.pump(0.0)

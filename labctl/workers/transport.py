@@ -242,6 +242,7 @@ class SerialDeframer:
         self.dropped = 0
 
     def feed(self, data: bytes) -> list[bytes]:
+        """Feed received bytes; returns the payloads of the frames they complete (bad frames dropped and counted)."""
         out: list[bytes] = []
         for chunk_end in _split_keep(data):
             piece, ends = chunk_end
@@ -372,11 +373,13 @@ class Link(ABC):
         return msg
 
     def close(self) -> None:
+        """Close the link (idempotent)."""
         if not self.closed:
             self.closed = True
             self._close()
 
     def stats(self) -> dict:
+        """Bytes and messages sent and received, and frames dropped, for the run's result."""
         return {"transport": self.transport, "bytes_sent": self.bytes_sent, "bytes_received": self.bytes_received,
                 "messages_sent": self.messages_sent, "messages_received": self.messages_received,
                 "frames_dropped": self.frames_dropped}
@@ -544,6 +547,7 @@ class TcpListener:
             return TcpLink(conn, log_hook)
 
     def close(self) -> None:
+        """Stop listening."""
         self._sock.close()
 
     def __enter__(self):
@@ -554,6 +558,7 @@ class TcpListener:
 
 
 def tcp_listen(host: str, port: int) -> TcpListener:
+    """Listen for one worker's TCP connection on ``host:port`` (port 0: any free port)."""
     return TcpListener(host, port)
 
 

@@ -21,9 +21,11 @@ class ManualClock:
         self.t = float(t0)
 
     def __call__(self) -> float:
+        """The manual time (s)."""
         return self.t
 
     def sleep(self, dt: float) -> None:
+        """Advance the manual time by ``dt`` s (negative: no-op)."""
         self.t += max(float(dt), 0.0)
 
 
@@ -74,12 +76,15 @@ class EmulatorPort:
 
     # --- pyserial API -----------------------------------------------------------------------
     def open(self) -> None:
+        """Mark the port open."""
         self.is_open = True
 
     def close(self) -> None:
+        """Mark the port closed."""
         self.is_open = False
 
     def write(self, data: bytes) -> int:
+        """Send ``data`` to the emulator, paced at the port's baud rate on its clock; returns the byte count."""
         data = bytes(data)
         if self._byte_s == 0.0:
             self.emulator.receive(data)
@@ -99,11 +104,13 @@ class EmulatorPort:
 
     @property
     def in_waiting(self) -> int:
+        """Bytes received from the emulator and not yet read."""
         self._pump()
         return len(self._rx)
 
     @property
     def out_waiting(self) -> int:
+        """Bytes written and not yet delivered to the emulator (baud-rate pacing)."""
         return len(self._to_device)
 
     def _wait(self, done: Callable[[], bool]) -> None:
@@ -122,6 +129,7 @@ class EmulatorPort:
             self._pump()
 
     def read(self, size: int = 1) -> bytes:
+        """Up to ``size`` received bytes, waiting up to ``timeout`` s for them (pyserial semantics)."""
         if self.timeout == 0:
             self._pump()
         else:
@@ -131,6 +139,7 @@ class EmulatorPort:
         return out
 
     def read_until(self, expected: bytes = b"\n", size: int | None = None) -> bytes:
+        """Received bytes up to and including ``expected`` (or ``size`` bytes), waiting up to ``timeout`` s."""
         def done() -> bool:
             return expected in self._rx or (size is not None and len(self._rx) >= size)
 
@@ -144,14 +153,17 @@ class EmulatorPort:
         return out
 
     def readline(self, size: int | None = None) -> bytes:
+        """One received line (up to ``\n``), as pyserial's ``readline``."""
         return self.read_until(b"\n", size)
 
     def reset_input_buffer(self) -> None:
+        """Drop every received byte not yet read, and those still on the wire."""
         self._pump()
         self._rx.clear()
         self._from_device.clear()
 
     def reset_output_buffer(self) -> None:
+        """Drop bytes written and not yet delivered."""
         self._to_device.clear()
 
     def __enter__(self):
