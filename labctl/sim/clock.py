@@ -35,6 +35,11 @@ class VirtualClock:
 
     __call__ = now
 
+    @property
+    def t(self) -> float:
+        """Virtual time now (s), as an attribute."""
+        return self._t
+
     def advance(self, dt: float) -> float:
         """Move time forward by ``dt`` ≥ 0 seconds; returns the new time."""
         if not math.isfinite(dt) or dt < 0:

@@ -38,7 +38,7 @@ STAGES = ("wait", "track", "intercept", "initial", "standard", "match", "done", 
 
 
 @dataclass
-class StageClock:
+class StageTimes:
     """Start time of each stage, for the per-stage durations of the result."""
 
     started: dict[str, float] = field(default_factory=dict)
@@ -88,7 +88,7 @@ class PredictorPlanner:
         self.cfg = cfg
         self.tracker = MarkerTracker.from_config(cfg.tracking)
         self.stage = "wait"
-        self.stage_times = StageClock()
+        self.stage_times = StageTimes()
         self.stage_times.enter("wait", t_start)
         self.t_start = t_start
         self.deadline = t_start + cfg.run.timeout_s

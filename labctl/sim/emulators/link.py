@@ -14,21 +14,6 @@ from collections import deque
 from collections.abc import Callable
 
 
-class ManualClock:
-    """A virtual clock: ``clock()`` is the time (s); ``sleep(dt)`` advances it at once."""
-
-    def __init__(self, t0: float = 0.0):
-        self.t = float(t0)
-
-    def __call__(self) -> float:
-        """The manual time (s)."""
-        return self.t
-
-    def sleep(self, dt: float) -> None:
-        """Advance the manual time by ``dt`` s (negative: no-op)."""
-        self.t += max(float(dt), 0.0)
-
-
 class EmulatorPort:
     """pyserial-like port to ``emulator`` (anything with ``receive(data, t)`` and ``read_output()``)."""
 
