@@ -84,17 +84,19 @@ def test_piped_lab_show_is_one_key_per_line(lab):
     assert "┃" not in r.stdout and "\x1b" not in r.stdout  # no table, no colour
 
 
-def test_piped_run_puts_identity_on_its_own_line_and_json_is_unchanged(lab, capsys):
+def test_piped_run_puts_identity_on_its_own_line_as_recorded(lab, capsys):
     code, out, err = run_cli(capsys, "--lab", str(lab), "run", "--virtual", "--seed", "1")  # capsys: not a TTY
     assert code in (0, 1), err
     lines = out.splitlines()
     assert all(KEY_LINE.match(ln) for ln in lines), out
-    ident = [ln for ln in lines if ln.startswith("identity: ")]
-    assert len(ident) == 1
-    assert any(ln.startswith("stages.track: ") for ln in lines) and any(ln.startswith("record: ") for ln in lines)
-    code, out, err = run_cli(capsys, "--lab", str(lab), "--json", "run", "--virtual", "--seed", "1")
-    data = json.loads(out)
-    assert ident[0] == f"identity: {data['identity'] if data['identity'] is not None else 'null'}"
+    keys = dict(ln.split(": ", 1) for ln in lines)
+    assert sum(ln.startswith("identity: ") for ln in lines) == 1
+    assert "stages.track" in keys and "link.total_bytes" in keys
+    # the same values as the record's result.json (the --json output is that dict)
+    result = json.loads((Path(keys["record"]) / "result.json").read_text())
+    assert keys["identity"] == (result["identity"] if result["identity"] is not None else "null")
+    assert int(keys["link.total_bytes"]) == result["link"]["total_bytes"]
+    assert float(keys["time_to_identity_s"]) == result["time_to_identity_s"]
 
 
 _keys = st.text(alphabet="ab_xé7-", min_size=1, max_size=4)
