@@ -92,6 +92,19 @@ def stdout_is_terminal() -> bool:
         return False
 
 
+def live_console():
+    """Where a live display (progress bar, live view) goes: the terminal on stdout; stderr's terminal
+    when stdout is piped or carries --json; None when neither is a terminal (nothing to redraw on)."""
+    from rich.console import Console
+
+    if not get_ctx().json and stdout_is_terminal():
+        return Console()
+    try:
+        return Console(stderr=True) if sys.stderr.isatty() else None
+    except (AttributeError, ValueError):
+        return None
+
+
 def _scalar(v: Any) -> str:
     if v is None:
         return "null"

@@ -3,13 +3,12 @@
 from __future__ import annotations
 
 import contextlib
-import sys
 from pathlib import Path
 
 import click
 
 from ..errors import LabctlError, UserInputError
-from ._common import emit, get_ctx, json_option, stdout_is_terminal
+from ._common import emit, get_ctx, json_option, live_console
 
 TRAJECTORIES = ("line", "arc", "circle", "zigzag")
 
@@ -120,13 +119,8 @@ def run_cmd(trajectory, speed, object_name, seed, virtual) -> None:
 def _run_live(c, lab, spec, record) -> dict:
     from ..workers.live import WorkerDied, run_live
 
-    view = None
-    if not c.json and stdout_is_terminal():
-        view = _LiveView(c.console)
-    elif sys.stderr.isatty():  # stdout piped or --json: the live view goes to the terminal, not into the result
-        from rich.console import Console
-
-        view = _LiveView(Console(stderr=True))
+    con = live_console()  # stdout piped or --json: the live view goes to stderr's terminal, not into the result
+    view = _LiveView(con) if con is not None else None
     try:
         if view is None:
             return run_live(lab.root, spec, record.path)
