@@ -179,3 +179,18 @@ def test_unfinished_run_report_leads_with_the_last_event(tmp_path):
     lead = text.index('id="failure"')
     assert "did not finish" in text[lead:lead + 300] and "last event: failure" in text[lead:lead + 300]
     assert lead < text.index("<figure")
+
+
+def test_report_command_redraws_a_failed_run_and_names_the_reason(tmp_path, capsys):
+    import json
+
+    from tests.fakes import run_cli
+
+    rec = RunRecord.create(tmp_path, {"trajectory": "line"})
+    rec.finish({"identity": None, "failure": "the object left the fixed camera's field of view"})
+    code, out, err = run_cli(capsys, "--json", "report", str(rec.path))
+    data = json.loads(out)
+    assert code == 0 and data["failed"] and "left the fixed camera" in data["failure"], err
+    assert (rec.path / "report.html").is_file() and (rec.path / "report.png").is_file()
+    code, out, err = run_cli(capsys, "report", str(tmp_path))  # a folder that is no record: bad input
+    assert code == 2 and len(err.strip().splitlines()) == 1 and "not a run record" in err
