@@ -259,7 +259,10 @@ def render_figure(run: RunData):
     title = f"Run {run.meta.get('run_id', run.path.name)}"
     reason = failure_reason(run)
     if reason is not None:  # a failed run's figure leads with why, above its "not reached" panels
-        fig.suptitle(f"{title}: FAILED: {_clip(reason, 140)}", color="tab:red", fontsize=13, fontweight="bold")
+        import textwrap
+
+        lines = textwrap.wrap(_clip(reason, 300), width=int(7.5 * 4.2 * ncols))  # ~7.5 characters per inch at 13 pt
+        fig.suptitle("\n".join([f"{title}: FAILED"] + lines), color="tab:red", fontsize=13, fontweight="bold")
     else:
         fig.suptitle(title)
     return fig
