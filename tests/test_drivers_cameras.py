@@ -9,7 +9,7 @@ import pytest
 
 from labctl.drivers.cameras import CameraError, ReplayCamera, V4L2Camera, open_camera, save_stamped_frame
 from labctl.drivers.interfaces import Camera, Frame
-from labctl.sim.emulators.link import ManualClock
+from labctl.sim.clock import VirtualClock
 from labctl.workspace import sample_lab_path
 
 
@@ -36,12 +36,12 @@ def test_replay_round_trip_in_order(tmp_path):
 def test_replay_with_clock_gives_latest_frame(tmp_path):
     for f in frames():
         save_stamped_frame(tmp_path, f)
-    clk = ManualClock(0.25)
+    clk = VirtualClock(0.01)
     with ReplayCamera(tmp_path, clock=clk) as cam:
-        assert cam.grab().t == pytest.approx(0.2333, abs=1e-6)
-        clk.t = 0.01
         with pytest.raises(CameraError):
-            cam.grab()
+            cam.grab()  # before the first frame
+        clk.sleep_until(0.25)
+        assert cam.grab().t == pytest.approx(0.2333, abs=1e-6)
 
 
 def test_replay_index_file(tmp_path):

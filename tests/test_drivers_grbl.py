@@ -217,10 +217,11 @@ def test_socket_url_without_banner_recovers_by_query():
 
 @pytest.mark.parametrize("name", ["line", "arc", "circle", "zigzag"])
 def test_trajectory_programs_run_on_the_emulator(name):
+    from labctl.sim.clock import VirtualClock
     from labctl.sim.emulators.grbl import GrblEmulator
-    from labctl.sim.emulators.link import EmulatorPort, ManualClock
+    from labctl.sim.emulators.link import EmulatorPort
 
-    clk = ManualClock()
+    clk = VirtualClock()
     emu = GrblEmulator(clk, strict=True)
     table = GrblTable(serial_port=EmulatorPort(emu, clk, baud=9600), clock=clk, sleep=clk.sleep)
     table.open()

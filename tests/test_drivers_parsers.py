@@ -7,8 +7,8 @@ from hypothesis import strategies as st
 
 from labctl.drivers.grbl_protocol import parse_line, parse_status, parse_version
 from labctl.drivers.robot_protocol import format_request, parse_reply, parse_request
+from labctl.sim.clock import VirtualClock
 from labctl.sim.emulators.grbl import GrblEmulator
-from labctl.sim.emulators.link import ManualClock
 
 FUZZ = settings(max_examples=300, deadline=None)
 grbl_alphabet = st.sampled_from(list("<>|:,.-0123456789IdleRunHoldAlarmMPosWPosFSBfWCOOvokerror[]MSG$=ALARM \r"))
@@ -66,7 +66,7 @@ def test_grbl_replies_classified():
 
 
 def test_every_emulator_report_parses():
-    clk = ManualClock()
+    clk = VirtualClock()
     g = GrblEmulator(clk, homing=False, settings={10: 3})
     g.read_output()
     g.receive(b"G1 X30 F600\n")

@@ -8,15 +8,15 @@ import re
 import numpy as np
 import pytest
 
+from labctl.sim.clock import VirtualClock
 from labctl.sim.emulators.grbl import GrblEmulator, RxOverflow
-from labctl.sim.emulators.link import ManualClock
 
 STATUS_RE = re.compile(r"^<(Idle|Run|Hold:[01]|Alarm|Home|Check)\|MPos:-?\d+\.\d{3},-?\d+\.\d{3},-?\d+\.\d{3}"
                        r"\|FS:\d+,\d+(\|WCO:[-\d.,]+)?(\|Ov:\d+,\d+,\d+)?>$")
 
 
 def make(**kw):
-    clk = ManualClock()
+    clk = VirtualClock()
     kw.setdefault("homing", False)
     g = GrblEmulator(clk, **kw)
     g.read_output()
@@ -36,7 +36,7 @@ def run_until_idle(clk, g, dt=0.01, limit=600.0):
 
 
 def test_banner_and_homing_lock():
-    clk = ManualClock()
+    clk = VirtualClock()
     g = GrblEmulator(clk)
     out = g.read_output().decode()
     assert out == "\r\nGrbl 1.1h ['$' for help]\r\n[MSG:'$H'|'$X' to unlock]\r\n"

@@ -10,12 +10,12 @@ from fakes import robot_test_limits
 
 from labctl.drivers.robot_protocol import add_checksum, strip_checksum
 from labctl.geometry import make_T, matrix_to_rotvec, rot_x, rot_z
-from labctl.sim.emulators.link import ManualClock
+from labctl.sim.clock import VirtualClock
 from labctl.sim.emulators.robot import RobotEmulator, poly_eval, quintic_coeffs
 
 
 def make():
-    clk = ManualClock()
+    clk = VirtualClock()
     emu = RobotEmulator(clk, robot_test_limits())
     emu.read_output()
     return clk, emu

@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 
 from labctl.drivers.robot_protocol import add_checksum, strip_checksum
 from labctl.geometry import make_T, matrix_to_rotvec, rot_x
-from labctl.sim.emulators.link import ManualClock
+from labctl.sim.clock import VirtualClock
 from labctl.sim.emulators.robot import RobotEmulator
 
 CFG = robot_test_limits()
@@ -50,7 +50,7 @@ def within(points: np.ndarray, lo, hi, tol: float = 1e-6) -> bool:
 
 
 def run_case(start, segs, stop_how, stop_at):
-    clk = ManualClock()
+    clk = VirtualClock()
     emu = RobotEmulator(clk, CFG, start_pose=make_T(rot_x(math.pi), start))
     emu.read_output()
     send(emu, "#1 HELLO 1.1")
@@ -125,7 +125,7 @@ def test_a_stray_arm_never_goes_further_out_and_comes_home(start, segs, stop_how
 def test_the_issues_outward_segment_is_refused_and_an_inward_one_from_outside_accepted():
     """Issue 19 item 1: a path inside the box ending at the edge moving outward was accepted and
     braked to x = 1450 with xmax = 1400. Now refused; from outside, a move back in is accepted."""
-    clk = ManualClock()
+    clk = VirtualClock()
     emu = RobotEmulator(clk, CFG)
     emu.read_output()
     rv = matrix_to_rotvec(rot_x(math.pi))
@@ -160,6 +160,6 @@ def test_what_the_planner_passes_the_controller_accepts(p0, p1, v0, v1, a0, scal
         check_segment(seg, limits)
     except LimitViolation:
         return
-    emu = RobotEmulator(ManualClock(), CFG, start_pose=make_T(R0, p0))
+    emu = RobotEmulator(VirtualClock(), CFG, start_pose=make_T(R0, p0))
     ctl = emu._plan(1, p1, R1, T, v1, np.zeros(3), 0.0, (p0, v0, a0, R0, R0 @ w_body))
     assert emu._check(ctl, p0) == 0

@@ -18,8 +18,8 @@ from labctl.workers.transport import (
     AUTH_MAGIC,
     TCP_HEADER,
     AuthError,
+    HostLinkError,
     LinkClosed,
-    LinkError,
     SerialDeframer,
     TcpLink,
     link_key,
@@ -39,7 +39,7 @@ def _frame(msg) -> bytes:
 
 def test_tcp_link_without_a_key_is_refused_in_one_line():
     cfg = HostLinkConfig(transport="tcp", host="127.0.0.1", tcp_port=1)
-    with pytest.raises(LinkError, match="LABCTL_LINK_KEY"):
+    with pytest.raises(HostLinkError, match="LABCTL_LINK_KEY"):
         open_link(cfg, "predictor")
 
 
@@ -86,7 +86,7 @@ def test_unauthenticated_peer_is_refused_logged_and_never_heard(caplog):
 def test_wrong_key_and_fake_listener_are_both_caught():
     refused: list[str] = []
     with tcp_listen("127.0.0.1", 0) as listener:
-        th = threading.Thread(target=lambda: pytest.raises(LinkError, listener.accept, 1.5, authkey=KEY,
+        th = threading.Thread(target=lambda: pytest.raises(HostLinkError, listener.accept, 1.5, authkey=KEY,
                                                            on_refused=refused.append))
         th.start()
         with pytest.raises(AuthError):
@@ -116,14 +116,14 @@ def test_wrong_key_and_fake_listener_are_both_caught():
 def test_link_key_comes_from_the_environment_or_a_file(tmp_path, monkeypatch):
     monkeypatch.delenv("LABCTL_LINK_KEY", raising=False)
     cfg = HostLinkConfig(transport="tcp", key_file="link.key")
-    with pytest.raises(LinkError, match="cannot read"):
+    with pytest.raises(HostLinkError, match="cannot read"):
         link_key(cfg, tmp_path)
     (tmp_path / "link.key").write_text("a-file-key-0123456789\n")
     assert link_key(cfg, tmp_path) == b"a-file-key-0123456789"
     monkeypatch.setenv("LABCTL_LINK_KEY", "env-key-wins-0123456789")
     assert link_key(cfg, tmp_path) == b"env-key-wins-0123456789"
     monkeypatch.setenv("LABCTL_LINK_KEY", "short")
-    with pytest.raises(LinkError, match="too short"):
+    with pytest.raises(HostLinkError, match="too short"):
         link_key(cfg, tmp_path)
     monkeypatch.delenv("LABCTL_LINK_KEY")
     assert link_key(HostLinkConfig(), tmp_path) is None

@@ -40,7 +40,7 @@ def _full_run(tmp_path):
     std[sil] = 200
     rec.save_image("standard_0", std)
     rec.save_image("silhouette_0", sil)
-    rec.event("match", view=0, scores={"wedge": 0.97, "cube": 0.61, "prism": np.float32(0.4)})
+    rec.event("match", view=0, scores={"wedge": 0.04, "cube": 0.61, "prism": np.float32(0.97)})  # lower is better
     rec.finish({"identity": "wedge", "true_identity": "wedge", "correct": True, "time_to_identity_s": 9.2,
                 "views": 1, "stages": {"track": 3.0, "intercept": 4.0, "standard": 2.2}})
     return rec
@@ -63,7 +63,9 @@ def test_full_report_has_every_section_and_a_figure(tmp_path):
     assert 'href="initial1.png"' in _section(text, "markers") and "3.1" in _section(text, "markers")
     assert 'href="silhouette_0.png"' in _section(text, "standard")
     scores = _section(text, "scores")
-    assert scores.index("wedge") < scores.index("cube") < scores.index("prism")  # best first
+    assert scores.index("wedge") < scores.index("cube") < scores.index("prism")  # best (lowest) first
+    assert "lower is better" in scores
+    assert 'id="failure"' not in text
     assert "time_to_identity_s" in _section(text, "summary")
     # the embedded figure is the same PNG as report.png and decodes to an image
     b64 = re.search(r'src="data:image/png;base64,([^"]+)"', text).group(1)
@@ -82,6 +84,21 @@ def test_figure_draws_the_recorded_data(tmp_path):
     paths_ax = next(ax for ax in axes if "paths" in ax.get_title())
     labels = {line.get_label() for line in paths_ax.get_lines()}
     assert {"tracked (KF)", "predicted", "robot (x-y)"} <= labels
+    # axes fit the data: every drawn point inside, and no more than a margin beyond it
+    xs = np.concatenate([ln.get_xdata() for ln in paths_ax.get_lines()])
+    ys = np.concatenate([ln.get_ydata() for ln in paths_ax.get_lines()])
+    fig.canvas.draw()
+    (x0, x1), (y0, y1) = paths_ax.get_xlim(), paths_ax.get_ylim()
+    assert x0 <= xs.min() and xs.max() <= x1 and y0 <= ys.min() and ys.max() <= y1
+    span = max(np.ptp(xs), np.ptp(ys))
+    assert max(x1 - x0, y1 - y0) < 1.5 * span
+    # the object's own path, up close: its panel spans the tracked and predicted path, not the robot's travel
+    close = next(ax for ax in axes if "up close" in ax.get_title())
+    (cx0, cx1) = close.get_xlim()
+    assert cx0 <= 100 and cx1 >= 100 + 8 * 1.9 + 8 * 5 and cx1 - cx0 < 1.5 * (8 * 1.9 + 8 * 5 + 0.8 * 3)
+    pred = next(ln for ln in close.get_lines() if ln.get_label() == "predicted")
+    track = next(ln for ln in close.get_lines() if ln.get_label() == "tracked (KF)")
+    assert pred.get_zorder() > track.get_zorder()  # drawn over the track it continues
     tracked = next(line for line in paths_ax.get_lines() if line.get_label() == "tracked (KF)")
     assert np.allclose(tracked.get_xdata(), [100 + 0.8 * i for i in range(20)])
     # ellipses drawn where recorded, in pixel coordinates
@@ -92,7 +109,10 @@ def test_figure_draws_the_recorded_data(tmp_path):
     assert "silhouette" in std_ax.get_title() and std_ax.collections  # the silhouette contour
     score_ax = next(ax for ax in axes if ax.get_title().startswith("Match scores"))
     widths = sorted(p.get_width() for p in score_ax.patches)
-    assert widths == pytest.approx([0.4, 0.61, 0.97])
+    assert widths == pytest.approx([0.04, 0.61, 0.97])
+    assert "lower is better" in score_ax.get_xlabel()
+    bars = sorted(score_ax.patches, key=lambda b: -b.get_y())  # top bar first
+    assert [round(b.get_width(), 2) for b in bars] == [0.04, 0.61, 0.97]  # best at the top
 
 
 def test_early_ended_run_reports_not_reached(tmp_path):
@@ -134,3 +154,43 @@ def test_several_standard_views_are_all_shown(tmp_path):
     assert "standard_0.png" in sec and "standard_1.png" in sec and "silhouette not recorded" in sec
     titles = [ax.get_title() for ax in render_figure(load_run(rec.path)).axes]
     assert "Standard view 1 (silhouette not recorded)" in titles
+
+
+def test_failed_run_report_leads_with_the_reason(tmp_path):
+    rec = RunRecord.create(tmp_path, {"trajectory": "line"})
+    for i in range(5):
+        rec.event("track", t=0.1 * i, x=10.0 * i, y=0.0)
+    why = "no marker gave a usable pose (radius 8 mm does not fit the detected ellipse)"
+    rec.finish({"identity": None, "failure": why})
+    text = write_report(rec.path).read_text()
+    lead = text.index('id="failure"')
+    assert why in text[lead:lead + 400]
+    # before the figure and before every panel or section that says "not reached"
+    assert lead < text.index("<figure") and lead < text.index("not reached")
+    assert all(lead < text.index(f'<section id="{sid}">') for sid in SECTIONS)
+    fig = render_figure(load_run(rec.path))
+    assert why in fig._suptitle.get_text() and "FAILED" in fig._suptitle.get_text()
+
+
+def test_unfinished_run_report_leads_with_the_last_event(tmp_path):
+    rec = RunRecord.create(tmp_path, {"trajectory": "arc"})
+    rec.event("failure", stage="intercept", reason="recognizer worker died")
+    text = write_report(rec.path).read_text()
+    lead = text.index('id="failure"')
+    assert "did not finish" in text[lead:lead + 300] and "last event: failure" in text[lead:lead + 300]
+    assert lead < text.index("<figure")
+
+
+def test_report_command_redraws_a_failed_run_and_names_the_reason(tmp_path, capsys):
+    import json
+
+    from tests.fakes import run_cli
+
+    rec = RunRecord.create(tmp_path, {"trajectory": "line"})
+    rec.finish({"identity": None, "failure": "the object left the fixed camera's field of view"})
+    code, out, err = run_cli(capsys, "--json", "report", str(rec.path))
+    data = json.loads(out)
+    assert code == 0 and data["failed"] and "left the fixed camera" in data["failure"], err
+    assert (rec.path / "report.html").is_file() and (rec.path / "report.png").is_file()
+    code, out, err = run_cli(capsys, "report", str(tmp_path))  # a folder that is no record: bad input
+    assert code == 2 and len(err.strip().splitlines()) == 1 and "not a run record" in err

@@ -12,7 +12,7 @@ from labctl.workers.messages import Heartbeat, MarkerPose, encode
 from labctl.workers.transport import (
     MAX_SERIAL_PAYLOAD,
     SERIAL_OVERHEAD,
-    LinkError,
+    HostLinkError,
     SerialDeframer,
     cobs_decode,
     cobs_encode,
@@ -104,7 +104,7 @@ def test_oversized_junk_is_dropped_and_counted_then_resyncs():
 
 
 def test_serial_frame_rejects_too_long_payloads():
-    with pytest.raises(LinkError):
+    with pytest.raises(HostLinkError):
         serial_frame(bytes(MAX_SERIAL_PAYLOAD + 1))
 
 

@@ -23,9 +23,9 @@ from labctl.workers.messages import (
 from labctl.workers.transport import (
     SERIAL_OVERHEAD,
     TCP_HEADER,
+    HostLinkError,
     LinkClosed,
-    LinkError,
-    SerialLink,
+    SerialHostLink,
     local_pair,
     open_link,
     pty_null_modem,
@@ -103,13 +103,13 @@ def test_local_pair_across_processes_and_peer_exit():
 
 def test_open_link_local_needs_an_end():
     cfg = HostLinkConfig(transport="local")
-    with pytest.raises(LinkError, match="local_pair"):
+    with pytest.raises(HostLinkError, match="local_pair"):
         open_link(cfg, "predictor")
     a, b = local_pair()
     assert open_link(cfg, "predictor", local_end=a) is a
     a.close()
     b.close()
-    with pytest.raises(LinkError):
+    with pytest.raises(HostLinkError):
         open_link(cfg, "boss", local_end=a)
 
 
@@ -159,11 +159,11 @@ def test_tcp_timeouts_are_explicit():
     with tcp_listen("127.0.0.1", 0) as listener:
         port = listener.port
         t0 = time.monotonic()
-        with pytest.raises(LinkError, match="no peer connected"):
+        with pytest.raises(HostLinkError, match="no peer connected"):
             listener.accept(timeout=0.2)
         assert time.monotonic() - t0 >= 0.2
-    # nobody listens now: connecting retries, then gives up with a LinkError
-    with pytest.raises(LinkError, match="could not connect"):
+    # nobody listens now: connecting retries, then gives up with a HostLinkError
+    with pytest.raises(HostLinkError, match="could not connect"):
         tcp_connect("127.0.0.1", port, timeout=0.3, retry_s=0.05)
 
 
@@ -195,7 +195,7 @@ def test_serial_exchange_over_ptys():
     with pty_null_modem() as modem:
         cfg_a = HostLinkConfig(transport="serial", port=modem.port_a, baud=9600)
         a = open_link(cfg_a, "predictor")
-        b = SerialLink.open(modem.port_b, 9600)
+        b = SerialHostLink.open(modem.port_b, 9600)
         with a, b:
             log = exchange(a, b)
             assert log[0][2] == len(encode(SAMPLE[0])) + SERIAL_OVERHEAD
@@ -207,9 +207,9 @@ def test_serial_exchange_over_ptys():
 
 
 def test_serial_open_bad_port_is_link_error(tmp_path):
-    with pytest.raises(LinkError, match="cannot open serial port"):
-        SerialLink.open(str(tmp_path / "no-such-tty"))
-    with pytest.raises(LinkError, match="needs a port"):
+    with pytest.raises(HostLinkError, match="cannot open serial port"):
+        SerialHostLink.open(str(tmp_path / "no-such-tty"))
+    with pytest.raises(HostLinkError, match="needs a port"):
         open_link(HostLinkConfig(transport="serial", port=None), "recognizer")
 
 
@@ -233,8 +233,8 @@ def test_serial_drops_corrupted_frames_and_keeps_going():
     flipper = BitFlipper(every=3, seed=11)
     n = 30
     with pty_null_modem(corrupt=flipper) as modem:
-        a = SerialLink.open(modem.port_a)
-        b = SerialLink.open(modem.port_b)
+        a = SerialHostLink.open(modem.port_a)
+        b = SerialHostLink.open(modem.port_b)
         with a, b:
             sent = [Heartbeat("predictor", i, i * 0.2) for i in range(n)]
             got = []
@@ -269,8 +269,8 @@ def test_serial_resyncs_after_line_noise():
         return chunk
 
     with pty_null_modem(corrupt=noisy) as modem:
-        a = SerialLink.open(modem.port_a)
-        b = SerialLink.open(modem.port_b)
+        a = SerialHostLink.open(modem.port_a)
+        b = SerialHostLink.open(modem.port_b)
         with a, b:
             a.send(SAMPLE[3])
             assert b.recv(timeout=2.0) == SAMPLE[3]
@@ -283,8 +283,8 @@ def test_serial_resyncs_after_line_noise():
 def test_paced_null_modem_takes_at_least_the_wire_time():
     # correctness of the pacing model (10 bits per byte), not a speed target
     with pty_null_modem(baud=9600) as modem:
-        a = SerialLink.open(modem.port_a)
-        b = SerialLink.open(modem.port_b)
+        a = SerialHostLink.open(modem.port_a)
+        b = SerialHostLink.open(modem.port_b)
         with a, b:
             t0 = time.monotonic()
             nbytes = sum(a.send(m) for m in SAMPLE)

@@ -135,3 +135,19 @@ def test_learn_color_writes_the_window_into_the_driver_file(scene, tmp_path, cap
     written = driver.read_text()
     code, _, err = _run(capsys, "--lab", str(lab), "vision", "learn-color", str(d / "empty.png"), "--camera", "fixed")
     assert code == 2 and err.count("\n") == 1 and driver.read_text() == written
+
+
+def test_pose_images_is_the_pipeline_in_vision(scene):
+    """The pipeline lives in labctl.vision (arrays in, results out); the command only does files."""
+    from labctl.vision.pose_images import ImagePoseError, annotate_posed, pose_images
+
+    d, c1, c2, n = scene
+    a, b = cv2.imread(str(d / "a.png")), cv2.imread(str(d / "b.png"))
+    posed = pose_images([a, b], CAM, 10.0)
+    assert posed.duality is not None and not posed.duality.ambiguous
+    assert np.linalg.norm(posed.duality.best.center - c2) < 5.0  # the second image's marker, camera frame
+    assert abs(float(np.dot(posed.duality.best.normal, n))) > np.cos(np.radians(2))
+    assert annotate_posed(b, posed, CAM).shape == b.shape
+    with pytest.raises(ImagePoseError) as err:
+        pose_images([a, np.full_like(a, 200)], CAM, 10.0)
+    assert err.value.index == 1 and "no marker" in str(err.value)

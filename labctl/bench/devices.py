@@ -50,10 +50,11 @@ def _stream_on_pty(lines: list[str], baud: int) -> dict:
 
 def _stream_virtual(lines: list[str], baud: int) -> dict:
     from ..drivers.grbl import GrblTable, clean_line
+    from ..sim.clock import VirtualClock
     from ..sim.emulators.grbl import GrblEmulator
-    from ..sim.emulators.link import EmulatorPort, ManualClock
+    from ..sim.emulators.link import EmulatorPort
 
-    clk = ManualClock()
+    clk = VirtualClock()
     emu = GrblEmulator(clk, homing=False, strict=True)
     table = GrblTable(serial_port=EmulatorPort(emu, clk, baud=baud), clock=clk, sleep=clk.sleep, status_hz=5.0)
     table.open()

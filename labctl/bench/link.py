@@ -76,10 +76,10 @@ def _json_bytes(msg) -> int:
 def _paced_carry_s(msg, repeat: int) -> float | None:
     """Median send->recv time of ``msg`` through a pty null modem paced at BAUD (None without ptys)."""
     try:
-        from ..workers.transport import SerialLink, pty_null_modem
+        from ..workers.transport import SerialHostLink, pty_null_modem
 
         with pty_null_modem(baud=BAUD) as modem:
-            a, b = SerialLink.open(modem.port_a, BAUD), SerialLink.open(modem.port_b, BAUD)
+            a, b = SerialHostLink.open(modem.port_a, BAUD), SerialHostLink.open(modem.port_b, BAUD)
             with a, b:
                 samples = []
                 for _ in range(repeat):

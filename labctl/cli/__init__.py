@@ -30,6 +30,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "run": ("labctl.cli.run", "run_cmd"),
     "trials": ("labctl.cli.trials", "trials_cmd"),
     "replay": ("labctl.cli.run", "replay_cmd"),
+    "report": ("labctl.cli.report", "report_cmd"),
     "worker": ("labctl.cli.run", "worker_cmd"),
     "bench": ("labctl.cli.bench", "bench_group"),
 }

@@ -84,11 +84,66 @@ def to_json(data: Any) -> str:
     return json.dumps(data, default=_default, indent=2, allow_nan=False)
 
 
+def stdout_is_terminal() -> bool:
+    """True when stdout is a terminal (people read it); False when piped or redirected (programs do)."""
+    try:
+        return sys.stdout.isatty()
+    except (AttributeError, ValueError):  # replaced or closed stream
+        return False
+
+
+def live_console():
+    """Where a live display (progress bar, live view) goes: the terminal on stdout; stderr's terminal
+    when stdout is piped or carries --json; None when neither is a terminal (nothing to redraw on)."""
+    from rich.console import Console
+
+    if not get_ctx().json and stdout_is_terminal():
+        return Console()
+    try:
+        return Console(stderr=True) if sys.stderr.isatty() else None
+    except (AttributeError, ValueError):
+        return None
+
+
+def _scalar(v: Any) -> str:
+    if v is None:
+        return "null"
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    text = str(v)
+    return text.replace("\\", "\\\\").replace("\n", "\\n").replace("\r", "\\r")  # one key, one line
+
+
+def key_lines(data: Any, prefix: str = "") -> list[str]:
+    """``data`` flattened to ``key: value`` lines: nested keys joined by ``.``, list items as ``key[i]``,
+    a list of plain values on one line (comma-separated), newlines in values escaped."""
+    if isinstance(data, dict):
+        if not data:
+            return [f"{prefix}: {{}}"] if prefix else []
+        out: list[str] = []
+        for k, v in data.items():
+            out += key_lines(v, f"{prefix}.{k}" if prefix else str(k))
+        return out
+    if isinstance(data, list | tuple):
+        if all(not isinstance(v, dict | list | tuple) for v in data):
+            return [f"{prefix or 'value'}: {', '.join(_scalar(v) for v in data)}"]
+        out = []
+        for i, v in enumerate(data):
+            out += key_lines(v, f"{prefix}[{i}]")
+        return out
+    return [f"{prefix or 'value'}: {_scalar(data)}"]
+
+
 def emit(data: Any, human=None) -> None:
-    """Print ``data`` as JSON with --json, else call ``human(console)`` (or pretty-print)."""
+    """Print a command's result: JSON with --json; one ``key: value`` line per key when stdout is not
+    a terminal (piped: for grep, awk, a shell loop); else ``human(console)`` (or a pretty-print)."""
     c = get_ctx()
     if c.json:
         sys.stdout.write(to_json(data) + "\n")
+        sys.stdout.flush()
+    elif not stdout_is_terminal():
+        plain = json.loads(json.dumps(data, default=_default))  # numpy, paths → plain values
+        sys.stdout.write("".join(line + "\n" for line in key_lines(plain)))
         sys.stdout.flush()
     elif human is not None:
         human(c.console)

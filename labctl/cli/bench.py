@@ -47,12 +47,54 @@ def bench_group(names: tuple[str, ...], quick: bool) -> None:
                 ratio = r.get("ratio")
                 t.add_row(str(r.get("case")), _fmt_s(r.get("median_s")), str(r.get("baseline") or "-"),
                           f"{ratio:.2f}×" if isinstance(ratio, int | float) else "-")
-            console.print(t)
-            extra = {k: v for k, v in res.items() if k != "rows"}
-            if extra:
-                console.print(extra)
+            if res.get("rows"):
+                console.print(t)
+            _print_extra(console, name, {k: v for k, v in res.items() if k not in ("rows", "ratio_means")})
+        console.print(f"ratio: {RATIO_MEANS}. Medians; --json gives every number.", soft_wrap=True,
+                      highlight=False)
 
     emit(results, human)
+
+
+RATIO_MEANS = "the baseline's median time ÷ this case's median time, both timed in this run (> 1: faster)"
+
+
+def _print_extra(console, area: str, extra: dict) -> None:
+    """An area's other results as tables: scalars (nested keys dotted) in one, each list of records in its own."""
+    from rich.table import Table
+
+    scalars = Table("result", "value", title=f"bench {area}: results", title_justify="left")
+    for key, value in extra.items():
+        if isinstance(value, list) and value and all(isinstance(v, dict) for v in value):
+            cols = list(dict.fromkeys(k for v in value for k in v))
+            t = Table(*cols, title=f"bench {area}: {key}", title_justify="left")
+            for v in value:
+                t.add_row(*(_cell(v.get(c)) for c in cols))
+            console.print(t)
+            continue
+        for k, v in _leaves(value, key):
+            scalars.add_row(k, _cell(v))
+    if scalars.row_count:
+        console.print(scalars)
+
+
+def _leaves(value, key: str):
+    """(dotted key, value) of each leaf of nested dicts; lists stay whole (one cell)."""
+    if isinstance(value, dict) and value:
+        for k, v in value.items():
+            yield from _leaves(v, f"{key}.{k}")
+    else:
+        yield key, value
+
+
+def _cell(v) -> str:
+    from rich.markup import escape
+
+    if isinstance(v, float):
+        return f"{v:.4g}"
+    if isinstance(v, list):
+        return ", ".join(_cell(x) for x in v)
+    return escape("-" if v is None else str(v))
 
 
 def _fmt_s(s) -> str:

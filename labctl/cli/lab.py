@@ -48,13 +48,32 @@ def describe_lab(lab) -> dict:
         "calibration": calibration_entries(lab.root),
         "object_library": library_entries(lab.root),
         "config": to_plain(lab.config),
+        # keys (as in this output) whose value is the code's default: the lab's files do not set them
+        "defaults": [f"config.{k}" for k in lab.defaulted.get("lab", ())]
+        + [f"drivers.{role}.config.{k}" for role in roles for k in lab.defaulted.get(role, ())],
     }
+
+
+def _leaves(values: dict, prefix: str = ""):
+    """(dotted key, value) of every leaf of a nested settings mapping, in file order."""
+    for k, v in values.items():
+        if isinstance(v, dict) and v:
+            yield from _leaves(v, f"{prefix}{k}.")
+        else:
+            yield f"{prefix}{k}", v
+
+
+def _show(value) -> str:
+    from rich.markup import escape
+
+    return escape("null" if value is None else str(value))
 
 
 @lab_group.command("show")
 @json_option
 def lab_show() -> None:
-    """Print the resolved lab: driver per role, calibration and library entries found."""
+    """Print the resolved lab: driver per role, calibration and library entries found, and every setting,
+    marking those that come from the defaults (not set in the lab's files)."""
     info = describe_lab(get_ctx().lab())
 
     def human(console):
@@ -68,5 +87,13 @@ def lab_show() -> None:
         console.print(t)
         console.print("calibration: " + (", ".join(info["calibration"]) or "[yellow]none[/]"))
         console.print("object library: " + (", ".join(info["object_library"]) or "[yellow]empty[/]"))
+        defaults = set(info["defaults"])
+        sections = [("lab.yaml", "config", info["config"])] + [
+            (Path(d["file"]).name, f"drivers.{role}.config", d["config"]) for role, d in info["drivers"].items()]
+        for title, prefix, values in sections:
+            t = Table("setting", "value", "", title=title, title_justify="left", box=None, pad_edge=False)
+            for key, value in _leaves(values):
+                t.add_row(key, _show(value), "[dim](default)[/]" if f"{prefix}.{key}" in defaults else "")
+            console.print(t)
 
     emit(info, human)

@@ -8,7 +8,7 @@ from pathlib import Path
 import click
 
 from ..errors import LabctlError, UserInputError
-from ._common import emit, get_ctx, json_option
+from ._common import emit, get_ctx, json_option, live_console
 
 TRAJECTORIES = ("line", "arc", "circle", "zigzag")
 
@@ -119,30 +119,46 @@ def run_cmd(trajectory, speed, object_name, seed, virtual) -> None:
 def _run_live(c, lab, spec, record) -> dict:
     from ..workers.live import WorkerDied, run_live
 
-    view = None if c.json else _LiveView(c.console)
+    con = live_console()  # stdout piped or --json: the live view goes to stderr's terminal, not into the result
+    view = _LiveView(con) if con is not None else None
     try:
         if view is None:
             return run_live(lab.root, spec, record.path)
         with view:
-            return run_live(lab.root, spec, record.path, on_status=view.update)
+            result = run_live(lab.root, spec, record.path, on_status=view.update)
+            view.finish(result)
+            return result
     except WorkerDied as exc:
         raise LabctlError(str(exc)) from None
 
 
 class _LiveView:
-    """Rich live view: stage, Kalman estimate, robot state, link traffic."""
+    """Rich live view: start-up phase, then stage, Kalman estimate, robot state, link traffic.
+
+    Redrawn 8 times a second from the latest status, so the start-up clock runs even before the
+    workers' first beat; at the end it shows the result's own link byte counts (those of result.json)."""
 
     def __init__(self, console):
+        import time
+
         from rich.live import Live
 
         self.state: dict = {}
-        self.live = Live(self._render(), console=console, refresh_per_second=8, transient=False)
+        self.t0 = time.monotonic()
+        self.live = Live(console=console, refresh_per_second=8, transient=False, get_renderable=self._render)
 
     def _render(self):
+        import time
+
         from rich.table import Table
 
         t = Table.grid(padding=(0, 2))
         p = self.state.get("predictor", {})
+        if not p:  # no beat from the predictor yet: which start-up phase, and for how long
+            phase = self.state.get("startup", {}).get("stage", "starting")
+            t.add_row("stage", f"starting: {phase}")
+            t.add_row("time", f"{time.monotonic() - self.t0:.1f} s since the command started")
+            return t
         est = p.get("estimate")
         t.add_row("stage", str(p.get("stage", "starting")))
         t.add_row("time", f"{p.get('t', 0.0):.2f} s")
@@ -154,9 +170,16 @@ class _LiveView:
         t.add_row("standard views", str(p.get("views", 0)))
         return t
 
+    def finish(self, result: dict) -> None:
+        """Show the run's final link byte counts, as recorded in result.json."""
+        link = result.get("link") or {}
+        p = self.state.setdefault("predictor", {"stage": "done"})
+        if "bytes_sent" in link:
+            p["link"] = {"sent": link["bytes_sent"], "received": link.get("bytes_received", 0)}
+        self.live.refresh()
+
     def update(self, status: dict) -> None:
-        self.state[status["role"]] = status
-        self.live.update(self._render())
+        self.state[status["role"]] = status  # drawn by the next refresh (8 Hz)
 
     def __enter__(self):
         self.live.__enter__()

@@ -8,7 +8,7 @@ from pathlib import Path
 import click
 
 from ..errors import UserInputError
-from ._common import emit, get_ctx, json_option
+from ._common import emit, get_ctx, json_option, live_console
 from .run import TRAJECTORIES, _speed
 
 
@@ -52,7 +52,8 @@ def trials_cmd(n, trajectory, speed, objects, seed, record, jobs, scheduler, res
     if resume is not None and not resume.is_dir():
         raise UserInputError(f"--resume: no sweep folder at {resume}")
 
-    progress = None if c.json else _Progress(c.console)
+    con = live_console()  # never into a piped result
+    progress = _Progress(con) if con is not None else None
     try:
         with progress or _nothing():
             summary = run_sweep(lab, n=n, trajectory=traj, speeds=speeds, objects=names, seed=seed, record=record,

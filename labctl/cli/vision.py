@@ -55,17 +55,9 @@ def vision_pose(image: Path, image2: Path | None, radius_mm: float, camera_file:
     from ..errors import UserInputError
     from ..fsutil import atomic_write_bytes
     from ..geometry.camera_io import load_camera_file
-    from ..vision import (
-        CirclePoseError,
-        EllipseFitError,
-        ResponseError,
-        find_markers,
-        marker_poses,
-        parse_response,
-        resolve_duality_noise_aware,
-    )
-    from ..vision.annotate import annotate_marker, circle_centre_pixel
+    from ..vision import ResponseError, parse_response
     from ..vision.duality import DEFAULT_MIN_MARGIN_RAD
+    from ..vision.pose_images import ImagePoseError, annotate_posed, pose_images
 
     if not (radius_mm > 0 and math.isfinite(radius_mm)):
         raise UserInputError("--radius must be a positive number of mm")
@@ -82,52 +74,18 @@ def vision_pose(image: Path, image2: Path | None, radius_mm: float, camera_file:
         raise UserInputError(f"--response: {exc}") from None
 
     paths = [image] + ([image2] if image2 else [])
-    images, per_image = [], []
-    for path in paths:
-        img = _read_image(path)
-        if img.shape[1] != camera.width or img.shape[0] != camera.height:
-            raise UserInputError(f"{path}: image is {img.shape[1]}×{img.shape[0]}, camera file says "
-                                 f"{camera.width}×{camera.height}")
-        search = find_markers(img, hue_range_deg=tuple(hue_deg), min_saturation=min_saturation, response=resp)
-        markers = search.markers
-        if not markers:
-            raise UserInputError(f"{path}: no marker found: {search.reason}")
-        if image2 and len(markers) > 1:
-            raise UserInputError(f"{path}: {len(markers)} markers found; resolving the duality needs exactly one")
-        posed = []
-        for m in markers:
-            try:
-                posed.append((m, marker_poses(m, camera, radius_mm)))
-            except (CirclePoseError, EllipseFitError) as exc:
-                raise UserInputError(f"{path}: marker at {m.centroid[0]:.1f}, {m.centroid[1]:.1f}: {exc}") from None
-        images.append(img)
-        per_image.append(posed)
+    images = [_read_image(path) for path in paths]
+    margin = DEFAULT_MIN_MARGIN_RAD if min_margin_deg is None else math.radians(min_margin_deg)
+    try:
+        posed = pose_images(images, camera, radius_mm, motion=motion, plane_normal=plane_normal or None,
+                            min_margin_rad=margin, hue_range_deg=tuple(hue_deg), min_saturation=min_saturation,
+                            response=resp)
+    except ImagePoseError as exc:
+        raise UserInputError(f"{paths[exc.index]}: {exc}") from None
+    result: dict = {"camera": str(camera_file), "radius_mm": radius_mm, **posed.to_dict([str(p) for p in paths])}
 
-    result: dict = {"camera": str(camera_file), "radius_mm": radius_mm, "images": []}
-    for path, posed in zip(paths, per_image, strict=True):
-        result["images"].append({"image": str(path), "markers": [
-            {**m.to_dict(), **cands.to_dict()} for m, cands in posed]})
-    chosen = None
-    if image2:
-        margin = DEFAULT_MIN_MARGIN_RAD if min_margin_deg is None else math.radians(min_margin_deg)
-        res = resolve_duality_noise_aware(per_image[0][0][1], per_image[1][0][1], motion=motion,
-                                          plane_normal=plane_normal or None, min_margin_rad=margin)
-        result["duality"] = {**res.to_dict(), "motion": motion}
-        chosen = res
-
-    # annotate the last image (Fig. 5(a)): ellipse, axes, centre, and where the circle's centre projects
-    drawn = images[-1]
-    for k, (m, cands) in enumerate(per_image[-1]):
-        pose = chosen.best if chosen is not None else cands.candidates[0]
-        tag = f"#{k} z={pose.center[2]:.0f}mm"
-        if chosen is not None:
-            tag += " (ambiguous)" if chosen.ambiguous else f" margin {math.degrees(chosen.margin_rad):.2f} deg"
-        if not m.trusted:
-            tag += " SUSPECT: " + ",".join(m.quality.flags)
-        drawn = annotate_marker(drawn, m.ellipse, boundary=m.boundary, label=tag,
-                                circle_centre_px=circle_centre_pixel(pose, camera))
     out = out or paths[-1].with_name(paths[-1].stem + "_pose.png")
-    ok, png = cv2.imencode(".png", drawn)
+    ok, png = cv2.imencode(".png", annotate_posed(images[-1], posed, camera))
     if not ok:
         raise UserInputError(f"{out}: cannot encode the annotated image")
     atomic_write_bytes(out, png.tobytes())

@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Literal
 
 from .devices import ROLE_TYPES, CameraConfig, HostLinkConfig, RobotConfig, TableConfig
-from .schema import ConfigError, NonNegative, Positive, PositiveInt, from_mapping, read_yaml
+from .schema import ConfigError, NonNegative, Positive, PositiveInt, defaulted_keys, from_mapping, read_yaml
 
 LAB_FILE = "lab.yaml"
 
@@ -75,6 +75,15 @@ class RunConfig:
     max_views: PositiveInt = 3
     second_image_azimuth_deg: float = 25.0  # camera moves this far round the marker between the two images
     fps: Positive = 30.0
+    # the predictor's policy (paper §5.2–5.3)
+    max_viewpoints: PositiveInt = 4  # viewpoints tried for a usable marker pose before the run fails
+    next_viewpoint_deg: float = 120.0  # azimuth step round the object to the next viewpoint
+    recognizer_timeout_s: Positive = 10.0  # a view the recognizer has not answered within this fails the run
+    plan_horizon_s: Positive = 15.0  # how far ahead an interception is searched for
+    replan_every_s: Positive = 0.25  # re-plan with the newest prediction at most this often ...
+    replan_until_s: NonNegative = 0.4  # ... and not in the last this-many seconds before arrival
+    marker_lost_s: Positive = 2.0  # no fixed-camera sighting for this long: the marker is lost
+    spare_novelty_deg: NonNegative = 20.0  # a spare marker facing within this of a viewed face is not worth a view
 
 
 @dataclass(frozen=True)
@@ -99,6 +108,8 @@ class Lab:
     mobile_camera: CameraConfig
     host_link: HostLinkConfig
     driver_paths: dict[str, Path]
+    # the keys each file left out (its values are the code's defaults): "lab" for lab.yaml, else the role
+    defaulted: dict[str, tuple[str, ...]] = field(default_factory=dict)
 
     @property
     def calibration_dir(self) -> Path:
@@ -169,7 +180,9 @@ def load_lab(root: Path | str) -> Lab:
     """Load and validate the workspace at ``root``; raise :class:`ConfigError` on any problem."""
     root = Path(root).resolve()
     lab_file = root / LAB_FILE
-    config = from_mapping(LabConfig, read_yaml(lab_file), lab_file)
+    raw = read_yaml(lab_file)
+    config = from_mapping(LabConfig, raw, lab_file)
+    defaulted = {"lab": tuple(defaulted_keys(LabConfig, raw))}
     devices, paths = {}, {}
     for role, cls in ROLE_TYPES.items():
         rel = getattr(config.drivers, role)
@@ -179,6 +192,8 @@ def load_lab(root: Path | str) -> Lab:
         path = (root / rel).resolve()
         if not path.is_file():
             raise ConfigError(lab_file, f"drivers.{role}", f"driver file not found: {rel}")
-        devices[role] = from_mapping(cls, read_yaml(path), path)
+        raw = read_yaml(path)
+        devices[role] = from_mapping(cls, raw, path)
+        defaulted[role] = tuple(defaulted_keys(cls, raw))
         paths[role] = path
-    return Lab(root=root, config=config, driver_paths=paths, **devices)
+    return Lab(root=root, config=config, driver_paths=paths, defaulted=defaulted, **devices)

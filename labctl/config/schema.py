@@ -194,6 +194,37 @@ def from_mapping(cls, data, file, key: str = ""):
     return obj
 
 
+def _dataclass_in(tp):
+    """The dataclass a field of type ``tp`` holds (through Annotated and Optional), or None."""
+    if get_origin(tp) is Annotated:
+        tp = get_args(tp)[0]
+    if get_origin(tp) in (Union, types.UnionType):
+        inner = [a for a in get_args(tp) if a is not type(None)]
+        tp = inner[0] if len(inner) == 1 else None
+    return tp if tp is not None and dataclasses.is_dataclass(tp) else None
+
+
+def defaulted_keys(cls, data, prefix: str = "") -> list[str]:
+    """The keys of dataclass ``cls`` (dotted, as in the file) whose value comes from the code's default
+    because ``data`` (the file's mapping, as :func:`from_mapping` read it) does not set them."""
+    data = data if isinstance(data, dict) else {}
+    hints = typing.get_type_hints(cls, include_extras=True)
+    out: list[str] = []
+    for fld in dataclasses.fields(cls):
+        if not fld.init:
+            continue
+        key, sub = prefix + fld.name, _dataclass_in(hints[fld.name])
+        given = fld.name in data
+        if sub is not None and (not given or data[fld.name] is None or isinstance(data[fld.name], dict)):
+            default = fld.default_factory() if fld.default_factory is not dataclasses.MISSING else fld.default
+            if given or default is not None:  # a nested section: which of its keys the file left out
+                out += defaulted_keys(sub, data.get(fld.name), key + ".")
+                continue
+        if not given:
+            out.append(key)
+    return out
+
+
 def to_plain(obj):
     """Dataclass → plain dict/list/scalars, suitable for YAML or JSON."""
     if dataclasses.is_dataclass(obj):

@@ -57,7 +57,8 @@ class CaptureSource(Protocol):
         when the source ends."""
         ...
 
-    def release(self) -> None: ...
+    def release(self) -> None:
+        """Give the device back (close the file, socket or capture)."""
 
 
 class GrabberCamera(OpenClose):
@@ -93,6 +94,7 @@ class GrabberCamera(OpenClose):
         return {}
 
     def open(self) -> None:
+        """Open the source and start the grabber thread that keeps only the latest frame (idempotent)."""
         if self._thread is not None:
             return
         source = self._open_source()
@@ -151,9 +153,11 @@ class GrabberCamera(OpenClose):
 
     @property
     def frames(self) -> int:
+        """Frames grabbed since the camera was opened."""
         return self._seq
 
     def info(self) -> dict:
+        """Kind, name, whether open, frames grabbed and dropped, and the assumed exposure latency (s)."""
         return {"kind": self.kind, "name": self.name, "open": self._thread is not None, "frames": self._seq,
                 "dropped": self.dropped, "latency_s": self.latency_s}
 
@@ -204,6 +208,7 @@ class V4L2Camera(GrabberCamera):
 
     @classmethod
     def from_config(cls, cfg, **kw) -> V4L2Camera:
+        """The camera a driver file describes (``device``, size, fps, exposure; time-out and latency in s)."""
         return cls(cfg.device, cfg.width, cfg.height, cfg.fps, cfg.exposure,
                    **({"timeout_s": cfg.timeout_s, "latency_s": cfg.latency_s} | kw))
 
@@ -228,6 +233,7 @@ class V4L2Camera(GrabberCamera):
         return _CvSource(cap)
 
     def info(self) -> dict:
+        """The base info plus the device path and, once open, the size, fps and backend it negotiated."""
         d = super().info() | {"device": str(self.device)}
         if self._size is not None and d["open"]:
             d.update(zip(("width", "height", "fps", "backend"), self._size))
@@ -279,6 +285,7 @@ class MjpegHttpSource:
         return line.rstrip(b"\r\n")
 
     def read(self) -> tuple[np.ndarray | None, float | None]:
+        """The next JPEG part of the stream, decoded (BGR), with the capture time its headers carry (s), else None."""
         import cv2
 
         while self._line().strip() != self._boundary:  # skip to the next part
@@ -313,6 +320,7 @@ class MjpegHttpSource:
                 self._sock.shutdown(socket.SHUT_RDWR)
 
     def release(self) -> None:
+        """Close the HTTP response and its connection."""
         with contextlib.suppress(Exception):
             self._resp.close()
         self._conn.close()
@@ -341,6 +349,8 @@ class StreamCamera(GrabberCamera):
 
     @classmethod
     def from_config(cls, cfg, **kw) -> StreamCamera:
+        """The camera a driver file describes (``url``, backend, whether the stream carries timestamps, time-out and
+        latency in s)."""
         return cls(cfg.url, **({"backend": cfg.backend, "timestamps": cfg.timestamps, "timeout_s": cfg.timeout_s,
                                 "latency_s": cfg.latency_s} | kw))
 
@@ -362,6 +372,8 @@ class StreamCamera(GrabberCamera):
         return _CvSource(cap)
 
     def info(self) -> dict:
+        """The base info plus the URL, the backend in use, whether frames carry timestamps and, once a frame came, its
+        size."""
         d = super().info() | {"url": self.url, "backend": self._backend_used or self.backend,
                               "timestamps": self.timestamps}
         if self._latest is not None:
@@ -411,16 +423,20 @@ class ReplayCamera(OpenClose):
 
     @classmethod
     def from_config(cls, cfg, root: Path | None = None, **kw) -> ReplayCamera:
+        """The camera a driver file describes: ``folder`` of stamped frames, relative to ``root`` (the lab) unless
+        absolute."""
         folder = Path(cfg.folder)
         if root is not None and not folder.is_absolute():
             folder = root / folder
         return cls(folder, **kw)
 
     def open(self) -> None:
+        """List the folder's stamped frames, in time order, and start at the first."""
         self._frames = list_stamped_frames(self.folder)
         self._next = 0
 
     def close(self) -> None:
+        """Forget the frame list."""
         self._frames = []
 
     def _load(self, i: int) -> Frame:
@@ -452,6 +468,7 @@ class ReplayCamera(OpenClose):
         return frame
 
     def info(self) -> dict:
+        """Kind, folder, frame count and the first and last frame times (s)."""
         d = {"kind": "replay", "folder": str(self.folder), "frames": len(self._frames)}
         if self._frames:
             d.update(t_first=self._frames[0][0], t_last=self._frames[-1][0])

@@ -136,6 +136,7 @@ class ProgramStream:
 
     @property
     def total(self) -> int:
+        """Lines in the program."""
         return len(self.program)
 
     @property
@@ -145,6 +146,7 @@ class ProgramStream:
 
     @property
     def active(self) -> bool:
+        """Lines remain to be acknowledged and no error stopped the program."""
         return self.error is None and self.acked < len(self.program)
 
     def progress(self) -> dict:
@@ -290,6 +292,8 @@ class GrblTable(OpenClose):
 
     # --- connection -------------------------------------------------------------------------
     def open(self) -> None:
+        """Open the port and find the controller alive (banner or status report); the port is closed again if that
+        fails."""
         self.link.open()
         try:
             self._connect()
@@ -298,6 +302,7 @@ class GrblTable(OpenClose):
             raise
 
     def close(self) -> None:
+        """Close the port (use :meth:`stop` first: closing it does not stop the controller)."""
         self.link.close()
 
     def _connect(self) -> None:
@@ -714,9 +719,11 @@ class GrblTable(OpenClose):
 
     # --- real-time --------------------------------------------------------------------------
     def feed_hold(self) -> None:
+        """Feed hold (``!``): decelerate to a stop along the path, keeping the rest of the program."""
         self._write(b"!")
 
     def resume(self) -> None:
+        """Cycle start (``~``): resume after a feed hold."""
         self._write(b"~")
 
     def reset(self) -> None:

@@ -59,6 +59,7 @@ class StatusReport:
 
     @property
     def state_word(self) -> str:
+        """The state as GRBL prints it, with the substate: ``Hold:0``, ``Door:1``, ``Idle``."""
         return self.state if self.substate is None else f"{self.state}:{self.substate}"
 
     def machine_position(self, wco: tuple[float, float, float] | None = None) -> tuple[float, float, float] | None:

@@ -18,10 +18,12 @@ class OpenClose(ABC):
     """``with device:`` opens the device and closes it again (every device has ``open``/``close``)."""
 
     @abstractmethod
-    def open(self) -> None: ...
+    def open(self) -> None:
+        """Connect to the device (port, socket, capture); raises DeviceError when it cannot."""
 
     @abstractmethod
-    def close(self) -> None: ...
+    def close(self) -> None:
+        """Release the device; safe to call twice."""
 
     def __enter__(self) -> Self:
         self.open()
@@ -43,16 +45,21 @@ class Frame:
 
 @runtime_checkable
 class Camera(Protocol):
-    def open(self) -> None: ...
-    def close(self) -> None: ...
+    """A camera that delivers the latest frame with its exposure time (fixed camera C1, mobile camera C2)."""
+    def open(self) -> None:
+        """Start delivering frames."""
+    def close(self) -> None:
+        """Stop and release the camera."""
     def grab(self) -> Frame:
         """The latest frame (never a stale buffered one); blocks until one is available."""
         ...
-    def info(self) -> dict: ...
+    def info(self) -> dict:
+        """What the camera is and how it is doing (kind, size, frames): plain data for ``labctl devices``."""
 
 
 @dataclass(frozen=True)
 class TableStatus:
+    """One status report of the X-Y table: state word, machine position (mm), feed (mm/min), report time (s)."""
     state: str  # GRBL state word: Idle, Run, Hold:0, Jog, Alarm, Door:0, Check, Home, Sleep
     position: tuple[float, float, float]  # machine position, mm
     feed_mm_min: float = 0.0
@@ -63,15 +70,21 @@ class TableStatus:
 class Table(Protocol):
     """The NC X-Y table (object-motion simulator)."""
 
-    def open(self) -> None: ...
-    def close(self) -> None: ...
-    def status(self) -> TableStatus: ...
+    def open(self) -> None:
+        """Connect to the controller and find it alive."""
+    def close(self) -> None:
+        """Release the port (stop motion first with :meth:`stop`)."""
+    def status(self) -> TableStatus:
+        """A fresh status report: state, machine position (mm), feed."""
     def stream(self, lines: Iterable[str]) -> int:
         """Queue a G-code program; returns the number of lines sent, once every one is accepted."""
         ...
-    def feed_hold(self) -> None: ...
-    def resume(self) -> None: ...
-    def reset(self) -> None: ...
+    def feed_hold(self) -> None:
+        """Decelerate to a stop along the path, keeping the rest of the program."""
+    def resume(self) -> None:
+        """Continue after a feed hold."""
+    def reset(self) -> None:
+        """Soft reset: stop at once and discard the program."""
     def stop(self) -> TableStatus:
         """Stop motion now and discard the rest of the program (feed hold then reset); returns the
         confirmed status afterwards."""
@@ -80,6 +93,8 @@ class Table(Protocol):
 
 @dataclass(frozen=True)
 class RobotStatus:
+    """One status of the robot: flange pose in the base frame (4×4, mm), moving, last segment id, controller time
+    (s)."""
     T_base_flange: np.ndarray  # 4×4
     moving: bool
     segment_id: int
@@ -90,13 +105,19 @@ class RobotStatus:
 class Robot(Protocol):
     """The robot controller carrying the mobile camera (docs/protocols/robot.md)."""
 
-    def open(self) -> None: ...
-    def close(self) -> None: ...
+    def open(self) -> None:
+        """Connect to the controller and negotiate the dialect (docs/protocols/robot.md)."""
+    def close(self) -> None:
+        """Release the port (stop motion first with :meth:`stop`)."""
     def segment(self, T_base_flange: np.ndarray, duration_s: float, segment_id: int) -> tuple[float, float]:
         """Queue a timed task-space segment ending at ``T_base_flange`` (controller interpolates a quintic);
         returns its (t0, t1) on the controller's clock, s."""
         ...
-    def stop(self) -> None: ...
-    def status(self) -> RobotStatus: ...
-    def home(self) -> None: ...
-    def heartbeat(self) -> None: ...
+    def stop(self) -> None:
+        """Brake to rest with the controller's stop ramp, dropping queued segments."""
+    def status(self) -> RobotStatus:
+        """A fresh status: flange pose ``T_base_flange`` (4×4, mm), moving, segment id."""
+    def home(self) -> None:
+        """Move to the home pose."""
+    def heartbeat(self) -> None:
+        """Tell the controller the host is alive (its watchdog stops the robot when heartbeats stop)."""

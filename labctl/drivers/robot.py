@@ -76,6 +76,7 @@ class SerialRobot(OpenClose):
 
     # --- connection -------------------------------------------------------------------------
     def open(self) -> None:
+        """Open the port, discard stale input and negotiate the dialect; the port is closed again if that fails."""
         self.link.open()
         try:
             self.link.discard_input()
@@ -110,6 +111,7 @@ class SerialRobot(OpenClose):
         return self.dialect
 
     def close(self) -> None:
+        """Close the port (heartbeats stop with it: the controller's watchdog stops a moving robot)."""
         self.link.close()
 
     # --- requests ---------------------------------------------------------------------------
@@ -215,13 +217,16 @@ class SerialRobot(OpenClose):
             log.warning("%s: could not send STOP", self.link.name, exc_info=True)
 
     def clear(self) -> None:
+        """Clear a latched fault (``CLEAR``) so the controller accepts motion again."""
         self.request("CLEAR")
 
     def home(self) -> None:
+        """Move to the home pose (``HOME``)."""
         self._commanded = True
         self.request("HOME")
 
     def heartbeat(self) -> None:
+        """Send a heartbeat (``HB``), resetting the controller's watchdog."""
         self.request("HB")
 
     def maybe_heartbeat(self) -> None:
@@ -244,6 +249,8 @@ class SerialRobot(OpenClose):
         return out
 
     def status(self) -> RobotStatus:
+        """Ask for a ``STATUS`` and parse it: flange pose in the base frame (mm), moving, segment id, controller time
+        (s); a new fault raises DeviceError."""
         reply = self.request("STATUS")
         f = reply.floats(10)
         if f is None:

@@ -102,6 +102,7 @@ def checksum(body: str) -> str:
 
 
 def add_checksum(line: str) -> str:
+    """``line`` with its ``*HH`` checksum appended (docs/protocols/robot.md)."""
     return f"{line}*{checksum(line)}"
 
 
@@ -160,6 +161,7 @@ def format_request(seq: int, command: str, *args, check: bool = True) -> str:
 
 @dataclass(frozen=True)
 class Request:
+    """A parsed host request: sequence number, command word, arguments (as sent)."""
     seq: int
     command: str
     args: tuple[str, ...]

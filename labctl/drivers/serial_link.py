@@ -77,9 +77,11 @@ class SerialLink(OpenClose):
     # --- lifecycle --------------------------------------------------------------------------
     @property
     def is_open(self) -> bool:
+        """The port is open."""
         return self.port is not None and bool(getattr(self.port, "is_open", True))
 
     def open(self) -> None:
+        """Open the port (or adopt the given one); raises DeviceError, with the port named, when it cannot."""
         if self._given_port is not None:
             self.port = self._given_port
             if not getattr(self.port, "is_open", True):
@@ -96,6 +98,7 @@ class SerialLink(OpenClose):
         log.debug("%s open t=%.6f", self.name, self.clock())
 
     def close(self) -> None:
+        """Close the port; a close that fails is logged, not raised."""
         if self.port is not None:
             try:
                 self.port.close()
@@ -219,6 +222,7 @@ class SerialLink(OpenClose):
         return out
 
     def send_line(self, line: str) -> None:
+        """Write ``line`` and its line end; the bytes are not read back."""
         self.write(line.encode("ascii") + self.eol)
 
     def request(self, line: str | None, is_reply: Callable[[str], bool], timeout_s: float | None = None,

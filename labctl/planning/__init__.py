@@ -2,7 +2,7 @@
 
 from .interception import Interception, plan_interception, plan_standard_view, replan, shortest_quintic
 from .limits import Limits, LimitViolation, PlanningError
-from .quintic import QuinticSegment, Trajectory, quintic_coefficients
+from .quintic import QuinticSegment, Trajectory, quintic_coefficients, rest_to_rest_times
 from .safety import check_segment, check_trajectory
 from .targets import TargetPath, camera_placement_trajectory, standard_view_path, standard_view_pose
 
@@ -21,6 +21,7 @@ __all__ = [
     "plan_standard_view",
     "quintic_coefficients",
     "replan",
+    "rest_to_rest_times",
     "shortest_quintic",
     "standard_view_path",
     "standard_view_pose",

@@ -11,6 +11,7 @@ Units: mm, s, rad; world frame.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import TypedDict
 
@@ -304,3 +305,13 @@ class Trajectory:
             if s.rot_coeffs is not None and s.t1 <= t:
                 return s.R1
         return None
+
+
+def rest_to_rest_times(p0, p1, v_max: float, a_max: float) -> tuple[float, float]:
+    """Minimum durations (s) of a straight rest-to-rest move from ``p0`` to ``p1`` (mm) under speed
+    ``v_max`` (mm/s) and acceleration ``a_max`` (mm/s²), with no margin: (any profile — bang-bang or
+    trapezoidal, the physical lower bound; the paper's quintic, whose peak speed is 1.875·D/T and
+    peak acceleration 10/√3·D/T²). Paper §4.3: the lower bounds a run's time to identity is held to."""
+    d = float(np.linalg.norm(np.asarray(p1, dtype=float) - np.asarray(p0, dtype=float)))
+    any_profile = 2 * math.sqrt(d / a_max) if d < v_max * v_max / a_max else d / v_max + v_max / a_max
+    return any_profile, max(1.875 * d / v_max, math.sqrt(10 / math.sqrt(3) * d / a_max))

@@ -30,7 +30,7 @@ import numpy as np
 from ..fsutil import atomic_write_bytes, atomic_write_text
 from .record import RunData, load_run
 
-__all__ = ["write_report", "render_figure", "SECTIONS"]
+__all__ = ["write_report", "render_figure", "failure_reason", "SECTIONS"]
 
 SECTIONS = ("summary", "paths", "markers", "standard", "scores", "events")
 NOT_REACHED = "not reached"
@@ -124,6 +124,39 @@ def _identity_name(run: RunData) -> str | None:
     return str(ident) if ident is not None else None
 
 
+def failure_reason(run: RunData) -> str | None:
+    """Why the run gave no identity, from the record (``result.json`` ``failure``, else the last event),
+    or None for a run that identified its object."""
+    res = run.result
+    if res is None:
+        last = run.events[-1].get("event") if run.events else None
+        return "the run did not finish (no result.json)" + (f"; last event: {last}" if last else "; no events")
+    if res.get("identity") is not None:
+        return None
+    return str(res.get("failure") or "no identity (the record gives no reason)")
+
+
+def _draw_paths(ax, track: np.ndarray, preds: list[np.ndarray], robot: np.ndarray, legend: bool) -> None:
+    """The object's tracked and predicted paths and the robot's x-y path on ``ax`` (mm, table plane W).
+    The last prediction is drawn over the track (they coincide on a straight path) with its end, the
+    predicted interception point, marked."""
+    for i, p in enumerate(preds):
+        last = i == len(preds) - 1
+        ax.plot(p[:, 0], p[:, 1], "--", color="tab:orange", alpha=1.0 if last else 0.3, lw=2.0 if last else 0.8,
+                zorder=4 if last else 2, label="predicted" if last else None)
+    if preds:
+        ax.plot(preds[-1][-1, 0], preds[-1][-1, 1], "x", color="tab:orange", ms=9, mew=2, zorder=5,
+                label="predicted end")
+    if len(track):
+        ax.plot(track[:, 1], track[:, 2], ".-", color="tab:blue", ms=3, lw=1, zorder=3, label="tracked (KF)")
+    if len(robot):
+        ax.plot(robot[:, 0], robot[:, 1], "-", color="tab:green", zorder=1, label="robot (x-y)")
+        ax.plot(robot[-1, 0], robot[-1, 1], "o", color="tab:green", zorder=1)
+    ax.grid(True, alpha=0.3)
+    if legend:
+        ax.legend(loc="best", fontsize=8)
+
+
 def render_figure(run: RunData):
     """Draw the report figure (matplotlib ``Figure`` on the Agg canvas; no pyplot state)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -137,27 +170,35 @@ def render_figure(run: RunData):
     FigureCanvasAgg(fig)
     gs = fig.add_gridspec(2, ncols)
 
-    # paths on the table plane
-    ax = fig.add_subplot(gs[0, : ncols - 1])
+    # paths on the table plane, in two panels whose axes fit their data: everything (robot and object),
+    # and the object up close (its tracked and predicted paths are a stub next to the robot's travel)
     track, preds, robot = _track(run), _predictions(run), _robot(run)
-    if len(track) == 0 and not preds and len(robot) == 0:
-        _not_reached(ax, "Tracked, predicted and robot paths")
+    obj = np.vstack([track[:, 1:3]] + preds) if len(track) or preds else np.empty((0, 2))
+    ax = fig.add_subplot(gs[0, 0])
+    if len(obj) == 0 and len(robot) == 0:
+        _not_reached(ax, "Robot and object paths")
     else:
-        for i, p in enumerate(preds):
-            last = i == len(preds) - 1
-            ax.plot(p[:, 0], p[:, 1], "--", color="tab:orange", alpha=1.0 if last else 0.25, lw=1.5 if last else 0.8,
-                    label="predicted" if last else None)
-        if len(track):
-            ax.plot(track[:, 1], track[:, 2], ".-", color="tab:blue", ms=3, label="tracked (KF)")
-        if len(robot):
-            ax.plot(robot[:, 0], robot[:, 1], "-", color="tab:green", label="robot (x-y)")
-            ax.plot(robot[-1, 0], robot[-1, 1], "o", color="tab:green")
+        _draw_paths(ax, track, preds, robot, legend=False)
+        ax.margins(0.06)  # limits from the data drawn, equal scale in x and y
+        ax.set_aspect("equal", adjustable="datalim")
         ax.set_xlabel("x (mm)")
         ax.set_ylabel("y (mm)")
+        ax.set_title("Robot and object paths (table plane, W)")
+    ax = fig.add_subplot(gs[0, 1: ncols - 1])
+    if len(obj) == 0:
+        _not_reached(ax, "Tracked and predicted object path")
+    else:
+        _draw_paths(ax, track, preds, np.empty((0, 3)), legend=False)
+        ax.margins(0.06)
         ax.set_aspect("equal", adjustable="datalim")
-        ax.grid(True, alpha=0.3)
-        ax.legend(loc="best", fontsize=8)
-        ax.set_title("Tracked, predicted and robot paths (table plane, W)")
+        ax.set_xlabel("x (mm)")
+        ax.set_title("Tracked and predicted object path, up close (W)")
+    handles = {}
+    for a_ in fig.axes:
+        for h, lab in zip(*a_.get_legend_handles_labels()):
+            handles.setdefault(lab, h)
+    if handles:
+        ax.legend(handles.values(), handles.keys(), loc="best", fontsize=8)
 
     # match scores
     ax = fig.add_subplot(gs[0, ncols - 1])
@@ -165,13 +206,13 @@ def render_figure(run: RunData):
     if not scores:
         _not_reached(ax, "Match scores")
     else:
-        names = sorted(scores, key=scores.get, reverse=True)
+        names = sorted(scores, key=scores.get)  # best (lowest) first, drawn at the top
         ident = _identity_name(run) or names[0]
         colors = ["tab:red" if n == ident else "0.6" for n in names]
         ax.barh(names[::-1], [scores[n] for n in names][::-1], color=colors[::-1])
         view = ev.get("view") if ev else None
         ax.set_title("Match scores" + (f" (view {view})" if view is not None else ""))
-        ax.set_xlabel("score")
+        ax.set_xlabel("silhouette mismatch (lower is better)")
 
     # the two marker images with their ellipses
     ellipses = _ellipses(run)
@@ -215,8 +256,20 @@ def render_figure(run: RunData):
             ax.set_title(f"Standard view {k} with silhouette")
         else:
             ax.set_title(f"Standard view {k} (silhouette not recorded)")
-    fig.suptitle(f"Run {run.meta.get('run_id', run.path.name)}")
+    title = f"Run {run.meta.get('run_id', run.path.name)}"
+    reason = failure_reason(run)
+    if reason is not None:  # a failed run's figure leads with why, above its "not reached" panels
+        import textwrap
+
+        lines = textwrap.wrap(_clip(reason, 300), width=int(7.5 * 4.2 * ncols))  # ~7.5 characters per inch at 13 pt
+        fig.suptitle("\n".join([f"{title}: FAILED"] + lines), color="tab:red", fontsize=13, fontweight="bold")
+    else:
+        fig.suptitle(title)
     return fig
+
+
+def _clip(text: str, n: int) -> str:
+    return text if len(text) <= n else text[: n - 1] + "…"
 
 
 def _png_bytes(fig) -> bytes:
@@ -250,6 +303,10 @@ def _nr(what: str = NOT_REACHED) -> str:
 
 def _html(run: RunData, png: bytes) -> str:
     parts = []
+    reason = failure_reason(run)
+    if reason is not None:  # before the figure and every panel: why the run failed
+        parts.append(f'<section id="failure"><h2>Run failed</h2><p class="failure">{html.escape(reason)}</p>'
+                     "</section>\n")
     summary = _kv_table(run.result) if run.result is not None else _nr("not reached: the run did not finish "
                                                                        "(no result.json)")
     parts.append(_section("summary", "Result", summary + "<h3>Run</h3>" + _kv_table(run.meta)))
@@ -294,8 +351,8 @@ def _html(run: RunData, png: bytes) -> str:
         valid = {str(k): float(v) for k, v in s.items() if _finite([v])} if isinstance(s, dict) else {}
         if valid:
             label = f"view {e['view']}" if "view" in e else "match"
-            body += f"<h3>{html.escape(label)}</h3>" + _kv_table(dict(sorted(valid.items(), key=lambda kv: -kv[1])))
-    body = body or _nr()
+            body += f"<h3>{html.escape(label)}</h3>" + _kv_table(dict(sorted(valid.items(), key=lambda kv: kv[1])))
+    body = ("<p>Silhouette mismatch per object, best first: lower is better.</p>" + body) if body else _nr()
     parts.append(_section("scores", "Match scores", body))
 
     counts: dict[str, int] = {}
@@ -305,15 +362,17 @@ def _html(run: RunData, png: bytes) -> str:
     body = _kv_table(counts) + (f"<p>Last event: {html.escape(str(last))}</p>" if last else _nr("no events"))
     parts.append(_section("events", "Event log", body))
 
+    lead = parts.pop(0) if reason is not None else ""
     img = base64.b64encode(png).decode("ascii")
     title = html.escape(f"labctl run {run.meta.get('run_id', run.path.name)}")
     return f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>{title}</title>
 <style>body{{font-family:sans-serif;max-width:1400px;margin:1em auto}}table{{border-collapse:collapse}}
 th,td{{border:1px solid #ccc;padding:2px 8px;text-align:left}}.nr{{color:#888;font-style:italic}}
+.failure{{color:#b00;font-weight:bold;font-size:1.2em}}
 img{{max-width:100%}}</style></head><body>
 <h1>{title}</h1>
-<figure id="figure"><img alt="run report figure" src="data:image/png;base64,{img}"></figure>
+{lead}<figure id="figure"><img alt="run report figure" src="data:image/png;base64,{img}"></figure>
 {"".join(parts)}</body></html>
 """
 

@@ -48,13 +48,16 @@ class SimCamera(OpenClose):
         self.frames_rendered = 0
 
     def open(self) -> None:
+        """Start delivering frames (from the next frame the clock reaches)."""
         self._open = True
         self._last_seq = None
 
     def close(self) -> None:
+        """Stop delivering frames."""
         self._open = False
 
     def frame_time(self, seq: int) -> float:
+        """Exposure time (s, run clock) of frame number ``seq``."""
         return seq / self.fps
 
     def render_frame(self, seq: int) -> Frame:
@@ -82,6 +85,7 @@ class SimCamera(OpenClose):
             return self.render_frame(seq)
 
     def info(self) -> dict:
+        """Kind, role, image size, fps, noise sigma (grey levels) and the camera model of the rig."""
         rig = self.world.rigs[self.role]
         return {"kind": "sim", "role": self.role, "width": rig.model.width, "height": rig.model.height,
                 "fps": self.fps, "noise_sigma": rig.noise_sigma, "camera_model": rig.model.to_dict()}
@@ -108,11 +112,13 @@ class FrameServer:
         self._accept_thread: threading.Thread | None = None
 
     def start(self) -> FrameServer:
+        """Start accepting clients in a background thread; returns the server."""
         self._accept_thread = threading.Thread(target=self._accept_loop, name="frame-server", daemon=True)
         self._accept_thread.start()
         return self
 
     def stop(self) -> None:
+        """Stop accepting, close every client and join the threads (idempotent)."""
         if self._stopping.is_set():
             return
         self._stopping.set()
@@ -199,6 +205,7 @@ class FrameClient(OpenClose):
         self._conn = None
 
     def open(self) -> None:
+        """Connect to the frame server with its key; raises DeviceError when it is unreachable or refuses the key."""
         try:
             self._conn = Client(self.address, authkey=self.authkey)
         except AuthenticationError:
@@ -207,6 +214,7 @@ class FrameClient(OpenClose):
             raise DeviceError(f"cannot reach the frame server at {self.address}: {exc}") from None
 
     def close(self) -> None:
+        """Say goodbye to the server and close the connection."""
         if self._conn is not None:
             try:
                 self._conn.send(("bye",))
@@ -230,6 +238,7 @@ class FrameClient(OpenClose):
         return reply
 
     def grab(self) -> Frame:
+        """The latest frame the server renders for this role (raises DeviceError after ``timeout_s`` without one)."""
         head = self._ask(("grab", self.role))
         try:
             if not self._conn.poll(self.timeout_s):
@@ -241,4 +250,5 @@ class FrameClient(OpenClose):
         return Frame(image=image, t=float(head["t"]), seq=int(head["seq"]), meta={"camera": self.role})
 
     def info(self) -> dict:
+        """The server's info for this camera role."""
         return self._ask(("info", self.role))

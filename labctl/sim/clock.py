@@ -30,9 +30,15 @@ class VirtualClock:
         self._lock = threading.Lock()
 
     def now(self) -> float:
+        """Virtual time now (s)."""
         return self._t
 
     __call__ = now
+
+    @property
+    def t(self) -> float:
+        """Virtual time now (s), as an attribute."""
+        return self._t
 
     def advance(self, dt: float) -> float:
         """Move time forward by ``dt`` ≥ 0 seconds; returns the new time."""
@@ -43,6 +49,7 @@ class VirtualClock:
             return self._t
 
     def sleep(self, dt: float) -> None:
+        """Advance by ``dt`` seconds (negative: no-op); a NaN or infinite ``dt`` raises ClockError."""
         self.advance(max(float(dt), 0.0) if math.isfinite(dt) else dt)
 
     def sleep_until(self, t: float) -> None:
@@ -55,6 +62,7 @@ class VirtualClock:
 
     @property
     def is_virtual(self) -> bool:
+        """True: time moves only when advanced."""
         return True
 
 
@@ -65,6 +73,7 @@ class RealClock:
         self._origin = time.monotonic() - float(t0)
 
     def now(self) -> float:
+        """Seconds since the clock's origin (monotonic wall time)."""
         return time.monotonic() - self._origin
 
     __call__ = now
@@ -75,12 +84,14 @@ class RealClock:
         return self.now()
 
     def sleep(self, dt: float) -> None:
+        """Sleep ``dt`` seconds of wall time (≤ 0: no-op); NaN or infinite raises ClockError."""
         if not math.isfinite(dt):
             raise ClockError(f"cannot sleep {dt} s")
         if dt > 0:
             time.sleep(dt)
 
     def sleep_until(self, t: float) -> None:
+        """Sleep until the clock reads ``t`` (s); a NaN or infinite ``t`` raises ClockError."""
         if not math.isfinite(t):
             raise ClockError(f"cannot sleep until {t}")
         while True:
@@ -91,6 +102,7 @@ class RealClock:
 
     @property
     def is_virtual(self) -> bool:
+        """False: wall time."""
         return False
 
 

@@ -199,26 +199,32 @@ class MjpegServer:
                                         name="mjpeg-server", daemon=True)
 
     def url(self, name: str) -> str:
+        """URL of the MJPEG stream ``name`` (``fixed`` or ``mobile``)."""
         return f"http://{self.host}:{self.port}/{name}.mjpg"
 
     def control_url(self, name: str) -> str:
+        """URL of the control endpoint ``name`` (e.g. ``scene``)."""
         return f"http://{self.host}:{self.port}/control/{name}"
 
     @property
     def urls(self) -> dict[str, str]:
+        """URL of every stream, by name."""
         return {n: self.url(n) for n in self._server.streams}
 
     def stats(self) -> dict:
+        """Per stream: frames served, clients connected, the last error."""
         return {n: {"frames": s.frames, "clients": s.clients, "error": s.error}
                 for n, s in self._server.streams.items()}
 
     def start(self) -> MjpegServer:
+        """Start the streams' render threads and the HTTP server; returns the server."""
         for s in self._server.streams.values():
             s.thread.start()
         self._thread.start()
         return self
 
     def stop(self) -> None:
+        """Stop the streams and the HTTP server and join their threads."""
         self._server.stopping.set()
         for s in self._server.streams.values():
             s.stopping.set()

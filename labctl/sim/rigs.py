@@ -120,6 +120,7 @@ class SimCalibrationLab:
         self.table.home()
 
     def close(self) -> None:
+        """Close every device of the rig."""
         for dev in (*self.cameras.values(), self.robot, self.table):
             dev.close()
 

@@ -40,6 +40,7 @@ class TcpSerialBridge:
 
     @property
     def url(self) -> str:
+        """The pyserial URL of this bridge (``socket://host:port``)."""
         return f"socket://{self.host}:{self.port}"
 
     def _loop(self) -> None:

@@ -25,6 +25,7 @@ from .world import Placement, SimObject, SimWorld, builtin_test_object, random_p
 
 @dataclass
 class VirtualLab:
+    """A simulated lab in virtual time: one clock, the world, the GRBL and robot emulators, and the cameras by role."""
     clock: VirtualClock
     world: SimWorld
     table: object  # labctl.sim.emulators.grbl.GrblEmulator

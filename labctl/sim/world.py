@@ -159,6 +159,7 @@ class WorldTruth:
     T_w_c2: np.ndarray | None = None
 
     def to_dict(self) -> dict:
+        """The scene's state as plain data (time, object, placement, poses rounded to 1e-6)."""
         r = lambda a: None if a is None else np.round(np.asarray(a, float), 6).tolist()
         return {
             "t": self.t, "object": self.object_name,
@@ -215,6 +216,7 @@ class SimWorld:
         self._verts_t, self._markers_t = verts_t, markers_t
 
     def clear(self) -> None:
+        """Take the object off the table."""
         self.obj = self.placement = None
 
     def T_w_t(self, t: float) -> np.ndarray:
@@ -223,6 +225,7 @@ class SimWorld:
         return make_T(None, self.table_origin_w + np.array([p[0], p[1], 0.0]))
 
     def T_w_o(self, t: float) -> np.ndarray | None:
+        """Pose of the object frame in W at time ``t`` (s), or None with no object on the table."""
         return None if self.obj is None else self.T_w_t(t) @ self._T_t_o
 
     def T_w_c(self, role: str, t: float) -> np.ndarray:
@@ -242,6 +245,7 @@ class SimWorld:
         return [Mesh(self._verts_t + shift, self.obj.faces, self.obj.colour_bgr, markers)]
 
     def table_surface(self, t: float) -> TableSurface:
+        """The table's surface at time ``t`` (s): its origin in W (mm) for the renderer."""
         o = self.T_w_t(t)[:3, 3]
         return TableSurface(origin_w=(float(o[0]), float(o[1])))
 

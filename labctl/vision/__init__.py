@@ -14,6 +14,7 @@ from .markers import (
     detect_markers,
     detect_markers_windowed,
     find_markers,
+    red_blob_centroid,
     red_mask,
     why_no_marker,
 )
@@ -24,5 +25,5 @@ __all__ = [
     "MarkerPoses", "MarkerQuality", "MarkerSearch", "marker_poses", "resolve_duality_noise_aware",
     "Response", "ResponseError", "find_markers", "parse_response", "why_no_marker",
     "circle_poses", "detect_markers", "detect_markers_windowed", "ellipse_from_cv_box", "fit_ellipse",
-    "marker_pose_candidates", "red_mask", "resolve_duality", "resolve_duality_detailed",
+    "marker_pose_candidates", "red_blob_centroid", "red_mask", "resolve_duality", "resolve_duality_detailed",
 ]

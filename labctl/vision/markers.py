@@ -810,3 +810,23 @@ def detect_markers_windowed(image_bgr, predicted_xy, half_size_px: float, **kw) 
         if found:
             return found
     return detect_markers(image_bgr, **kw)
+
+
+def red_blob_centroid(image, near_px=None, *, hue_range_deg=(-15.0, 15.0), min_saturation: float = 0.45,
+                      min_area_px: int = 4, max_jump_px: float = 60.0):
+    """Centroid (px, image x right / y down) of the red blob nearest ``near_px`` (or the largest when
+    ``near_px`` is None), or None when no blob of ``min_area_px`` is within ``max_jump_px`` of it.
+
+    The paper's fixed-camera front end (§5.2): a red filter, then the blob's centroid. Used when
+    no blob passes as an ellipse — a marker on a vertical face is a thin sliver from overhead.
+    """
+    mask = red_mask(image, hue_range_deg, min_saturation)
+    n, _, stats, centroids = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    ok = [i for i in range(1, n) if stats[i, cv2.CC_STAT_AREA] >= min_area_px]
+    if not ok:
+        return None
+    if near_px is None:
+        return centroids[max(ok, key=lambda i: stats[i, cv2.CC_STAT_AREA])]
+    near = np.asarray(near_px, dtype=float)
+    best = min(ok, key=lambda i: float(np.hypot(*(centroids[i] - near))))
+    return centroids[best] if np.hypot(*(centroids[best] - near)) <= max_jump_px else None

@@ -32,6 +32,8 @@ def planning_limits(robot_cfg) -> Limits:
 
 @dataclass
 class RunContext:
+    """Everything a run reads once: the lab, its calibration, the object library and its index, and the robot's
+    limits."""
     lab: Lab
     calibration: Calibration
     library: dict  # name -> LibraryObject
@@ -45,6 +47,7 @@ class RunContext:
 
     @classmethod
     def load(cls, lab: Lab) -> RunContext:
+        """Load the calibration and the library of ``lab``; raises UserInputError when either is missing or empty."""
         calibration = load_calibration(lab.root)
         library = load_library(lab.library_dir)
         if not library:
@@ -56,22 +59,27 @@ class RunContext:
 
     @property
     def root(self) -> Path:
+        """The lab workspace folder."""
         return self.lab.root
 
     @property
     def fixed_camera(self) -> CameraModel:
+        """The fixed camera C1's model (calibrated)."""
         return self.calibration.fixed_camera
 
     @property
     def mobile_camera(self) -> CameraModel:
+        """The mobile camera C2's model (calibrated)."""
         return self.calibration.mobile_camera
 
     @property
     def T_f_c2(self) -> np.ndarray:
+        """Hand-eye pose of the mobile camera in the flange frame (4×4, mm)."""
         return self.calibration.T_f_c2
 
     @property
     def plane_height_mm(self) -> float:
+        """Height (mm, W) of the plane the fixed camera's centroids are mapped onto."""
         return self.lab.config.tracking.plane_height_mm
 
     def fixed_pixel_to_plane(self, px) -> np.ndarray:
@@ -83,6 +91,7 @@ class RunContext:
         return (origin + s * ray_w)[:2]
 
     def plane_to_fixed_pixel(self, xy) -> np.ndarray:
+        """(x, y) mm in W on the tracking plane → the fixed camera's pixel."""
         p_w = np.array([xy[0], xy[1], self.plane_height_mm])
         return self.fixed_camera.project(apply(invert(self.calibration.T_w_c1), p_w))
 

@@ -30,10 +30,11 @@ def open_device(role: str, lab, *, port: str | None = None, baud: int | None = N
         if cfg is None:
             raise LabctlError("this lab has no table (lab.yaml drivers.table: null)")
         if cfg.kind == "sim" and port is None:
+            from ..sim.clock import VirtualClock
             from ..sim.emulators.grbl import GrblEmulator
-            from ..sim.emulators.link import EmulatorPort, ManualClock
+            from ..sim.emulators.link import EmulatorPort
 
-            clock = ManualClock()
+            clock = VirtualClock()
             emu = GrblEmulator(clock, travel_mm=cfg.travel_mm, max_feed_mm_min=cfg.max_feed_mm_min,
                                accel_mm_s2=cfg.accel_mm_s2)
             dev = GrblTable.from_config(cfg, serial_port=EmulatorPort(emu, clock, baud or cfg.baud, name="sim://table"),
@@ -46,10 +47,11 @@ def open_device(role: str, lab, *, port: str | None = None, baud: int | None = N
 
         cfg = lab.robot
         if cfg.kind == "sim" and port is None:
-            from ..sim.emulators.link import EmulatorPort, ManualClock
+            from ..sim.clock import VirtualClock
+            from ..sim.emulators.link import EmulatorPort
             from ..sim.emulators.robot import RobotEmulator
 
-            clock = ManualClock()
+            clock = VirtualClock()
             emu = RobotEmulator(clock, cfg)
             dev = SerialRobot.from_config(cfg, serial_port=EmulatorPort(emu, clock, baud or cfg.baud, name="sim://robot"),
                                           clock=clock, sleep=clock.sleep)

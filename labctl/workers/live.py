@@ -144,6 +144,7 @@ class PeerWatch:
         self.max_gap_s = 0.0
 
     def heard(self) -> None:
+        """Note a message from the peer now (and the longest gap so far)."""
         now = self.clock()
         if self.t_last is not None:
             self.max_gap_s = max(self.max_gap_s, now - self.t_last)
@@ -687,6 +688,8 @@ class LiveRun:
     on_status: object = None  # callable(dict) for the live view
 
     def run(self) -> dict:
+        """Run the live run: load the lab, start the simulated lab (if any) and both workers, supervise them, and return
+        the predictor's result."""
         warm_up()
         lab = load_lab(self.lab_root)
         old = signal.getsignal(signal.SIGTERM) if _in_main_thread() else None
@@ -703,6 +706,11 @@ class LiveRun:
             if _in_main_thread():
                 signal.signal(signal.SIGTERM, old)
                 signal.signal(signal.SIGINT, signal.default_int_handler)
+
+    def _say(self, phase: str) -> None:
+        """Tell the live view which start-up phase the run is in (before the workers' first beat)."""
+        if self.on_status:
+            self.on_status({"role": "startup", "stage": phase})
 
     def _record(self):
         if self.run_dir is None:
@@ -722,6 +730,7 @@ class LiveRun:
         origin = time.monotonic()
         try:
             if lab.is_simulated:
+                self._say("starting the simulated lab")
                 sim_conn, child = CTX.Pipe()
                 sim_proc = CTX.Process(target=sim_server_main, name="labctl-sim", daemon=True,
                                        args=(str(lab.root), self.spec, child,
@@ -754,6 +763,7 @@ class LiveRun:
                 modem = stack.enter_context(pty_null_modem(lab.host_link.baud))
                 for role, port in (("predictor", modem.port_a), ("recognizer", modem.port_b)):
                     extra[role]["host_link"] = dataclasses.asdict(dataclasses.replace(lab.host_link, port=port))
+            self._say("starting the workers")
             base = dict(lab_root=str(lab.root), run_dir=str(self.run_dir) if self.run_dir else None,
                         spec=self.spec, origin=origin, table_port=endpoints.get("table"),
                         robot_port=endpoints.get("robot"), frame_server=endpoints.get("frame_server"))
@@ -769,6 +779,7 @@ class LiveRun:
                     if end is not None:
                         with contextlib.suppress(Exception):
                             end.close()
+                self._say("workers loading calibration and library, opening the devices")
                 result = self._supervise(lab, procs, controls, sim_conn)
                 result["devices_stopped"] = self._await_stopped(lab, procs, controls)
             except (WorkerDied, KeyboardInterrupt, Terminated) as exc:
@@ -951,6 +962,8 @@ class LiveRun:
 
 
 def run_live(lab_root: Path, spec: dict, run_dir: Path | None, on_status=None) -> dict:
+    """A live run of the lab at ``lab_root`` (see :class:`LiveRun`); ``on_status`` receives each status for the live
+    view."""
     return LiveRun(Path(lab_root), spec, run_dir, on_status).run()
 
 

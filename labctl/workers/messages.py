@@ -495,6 +495,7 @@ class Stop(_Msg):
 
     @classmethod
     def short(cls, reason: str) -> Stop:
+        """A Stop whose reason is clipped to what a message may carry."""
         return cls(_clip_text(reason))
 
     def _pack(self):

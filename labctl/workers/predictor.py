@@ -22,16 +22,15 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-import cv2
 import numpy as np
 
 from ..drivers.interfaces import Frame, Robot
 from ..errors import DeviceError
 from ..geometry import make_T, matrix_to_rotvec
-from ..planning import Interception, camera_placement_trajectory, plan_interception
+from ..planning import Interception, camera_placement_trajectory, plan_interception, rest_to_rest_times
 from ..planning.targets import prediction_margin_mm, standard_view_path, viewing_distance_with_margin
 from ..tracking.tracker import MarkerTracker
-from ..vision import detect_markers, detect_markers_windowed, red_mask
+from ..vision import detect_markers, detect_markers_windowed, red_blob_centroid
 from . import messages as m
 from .context import RunContext
 
@@ -39,7 +38,7 @@ STAGES = ("wait", "track", "intercept", "initial", "standard", "match", "done", 
 
 
 @dataclass
-class StageClock:
+class StageTimes:
     """Start time of each stage, for the per-stage durations of the result."""
 
     started: dict[str, float] = field(default_factory=dict)
@@ -47,6 +46,7 @@ class StageClock:
     current: str | None = None
 
     def enter(self, stage: str, now: float) -> None:
+        """Enter ``stage`` at time ``now`` (s), adding the time spent in the previous stage to its duration."""
         if self.current is not None:
             self.durations[self.current] = self.durations.get(self.current, 0.0) + now - self.started[self.current]
         self.current = stage
@@ -76,25 +76,6 @@ class _Scaled:
         return self.s * p, self.s * v, self.s * a
 
 
-def red_blob_centroid(image, near_px=None, *, hue_range_deg=(-15.0, 15.0), min_saturation: float = 0.45,
-                      min_area_px: int = 4, max_jump_px: float = 60.0):
-    """Centroid (px) of the red blob nearest ``near_px`` (or the largest), or None.
-
-    The paper's fixed-camera front end (§5.2): a red filter, then the blob's centroid. Used when
-    no blob passes as an ellipse — a marker on a vertical face is a thin sliver from overhead.
-    """
-    mask = red_mask(image, hue_range_deg, min_saturation)
-    n, _, stats, centroids = cv2.connectedComponentsWithStats(mask, connectivity=8)
-    ok = [i for i in range(1, n) if stats[i, cv2.CC_STAT_AREA] >= min_area_px]
-    if not ok:
-        return None
-    if near_px is None:
-        return centroids[max(ok, key=lambda i: stats[i, cv2.CC_STAT_AREA])]
-    near = np.asarray(near_px, dtype=float)
-    best = min(ok, key=lambda i: float(np.hypot(*(centroids[i] - near))))
-    return centroids[best] if np.hypot(*(centroids[best] - near)) <= max_jump_px else None
-
-
 class PredictorPlanner:
     """Host 1's logic. ``send(msg)`` goes to the recognizer; ``log(event, **fields)`` to the record."""
 
@@ -107,7 +88,7 @@ class PredictorPlanner:
         self.cfg = cfg
         self.tracker = MarkerTracker.from_config(cfg.tracking)
         self.stage = "wait"
-        self.stage_times = StageClock()
+        self.stage_times = StageTimes()
         self.stage_times.enter("wait", t_start)
         self.t_start = t_start
         self.deadline = t_start + cfg.run.timeout_s
@@ -145,6 +126,7 @@ class PredictorPlanner:
     # -- helpers ------------------------------------------------------------------------------
     @property
     def finished(self) -> bool:
+        """The run reached ``done`` or ``failed``."""
         return self.stage in ("done", "failed")
 
     def _enter(self, stage: str, now: float) -> None:
@@ -153,6 +135,7 @@ class PredictorPlanner:
         self.log("stage", t=now, stage=stage)
 
     def fail(self, now: float, reason: str) -> None:
+        """End the run as failed with ``reason`` (logged, robot stopped); no-op once finished."""
         if self.finished:
             return
         self.failure = reason
@@ -204,15 +187,6 @@ class PredictorPlanner:
         self.log("segment", t=now, id=self.segment_id, kind=self.plan_kind, t_end=end.t1,
                  p=T_end[:3, 3], rotvec=matrix_to_rotvec(T_end[:3, :3]))
 
-    def _rest_to_rest_times(self, p0, p1) -> tuple[float, float]:
-        """Minimum times of a straight rest-to-rest move under the controller's own limits (no margin):
-        any profile (bang-bang / trapezoidal: the physical bound) and a quintic (peak speed 1.875·D/T,
-        peak acceleration 10/√3·D/T², the paper's motion primitive)."""
-        d = float(np.linalg.norm(np.asarray(p1) - np.asarray(p0)))
-        v, a = self.ctx.lab.robot.v_max_mm_s, self.ctx.lab.robot.a_max_mm_s2
-        any_profile = 2 * math.sqrt(d / a) if d < v * v / a else d / v + v / a
-        return any_profile, max(1.875 * d / v, math.sqrt(10 / math.sqrt(3) * d / a))
-
     # -- planning ----------------------------------------------------------------------------
     def _initial_view_target(self, azimuth_deg: float):
         cam = self.ctx.mobile_camera  # the prediction's uncertainty must stay well inside the view (issue 18)
@@ -230,12 +204,13 @@ class PredictorPlanner:
         """Plan from where the robot will be when the command reaches the controller."""
         t0 = self._now(now) + self.latency_s
         state, R = self._flange_state(t0)
-        return plan_interception(state, t0, target, self.ctx.limits, horizon_s=15.0, R0=R)
+        return plan_interception(state, t0, target, self.ctx.limits, horizon_s=self.cfg.run.plan_horizon_s, R0=R)
 
     def _start_move(self, now: float, kind: str, plan: Interception) -> None:
         state, _ = self._flange_state(now)
         self.plan, self.plan_kind, self.t_last_plan = plan, kind, now
-        bound, quintic = self._rest_to_rest_times(state[0], plan.trajectory.state(plan.t_hit)[0])
+        bound, quintic = rest_to_rest_times(state[0], plan.trajectory.state(plan.t_hit)[0],
+                                            self.ctx.lab.robot.v_max_mm_s, self.ctx.lab.robot.a_max_mm_s2)
         self.min_motion_s += bound
         self.min_quintic_s += quintic
         self._send_segment(now, plan)
@@ -274,7 +249,9 @@ class PredictorPlanner:
 
     def _replan(self, now: float) -> None:
         """Re-plan the unexecuted motion with the newest prediction (paper §4.3)."""
-        if self.plan is None or now - self.t_last_plan < 0.25 or self.plan.t_hit - now < 0.4:
+        run = self.cfg.run
+        if self.plan is None or now - self.t_last_plan < run.replan_every_s \
+                or self.plan.t_hit - now < run.replan_until_s:
             return
         if self.plan_kind == "standard":
             target = self._standard_target()
@@ -342,7 +319,7 @@ class PredictorPlanner:
         while self.spare_poses:
             self.spare_poses.sort(key=novelty, reverse=True)
             pose = self.spare_poses.pop(0)
-            if novelty(pose) < np.radians(20.0):
+            if novelty(pose) < np.radians(self.cfg.run.spare_novelty_deg):
                 return False  # only faces parallel to viewed ones are left: their views would tell nothing new
             if self._use_pose(pose, now):
                 return True
@@ -351,10 +328,10 @@ class PredictorPlanner:
     def _next_marker(self, now: float) -> None:
         """Look at the object from another side to pick up another marker (ambiguity or no pose)."""
         self.markers_tried += 1
-        if self.markers_tried >= 4:
-            self.fail(now, "no marker gave a usable pose from four viewpoints")
+        if self.markers_tried >= self.cfg.run.max_viewpoints:
+            self.fail(now, f"no marker gave a usable pose from {self.markers_tried} viewpoints")
             return
-        self.azimuth_deg += 120.0
+        self.azimuth_deg += self.cfg.run.next_viewpoint_deg
         self.marker_pose = None
         self._enter("intercept", now)
         self._plan_initial(now, "initial1")
@@ -395,7 +372,7 @@ class PredictorPlanner:
                     self.t_first_seen = now
                     self._enter("track", now)
                 self.log("track", t=now, x=float(xy[0]), y=float(xy[1]), px=px)
-        if self.t_last_seen is not None and now - self.t_last_seen > 2.0:
+        if self.t_last_seen is not None and now - self.t_last_seen > self.cfg.run.marker_lost_s:
             if self.stage == "track":  # lost before any plan: start again
                 self.log("marker_lost", t=now)
                 self.tracker.reset()
@@ -414,6 +391,8 @@ class PredictorPlanner:
         return self.ctx.plane_to_fixed_pixel(self.tracker.predict(now)[0])
 
     def on_message(self, msg: m.Message, now: float) -> None:
+        """A message from the recognizer at ``now`` (s): frame taken, marker pose, identity or ambiguous match; each
+        moves the state machine on."""
         if self.finished:
             return
         if isinstance(msg, m.FrameTaken):
@@ -494,11 +473,13 @@ class PredictorPlanner:
             else:
                 self._enter("initial", now)
             self._request_capture(now, kind, st.T_base_flange)  # robot base = world
-        if self.pending is not None and now - self.stage_times.started[self.stage] > 10.0:
-            self.fail(now, f"the recognizer did not answer within 10 s (stage {self.stage})")
+        wait_s = self.cfg.run.recognizer_timeout_s
+        if self.pending is not None and now - self.stage_times.started[self.stage] > wait_s:
+            self.fail(now, f"the recognizer did not answer within {wait_s:g} s (stage {self.stage})")
 
     # -- result ------------------------------------------------------------------------------------
     def result(self, now: float) -> dict:
+        """The run's result: identity, time to identity and its lower bounds (s), views, stage durations, failure."""
         if self.stage_times.current is not None and self.stage_times.current not in ("done", "failed"):
             self.stage_times.enter(self.stage_times.current, now)
         ident = self.identity
@@ -535,6 +516,7 @@ class ProgramProgress:
         self._logged_acked = -1
 
     def pump(self, now: float) -> None:
+        """Keep the table's program streaming, and log its progress at most every ``every_s`` (s)."""
         prog = self.program
         if prog.active:
             prog.pump(0.0)

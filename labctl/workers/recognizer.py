@@ -109,6 +109,8 @@ class Recognizer:
                               response=getattr(cam_cfg, "response", "linear"))
 
     def handle(self, msg: m.Message) -> list[m.Message]:
+        """Answer one message from the predictor: a capture request is taken, posed or matched; anything else gets no
+        answer."""
         if not isinstance(msg, m.CaptureRequest):
             return []
         frame = self.grab()

@@ -91,12 +91,14 @@ class SimBench:
         self.robot.open()
 
     def world(self, obj, placement):
+        """The simulated world of this lab with ``obj`` at ``placement``, moving with the emulated table and robot."""
         from ..sim.world import SimWorld
 
         return SimWorld.from_lab(self.lab, obj=obj, placement=placement, table_position=self.grbl.position_at,
                                  flange_pose_at=self.robot_emu.flange_pose_at)
 
     def advance(self, t: float) -> None:
+        """Advance both emulators to time ``t`` (s)."""
         self.grbl.advance(t)
         self.robot_emu.advance(t)
 
@@ -122,6 +124,7 @@ class Conveyor:
         self._streak: tuple[float, float] | None = None  # (first, last) grab of the current streak
 
     def watch(self, camera):
+        """``camera`` with every grab reported to :meth:`seen` (the conveyor starts once watched long enough)."""
         conveyor = self
 
         class Watched:
@@ -136,6 +139,8 @@ class Conveyor:
         return Watched()
 
     def seen(self, t: float) -> None:
+        """A fixed-camera grab at time ``t`` (s): start the program once grabs have come without a pause for
+        ``delay_s``."""
         if self.started_at is not None:
             return
         first, last = self._streak or (t, t)
@@ -235,10 +240,12 @@ class LiveSimLab:
         self._stack.close()
 
     def endpoints(self) -> dict:
+        """Where the workers reach the lab: table and robot pty paths, the run clock's origin, the frame server."""
         return {"table": self.table_pty.path, "robot": self.robot_pty.path, "origin": self.origin,
                 "frame_server": (self.server.address, self.server.authkey)}
 
     def truth(self) -> dict:
+        """The ground truth for the result: the object placed."""
         return {"true_identity": self.object_name}
 
     def device_state(self) -> dict:
@@ -334,6 +341,7 @@ class ServedLab(LiveSimLab):
         return self
 
     def endpoints(self) -> dict:
+        """Where clients reach the served lab: table and robot ports, the MJPEG stream URLs, the scene control URL."""
         return {"table": self.ports["table"], "robot": self.ports["robot"],
                 "fixed_camera": self.mjpeg.url("fixed"), "mobile_camera": self.mjpeg.url("mobile"),
                 "scene_control": self.mjpeg.control_url("scene")}

@@ -130,6 +130,7 @@ def soak(lab, hours: float = 1.0, runs_dir: Path | str | None = None, *, fps: fl
 
 
 def main(argv=None) -> None:
+    """Command line: soak the sample lab (or ``--lab``) for ``--hours`` of virtual time and print the result as JSON."""
     import argparse
 
     from ..config import load_lab

@@ -57,7 +57,7 @@ log = logging.getLogger("labctl.link")
 
 __all__ = [
     "AuthError", "authenticate", "link_key", "KEY_ENV",
-    "LinkError", "LinkClosed", "Link", "LocalLink", "TcpLink", "TcpListener", "SerialLink", "local_pair",
+    "HostLinkError", "LinkClosed", "Link", "LocalLink", "TcpLink", "TcpListener", "SerialHostLink", "local_pair",
     "tcp_listen", "tcp_connect", "open_link", "cobs_encode", "cobs_decode", "crc16", "serial_frame",
     "SerialDeframer", "SERIAL_OVERHEAD", "BITS_PER_BYTE", "wire_time_s", "pty_null_modem", "NullModem",
 ]
@@ -70,15 +70,15 @@ MAX_SERIAL_PAYLOAD = 252  # message + CRC within one 254-byte COBS block
 TCP_HEADER = struct.Struct(">H")
 
 
-class LinkError(DeviceError):
+class HostLinkError(DeviceError):
     """The host link cannot be opened or used (exit status 3, like other device faults)."""
 
 
-class LinkClosed(LinkError):
+class LinkClosed(HostLinkError):
     """The peer closed the link or the connection broke."""
 
 
-class AuthError(LinkError):
+class AuthError(HostLinkError):
     """The TCP peer did not prove that it holds the link's shared key."""
 
 
@@ -104,13 +104,13 @@ def link_key(cfg, lab_root=None) -> bytes | None:
         try:
             raw = path.read_text(encoding="utf-8").strip()
         except OSError as exc:
-            raise LinkError(f"cannot read the host link key file {path}: {exc.strerror or exc}") from None
+            raise HostLinkError(f"cannot read the host link key file {path}: {exc.strerror or exc}") from None
         where = str(path)
     if not raw:
         return None
     key = raw.encode("utf-8")
     if len(key) < 16:
-        raise LinkError(f"the host link key from {where} is too short ({len(key)} bytes; use at least 16)")
+        raise HostLinkError(f"the host link key from {where} is too short ({len(key)} bytes; use at least 16)")
     return key
 
 
@@ -223,7 +223,7 @@ def cobs_decode(data: bytes) -> bytes:
 def serial_frame(payload: bytes) -> bytes:
     """The bytes put on the serial line for one message payload: ``00 COBS(payload ‖ CRC) 00``."""
     if len(payload) > MAX_SERIAL_PAYLOAD:
-        raise LinkError(f"message of {len(payload)} bytes exceeds the serial frame limit {MAX_SERIAL_PAYLOAD}")
+        raise HostLinkError(f"message of {len(payload)} bytes exceeds the serial frame limit {MAX_SERIAL_PAYLOAD}")
     return b"\x00" + cobs_encode(payload + crc16(payload).to_bytes(2, "big")) + b"\x00"
 
 
@@ -242,6 +242,7 @@ class SerialDeframer:
         self.dropped = 0
 
     def feed(self, data: bytes) -> list[bytes]:
+        """Feed received bytes; returns the payloads of the frames they complete (bad frames dropped and counted)."""
         out: list[bytes] = []
         for chunk_end in _split_keep(data):
             piece, ends = chunk_end
@@ -372,11 +373,13 @@ class Link(ABC):
         return msg
 
     def close(self) -> None:
+        """Close the link (idempotent)."""
         if not self.closed:
             self.closed = True
             self._close()
 
     def stats(self) -> dict:
+        """Bytes and messages sent and received, and frames dropped, for the run's result."""
         return {"transport": self.transport, "bytes_sent": self.bytes_sent, "bytes_received": self.bytes_received,
                 "messages_sent": self.messages_sent, "messages_received": self.messages_received,
                 "frames_dropped": self.frames_dropped}
@@ -512,13 +515,13 @@ class TcpListener:
         try:
             self._sock = socket.create_server((host, port), reuse_port=False)
         except OSError as exc:
-            raise LinkError(f"cannot listen on {host}:{port}: {exc.strerror or exc}") from exc
+            raise HostLinkError(f"cannot listen on {host}:{port}: {exc.strerror or exc}") from exc
         self.host = host
         self.port = self._sock.getsockname()[1]
 
     def accept(self, timeout: float | None = 30.0, log_hook: LogHook | None = None, *,
                authkey: bytes | None = None, on_refused: Callable[[str], None] | None = None) -> TcpLink:
-        """Wait up to ``timeout`` s for the peer to connect; LinkError if it does not.
+        """Wait up to ``timeout`` s for the peer to connect; HostLinkError if it does not.
 
         With ``authkey`` the peer must pass :func:`authenticate`; a peer that fails is closed, logged
         in one line (``labctl.link`` warning, and ``on_refused(line)``) and the wait goes on."""
@@ -526,7 +529,7 @@ class TcpListener:
         while True:
             ready, _, _ = select.select([self._sock], [], [], _remaining(deadline))
             if not ready:
-                raise LinkError(f"no peer connected to {self.host}:{self.port} within {timeout:g} s")
+                raise HostLinkError(f"no peer connected to {self.host}:{self.port} within {timeout:g} s")
             conn, addr = self._sock.accept()
             if authkey is None:
                 return TcpLink(conn, log_hook)
@@ -544,6 +547,7 @@ class TcpListener:
             return TcpLink(conn, log_hook)
 
     def close(self) -> None:
+        """Stop listening."""
         self._sock.close()
 
     def __enter__(self):
@@ -554,6 +558,7 @@ class TcpListener:
 
 
 def tcp_listen(host: str, port: int) -> TcpListener:
+    """Listen for one worker's TCP connection on ``host:port`` (port 0: any free port)."""
     return TcpListener(host, port)
 
 
@@ -581,13 +586,13 @@ def tcp_connect(host: str, port: int, timeout: float = 30.0, retry_s: float = 0.
                 raise AuthError(f"host link to {host}:{port}: {exc} (same LABCTL_LINK_KEY on both hosts?)") from None
         return TcpLink(sock, log_hook)
     why = (last.strerror or str(last)) if last else "timed out"
-    raise LinkError(f"could not connect to {host}:{port} within {timeout:g} s ({why})")
+    raise HostLinkError(f"could not connect to {host}:{port} within {timeout:g} s ({why})")
 
 
 # ---- serial -------------------------------------------------------------------------------------
 
 
-class SerialLink(Link):
+class SerialHostLink(Link):
     """Messages over an RS-232 line in COBS + CRC-16 frames (see the module docstring)."""
 
     transport = "serial"
@@ -600,7 +605,7 @@ class SerialLink(Link):
         self._ready: list[bytes] = []
 
     @classmethod
-    def open(cls, url: str, baud: int = 9600, log_hook: LogHook | None = None) -> SerialLink:
+    def open(cls, url: str, baud: int = 9600, log_hook: LogHook | None = None) -> SerialHostLink:
         """Open a pyserial port (device path or URL) at ``baud``, 8N1, no flow control."""
         import serial
 
@@ -608,7 +613,7 @@ class SerialLink(Link):
             port = serial.serial_for_url(url, baudrate=baud, bytesize=8, parity="N", stopbits=1,
                                          timeout=cls.POLL_S, write_timeout=5.0)
         except (serial.SerialException, ValueError, OSError) as exc:
-            raise LinkError(f"cannot open serial port {url!r}: {exc}") from exc
+            raise HostLinkError(f"cannot open serial port {url!r}: {exc}") from exc
         with contextlib.suppress(Exception):
             port.reset_input_buffer()
         return cls(port, log_hook)
@@ -664,16 +669,16 @@ def open_link(cfg, role: str, *, local_end: LocalLink | None = None, connect_tim
     :func:`link_key`) is required, and refused peers are reported to ``on_refused``.
     """
     if role not in ("predictor", "recognizer"):
-        raise LinkError(f"link role must be 'predictor' or 'recognizer', not {role!r}")
+        raise HostLinkError(f"link role must be 'predictor' or 'recognizer', not {role!r}")
     kind = getattr(cfg, "transport", None)
     if kind == "local":
         if local_end is None:
-            raise LinkError("the local host link is made by the supervisor (local_pair()); pass local_end")
+            raise HostLinkError("the local host link is made by the supervisor (local_pair()); pass local_end")
         local_end.log_hook = log_hook or local_end.log_hook
         return local_end
     if kind == "tcp":
         if not authkey:
-            raise LinkError(f"the TCP host link needs a shared key: set ${KEY_ENV} (16+ characters) on both "
+            raise HostLinkError(f"the TCP host link needs a shared key: set ${KEY_ENV} (16+ characters) on both "
                             "hosts, or name a key file in drivers/host_link.yaml (key_file)")
         if role == "predictor":
             with tcp_listen(cfg.host, cfg.tcp_port) as listener:
@@ -681,9 +686,9 @@ def open_link(cfg, role: str, *, local_end: LocalLink | None = None, connect_tim
         return tcp_connect(cfg.host, cfg.tcp_port, connect_timeout, log_hook=log_hook, authkey=authkey)
     if kind == "serial":
         if not cfg.port:
-            raise LinkError("a serial host link needs a port (drivers/host_link.yaml: port)")
-        return SerialLink.open(cfg.port, cfg.baud, log_hook)
-    raise LinkError(f"unknown host-link transport {kind!r} (local, tcp or serial)")
+            raise HostLinkError("a serial host link needs a port (drivers/host_link.yaml: port)")
+        return SerialHostLink.open(cfg.port, cfg.baud, log_hook)
+    raise HostLinkError(f"unknown host-link transport {kind!r} (local, tcp or serial)")
 
 
 # ---- a virtual RS-232 cable ---------------------------------------------------------------------

@@ -150,6 +150,7 @@ class Sweep:
 
     @classmethod
     def create(cls, runs_dir: Path, spec: dict) -> Sweep:
+        """A new sweep folder ``trials-<time>`` under ``runs_dir`` holding ``spec``."""
         from ..fsutil import atomic_write_text
 
         runs_dir.mkdir(parents=True, exist_ok=True)
@@ -169,6 +170,7 @@ class Sweep:
 
     @classmethod
     def open(cls, path: Path) -> Sweep:
+        """An existing sweep folder; raises UserInputError when it holds no sweep spec."""
         path = Path(path)
         if not (path / SPEC).is_file():
             raise UserInputError(f"{path} is not a trials sweep (no {SPEC})")
@@ -176,6 +178,7 @@ class Sweep:
 
     @property
     def spec(self) -> dict:
+        """The sweep's spec (trajectory, speeds, objects, seeds)."""
         try:
             return json.loads((self.path / SPEC).read_text())
         except (OSError, ValueError) as exc:
@@ -197,6 +200,7 @@ class Sweep:
         return out
 
     def append(self, result: dict) -> None:
+        """Append one trial's result to the results file (one JSON line, appended in one write)."""
         line = (json.dumps(result, allow_nan=False) + "\n").encode()
         fd = os.open(self.path / RESULTS, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
         try:
@@ -205,6 +209,7 @@ class Sweep:
             os.close(fd)
 
     def finish(self, summary: dict) -> None:
+        """Write the summary and the sweep's report."""
         from ..fsutil import atomic_write_text
         from ..records.sweep_report import write_sweep_report
 

@@ -24,6 +24,7 @@ from .recognizer import Recognizer
 
 @dataclass(frozen=True)
 class TrialSpec:
+    """One virtual trial: trajectory, table speed (mm/s), object (None: chosen by the seed) and seed."""
     trajectory: str = "line"
     speed_mm_s: float = 8.0
     object_name: str | None = None
@@ -38,6 +39,7 @@ class LinkMeter:
         self.count: dict[str, int] = {}
 
     def carry(self, msg: m.Message) -> m.Message:
+        """Encode and decode ``msg`` as the host link would, counting its bytes by message type."""
         data = m.encode(msg)
         name = type(msg).__name__
         self.bytes[name] = self.bytes.get(name, 0) + len(data)
@@ -45,12 +47,14 @@ class LinkMeter:
         return m.decode(data)
 
     def summary(self, duration_s: float, baud: int = 9600) -> dict:
+        """Bytes and messages by type, the total, and the link utilisation at ``baud`` over ``duration_s`` (s)."""
         total = sum(self.bytes.values())
         return {"bytes": dict(self.bytes), "messages": dict(self.count), "total_bytes": total,
                 "utilisation": total * 10.0 / baud / duration_s if duration_s > 0 else 0.0}
 
 
 def choose_object(ctx: RunContext, spec: TrialSpec, rng: np.random.Generator) -> str:
+    """The object of the trial: the one named in ``spec`` (checked against the library), else one drawn with ``rng``."""
     if spec.object_name is not None:
         if spec.object_name not in ctx.library:
             from ..errors import UserInputError

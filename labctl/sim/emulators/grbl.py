@@ -80,6 +80,7 @@ _M_GROUPS = {0: "stop", 1: "stop", 2: "stop", 30: "stop", 3: "spindle", 4: "spin
 
 
 class GcodeError(Exception):
+    """A G-code line GRBL rejects: ``code`` is GRBL's ``error:N`` number."""
     def __init__(self, code: int):
         super().__init__(code)
         self.code = code
@@ -253,11 +254,13 @@ class GrblEmulator:
 
     @property
     def moving(self) -> bool:
+        """The carriage is moving (or has motion queued and no feed hold)."""
         return self.planner.moving
 
     # --- real-time commands -----------------------------------------------------------------
     @property
     def state_word(self) -> str:
+        """The state as GRBL reports it: ``Hold:N`` with the hold substate, ``Door:0``, else the state."""
         if self.state == "Hold":
             return f"Hold:{self.hold_substate}"
         if self.state == "Door":

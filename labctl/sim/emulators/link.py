@@ -14,19 +14,6 @@ from collections import deque
 from collections.abc import Callable
 
 
-class ManualClock:
-    """A virtual clock: ``clock()`` is the time (s); ``sleep(dt)`` advances it at once."""
-
-    def __init__(self, t0: float = 0.0):
-        self.t = float(t0)
-
-    def __call__(self) -> float:
-        return self.t
-
-    def sleep(self, dt: float) -> None:
-        self.t += max(float(dt), 0.0)
-
-
 class EmulatorPort:
     """pyserial-like port to ``emulator`` (anything with ``receive(data, t)`` and ``read_output()``)."""
 
@@ -74,12 +61,15 @@ class EmulatorPort:
 
     # --- pyserial API -----------------------------------------------------------------------
     def open(self) -> None:
+        """Mark the port open."""
         self.is_open = True
 
     def close(self) -> None:
+        """Mark the port closed."""
         self.is_open = False
 
     def write(self, data: bytes) -> int:
+        """Send ``data`` to the emulator, paced at the port's baud rate on its clock; returns the byte count."""
         data = bytes(data)
         if self._byte_s == 0.0:
             self.emulator.receive(data)
@@ -99,11 +89,13 @@ class EmulatorPort:
 
     @property
     def in_waiting(self) -> int:
+        """Bytes received from the emulator and not yet read."""
         self._pump()
         return len(self._rx)
 
     @property
     def out_waiting(self) -> int:
+        """Bytes written and not yet delivered to the emulator (baud-rate pacing)."""
         return len(self._to_device)
 
     def _wait(self, done: Callable[[], bool]) -> None:
@@ -122,6 +114,7 @@ class EmulatorPort:
             self._pump()
 
     def read(self, size: int = 1) -> bytes:
+        """Up to ``size`` received bytes, waiting up to ``timeout`` s for them (pyserial semantics)."""
         if self.timeout == 0:
             self._pump()
         else:
@@ -131,6 +124,7 @@ class EmulatorPort:
         return out
 
     def read_until(self, expected: bytes = b"\n", size: int | None = None) -> bytes:
+        """Received bytes up to and including ``expected`` (or ``size`` bytes), waiting up to ``timeout`` s."""
         def done() -> bool:
             return expected in self._rx or (size is not None and len(self._rx) >= size)
 
@@ -144,14 +138,17 @@ class EmulatorPort:
         return out
 
     def readline(self, size: int | None = None) -> bytes:
+        """One received line (up to ``\n``), as pyserial's ``readline``."""
         return self.read_until(b"\n", size)
 
     def reset_input_buffer(self) -> None:
+        """Drop every received byte not yet read, and those still on the wire."""
         self._pump()
         self._rx.clear()
         self._from_device.clear()
 
     def reset_output_buffer(self) -> None:
+        """Drop bytes written and not yet delivered."""
         self._to_device.clear()
 
     def __enter__(self):

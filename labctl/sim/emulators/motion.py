@@ -49,11 +49,13 @@ class Piece:
     a: float
 
     def at(self, t: float) -> np.ndarray:
+        """Position (mm) at time ``t`` (s), clamped to the piece's interval."""
         tau = min(max(t - self.t0, 0.0), self.t1 - self.t0)
         s = self.v0 * tau + 0.5 * self.a * tau * tau
         return np.asarray(self.p0) + np.asarray(self.unit) * s
 
     def speed(self, t: float) -> float:
+        """Speed (mm/s) at time ``t`` (s), clamped to the piece's interval."""
         tau = min(max(t - self.t0, 0.0), self.t1 - self.t0)
         return max(0.0, self.v0 + self.a * tau)
 
@@ -130,14 +132,17 @@ class Planner:
     # --- queueing ---------------------------------------------------------------------------
     @property
     def full(self) -> bool:
+        """The planner buffer holds ``capacity`` blocks."""
         return len(self.blocks) >= self.capacity
 
     @property
     def empty(self) -> bool:
+        """No block is queued."""
         return not self.blocks
 
     @property
     def planned_position(self) -> np.ndarray:
+        """Where the carriage will be (mm) once every queued block has run."""
         return self._planned_pos.copy()
 
     def add(self, target, feed_mm_s: float | None, kind: str = "feed") -> bool:
@@ -185,6 +190,7 @@ class Planner:
         self._prev_unit = None
 
     def set_position(self, position) -> None:
+        """Drop every block and put the carriage at ``position`` (mm) at rest."""
         self.clear()
         self.pos = np.asarray(position, float).copy()
         self._planned_pos = self.pos.copy()
@@ -278,15 +284,18 @@ class Planner:
         return self.t
 
     def feed_hold(self) -> None:
+        """Decelerate to a stop along the path (GRBL feed hold), keeping the blocks."""
         self.hold = True
 
     def resume(self) -> None:
+        """Continue after a feed hold, re-planning from rest."""
         if self.hold:
             self.hold = False
             self._replan()
 
     @property
     def moving(self) -> bool:
+        """The carriage moves, or has blocks to run and no hold."""
         return self.speed > _EPS or (bool(self.blocks) and not self.hold)
 
     def position_at(self, t: float) -> np.ndarray:
@@ -306,6 +315,7 @@ class Planner:
         return hist[lo].at(t)
 
     def speed_at(self, t: float) -> float:
+        """Carriage speed (mm/s) at a time already run (≤ ``self.t``), from the recorded history."""
         if t >= self.t or not self.history:
             return self.speed
         for p in reversed(self.history):

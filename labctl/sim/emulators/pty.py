@@ -50,6 +50,7 @@ class PtyDevice:
         return iter((self.path, self.stop))
 
     def stop(self) -> None:
+        """Stop the serving thread and close both ends of the pty (idempotent)."""
         if self._stop.is_set():
             return
         self._stop.set()

@@ -166,10 +166,12 @@ class StopRamp:
         self.t1 = self.t0 + max(float(self.t_axis.max()), self.t_rot)
 
     def position(self, t: float) -> np.ndarray:
+        """Flange position (mm, base frame) at time ``t`` (s) while braking to rest."""
         ta = np.minimum(min(max(t - self.t0, 0.0), self.t1 - self.t0), self.t_axis)
         return self.p + self.v * ta - 0.5 * np.sign(self.v) * self.a_stop * ta * ta
 
     def state(self, t: float):
+        """Position (mm), velocity (mm/s) and rotation at time ``t`` (s) while braking to rest."""
         tau = min(max(t - self.t0, 0.0), self.t1 - self.t0)
         ta = np.minimum(tau, self.t_axis)
         sgn = np.sign(self.v)
@@ -245,12 +247,14 @@ class RobotEmulator:
             self.out += (add_checksum(line) + "\n").encode("ascii")
 
     def read_output(self) -> bytes:
+        """Bytes the controller has written since the last call, after advancing it to the clock's time."""
         self.advance(max(self.now, self.clock()))
         data = bytes(self.out)
         self.out.clear()
         return data
 
     def receive(self, data: bytes, t: float | None = None) -> None:
+        """Bytes from the host, received at time ``t`` (s; default the clock's): each complete line is executed."""
         self.advance(max(self.now, self.clock() if t is None else t))
         for b in bytes(data):
             if b == 0x0A:
@@ -318,6 +322,7 @@ class RobotEmulator:
 
     @property
     def moving(self) -> bool:
+        """The robot is moving at the clock's time (a segment running or braking)."""
         self.advance(max(self.now, self.clock()))
         return self._moving_at(self.now)
 
