@@ -73,6 +73,9 @@ class RunConfig:
     timeout_s: Positive = 90.0
     ambiguity_threshold: float | None = None  # None: the library's own default
     max_views: PositiveInt = 3
+    # library views whose marker cannot rest within this of the measured marker height are not matched
+    # (mm; 0: off). The pose error is < 1 mm in the sample lab: docs/notes/library.md
+    height_gate_mm: NonNegative = 4.0
     second_image_azimuth_deg: float = 25.0  # camera moves this far round the marker between the two images
     fps: Positive = 30.0
     # the predictor's policy (paper §5.2–5.3)

@@ -40,6 +40,7 @@ ECC_WEIGHT = 2.0
 PERIMETER_WEIGHT = 0.0
 MARGIN = 0.08  # objects within this of the best score are candidates too (relative ambiguity rule)
 DEFAULT_THRESHOLD = 0.15
+HEIGHT_TOL_MM = 4.0  # a view's marker height may differ this much from the measured one (pose error)
 
 
 @dataclass
@@ -54,6 +55,9 @@ class LibraryIndex:
     log_perimeter: np.ndarray  # (V,)
     fd: np.ndarray  # (V, K)
     hu: np.ndarray  # (V, 7)
+    # (V, P) height (mm) of each view's marker centre above the table in each stable pose of its
+    # object (NaN-padded); None: unknown, the height gate passes every view
+    heights: np.ndarray | None = None
     _pair: np.ndarray | None = field(default=None, repr=False)
     _cache: dict = field(default_factory=dict, repr=False)
 
@@ -86,9 +90,18 @@ class LibraryIndex:
 
     @classmethod
     def from_library(cls, library: Mapping) -> LibraryIndex:
-        """From ``{name: LibraryObject}`` (objects with ``.views``: {marker_id: StandardView})."""
-        return cls.from_views([(name, mid, v.features) for name, obj in sorted(library.items())
-                               for mid, v in sorted(obj.views.items())])
+        """From ``{name: LibraryObject}`` (objects with ``.views``: {marker_id: StandardView}); with
+        the objects' ``stable_poses`` and ``markers``, also each view's marker heights."""
+        items = [(name, mid, v.features) for name, obj in sorted(library.items())
+                 for mid, v in sorted(obj.views.items())]
+        index = cls.from_views(items)
+        rows = [marker_heights(library[name], mid) for name, mid, _ in items]
+        if any(r.size for r in rows):
+            H = np.full((len(rows), max(r.size for r in rows)), np.nan)
+            for i, r in enumerate(rows):
+                H[i, :r.size] = r
+            index.heights = H
+        return index
 
     def __len__(self) -> int:
         return len(self.names)
@@ -133,14 +146,41 @@ class MatchResult:
         return bool(self.candidates)
 
 
+def marker_heights(obj, marker_id: int) -> np.ndarray:
+    """Heights (mm) above the table of marker ``marker_id``'s centre in each stable pose of ``obj``
+    (a LibraryObject: its ``stable_poses`` place O on the table plane z = 0); empty if unknown."""
+    poses = getattr(obj, "stable_poses", None) or []
+    try:
+        c = np.asarray(obj.marker(marker_id).center, float)
+    except (AttributeError, KeyError, StopIteration):
+        return np.zeros(0)
+    return np.array([float(np.asarray(T, float)[2, :3] @ c + np.asarray(T, float)[2, 3]) for T, _ in poses])
+
+
+def height_gate(index: LibraryIndex, height_mm: float | None, tol_mm: float = HEIGHT_TOL_MM) -> np.ndarray:
+    """(V,) True where a view's marker can rest ``height_mm`` ± ``tol_mm`` above the table in some
+    stable pose of its object (and where that is unknown). Standard views of plates of one footprint
+    look alike; the marker's height, known from the run's marker pose, tells their thickness."""
+    if height_mm is None or index.heights is None or not np.isfinite(height_mm) or tol_mm <= 0:
+        return np.ones(len(index), bool)
+    d = np.abs(index.heights - float(height_mm))
+    d = np.where(np.isnan(d), np.inf, d).min(axis=1)
+    return (d <= tol_mm) | np.all(np.isnan(index.heights), axis=1)
+
+
 def view_scores(q: ShapeFeatures, index: LibraryIndex, *, method: str = "aos", ecc_gate: float = ECC_GATE,
                 size_gate: float = SIZE_GATE, size_weight: float = SIZE_WEIGHT, ecc_weight: float = ECC_WEIGHT,
-                perimeter_weight: float = PERIMETER_WEIGHT, with_shift: bool = False):
-    """Dissimilarity (V,) of a query to every view of ``index`` (inf where gated out)."""
+                perimeter_weight: float = PERIMETER_WEIGHT, with_shift: bool = False,
+                height_mm: float | None = None, height_tol_mm: float = HEIGHT_TOL_MM):
+    """Dissimilarity (V,) of a query to every view of ``index`` (inf where gated out).
+
+    ``height_mm``: the viewed marker's centre height above the table (mm), if known; views whose
+    marker cannot rest there (± ``height_tol_mm``) are gated out (:func:`height_gate`)."""
     dlog = np.abs(np.log(q.size_mm) - index.log_size)
     dper = np.abs(np.log(max(q.perimeter_mm, 1e-9)) - index.log_perimeter)
     decc = np.abs(q.eccentricity ** 2 - index.ecc2)
     ok = (np.abs(q.eccentricity ** 2 - index.ecc2) <= ecc_gate) & (dlog <= size_gate)
+    ok &= height_gate(index, height_mm, height_tol_mm)
     shift = np.zeros(len(index), int)
     if method == "aos":
         d = np.full(len(index), np.inf)

@@ -219,6 +219,15 @@ class Recognizer:
             return f"marker seen obliquely (axis ratio {ratio:.2f})"
         return None
 
+    def _marker_height(self, msg: m.CaptureRequest) -> float:
+        """Height (mm) above the table of the marker this standard view looks at: the view is planned
+        ``viewing.standoff_mm`` out along the marker's normal from its estimated centre, and the table
+        moves only in x and y, so the centre's z is the camera's plus the stand-off along the optical
+        axis (``planning.targets.standard_view_pose``)."""
+        R = rotvec_to_matrix(msg.rotvec)
+        z = float(msg.position[2]) + self.ctx.lab.config.viewing.standoff_mm * float(R[2, 2])
+        return z - self.z_table
+
     def _standard(self, msg: m.CaptureRequest, frame: Frame) -> m.Message:
         self.n_standard += 1
         k = self.n_standard
@@ -235,10 +244,12 @@ class Recognizer:
             self.log("no_silhouette", t=frame.t, view_id=msg.view_id, error=str(exc))
             return m.Failure(code=m.FailureCode.NO_MATCH, text=f"no silhouette in standard view {k}")
         self.save_image(f"silhouette_{k}", (mask.astype(np.uint8) * 255))
-        res = match(features, self.ctx.index, self.threshold, restrict=self.remaining)
+        height = self._marker_height(msg)
+        res = match(features, self.ctx.index, self.threshold, restrict=self.remaining, height_mm=height,
+                    height_tol_mm=self.ctx.lab.config.run.height_gate_mm)
         scores = {n: (s if np.isfinite(s) else None) for n, s in res.scores.items()}
         self.log("match", t=frame.t, view_id=msg.view_id, view=k, scores=scores, candidates=res.candidates,
-                 best=res.best[0] if res.best else None)
+                 best=res.best[0] if res.best else None, marker_height_mm=round(height, 2))
         ids = {n: i for i, n in enumerate(self.ctx.names)}
         if res.best is None:
             return m.Failure(code=m.FailureCode.NO_MATCH, text=f"standard view {k} matches no library view")
