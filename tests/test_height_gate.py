@@ -61,3 +61,37 @@ def test_an_index_without_poses_has_no_height_gate():
     lib = {"a": SimpleNamespace(views={0: SimpleNamespace(features=f)})}
     index = LibraryIndex.from_library(lib)
     assert index.heights is None and height_gate(index, 1e3).all()
+
+
+def test_evidence_over_several_views_resolves_a_lasting_lead_only():
+    from labctl.library.matching import MARGIN, evidence_leader
+
+    assert evidence_leader({"a": 0.05, "b": 0.13}, 1) is None  # one view: the paper's threshold rule stands
+    assert evidence_leader({"a": 0.10, "b": 0.36}, 3) == "a"  # 0.26 > 0.08·√3
+    assert evidence_leader({"a": 0.10, "b": 0.20}, 3) is None  # 0.10 < 0.08·√3: could be noise
+    assert evidence_leader({"a": 0.1}, 2) == "a"
+    for n in range(2, 6):  # the bar grows as √n
+        gap = MARGIN * np.sqrt(n)
+        assert evidence_leader({"a": 0.0, "b": gap * 1.01}, n) == "a"
+        assert evidence_leader({"a": 0.0, "b": gap * 0.99}, n) is None
+
+
+def test_a_look_alike_within_the_threshold_is_outvoted_by_repeated_views():
+    """A part seen only from one side (a plate) against a look-alike that scores inside the
+    threshold every time: identify() resolves it once the summed lead is beyond chance."""
+    from labctl.library.matching import identify
+
+    rng = np.random.default_rng(3)
+    f = _features()
+    other = ShapeFeatures(eccentricity=f.eccentricity, size_mm=f.size_mm, perimeter_mm=f.perimeter_mm,
+                          chain_start=(0, 0), chain_code=f.chain_code, aos=f.aos + rng.normal(0, 0.1, f.aos.shape),
+                          fd=f.fd, hu=f.hu)
+    lib = {"plate": SimpleNamespace(views={0: SimpleNamespace(features=f)}),
+           "look_alike": SimpleNamespace(views={0: SimpleNamespace(features=other)})}
+    index = LibraryIndex.from_library(lib)
+    first = match(f, index)
+    assert first.ambiguous and first.scores["look_alike"] <= 0.15
+    res = identify(f, index, lambda h, j: f, max_views=3)
+    assert res.resolved and res.name == "plate" and res.views_used >= 2
+    one = identify(f, index, lambda h, j: f, max_views=1)
+    assert not one.resolved  # a single view stays ambiguous

@@ -134,7 +134,7 @@ def evaluate(library: dict, pool: dict, rng: np.random.Generator, *, threshold: 
             ambiguous += int(first.ambiguous)
             extra_views += res.views_used - 1 + len(tried) - 1
             unresolved += int(not res.resolved)
-            if res.name == name:
+            if res.resolved and res.name == name:  # a run answers only when resolved
                 ok["aos_with_extra_views"] += 1
             elif len(wrong) < 10:
                 wrong.append(f"{name}#{mid}->{res.name or 'unresolved'}")

@@ -266,8 +266,10 @@ class Identification:
     """Outcome of :func:`identify`.
 
     ``name`` the identified object (lowest accumulated score among the surviving candidates);
-    ``resolved`` True when exactly one candidate survived (False: ``name`` is a best guess among
-    ``candidates``); ``views_used`` standard views taken; ``requested`` the planned (object, marker).
+    ``resolved`` True when exactly one candidate survived, by the views or by the accumulated
+    evidence (:func:`evidence_leader`) — a run answers only then; False: ``name`` is a best guess
+    among ``candidates``, and a run fails "still ambiguous"; ``views_used`` standard views taken;
+    ``requested`` the planned (object, marker).
     """
 
     name: str | None
@@ -276,6 +278,23 @@ class Identification:
     views_used: int
     steps: list[MatchResult]
     requested: list[tuple[str, int]]
+
+
+def evidence_leader(totals: Mapping[str, float], n_views: int, margin: float = MARGIN) -> str | None:
+    """The candidate whose score summed over ``n_views`` ≥ 2 standard views is lower than every other
+    candidate's by more than ``margin·√n_views``, or None.
+
+    One view leaves every object within ``threshold`` a candidate (paper §3.4). Over several views
+    the per-view differences add up while their noise grows only as √n, so a lead beyond the
+    single-view ``margin`` scaled by √n is evidence, not chance: without this, a part whose only
+    markers face one way (a plate) stays "ambiguous" against a look-alike however often it is seen.
+    """
+    if n_views < 2 or not totals:
+        return None
+    order = sorted(totals, key=lambda c: totals[c])
+    if len(order) == 1 or totals[order[1]] - totals[order[0]] > margin * np.sqrt(n_views):
+        return order[0]
+    return None
 
 
 UNUSABLE_VIEW = "unusable view"
@@ -308,8 +327,9 @@ def identify(first: ShapeFeatures, index: LibraryIndex, acquire: Callable[[str, 
     while len(remaining) > 1 and views_used < max_views:
         try:
             h, j = plan_next_view(remaining, index, viewed)
-        except ValueError:
-            break
+        except ValueError:  # every marker viewed: look again at the leader's (as a run does, from another side)
+            h = min(remaining, key=lambda c: total[c])
+            j = viewed[h][0]
         requested.append((h, j))
         viewed.setdefault(h, []).append(j)
         f = acquire(h, j)
@@ -329,6 +349,9 @@ def identify(first: ShapeFeatures, index: LibraryIndex, acquire: Callable[[str, 
         best_step = min(step_score.values())
         keep = [c for c in remaining if step_score[c] <= threshold or step_score[c] <= best_step + margin]
         remaining = keep or [min(remaining, key=lambda c: step_score[c])]
+        leader = evidence_leader({c: total[c] for c in remaining}, views_used, margin)
+        if leader is not None:
+            remaining = [leader]
     name = min(remaining, key=lambda c: total[c])
     return Identification(name, len(remaining) == 1, remaining, views_used, steps, requested)
 

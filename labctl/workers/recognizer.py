@@ -15,12 +15,13 @@ mobile camera's latest :class:`~labctl.drivers.interfaces.Frame`.
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import replace
 
 import numpy as np
 
 from ..drivers.interfaces import Frame
 from ..geometry import make_T, rotvec_to_matrix
-from ..library.matching import DEFAULT_THRESHOLD, match
+from ..library.matching import DEFAULT_THRESHOLD, evidence_leader, match
 from ..library.views import mm_per_px
 from ..vision import CirclePose, CirclePoseError, EllipseFitError, detect_markers, marker_poses
 from ..vision.duality import DEFAULT_K_SIGMA, DEFAULT_MIN_MARGIN_RAD, resolve_duality_detailed
@@ -102,6 +103,8 @@ class Recognizer:
         self.first: list | None = None  # (marker, (pose, pose) in W) of the first image, preferred first
         self.resolved_normals: list[np.ndarray] = []
         self.remaining: list[str] | None = None
+        self.totals: dict[str, float] = {}  # each candidate's score summed over the matched standard views
+        self.n_matched = 0
         self.n_standard = 0
         cam_cfg = ctx.lab.mobile_camera
         # frames are linearised by the camera's declared response before any sub-pixel work (issue 14)
@@ -253,9 +256,17 @@ class Recognizer:
         ids = {n: i for i, n in enumerate(self.ctx.names)}
         if res.best is None:
             return m.Failure(code=m.FailureCode.NO_MATCH, text=f"standard view {k} matches no library view")
-        if len(res.candidates) > 1:
+        self.n_matched += 1
+        self.totals = {c: self.totals.get(c, 0.0) + res.scores[c] for c in res.scores if np.isfinite(res.scores[c])
+                       and (self.n_matched == 1 or c in self.totals)}
+        leader = evidence_leader({c: self.totals[c] for c in res.candidates if c in self.totals}, self.n_matched)
+        if len(res.candidates) > 1 and leader is None:
             self.remaining = list(res.candidates)
             return m.Ambiguous(candidates=tuple(ids[c] for c in res.candidates[: m.MAX_CANDIDATES]))
+        if leader is not None and len(res.candidates) > 1:
+            self.log("evidence", t=frame.t, view=k, leader=leader, views=self.n_matched,
+                     totals={c: round(self.totals[c], 4) for c in res.candidates if c in self.totals})
+            res = replace(res, best=(leader, res.views[leader]), candidates=[leader], ambiguous=False)
         best = res.best[0]
         cands = res.candidates or [best]
         return m.Identity(object_id=ids[best], score=float(res.scores[best]), n_candidates=len(res.candidates),
