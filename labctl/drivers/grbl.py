@@ -275,6 +275,9 @@ class GrblTable(OpenClose):
         self.stalled = False
         self._booted = False  # a banner was seen since open (a fresh boot or our own reset)
         self._recovering = False
+        self.link_lost = False  # the link dropped and did not come back within reconnect_s
+        #: called while waiting to reconnect: the caller's keep-alive (e.g. the robot's heartbeat)
+        self.while_reconnecting: Callable[[], None] | None = None
 
     @classmethod
     def from_config(cls, cfg, **kw) -> GrblTable:
@@ -447,8 +450,18 @@ class GrblTable(OpenClose):
         self._recovering = True
         t0 = self.clock()
         prog, self.program = self.program, None
+        # once the link was given up for lost, one quick try (the stop path after a LinkLost must not
+        # wait a whole window per command it sends)
+        window = 0.0 if self.link_lost else self.reconnect_s
+        if not self.link_lost:
+            log.warning("%s: link dropped (%s); reconnecting for up to %g s", self.link.name, exc, window)
         try:
-            self.link.reconnect(self.reconnect_s)
+            try:
+                self.link.reconnect(window, idle=self.while_reconnecting)
+            except LinkLost:
+                self.link_lost = True
+                raise
+            self.link_lost = False
             self._orphans = 0
             self._connect()  # banner or status: the state is read again
             st = self.status()
@@ -483,6 +496,19 @@ class GrblTable(OpenClose):
             code, self._alarm = self._alarm, None
             raise GrblAlarm(code, _alarm_advice(code))
         return out
+
+    def watch(self) -> None:
+        """Keep an eye on the table between commands, without waiting: pump the program if one is
+        streaming, else ask for a status report at ``status_hz`` and read what has arrived. So a
+        caller busy with other things notices a dropped link here (reconnected within
+        ``reconnect_s``, else LinkLost), an alarm (GrblAlarm) or a stall (TableStall)."""
+        if self.program is not None and self.program.active:
+            self.program.pump(0.0)
+            return
+        self._maybe_poll()
+        self._read(0.0)
+        if self.stalled:
+            raise self._stall_error()
 
     def _maybe_poll(self) -> None:
         if self.clock() - self._last_query_t >= self.status_period:
