@@ -158,6 +158,11 @@ class SerialLink(OpenClose):
     def _read_available(self) -> bytes:
         try:
             n = self.port.in_waiting
+            if n and getattr(self.port, "timeout", None) == 0:
+                # non-blocking: take everything there is. pyserial's socket:// reports in_waiting as
+                # 1 whenever anything is readable, so read(n) would take one byte per poll and a
+                # caller polling once per frame falls ever further behind a chatty device
+                n = max(n, 4096)
             data = self.port.read(n) if n else b""
         except Exception as exc:
             raise LinkError(f"{self.name}: read failed: {exc}") from exc

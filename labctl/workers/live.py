@@ -341,6 +341,20 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
     _log_to_record(record, "predictor")
     table = robot = camera = link = None
     code, reason = 0, "run finished"
+    alive = {"hello": False, "t_link": 0.0}
+
+    def keep_alive(robot_too: bool = True) -> None:
+        """While a device's link is being reconnected (the loop waits): feed the robot's watchdog
+        (unless its link is the one down), and beat to the peer and the supervisor, so the
+        reconnect window, not their silence limits, decides how the run ends."""
+        now = _now(args.origin)
+        if robot_too and robot is not None and robot.link.is_open:
+            robot.maybe_heartbeat()
+        if alive["hello"] and now - alive["t_link"] >= hl.heartbeat_s:
+            link.send(m.Heartbeat(role="predictor", seq=int(now * 10) % 65536, t=now))
+            alive["t_link"] = now
+        ctl.beat(now, {"stage": "reconnecting"})
+
     try:
         ctx = RunContext.load(lab)
         link = open_link(hl, "predictor", local_end=link_end, authkey=_authkey(args, lab),
@@ -350,12 +364,14 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
         external = args.spec["trajectory"] == "external" or lab.table is None
         table = None if external else GrblTable.from_config(lab.table, port=args.table_port)
         if table is not None:
+            table.while_reconnecting = keep_alive
             table.open()
             # a simulated table's power-up lock may be released (the simulator knows where it is); a real
             # table in Alarm must be homed or unlocked by the operator first (its position may be lost)
             table.ensure_ready(unlock=lab.table.kind == "sim")
             _to_start(table, args.spec["trajectory"], log, lambda: _now(args.origin))
         robot = SerialRobot.from_config(lab.robot, port=args.robot_port)
+        robot.while_reconnecting = lambda: keep_alive(robot_too=False)
         camera = _fixed_camera(args, lab)
         for dev in (robot, camera):
             dev.open()
@@ -394,7 +410,7 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
             planner.tick(now)
             if not hello:  # the first message starts the peer's dead_after_s clock: only once the loop runs
                 link.send(m.Hello(role="predictor", pid=os.getpid()))
-                hello = True
+                hello = alive["hello"] = True
             if now - t_beat >= lab.robot.heartbeat_s:
                 robot.heartbeat()
                 link.send(m.Heartbeat(role="predictor", seq=int(now * 10) % 65536, t=now))
@@ -425,7 +441,8 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
         from .stopping import summary
 
         if code != 0:  # a supervisor confirms the stop itself and says so; a lone worker says it here
-            ctl.send("error", reason if getattr(ctl, "supervised", True) else f"{reason}; {summary(outcomes)}")
+            ctl.send("error", reason if getattr(ctl, "supervised", True) else f"{reason}; {summary(outcomes)}",
+                     code)
         ctl.send("stopped", outcomes)
         if record is not None:
             record.close()
@@ -504,7 +521,7 @@ def recognizer_main(args: WorkerArgs, link_end, control) -> int:
         _release(log, "recognizer", reason, stop={}, close=(camera,), link=link, tell_peer=code != 0,
                  t=_now(args.origin))
         if code != 0:
-            ctl.send("error", reason)
+            ctl.send("error", reason, code)
         if record is not None:
             record.close()
     return code
@@ -520,7 +537,7 @@ def _worker_process(role: str, args: WorkerArgs, link_end, conn) -> None:
     except BaseException as exc:  # before the worker's own handlers (lab, record): one line via the supervisor
         code, reason = _exit_reason(role, exc)
         with contextlib.suppress(Exception):
-            conn.send(("error", reason))
+            conn.send(("error", reason, code))
     sys.exit(code)
 
 
@@ -664,9 +681,10 @@ def _stopped(pid: int) -> bool:
 class WorkerDied(Exception):
     """A worker died, hung or reported an error; ``role`` names it, ``hung`` if it is alive but silent."""
 
-    def __init__(self, message: str, role: str | None = None, hung: bool = False):
+    def __init__(self, message: str, role: str | None = None, hung: bool = False, code: int | None = None):
         super().__init__(message)
         self.role, self.hung = role, hung
+        self.code = code  # the worker's own exit status when it reported one (3: a device fault)
 
 
 class RunAborted(LabctlError):
@@ -848,7 +866,7 @@ class LiveRun:
         elif isinstance(exc, Terminated):
             cause, code, what = "terminated", EXIT_TERMINATED, "terminated (SIGTERM)"
         else:
-            cause, code, what = "worker", 1, str(exc)
+            cause, code, what = "worker", getattr(exc, "code", None) or 1, str(exc)
         if len(confirmed(outcomes)) < len(outcomes):
             code = EXIT_DEVICE
         record = self._record()
@@ -874,7 +892,7 @@ class LiveRun:
                     if msg[0] == "stopped":
                         return confirmed(msg[1])
                     if msg[0] == "error":
-                        raise WorkerDied(msg[1], "predictor")
+                        raise WorkerDied(msg[1], "predictor", code=msg[2] if len(msg) > 2 else None)
             except (EOFError, OSError):
                 break
         return []
@@ -921,7 +939,7 @@ class LiveRun:
                         result = msg[1]
                     elif kind == "error":
                         self._raise_dead(procs, skip=role)  # the root cause: a peer that died, if one did
-                        raise WorkerDied(msg[1], role)
+                        raise WorkerDied(msg[1], role, code=msg[2] if len(msg) > 2 else None)
             if result is not None:
                 return result
             now = time.monotonic()
@@ -932,6 +950,8 @@ class LiveRun:
                         conn.send(("beat", now))
             for role, p in procs.items():
                 if not p.is_alive():
+                    if p.exitcode == 0 and any(q.is_alive() for r, q in procs.items() if r != role):
+                        continue  # it left as its peer told it to: the peer's own report says why
                     raise WorkerDied(f"the {role} worker died (exit code {p.exitcode})", role)
                 if _stopped(p.pid):  # SIGSTOP: caught even during the start-up grace
                     stopped_since.setdefault(role, now)
