@@ -32,6 +32,8 @@ import pytest
 import yaml
 from test_hil import Served, labctl
 
+from labctl.records import read_events
+
 pytestmark = pytest.mark.skipif(sys.platform != "linux", reason="ptys and the served lab need Linux")
 long_only = pytest.mark.skipif(not os.environ.get("LABCTL_HIL_LONG"),
                                reason="longer HIL reconnect variants: set LABCTL_HIL_LONG=1")
@@ -107,7 +109,7 @@ class DroppedRun:
                 proc.kill()
         self.t_exit = time.time()
         self.code, self.stdout, self.stderr = proc.returncode, out.get("stdout", ""), out.get("stderr", "")
-        self.events = _events(self.run_dir)
+        self.events = read_events(self.run_dir, strict=True)  # the record reads back whole
         self.drop_to_exit_s = self.t_exit - self.dropped["t_wall"]
 
     def first(self, name: str, contains: str = "") -> dict | None:
@@ -162,18 +164,21 @@ def test_table_link_that_stays_down_ends_the_run_with_exit_3_in_bounded_time(tmp
         _configure(lab)
         assert labctl("table", "move", "150", "200", "--unlock", lab=lab, timeout=60).returncode == 0
         run = DroppedRun(served, lab, "table", down_s=None)
-        print(f"table, no return: drop→exit {run.drop_to_exit_s:.2f} s", file=sys.stderr)
+        error = run.first("worker_error")
+        assert error is not None and "LinkLost" in error["error"]
+        detect = run.log_wall("link dropped") - run.dropped["t_wall"]
+        typed = error["wall"] - run.dropped["t_wall"]
+        print(f"table, no return: detected {detect:.2f} s, LinkLost {typed:.2f} s, exit {run.drop_to_exit_s:.2f} s "
+              "after the drop", file=sys.stderr)
         assert run.code == 3, run.stderr
         err = run.stderr.strip().splitlines()
         assert len(err) == 1 and "LinkLost" in err[0] and f"within {RECONNECT_S:g} s" in err[0], err
         assert "robot stopped (confirmed)" in err[0] and "record kept" in err[0] and "Traceback" not in run.stderr
-        # bounded: the window, then the stop path; never hangs
-        detect = run.log_wall("link dropped") - run.dropped["t_wall"]
+        # bounded: the window (plus one open attempt), then the stop path; never hangs
         assert 0 <= detect < 1.5, detect  # noticed at the table's status rate (5 Hz), not at the program's end
+        assert RECONNECT_S <= typed - detect < RECONNECT_S + 1.0, (detect, typed)
         assert RECONNECT_S <= run.drop_to_exit_s < RECONNECT_S + MARGIN_S, run.drop_to_exit_s
         # the record is kept and says why; the robot was stopped and confirmed still
-        error = run.first("worker_error")
-        assert error is not None and "LinkLost" in error["error"]
         aborted = run.first("run_aborted")
         assert aborted is not None and aborted["exit_code"] == 3 and "robot" in aborted["devices_stopped"]
         assert "LinkLost" in aborted["reason"]
@@ -200,8 +205,12 @@ def test_table_link_back_within_reconnect_s_recovers_then_the_robot_link_that_st
         detect = run.log_wall("link dropped") - run.dropped["t_wall"]
         back = times["restored"] - run.restored["t_wall"]
         robot_exit = run.t_exit - times["robot_dropped"]
+        error = run.first("worker_error")
+        assert error is not None and "LinkLost" in error["error"] and "robot@" in error["error"], error
+        robot_typed = error["wall"] - times["robot_dropped"]
         print(f"table back after 1 s: detected {detect:.2f} s after the drop, restored {back:.2f} s after the "
-              f"link came back; robot, no return: drop→exit {robot_exit:.2f} s", file=sys.stderr)
+              f"link came back; robot, no return: LinkLost {robot_typed:.2f} s, exit {robot_exit:.2f} s after the "
+              "drop", file=sys.stderr)
         # the table: dropped, noticed, reconnected and its state read again (still running its line)
         assert 0 <= detect < 1.5, detect
         assert back < 2.5 + 1.0, back  # the next reconnect attempt (backoff ≤ 2 s) and the state read
@@ -211,6 +220,7 @@ def test_table_link_back_within_reconnect_s_recovers_then_the_robot_link_that_st
         assert run.code == 3, run.stderr
         err = run.stderr.strip().splitlines()
         assert len(err) == 1 and "LinkLost" in err[0] and "robot@" in err[0] and "record kept" in err[0], err
+        assert RECONNECT_S <= robot_typed < RECONNECT_S + 1.5, robot_typed
         assert RECONNECT_S <= robot_exit < RECONNECT_S + MARGIN_S, robot_exit
         aborted = run.first("run_aborted")
         assert aborted is not None and aborted["exit_code"] == 3 and "table" in aborted["devices_stopped"]

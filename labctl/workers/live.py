@@ -30,7 +30,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from ..config import load_lab
-from ..errors import LabctlError
+from ..errors import DeviceError, LabctlError
 from . import messages as m
 
 # forkserver: each process still starts from a clean interpreter (no inherited threads or ports),
@@ -273,6 +273,12 @@ def _exit_reason(role: str, exc: BaseException) -> tuple[int, str]:
     return getattr(exc, "exit_code", 1), f"{role}: {type(exc).__name__}: {exc}"
 
 
+def _device_code(exc: BaseException, code: int) -> int | None:
+    """The exit status a worker reports to its supervisor for the run's own: a device's fault
+    (3) decides it; other causes (a peer lost, a crash) leave it to the supervisor (1)."""
+    return code if isinstance(exc, DeviceError) else None
+
+
 def _release(log, role: str, reason: str, *, stop: dict, close=(), link=None, tell_peer: bool = False,
              t: float | None = None) -> list[dict]:
     """A worker's exit path: stop and confirm each moving device (every one is tried, every outcome
@@ -340,7 +346,7 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
     log("worker_started", role="predictor", pid=os.getpid(), origin=args.origin)
     _log_to_record(record, "predictor")
     table = robot = camera = link = None
-    code, reason = 0, "run finished"
+    code, reason, report_code = 0, "run finished", None
     alive = {"hello": False, "t_link": 0.0}
 
     def keep_alive(robot_too: bool = True) -> None:
@@ -432,6 +438,7 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
         ctl.send("result", result)
     except BaseException as exc:  # every way out, SIGTERM and Ctrl-C included, ends in the stop below
         code, reason = _exit_reason("predictor", exc)
+        report_code = _device_code(exc, code)
         if code not in (EXIT_INTERRUPTED, EXIT_TERMINATED) and not isinstance(exc, PeerLost):
             with contextlib.suppress(Exception):
                 log("worker_error", role="predictor", error=reason, traceback=traceback.format_exc())
@@ -442,7 +449,7 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
 
         if code != 0:  # a supervisor confirms the stop itself and says so; a lone worker says it here
             ctl.send("error", reason if getattr(ctl, "supervised", True) else f"{reason}; {summary(outcomes)}",
-                     code)
+                     report_code)
         ctl.send("stopped", outcomes)
         if record is not None:
             record.close()
@@ -482,7 +489,7 @@ def recognizer_main(args: WorkerArgs, link_end, control) -> int:
     log("worker_started", role="recognizer", pid=os.getpid(), origin=args.origin)
     _log_to_record(record, "recognizer")
     camera = link = None
-    code, reason = 0, "run finished"
+    code, reason, report_code = 0, "run finished", None
     try:
         ctx = RunContext.load(lab)
         link = open_link(hl, "recognizer", local_end=link_end, authkey=_authkey(args, lab),
@@ -514,6 +521,7 @@ def recognizer_main(args: WorkerArgs, link_end, control) -> int:
             ctl.beat(now)
     except BaseException as exc:
         code, reason = _exit_reason("recognizer", exc)
+        report_code = _device_code(exc, code)
         if code not in (EXIT_INTERRUPTED, EXIT_TERMINATED) and not isinstance(exc, PeerLost):
             with contextlib.suppress(Exception):
                 log("worker_error", role="recognizer", error=reason, traceback=traceback.format_exc())
@@ -521,7 +529,7 @@ def recognizer_main(args: WorkerArgs, link_end, control) -> int:
         _release(log, "recognizer", reason, stop={}, close=(camera,), link=link, tell_peer=code != 0,
                  t=_now(args.origin))
         if code != 0:
-            ctl.send("error", reason, code)
+            ctl.send("error", reason, report_code)
         if record is not None:
             record.close()
     return code
@@ -537,7 +545,7 @@ def _worker_process(role: str, args: WorkerArgs, link_end, conn) -> None:
     except BaseException as exc:  # before the worker's own handlers (lab, record): one line via the supervisor
         code, reason = _exit_reason(role, exc)
         with contextlib.suppress(Exception):
-            conn.send(("error", reason, code))
+            conn.send(("error", reason, _device_code(exc, code)))
     sys.exit(code)
 
 
