@@ -236,7 +236,10 @@ def test_table_reset_while_away_ends_in_an_alarm_and_nothing_moves(tmp_path):
         _configure(lab)
         assert labctl("table", "move", "150", "200", "--unlock", lab=lab, timeout=60).returncode == 0
         run = DroppedRun(served, lab, "table", down_s=0.5, reset=True)
-        print(f"table reset while away: drop→exit {run.drop_to_exit_s:.2f} s", file=sys.stderr)
+        error = run.first("worker_error")
+        assert error is not None and "GrblAlarm" in error["error"], error
+        print(f"table reset while away: GrblAlarm {error['wall'] - run.dropped['t_wall']:.2f} s, exit "
+              f"{run.drop_to_exit_s:.2f} s after the drop: {run.stderr.strip()}", file=sys.stderr)
         assert run.code == 3, run.stderr
         assert "GrblAlarm" in run.stderr and "position may be lost" in run.stderr
         assert run.drop_to_exit_s < RECONNECT_S + MARGIN_S
