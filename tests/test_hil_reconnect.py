@@ -11,9 +11,10 @@ intercept stage, the test drops a link and times the outcome against ``reconnect
 functional bounds from the configuration, not speed benchmarks.
 
 In CI: the table's link that does not come back (typed error, exit 3, bounded, record kept,
-robot stopped, no process left). With ``LABCTL_HIL_LONG=1`` also: a brief table drop the run
-recovers from, a table reset while away (ALARM, nothing moves), the robot's link that does not
-come back. Each test serves a lab of its own (a run leaves the controllers in its end state).
+robot stopped, no process left); one run with a brief table drop it recovers from, then the
+robot's link that does not come back. With ``LABCTL_HIL_LONG=1`` also: a brief table drop alone
+(the run identifies), a table reset while away (ALARM, nothing moves), the robot's link alone.
+Each test serves a lab of its own (a run leaves the controllers in its end state).
 """
 
 from __future__ import annotations
@@ -226,6 +227,21 @@ def test_table_link_back_within_reconnect_s_recovers_then_the_robot_link_that_st
         assert aborted is not None and aborted["exit_code"] == 3 and "table" in aborted["devices_stopped"]
         assert run.workers_gone()
         assert _table_state(lab)["state"] in ("Idle", "Hold:0")
+
+
+@long_only
+@pytest.mark.timeout(300)
+def test_table_link_back_within_reconnect_s_the_run_recovers_and_identifies(tmp_path):
+    lab = tmp_path / "served"
+    with Served(lab, "--tcp", "--object", "tee", "--seed", "3") as served:
+        _configure(lab)
+        assert labctl("table", "move", "150", "200", "--unlock", lab=lab, timeout=60).returncode == 0
+        run = DroppedRun(served, lab, "table", down_s=1.0)
+        back = run.log_wall("link restored") - run.restored["t_wall"]
+        print(f"table back after 1 s, alone: restored {back:.2f} s after the link came back", file=sys.stderr)
+        assert run.code == 0, run.stderr
+        assert json.loads(run.stdout)["identity"] == served.truth["true_identity"]
+        assert "state Run" in run.first("log", "link restored")["message"] and run.first("worker_error") is None
 
 
 @long_only
