@@ -314,6 +314,8 @@ class GrblTable(OpenClose):
         next_query = first_query
         garbled = 0
         while self.clock() < deadline:
+            if self._recovering and self.while_reconnecting is not None:
+                self.while_reconnecting()  # the caller's keep-alive, also while the board boots
             if self.clock() >= next_query:
                 self._query()
                 next_query = self.clock() + 0.2
@@ -455,15 +457,30 @@ class GrblTable(OpenClose):
         window = 0.0 if self.link_lost else self.reconnect_s
         if not self.link_lost:
             log.warning("%s: link dropped (%s); reconnecting for up to %g s", self.link.name, exc, window)
+        deadline = t0 + window
         try:
-            try:
-                self.link.reconnect(window, idle=self.while_reconnecting)
-            except LinkLost:
-                self.link_lost = True
-                raise
+            while True:
+                try:
+                    self.link.reconnect(max(0.0, deadline - self.clock()), idle=self.while_reconnecting)
+                except LinkLost:
+                    self.link_lost = True
+                    raise
+                self._orphans = 0
+                try:
+                    self._connect()  # banner or status: the state is read again
+                    # a banner seen now proves no clean power-up: an ALARM:3 before it may have gone into
+                    # the dropped link, so auto_unlock must not clear what follows
+                    self._booted = False
+                    break
+                except (DeviceTimeout, LinkError) as silent:
+                    # the port is back but the board still boots (a reset: GRBL answers nothing for ~2 s), or
+                    # the port dropped again: try again within the same window
+                    if self.clock() >= deadline:
+                        self.link_lost = True
+                        raise LinkLost(f"{self.link.name}: the port came back but GRBL did not answer within "
+                                       f"{window:g} s ({silent})") from silent
+                    log.info("%s: the port is back, GRBL not yet; trying again", self.link.name)
             self.link_lost = False
-            self._orphans = 0
-            self._connect()  # banner or status: the state is read again
             st = self.status()
             dt = self.clock() - t0
             if base_state(st.state) == "Alarm":
