@@ -458,10 +458,13 @@ class GrblTable(OpenClose):
         if not self.link_lost:
             log.warning("%s: link dropped (%s); reconnecting for up to %g s", self.link.name, exc, window)
         deadline = t0 + window
+        first = True
         try:
             while True:
-                try:
-                    self.link.reconnect(max(0.0, deadline - self.clock()), idle=self.while_reconnecting)
+                try:  # the whole window the first time (its message names it), what is left after that
+                    self.link.reconnect(window if first else max(0.0, deadline - self.clock()),
+                                        idle=self.while_reconnecting)
+                    first = False
                 except LinkLost:
                     self.link_lost = True
                     raise
