@@ -73,11 +73,12 @@ def _events(run_dir: Path) -> list[dict]:
 
 class DroppedRun:
     """``labctl run --trajectory line`` on ``lab``; at its intercept stage ``device``'s link drops
-    (and comes back after ``down_s`` unless it is None; then ``then(self)`` if given). Wall-clock
+    (and comes back after ``down_s`` unless it is None; then ``then(self)`` if given); ``at`` picks
+    another moment (the first record event it accepts). Wall-clock
     times of the drop (``dropped["t_wall"]``) and the exit (``t_exit``)."""
 
     def __init__(self, served: Served, lab: Path, device: str, down_s: float | None, reset: bool = False,
-                 timeout_s: float = 180.0, then=None):
+                 timeout_s: float = 180.0, then=None, at=lambda e: e.get("stage") == "intercept"):
         runs = lab / "runs"
         before = set(runs.iterdir()) if runs.exists() else set()
         proc = subprocess.Popen([sys.executable, "-m", "labctl", "--lab", str(lab), "--json", "run", "--trajectory",
@@ -93,7 +94,7 @@ class DroppedRun:
                 assert time.monotonic() < deadline, "the run never reached the intercept stage"
                 assert proc.poll() is None, f"the run ended before the intercept stage: {proc.returncode}"
                 new = sorted(set(runs.iterdir()) - before) if runs.exists() else []
-                if new and any(e.get("stage") == "intercept" for e in _events(new[0])):
+                if new and any(at(e) for e in _events(new[0])):
                     self.run_dir = new[0]
                     break
                 time.sleep(0.05)
@@ -284,3 +285,26 @@ def test_robot_link_that_stays_down_ends_the_run_with_exit_3_in_bounded_time(tmp
         assert run.workers_gone()
         st = _table_state(lab)
         assert st["state"] in ("Idle", "Hold:0")
+
+
+@long_only
+@pytest.mark.timeout(300)
+def test_robot_link_back_quickly_recovers_or_ends_on_the_controllers_watchdog(tmp_path):
+    """A 0.2 s robot drop mid-intercept races the controller's 0.5 s watchdog: back in time, the run
+    reads the state again (HELLO, STATUS) and goes on; too late, the arm was stopped and its segments
+    are lost (RobotFault, exit 3, nothing resent). Either way within the window; the test says which."""
+    lab = tmp_path / "served"
+    with Served(lab, "--tcp", "--object", "tee", "--seed", "3") as served:
+        _configure(lab)
+        assert labctl("table", "move", "150", "200", "--unlock", lab=lab, timeout=60).returncode == 0
+        run = DroppedRun(served, lab, "robot", down_s=0.2, at=lambda e: e["event"] == "segment")  # the arm moves
+        print(f"robot back after 0.2 s: exit {run.code} {run.drop_to_exit_s:.2f} s after the drop; "
+              f"{run.stderr.strip() or json.loads(run.stdout)['identity']}", file=sys.stderr)
+        assert run.first("log", "robot@") is not None  # the drop was noticed
+        if run.code == 0:
+            assert run.first("log", "link restored") is not None
+            assert json.loads(run.stdout)["identity"] == served.truth["true_identity"]
+        else:
+            assert run.code == 3 and "RobotFault" in run.stderr and "nothing was sent again" in run.stderr, run.stderr
+            assert run.drop_to_exit_s < RECONNECT_S + MARGIN_S
+        assert run.workers_gone()
