@@ -46,6 +46,8 @@ FAULTS = [
     ("drivers/robot.yaml", "v_max_mm_s", 0, "v_max_mm_s"),
     ("drivers/robot.yaml", "heartbeat_s", 0.9, "heartbeat_s"),  # cross-field: not below the 0.5 s watchdog
     ("drivers/robot.yaml", "a_max_mm_s2", INF, "a_max_mm_s2"),
+    ("drivers/robot.yaml", "reconnect_s", -1.0, "reconnect_s"),
+    ("drivers/table.yaml", "reconnect_s", NAN, "reconnect_s"),
     ("drivers/fixed_camera.yaml", "fps", -30, "fps"),
     ("drivers/fixed_camera.yaml", "marker_min_saturation", 1.5, "marker_min_saturation"),
     ("drivers/mobile_camera.yaml", "width", 0, "width"),

@@ -103,7 +103,7 @@ def sim_serve(baud, tcp, lab_out, force, seed, object_name, trajectory, conveyor
         raise LabctlError(str(exc)) from None
 
 
-def _scene_control_url(url: str | None) -> str:
+def _scene_control_url(url: str | None, control: str = "scene") -> str:
     """``--url``, else the served lab's control endpoint from ``served_truth.json`` in the lab folder."""
     import json
 
@@ -113,10 +113,10 @@ def _scene_control_url(url: str | None) -> str:
         return url
     path = get_ctx().lab_root / "served_truth.json"
     try:
-        return json.loads(path.read_text(encoding="utf-8"))["endpoints"]["scene_control"]
+        return json.loads(path.read_text(encoding="utf-8"))["endpoints"][f"{control}_control"]
     except (OSError, ValueError, KeyError, TypeError):
-        raise UserInputError(f"no served scene control in {path} (a lab written by `labctl sim serve --lab-out`); "
-                             "give --url") from None
+        raise UserInputError(f"no served {control} control in {path} (a lab written by `labctl sim serve "
+                             f"--lab-out`{' --tcp' if control == 'link' else ''}); give --url") from None
 
 
 def _post_scene(url: str, **params) -> dict:
@@ -169,6 +169,20 @@ def sim_scene(scene: str, spacer_mm: float, url) -> None:
     """Switch a served lab (`sim serve`) between the run's object and the calibration target."""
     info = _post_scene(_scene_control_url(url), scene=scene, spacer_mm=f"{spacer_mm:g}")
     emit(info, lambda c: c.print(f"scene: {info['scene']}"))
+
+
+@sim_group.command("link")
+@click.argument("device", type=click.Choice(["table", "robot"]))
+@click.argument("state", type=click.Choice(["down", "up"]))
+@click.option("--reset", is_flag=True, help="Also power-cycle the controller (as a ser2net restart pulsing DTR).")
+@click.option("--url", default=None, help="The served lab's /control/link URL (default: from served_truth.json).")
+@json_option
+def sim_link(device: str, state: str, reset: bool, url) -> None:
+    """Stop or restart a device's ser2net-style bridge in a served lab (`sim serve --tcp`): a dropped link."""
+    info = _post_scene(_scene_control_url(url, "link"), device=device, up="1" if state == "up" else "0",
+                       **({"reset": "1"} if reset else {}))
+    emit(info, lambda c: c.print(f"{device} link {'up' if info['up'] else 'down'}"
+                                 + (f" (controller reset {info['resets']}×)" if info["resets"] else "")))
 
 
 @sim_group.command("snapshot")

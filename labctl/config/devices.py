@@ -62,6 +62,7 @@ class RobotConfig:
     a_max_mm_s2: Positive = 1500.0
     w_max_deg_s: Positive = 120.0
     home_mm: tuple[float, float, float] = (300.0, -450.0, 900.0)
+    reconnect_s: NonNegative = 0.0  # after the port drops, retry opening it (with backoff) for this long
 
     def validate(self):
         if self.kind == "serial" and not self.port:
@@ -73,6 +74,8 @@ class RobotConfig:
                                    f"watchdog ({self.watchdog_s:g} s), or the controller stops between beats")
         if not all(lo <= h <= hi for lo, h, hi in zip(self.workspace_min_mm, self.home_mm, self.workspace_max_mm)):
             return "home_mm", f"home {list(self.home_mm)} is outside the workspace box"
+        if self.reconnect_s < 0:
+            return "reconnect_s", f"expected a time ≥ 0, got {self.reconnect_s}"
         return None
 
 

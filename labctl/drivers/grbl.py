@@ -277,6 +277,9 @@ class GrblTable(OpenClose):
         self.stalled = False
         self._booted = False  # a banner was seen since open (a fresh boot or our own reset)
         self._recovering = False
+        self.link_lost = False  # the link dropped and did not come back within reconnect_s
+        #: called while waiting to reconnect: the caller's keep-alive (e.g. the robot's heartbeat)
+        self.while_reconnecting: Callable[[], None] | None = None
 
     @classmethod
     def from_config(cls, cfg, **kw) -> GrblTable:
@@ -316,6 +319,8 @@ class GrblTable(OpenClose):
         next_query = first_query
         garbled = 0
         while self.clock() < deadline:
+            if self._recovering and self.while_reconnecting is not None:
+                self.while_reconnecting()  # the caller's keep-alive, also while the board boots
             if self.clock() >= next_query:
                 self._query()
                 next_query = self.clock() + 0.2
@@ -452,10 +457,38 @@ class GrblTable(OpenClose):
         self._recovering = True
         t0 = self.clock()
         prog, self.program = self.program, None
+        # once the link was given up for lost, one quick try (the stop path after a LinkLost must not
+        # wait a whole window per command it sends)
+        window = 0.0 if self.link_lost else self.reconnect_s
+        if not self.link_lost:
+            log.warning("%s: link dropped (%s); reconnecting for up to %g s", self.link.name, exc, window)
+        deadline = t0 + window
+        first = True
         try:
-            self.link.reconnect(self.reconnect_s)
-            self._orphans = 0
-            self._connect()  # banner or status: the state is read again
+            while True:
+                try:  # the whole window the first time (its message names it), what is left after that
+                    self.link.reconnect(window if first else max(0.0, deadline - self.clock()),
+                                        idle=self.while_reconnecting)
+                    first = False
+                except LinkLost:
+                    self.link_lost = True
+                    raise
+                self._orphans = 0
+                try:
+                    self._connect()  # banner or status: the state is read again
+                    # a banner seen now proves no clean power-up: an ALARM:3 before it may have gone into
+                    # the dropped link, so auto_unlock must not clear what follows
+                    self._booted = False
+                    break
+                except (DeviceTimeout, LinkError) as silent:
+                    # the port is back but the board still boots (a reset: GRBL answers nothing for ~2 s), or
+                    # the port dropped again: try again within the same window
+                    if self.clock() >= deadline:
+                        self.link_lost = True
+                        raise LinkLost(f"{self.link.name}: the port came back but GRBL did not answer within "
+                                       f"{window:g} s ({silent})") from silent
+                    log.info("%s: the port is back, GRBL not yet; trying again", self.link.name)
+            self.link_lost = False
             st = self.status()
             dt = self.clock() - t0
             if base_state(st.state) == "Alarm":
@@ -488,6 +521,19 @@ class GrblTable(OpenClose):
             code, self._alarm = self._alarm, None
             raise GrblAlarm(code, _alarm_advice(code))
         return out
+
+    def watch(self) -> None:
+        """Keep an eye on the table between commands, without waiting: pump the program if one is
+        streaming, else ask for a status report at ``status_hz`` and read what has arrived. So a
+        caller busy with other things notices a dropped link here (reconnected within
+        ``reconnect_s``, else LinkLost), an alarm (GrblAlarm) or a stall (TableStall)."""
+        if self.program is not None and self.program.active:
+            self.program.pump(0.0)
+            return
+        self._maybe_poll()
+        self._read(0.0)
+        if self.stalled:
+            raise self._stall_error()
 
     def _maybe_poll(self) -> None:
         if self.clock() - self._last_query_t >= self.status_period:

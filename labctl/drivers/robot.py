@@ -5,6 +5,17 @@ Every request carries a sequence number and waits for its own ``$<seq>`` reply; 
 replies raise :class:`RobotError`. If the link fails or times out, the driver tries a
 best-effort ``STOP`` before raising, and the controller's watchdog stops the robot anyway when
 heartbeats stop.
+
+With ``reconnect_s`` > 0 a dropped link (the port closes, ser2net restarts) is reopened with
+backoff for that long (issue 12, Build 7). On return the driver reads the controller's state
+again — ``HELLO`` then ``STATUS`` (docs/protocols/robot.md §10: on every reconnect) — before
+anything else is sent, and never resends motion blindly: if the controller restarted
+(``@BOOT``), latched a fault (its watchdog tripped while the host could not talk), or stands
+still before its last accepted segment's end, the host's segments are lost and
+:class:`RobotFault` is raised; a motion request the link dropped under (``SEG``, ``SEGNOW``,
+``HOME``: taken or not, the host cannot know) stops the robot and raises :class:`LinkLost`.
+Only a request that moves nothing is sent again. If the link does not come back,
+:class:`LinkLost` after ``reconnect_s`` (plus one open attempt).
 """
 
 from __future__ import annotations
@@ -22,7 +33,7 @@ from ..errors import DeviceError
 from ..geometry import make_T, matrix_to_rotvec, rotvec_to_matrix
 from .interfaces import OpenClose, Robot, RobotStatus
 from .robot_protocol import ERROR_CODES, MAX_SEQ, RobotReply, format_request, parse_reply
-from .serial_link import DeviceTimeout, LinkError, SerialLink
+from .serial_link import DeviceTimeout, LinkError, LinkLost, SerialLink
 
 log = logging.getLogger(__name__)
 
@@ -30,6 +41,9 @@ HOST_DIALECT = "1.1"  # the highest dialect version this driver speaks
 
 # what a supervisor writes straight to the port in an emergency
 STOP_LINE = (format_request(0, "STOP") + "\n").encode("ascii")
+
+#: requests that command motion: never sent again after a dropped link (the controller may have taken them)
+MOTION_COMMANDS = frozenset({"SEG", "SEGNOW", "HOME"})
 
 
 class RobotError(DeviceError):
@@ -50,7 +64,7 @@ class SerialRobot(OpenClose):
 
     def __init__(self, port: str | None = None, baud: int = 9600, *, timeout_s: float = 2.0,
                  heartbeat_s: float = 0.2, serial_port=None, clock: Callable[[], float] = time.monotonic,
-                 sleep: Callable[[float], None] = time.sleep, retries: int = 1):
+                 sleep: Callable[[float], None] = time.sleep, retries: int = 1, reconnect_s: float = 0.0):
         self.link = SerialLink(port, baud, timeout_s, port=serial_port, clock=clock, sleep=sleep,
                                name=f"robot@{port or getattr(serial_port, 'port', 'port')}")
         self.timeout_s = timeout_s
@@ -66,11 +80,21 @@ class SerialRobot(OpenClose):
         self.queue = 8
         self.profiles: tuple[str, ...] = ("quintic",)
         self._last_sent = -1e18
+        self.reconnect_s = reconnect_s
+        self.link_lost = False  # the link dropped and did not come back within reconnect_s
+        #: called while waiting to reconnect: the caller's keep-alive (its own heartbeats, other devices)
+        self.while_reconnecting: Callable[[], None] | None = None
+        self.reconnects = 0
+        self._recovering = False
+        self._busy_until = -float("inf")  # controller time at which the last accepted segment ends
+        self._pending: set[int] = set()  # ids of accepted segments whose @DONE has not come yet
+        self._latched: str | None = None  # the fault the host itself latched (STOP) and has not cleared
 
     @classmethod
     def from_config(cls, cfg, **kw) -> SerialRobot:
         """From a :class:`labctl.config.RobotConfig`; ``port``/``baud`` in ``kw`` override it only when not None."""
         port, baud = kw.pop("port", None), kw.pop("baud", None)
+        kw.setdefault("reconnect_s", getattr(cfg, "reconnect_s", 0.0))
         return cls(port or cfg.port, baud or cfg.baud, timeout_s=cfg.timeout_s,
                    heartbeat_s=cfg.heartbeat_s, **kw)
 
@@ -120,6 +144,7 @@ class SerialRobot(OpenClose):
         if msg.kind == "async":
             if msg.report == "DONE" and msg.fields and msg.fields[0].isdigit():
                 self.done_ids.append(int(msg.fields[0]))
+                self._pending.discard(int(msg.fields[0]))
             elif msg.report == "BOOT":
                 if self._commanded:  # the controller restarted: queued and running segments are lost
                     self.faults.append("boot")
@@ -137,10 +162,14 @@ class SerialRobot(OpenClose):
     def request(self, command: str, *args) -> RobotReply:
         """Send ``#<seq> command args`` and return its ``$<seq> ok`` reply; RobotError on ``E<code>``.
 
-        Retries once on a timeout (a lost line); DeviceTimeout if still no reply.
+        Retries once on a timeout (a lost line); DeviceTimeout if still no reply. A dropped link
+        is reconnected once per request (:meth:`_recover`, with ``reconnect_s`` > 0), which sends
+        the request again only if it moves nothing.
         """
         last_exc: Exception | None = None
-        for _attempt in range(self.retries + 1):
+        attempt, recovered = 0, False
+        while attempt <= self.retries:
+            attempt += 1
             self._seq = self._seq % MAX_SEQ + 1
             seq = self._seq
             line = format_request(seq, command, *args)
@@ -154,6 +183,12 @@ class SerialRobot(OpenClose):
             except DeviceTimeout as exc:
                 last_exc = exc
                 continue
+            except LinkError as exc:
+                if recovered:
+                    raise
+                self._recover(exc, command)  # raises unless `command` may safely be sent again
+                recovered, attempt = True, attempt - 1
+                continue
             self._last_sent = self.clock()
             msg = parse_reply(got)
             if not msg.ok and msg.code == 5:  # damaged on the way: send it again
@@ -164,9 +199,74 @@ class SerialRobot(OpenClose):
             return msg
         raise DeviceTimeout(f"{self.link.name}: no reply to {command} after {self.retries + 1} tries") from last_exc
 
+    def _lines(self, timeout_s: float) -> list[str]:
+        """Lines received (waiting up to ``timeout_s`` for the first); a dropped link is recovered."""
+        try:
+            return self.link.lines(timeout_s)
+        except LinkError as exc:
+            self._recover(exc, "")
+            return []
+
+    def _recover(self, exc: LinkError, command: str) -> None:
+        """The link failed under ``command``. With ``reconnect_s`` > 0, reopen it with backoff
+        (LinkLost if it stays down; once lost, later calls try once), then read the controller's
+        state again (HELLO, STATUS) before anything moves. Returns only if nothing of the host's
+        motion was lost and ``command`` moves nothing (the caller sends it again). Raises
+        RobotFault if the controller restarted, latched a fault, or stands still before its last
+        segment's end (segments lost; nothing is resent), LinkLost after stopping the robot if
+        ``command`` was a motion request (whether the controller took it is unknown)."""
+        if self.reconnect_s <= 0 or self._recovering:
+            raise exc
+        self._recovering = True
+        t0 = self.clock()
+        window = 0.0 if self.link_lost else self.reconnect_s
+        if not self.link_lost:
+            log.warning("%s: link dropped (%s); reconnecting for up to %g s", self.link.name, exc, window)
+        latched, boots = self._latched, sum(f == "boot" for f in self.faults)
+        try:
+            try:
+                self.link.reconnect(window, idle=self.while_reconnecting)
+            except LinkLost:
+                self.link_lost = True
+                raise
+            self.link_lost = False
+            self.reconnects += 1
+            self.poll()  # reports that arrived meanwhile (a @BOOT), then HELLO: §10 on every (re)connect
+            self.negotiate()
+            st = self.status()
+            fault = self._latched
+            dt = self.clock() - t0
+            lost = None
+            if sum(f == "boot" for f in self.faults) > boots:
+                lost = "the controller restarted (@BOOT)"
+            elif fault is not None and fault != latched:
+                lost = f"the controller latched '{fault}' (its watchdog stops the robot when the host cannot talk)"
+            elif not st.moving and st.t < self._busy_until - 1e-3:
+                lost = (f"the robot stands still at controller time {st.t:.3f} s, before its last segment's "
+                        f"end {self._busy_until:.3f} s (the controller restarted or stopped)")
+            if self._commanded and lost is not None:
+                self._busy_until = -float("inf")
+                self._pending.clear()
+                raise RobotFault(f"{self.link.name}: the link dropped and came back after {dt:.1f} s, but {lost}: "
+                                 "the host's segments are lost; nothing was sent again")
+            if not st.moving and st.t >= self._busy_until - 1e-3 and self._pending:
+                # everything accepted ran to its end while the link was down: their @DONE went nowhere
+                self.done_ids.extend(sorted(self._pending))
+                self._pending.clear()
+            if command in MOTION_COMMANDS:
+                if st.moving:
+                    self.stop()
+                raise LinkLost(f"{self.link.name}: the link dropped under {command} and came back after {dt:.1f} s; "
+                               "whether the controller took it is unknown, so nothing was sent again and the robot "
+                               "was stopped")
+            log.warning("%s: link restored after %.1f s; state read again (moving %d, segment %d, fault %s)",
+                        self.link.name, dt, st.moving, st.segment_id, fault or "none")
+        finally:
+            self._recovering = False
+
     def poll(self) -> None:
         """Collect asynchronous reports received so far."""
-        for line in self.link.lines(0.0):
+        for line in self._lines(0.0):
             self._on_async(line)
 
     # --- Robot interface --------------------------------------------------------------------
@@ -202,11 +302,21 @@ class SerialRobot(OpenClose):
             self.emergency_stop()
             raise
         times = reply.floats(2)
-        return (times[0], times[1]) if times else (float("nan"), float("nan"))
+        if not times:
+            return float("nan"), float("nan")
+        self._busy_until = times[1] if replace else max(self._busy_until, times[1])
+        if replace:  # SEGNOW cut the queue and the running segment: no @DONE for those
+            self._pending.clear()
+        self._pending.add(int(segment_id))
+        return times[0], times[1]
 
     def stop(self) -> None:
         """STOP: brake with the stop ramp; in dialect 1.1 it latches ``stopped`` until :meth:`clear`."""
         self.request("STOP")
+        self._busy_until = -float("inf")
+        self._pending.clear()
+        if self.dialect != "1.0":
+            self._latched = self._latched or "stopped"
 
     def emergency_stop(self) -> None:
         """Best effort: send STOP without waiting; never raises (the watchdog is the backstop)."""
@@ -219,11 +329,14 @@ class SerialRobot(OpenClose):
     def clear(self) -> None:
         """Clear a latched fault (``CLEAR``) so the controller accepts motion again."""
         self.request("CLEAR")
+        self._latched = None
 
     def home(self) -> None:
         """Move to the home pose (``HOME``)."""
         self._commanded = True
-        self.request("HOME")
+        times = self.request("HOME").floats(2)
+        self._busy_until = times[1] if times else -float("inf")
+        self._pending = {0}
 
     def heartbeat(self) -> None:
         """Send a heartbeat (``HB``), resetting the controller's watchdog."""
@@ -258,6 +371,7 @@ class SerialRobot(OpenClose):
         fault = reply.fields[10] if len(reply.fields) > 10 else "none"
         if fault != "none" and fault not in self.faults:
             self.faults.append(fault)
+        self._latched = None if fault == "none" else fault
         T = make_T(rotvec_to_matrix(np.array(f[3:6])), f[0:3])
         return RobotStatus(T_base_flange=T, moving=bool(int(f[6])), segment_id=int(f[7]), t=f[9])
 
@@ -269,7 +383,7 @@ class SerialRobot(OpenClose):
                 raise RobotFault(f"{self.link.name}: robot stopped by its controller ({self.faults[-1]})")
             if self.clock() > deadline:
                 raise DeviceTimeout(f"{self.link.name}: segment {segment_id} not done within {timeout_s:g} s")
-            for line in self.link.lines(min(self.heartbeat_s / 2, 0.05)):
+            for line in self._lines(min(self.heartbeat_s / 2, 0.05)):
                 self._on_async(line)
             self.maybe_heartbeat()
 

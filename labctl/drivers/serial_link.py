@@ -108,11 +108,14 @@ class SerialLink(OpenClose):
             self.port = None
         log.debug("%s closed t=%.6f", self.name, self.clock())
 
-    def reconnect(self, window_s: float = 5.0, backoff_s: float = 0.1, max_backoff_s: float = 2.0) -> int:
+    def reconnect(self, window_s: float = 5.0, backoff_s: float = 0.1, max_backoff_s: float = 2.0,
+                  idle: Callable[[], None] | None = None, idle_every_s: float = 0.05) -> int:
         """Close and reopen the port until it opens, doubling the pause between tries (from
         ``backoff_s`` up to ``max_backoff_s``); :class:`LinkLost` once ``window_s`` has passed.
         Returns the number of attempts. Bounded in time: never longer than ``window_s`` plus one
-        open attempt."""
+        open attempt (``window_s`` 0: exactly one attempt). ``idle`` is called at least every
+        ``idle_every_s`` while waiting between tries: the caller's keep-alive (other devices'
+        watchdogs, its own heartbeats), which a blocking wait would otherwise starve."""
         t0 = self.clock()
         pause = backoff_s
         attempts = 0
@@ -130,7 +133,11 @@ class SerialLink(OpenClose):
             if remaining <= 0:
                 raise LinkLost(f"{self.name}: the link dropped and did not come back within {window_s:g} s "
                                f"({attempts} attempts; last: {last})")
-            self.sleep(min(pause, remaining))
+            wake = self.clock() + min(pause, remaining)
+            while (left := wake - self.clock()) > 0:
+                if idle is not None:
+                    idle()
+                self.sleep(min(left, idle_every_s) if idle is not None else left)
             pause = min(pause * 2.0, max_backoff_s)
 
     # --- bytes ------------------------------------------------------------------------------
@@ -154,6 +161,11 @@ class SerialLink(OpenClose):
     def _read_available(self) -> bytes:
         try:
             n = self.port.in_waiting
+            if n and getattr(self.port, "timeout", None) == 0:
+                # non-blocking: take everything there is. pyserial's socket:// reports in_waiting as
+                # 1 whenever anything is readable, so read(n) would take one byte per poll and a
+                # caller polling once per frame falls ever further behind a chatty device
+                n = max(n, 4096)
             data = self.port.read(n) if n else b""
         except Exception as exc:
             raise LinkError(f"{self.name}: read failed: {exc}") from exc

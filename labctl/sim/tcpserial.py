@@ -5,6 +5,10 @@ between it and the one connected TCP client, unchanged: the device's pacing, pro
 timing stay the tty's. Clients reach it with pyserial's ``socket://HOST:PORT`` URL. A second
 client is refused while one is connected (ser2net's default), and the tty stays open between
 clients so the device keeps its state, as a controller behind a real ser2net does.
+
+:meth:`TcpSerialBridge.set_up` stops and restarts it as ser2net is stopped and restarted (a
+dropped link, issue 12 Build 7): down, the client's connection and the port close (connecting is
+refused) and what the device sends is lost; up, the same port listens again.
 """
 
 from __future__ import annotations
@@ -32,6 +36,10 @@ class TcpSerialBridge:
         self._sock.settimeout(0.1)
         self.host, self.port = self._sock.getsockname()[:2]
         self._stop = threading.Event()
+        self._want_up = True
+        self.is_up = True
+        self._changed = threading.Event()
+        self.drops = 0
         self.clients = 0
         self.bytes_to_device = 0
         self.bytes_from_device = 0
@@ -43,16 +51,52 @@ class TcpSerialBridge:
         """The pyserial URL of this bridge (``socket://host:port``)."""
         return f"socket://{self.host}:{self.port}"
 
+    def set_up(self, up: bool, timeout_s: float = 2.0) -> bool:
+        """Stop (``up`` False) or restart (True) serving, as ser2net is stopped and started again;
+        returns once the bridge is in that state (False if it did not get there in ``timeout_s``)."""
+        self._changed.clear()
+        self._want_up = bool(up)
+        if self.is_up == self._want_up:
+            return True
+        return self._changed.wait(timeout_s)
+
+    def _apply_up(self, client: socket.socket | None) -> socket.socket | None:
+        """In the loop's thread: close or reopen the listening port as ``set_up`` asked; returns the client."""
+        if self._want_up == self.is_up:
+            return client
+        if not self._want_up:
+            if client is not None:
+                client.close()
+                client = None
+            with contextlib.suppress(OSError):
+                self._sock.close()
+            self._sock = None
+            self.drops += 1
+            log.info("ser2net-style bridge %s:%s stopped", self.host, self.port)
+        else:
+            try:
+                self._sock = socket.create_server((self.host, self.port))
+            except OSError:  # the port is not free again yet: try on the next turn
+                log.debug("cannot listen on %s:%s again yet", self.host, self.port, exc_info=True)
+                return client
+            self._sock.settimeout(0.1)
+            log.info("ser2net-style bridge %s:%s started again", self.host, self.port)
+        self.is_up = self._want_up
+        self._changed.set()
+        return client
+
     def _loop(self) -> None:
         client: socket.socket | None = None
         try:
             while not self._stop.is_set():
-                rlist = [self._sock, self._fd] + ([client] if client is not None else [])
+                client = self._apply_up(client)
+                rlist = [self._fd] + ([self._sock] if self._sock is not None else []) + (
+                    [client] if client is not None else [])
                 try:
                     ready, _, _ = select.select(rlist, [], [], 0.1)
                 except (OSError, ValueError):
                     return
-                if self._sock in ready:
+                if self._sock is not None and self._sock in ready:
                     with contextlib.suppress(OSError, TimeoutError):
                         conn, _ = self._sock.accept()
                         if client is None:
@@ -101,7 +145,7 @@ class TcpSerialBridge:
             return
         self._stop.set()
         self._thread.join(timeout=2.0)
-        with contextlib.suppress(OSError):
+        with contextlib.suppress(OSError, AttributeError):
             self._sock.close()
         with contextlib.suppress(OSError):
             os.close(self._fd)

@@ -30,7 +30,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from ..config import load_lab
-from ..errors import LabctlError
+from ..errors import DeviceError, LabctlError
 from . import messages as m
 
 # forkserver: each process still starts from a clean interpreter (no inherited threads or ports),
@@ -274,6 +274,12 @@ def _exit_reason(role: str, exc: BaseException) -> tuple[int, str]:
     return getattr(exc, "exit_code", 1), f"{role}: {type(exc).__name__}: {exc}"
 
 
+def _device_code(exc: BaseException, code: int) -> int | None:
+    """The exit status a worker reports to its supervisor for the run's own: a device's fault
+    (3) decides it; other causes (a peer lost, a crash) leave it to the supervisor (1)."""
+    return code if isinstance(exc, DeviceError) else None
+
+
 def _release(log, role: str, reason: str, *, stop: dict, close=(), link=None, tell_peer: bool = False,
              t: float | None = None) -> list[dict]:
     """A worker's exit path: stop and confirm each moving device (every one is tried, every outcome
@@ -341,7 +347,21 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
     log("worker_started", role="predictor", pid=os.getpid(), origin=args.origin)
     _log_to_record(record, "predictor")
     table = robot = camera = link = None
-    code, reason = 0, "run finished"
+    code, reason, report_code = 0, "run finished", None
+    alive = {"hello": False, "t_link": 0.0}
+
+    def keep_alive(robot_too: bool = True) -> None:
+        """While a device's link is being reconnected (the loop waits): feed the robot's watchdog
+        (unless its link is the one down), and beat to the peer and the supervisor, so the
+        reconnect window, not their silence limits, decides how the run ends."""
+        now = _now(args.origin)
+        if robot_too and robot is not None and robot.link.is_open:
+            robot.maybe_heartbeat()
+        if alive["hello"] and now - alive["t_link"] >= hl.heartbeat_s:
+            link.send(m.Heartbeat(role="predictor", seq=int(now * 10) % 65536, t=now))
+            alive["t_link"] = now
+        ctl.beat(now, {"stage": "reconnecting"})
+
     try:
         ctx = RunContext.load(lab)
         link = open_link(hl, "predictor", local_end=link_end, authkey=_authkey(args, lab),
@@ -351,12 +371,14 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
         external = args.spec["trajectory"] == "external" or lab.table is None
         table = None if external else GrblTable.from_config(lab.table, port=args.table_port)
         if table is not None:
+            table.while_reconnecting = keep_alive
             table.open()
             # a simulated table's power-up lock may be released (the simulator knows where it is); a real
             # table in Alarm must be homed or unlocked by the operator first (its position may be lost)
             table.ensure_ready(unlock=lab.table.kind == "sim")
             _to_start(table, args.spec["trajectory"], log, lambda: _now(args.origin))
         robot = SerialRobot.from_config(lab.robot, port=args.robot_port)
+        robot.while_reconnecting = lambda: keep_alive(robot_too=False)
         camera = _fixed_camera(args, lab)
         for dev in (robot, camera):
             dev.open()
@@ -395,7 +417,7 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
             planner.tick(now)
             if not hello:  # the first message starts the peer's dead_after_s clock: only once the loop runs
                 link.send(m.Hello(role="predictor", pid=os.getpid()))
-                hello = True
+                hello = alive["hello"] = True
             if now - t_beat >= lab.robot.heartbeat_s:
                 robot.heartbeat()
                 link.send(m.Heartbeat(role="predictor", seq=int(now * 10) % 65536, t=now))
@@ -417,6 +439,7 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
         ctl.send("result", result)
     except BaseException as exc:  # every way out, SIGTERM and Ctrl-C included, ends in the stop below
         code, reason = _exit_reason("predictor", exc)
+        report_code = _device_code(exc, code)
         if code not in (EXIT_INTERRUPTED, EXIT_TERMINATED) and not isinstance(exc, PeerLost):
             with contextlib.suppress(Exception):
                 log("worker_error", role="predictor", error=reason, traceback=traceback.format_exc())
@@ -426,7 +449,8 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
         from .stopping import summary
 
         if code != 0:  # a supervisor confirms the stop itself and says so; a lone worker says it here
-            ctl.send("error", reason if getattr(ctl, "supervised", True) else f"{reason}; {summary(outcomes)}")
+            ctl.send("error", reason if getattr(ctl, "supervised", True) else f"{reason}; {summary(outcomes)}",
+                     report_code)
         ctl.send("stopped", outcomes)
         if record is not None:
             record.close()
@@ -466,7 +490,7 @@ def recognizer_main(args: WorkerArgs, link_end, control) -> int:
     log("worker_started", role="recognizer", pid=os.getpid(), origin=args.origin)
     _log_to_record(record, "recognizer")
     camera = link = None
-    code, reason = 0, "run finished"
+    code, reason, report_code = 0, "run finished", None
     try:
         ctx = RunContext.load(lab)
         link = open_link(hl, "recognizer", local_end=link_end, authkey=_authkey(args, lab),
@@ -498,6 +522,7 @@ def recognizer_main(args: WorkerArgs, link_end, control) -> int:
             ctl.beat(now)
     except BaseException as exc:
         code, reason = _exit_reason("recognizer", exc)
+        report_code = _device_code(exc, code)
         if code not in (EXIT_INTERRUPTED, EXIT_TERMINATED) and not isinstance(exc, PeerLost):
             with contextlib.suppress(Exception):
                 log("worker_error", role="recognizer", error=reason, traceback=traceback.format_exc())
@@ -505,7 +530,7 @@ def recognizer_main(args: WorkerArgs, link_end, control) -> int:
         _release(log, "recognizer", reason, stop={}, close=(camera,), link=link, tell_peer=code != 0,
                  t=_now(args.origin))
         if code != 0:
-            ctl.send("error", reason)
+            ctl.send("error", reason, report_code)
         if record is not None:
             record.close()
     return code
@@ -521,7 +546,7 @@ def _worker_process(role: str, args: WorkerArgs, link_end, conn) -> None:
     except BaseException as exc:  # before the worker's own handlers (lab, record): one line via the supervisor
         code, reason = _exit_reason(role, exc)
         with contextlib.suppress(Exception):
-            conn.send(("error", reason))
+            conn.send(("error", reason, _device_code(exc, code)))
     sys.exit(code)
 
 
@@ -665,9 +690,10 @@ def _stopped(pid: int) -> bool:
 class WorkerDied(Exception):
     """A worker died, hung or reported an error; ``role`` names it, ``hung`` if it is alive but silent."""
 
-    def __init__(self, message: str, role: str | None = None, hung: bool = False):
+    def __init__(self, message: str, role: str | None = None, hung: bool = False, code: int | None = None):
         super().__init__(message)
         self.role, self.hung = role, hung
+        self.code = code  # the worker's own exit status when it reported one (3: a device fault)
 
 
 class RunAborted(LabctlError):
@@ -859,7 +885,7 @@ class LiveRun:
         elif isinstance(exc, Terminated):
             cause, code, what = "terminated", EXIT_TERMINATED, "terminated (SIGTERM)"
         else:
-            cause, code, what = "worker", 1, str(exc)
+            cause, code, what = "worker", getattr(exc, "code", None) or 1, str(exc)
         if len(confirmed(outcomes)) < len(outcomes):
             code = EXIT_DEVICE
         record = self._record()
@@ -885,7 +911,7 @@ class LiveRun:
                     if msg[0] == "stopped":
                         return confirmed(msg[1])
                     if msg[0] == "error":
-                        raise WorkerDied(msg[1], "predictor")
+                        raise WorkerDied(msg[1], "predictor", code=msg[2] if len(msg) > 2 else None)
             except (EOFError, OSError):
                 break
         return []
@@ -932,7 +958,7 @@ class LiveRun:
                         result = msg[1]
                     elif kind == "error":
                         self._raise_dead(procs, skip=role)  # the root cause: a peer that died, if one did
-                        raise WorkerDied(msg[1], role)
+                        raise WorkerDied(msg[1], role, code=msg[2] if len(msg) > 2 else None)
             if result is not None:
                 return result
             now = time.monotonic()
@@ -943,6 +969,8 @@ class LiveRun:
                         conn.send(("beat", now))
             for role, p in procs.items():
                 if not p.is_alive():
+                    if p.exitcode == 0 and any(q.is_alive() for r, q in procs.items() if r != role):
+                        continue  # it left as its peer told it to: the peer's own report says why
                     raise WorkerDied(f"the {role} worker died (exit code {p.exitcode})", role)
                 if _stopped(p.pid):  # SIGSTOP: caught even during the start-up grace
                     stopped_since.setdefault(role, now)

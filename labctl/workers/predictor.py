@@ -508,7 +508,10 @@ class ProgramProgress:
     One :meth:`pump` per loop iteration sends what fits in GRBL's buffer and reads the replies
     without waiting, so frames, planning and heartbeats go on while a long arc executes (issue
     13). ``table_progress`` events (lines acknowledged / total) are logged at most every
-    ``every_s`` seconds and when the program is accepted; a fault raises the driver's error."""
+    ``every_s`` seconds and when the program is accepted; a fault raises the driver's error.
+    Once GRBL has accepted the whole program the table is still watched (``watch``: status at
+    its rate, read without waiting), so a link that drops while it runs the tail is noticed —
+    reconnected within ``reconnect_s`` or a typed error (issue 12, Build 7)."""
 
     def __init__(self, program, log, every_s: float = 0.5):
         self.program, self.log, self.every_s = program, log, every_s
@@ -520,6 +523,8 @@ class ProgramProgress:
         prog = self.program
         if prog.active:
             prog.pump(0.0)
+        elif hasattr(prog.table, "watch"):
+            prog.table.watch()
         if prog.acked != self._logged_acked and (now - self._t_logged >= self.every_s or prog.done):
             self.log("table_progress", t=now, **prog.progress())
             self._t_logged, self._logged_acked = now, prog.acked

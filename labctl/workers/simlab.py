@@ -274,6 +274,8 @@ class ServedLab(LiveSimLab):
     :func:`labctl.sim.rigs.target_world`); the HTTP server's control endpoint
     ``POST /control/scene?calibration=1&spacer_mm=H`` (:meth:`set_scene`) switches between them and
     puts the target on a spacer — what a person does at a real lab when ``labctl calibrate`` prompts.
+    With ``tcp``, ``/control/link`` (:meth:`set_link`) stops and restarts a device's bridge as
+    ser2net is stopped and restarted (a link dropped mid-run, issue 12 Build 7).
     """
 
     def _make_world(self, obj, placement, *, table_position, flange_pose_at):
@@ -319,6 +321,45 @@ class ServedLab(LiveSimLab):
         return {"scene": "calibration" if calibration else "object", "spacer_mm": spacer, "t": now,
                 "t_wall": time.time() - (self.clock.now() - now)}
 
+    def set_link(self, params: dict) -> dict:
+        """The control endpoint ``/control/link``: ``device`` (table or robot) with ``up`` (1/0) stops
+        or restarts that device's ser2net-style bridge (down: its client's connection and the port
+        close, connecting is refused, what the controller sends meanwhile is lost); ``reset=1`` also
+        power-cycles the controller while the link is down (a ser2net restart that pulses DTR resets
+        an Arduino's GRBL). Without ``up`` it reports. Returns ``{device, up, drops, resets, t,
+        t_wall}`` (served clock and wall clock, s). ValueError (400) for a bad parameter or without
+        ``tcp``."""
+        if not getattr(self, "bridges", None):
+            raise ValueError("link control needs the devices on TCP ports (sim serve --tcp)")
+        unknown = set(params) - {"device", "up", "reset"}
+        if unknown:
+            raise ValueError(f"unknown parameter(s) {', '.join(sorted(unknown))} (have: device, up, reset)")
+        device = params.get("device")
+        if device not in self.bridges:
+            raise ValueError(f"device must be one of {', '.join(self.bridges)}, got {device!r}")
+
+        def flag(name: str) -> bool | None:
+            if name not in params:
+                return None
+            word = params[name].strip().lower()
+            if word not in ("1", "0", "yes", "no", "true", "false"):
+                raise ValueError(f"{name} must be 1 or 0, got {params[name]!r}")
+            return word in ("1", "yes", "true")
+
+        up, reset = flag("up"), flag("reset")
+        bridge = self.bridges[device]
+        if up is not None and not up and not bridge.set_up(False):
+            raise RuntimeError(f"the {device} bridge did not stop")
+        if reset:
+            dev, emu = (self.table_pty, self.grbl) if device == "table" else (self.robot_pty, self.robot_emu)
+            with dev.lock:
+                emu.power_cycle()
+            self.resets[device] += 1
+        if up and not bridge.set_up(True):
+            raise RuntimeError(f"the {device} bridge did not start again")
+        return {"device": device, "up": bridge.is_up, "drops": bridge.drops, "resets": self.resets[device],
+                "t": self.clock.now(), "t_wall": time.time()}
+
     def __enter__(self) -> ServedLab:
         from ..sim.mjpeg import MjpegServer
         from ..sim.tcpserial import TcpSerialBridge
@@ -326,14 +367,17 @@ class ServedLab(LiveSimLab):
         try:
             cams = self._start_world()
             self.ports = {"table": self.table_pty.path, "robot": self.robot_pty.path}
+            self.bridges: dict = {}
+            self.resets = {"table": 0, "robot": 0}
             if self.spec.get("tcp"):
                 for role in ("table", "robot"):
                     bridge = TcpSerialBridge(self.ports[role])
                     self._stack.callback(bridge.stop)
                     self.ports[role] = bridge.url
+                    self.bridges[role] = bridge
             self.mjpeg = MjpegServer(cams, self.clock.now, port=int(self.spec.get("http_port") or 0),
                                      quality=int(self.spec.get("jpeg_quality") or 90),
-                                     controls={"scene": self.set_scene}).start()
+                                     controls={"scene": self.set_scene, "link": self.set_link}).start()
             self._stack.callback(self.mjpeg.stop)
         except BaseException:
             self._stack.close()
@@ -344,7 +388,7 @@ class ServedLab(LiveSimLab):
         """Where clients reach the served lab: table and robot ports, the MJPEG stream URLs, the scene control URL."""
         return {"table": self.ports["table"], "robot": self.ports["robot"],
                 "fixed_camera": self.mjpeg.url("fixed"), "mobile_camera": self.mjpeg.url("mobile"),
-                "scene_control": self.mjpeg.control_url("scene")}
+                "scene_control": self.mjpeg.control_url("scene"), "link_control": self.mjpeg.control_url("link")}
 
     def check_alive(self) -> None:
         """Raise if an emulator's thread died (the served lab would silently stop answering)."""
