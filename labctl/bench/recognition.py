@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..geometry import invert, make_T, rot_z
-from ..library.matching import DEFAULT_THRESHOLD, UNUSABLE_VIEW, LibraryIndex, identify, match
+from ..library.matching import DEFAULT_THRESHOLD, UNUSABLE_VIEW, LibraryIndex, StandardViewQuery, identify, match
 from ..library.views import marker_frame, mm_per_px, perturbed_view_pose, standard_view_pose
 from ..vision.shape import ShapeError, features_from_image, silhouette_mask
 from ._timing import median_time, row
@@ -36,12 +36,14 @@ def _setup():
 
 
 def render_pool(library: dict, camera, standoff: float, per_view: int, rng: np.random.Generator) -> dict:
-    """Perturbed standard views, rendered once: ``{(name, marker_id): [ShapeFeatures | None, ...]}``.
+    """Perturbed standard views, rendered once: ``{(name, marker_id): [StandardViewQuery | None, ...]}``.
 
     Each view is rendered ``per_view`` times by the simulated lab's renderer (object resting on
     the table, :func:`labctl.sim.rigs.standard_view_renderer`) with a random in-plane rotation,
     ±3 % stand-off, ≤ 2° axis tilt and σ = 2 sensor noise; None where no silhouette was found.
-    All matchers (and the extra views of :func:`evaluate`) draw on the same pool.
+    Each query carries its marker's true height above the table in the pose rendered (a run
+    measures it to ~0.1 mm, far inside the 4 mm gate). All matchers (and the extra views of
+    :func:`evaluate`) draw on the same pool.
     """
     from ..sim.rigs import standard_view_renderer
 
@@ -54,12 +56,22 @@ def render_pool(library: dict, camera, standoff: float, per_view: int, rng: np.r
             feats = []
             for _ in range(per_view):
                 T_o_c = perturbed_view_pose(standard_view_pose(m, standoff), m.center, rng)
+                image, T_w_o = render_view(T_o_c, with_pose=True)
+                height = float(T_w_o[2, :3] @ m.center + T_w_o[2, 3])
                 try:
-                    feats.append(features_from_image(render_view(T_o_c), scale))
+                    feats.append(StandardViewQuery(features_from_image(image, scale), height))
                 except ShapeError:
                     feats.append(None)
             pool[(name, m.id)] = feats
     return pool
+
+
+def _features(q):
+    return q.features if isinstance(q, StandardViewQuery) else q
+
+
+def _height(q) -> dict:
+    return {"height_mm": q.height_mm} if isinstance(q, StandardViewQuery) and q.height_mm is not None else {}
 
 
 NEW_SIDE_DEG = 20.0  # the predictor's novelty rule: a face within 20° of one viewed tells nothing new
@@ -98,8 +110,8 @@ def evaluate(library: dict, pool: dict, rng: np.random.Generator, *, threshold: 
         for q0, f0 in enumerate(feats[:first_per_view]):
             n += 1
             if f0 is not None:
-                for method in ("aos", "hu", "fd"):
-                    r = match(f0, index, threshold, method=method, **match_kw)
+                for method in ("aos", "hu", "fd"):  # the single-view rates: the silhouette alone
+                    r = match(_features(f0), index, threshold, method=method, **match_kw)
                     ok[f"{method}_single_view"] += int(r.best is not None and r.best[0] == name)
             m, q, f, tried = obj.marker(mid), q0, f0, [mid]
             while f is None and len(tried) < max_views:
@@ -112,7 +124,7 @@ def evaluate(library: dict, pool: dict, rng: np.random.Generator, *, threshold: 
                 failures += 1
                 continue
             recovered += int(len(tried) > 1)
-            first = match(f, index, threshold, **match_kw)
+            first = match(_features(f), index, threshold, **_height(f), **match_kw)
 
             def acquire(h: str, j: int, _m=m, _first=first, _obj=obj, _name=name, _q=q):
                 # the robot heads for where marker j would be if the object were h, then takes

@@ -302,7 +302,24 @@ UNUSABLE_VIEW = "unusable view"
 silhouette (cropped by the image edge): the view is spent, and no hypothesis is refuted."""
 
 
-def identify(first: ShapeFeatures, index: LibraryIndex, acquire: Callable[[str, int], ShapeFeatures | str | None], *,
+@dataclass(frozen=True)
+class StandardViewQuery:
+    """One standard view as a run has it: the silhouette's features and the viewed marker's centre
+    height above the table (mm, from the marker pose; None if unknown) for :func:`height_gate`."""
+
+    features: ShapeFeatures
+    height_mm: float | None = None
+
+
+def _query(q) -> tuple[ShapeFeatures, dict]:
+    """(features, the height gate's keyword) of a ShapeFeatures or a StandardViewQuery."""
+    if isinstance(q, StandardViewQuery):
+        return q.features, ({} if q.height_mm is None else {"height_mm": q.height_mm})
+    return q, {}
+
+
+def identify(first: ShapeFeatures | StandardViewQuery, index: LibraryIndex,
+             acquire: Callable[[str, int], ShapeFeatures | StandardViewQuery | str | None], *,
              threshold: float = DEFAULT_THRESHOLD, max_views: int = 3, method: str = "aos",
              margin: float = MARGIN, **weights) -> Identification:
     """Recognise with extra standard views where ambiguous (paper §3.4, §2 stage 2).
@@ -315,7 +332,8 @@ def identify(first: ShapeFeatures, index: LibraryIndex, acquire: Callable[[str, 
     candidate if the view matches one of its views. Scores accumulate over the views; the
     surviving candidate with the lowest total is the answer.
     """
-    r = match(first, index, threshold, method=method, margin=margin, **weights)
+    first_f, first_h = _query(first)
+    r = match(first_f, index, threshold, method=method, margin=margin, **first_h, **weights)
     steps, requested = [r], []
     if r.best is None:
         return Identification(None, False, [], 1, steps, requested)
@@ -340,10 +358,11 @@ def identify(first: ShapeFeatures, index: LibraryIndex, acquire: Callable[[str, 
             continue
         if isinstance(f, str) and f == UNUSABLE_VIEW:
             continue
-        s = view_scores(f, index, method=method, **weights)
+        f, fh = _query(f)
+        s = view_scores(f, index, method=method, **fh, **weights)
         step_score = {c: float(s[index.view_index(h, j)]) if c == h else float(np.min(s[names == c]))
                       for c in remaining}
-        steps.append(match(f, index, threshold, method=method, restrict=remaining, margin=margin, **weights))
+        steps.append(match(f, index, threshold, method=method, restrict=remaining, margin=margin, **fh, **weights))
         for c in remaining:
             total[c] += step_score[c]
         best_step = min(step_score.values())

@@ -166,7 +166,8 @@ def standard_view_renderer(camera, *, noise_sigma: float = 2.0, rng=None, table_
         F = np.asarray(mesh_o.faces)
         poses = stable_poses if stable_poses is not None else compute_stable_poses(mesh_o)
 
-        def render_view(T_o_c):
+        def render_view(T_o_c, with_pose: bool = False):
+            """The BGR image seen from ``T_o_c``; with ``with_pose``, (image, ``T_w_o`` the resting pose)."""
             yaw = float(rng.uniform(-np.pi, np.pi)) if random_yaw else 0.0
             T_w_o = resting_pose_for_view(poses, T_o_c, yaw_rad=yaw, choice=pose_choice, rng=rng)
             if T_w_o is None:
@@ -181,8 +182,9 @@ def standard_view_renderer(camera, *, noise_sigma: float = 2.0, rng=None, table_
             Vw = V @ T_w_o[:3, :3].T + T_w_o[:3, 3]
             discs = [MarkerDisc(T_w_o[:3, :3] @ m.center + T_w_o[:3, 3], T_w_o[:3, :3] @ m.normal, m.radius)
                      for m in markers]
-            return render(camera, T_w_o @ T_o_c, [Mesh(Vw, F, markers=discs)], table=table,
-                          noise_sigma=noise_sigma, rng=rng).image
+            image = render(camera, T_w_o @ T_o_c, [Mesh(Vw, F, markers=discs)], table=table,
+                           noise_sigma=noise_sigma, rng=rng).image
+            return (image, T_w_o) if with_pose else image
 
         return render_view
 
