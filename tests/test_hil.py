@@ -155,6 +155,9 @@ def test_hil_devices_and_run_two_workers_over_tcp(tmp_path):
         _unlock_at(lab, 150, 200)
         result = _run_identifies(lab, served.truth)
         assert result["link"]["transport"] == "tcp" and result["link"]["messages_received"] > 0
+        # the run cleared the STOP it latched at its own end, so the next run may start
+        r = labctl("--json", "robot", "clear", lab=lab, timeout=60)
+        assert r.returncode == 0 and json.loads(r.stdout)["cleared"] is None, r.stdout + r.stderr
 
 
 def test_hil_run_with_serial_host_link_over_pty_null_modem_and_devices_on_tcp(tmp_path):

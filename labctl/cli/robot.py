@@ -3,6 +3,9 @@
 ``labctl robot conformance --port PORT`` runs the conformance suite of docs/protocols/robot.md
 against any controller (a lab's bridge, the reference served by ``labctl sim serve``) and prints
 PASS/FAIL per named rule. Exit 0 all pass, 1 some fail, 3 cannot talk to the controller.
+
+``labctl robot clear`` clears a fault latched on the lab's controller (a ``STOP`` from a stopped
+run, a watchdog trip): a run refuses to start while one is latched. It moves nothing.
 """
 
 from __future__ import annotations
@@ -11,12 +14,12 @@ import sys
 
 import click
 
-from ._common import get_ctx, json_option, to_json
+from ._common import emit, get_ctx, json_option, to_json
 
 
 @click.group("robot")
 def robot_group() -> None:
-    """The robot controller: conformance of its dialect."""
+    """The robot controller: conformance of its dialect; clearing a latched fault."""
 
 
 @robot_group.command("conformance")
@@ -54,3 +57,27 @@ def conformance_cmd(port: str, baud: int, no_motion: bool, only: tuple[str, ...]
         click.echo(f"{n_pass} passed, {len(failed)} failed, {n_skip} skipped"
                    + (f": {', '.join(r.rule for r in failed)}" if failed else ""))
     return 1 if failed else 0
+
+
+@robot_group.command("clear")
+@click.option("--port", default=None, help="Serial port or pyserial URL (default: the lab's robot port).")
+@click.option("--baud", type=click.IntRange(min=1), default=None, help="Baud rate (default: the lab's).")
+@json_option
+def clear_cmd(port: str | None, baud: int | None) -> None:
+    """Clear a fault latched on the robot controller (a STOP, a watchdog trip), after checking the arm.
+
+    Reads STATUS, sends CLEAR if a fault is latched, and reads STATUS again to confirm. Moves nothing."""
+    from ..drivers.robot import RobotFault
+    from ..workers.devices import open_device
+
+    robot = open_device("robot", get_ctx().lab(), port=port, baud=baud)
+    with robot:
+        robot.status()
+        was = robot.latched
+        if was is not None:
+            robot.clear()
+            robot.status()
+            if robot.latched is not None:
+                raise RobotFault(f"{robot.link.name}: CLEAR sent, but the controller still reports '{robot.latched}'")
+    d = {"robot": robot.link.name, "cleared": was, "latched": None}
+    emit(d, lambda con: con.print(f"robot: cleared the latched '{was}' fault" if was else "robot: no fault latched"))

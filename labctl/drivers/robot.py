@@ -375,6 +375,21 @@ class SerialRobot(OpenClose):
         T = make_T(rotvec_to_matrix(np.array(f[3:6])), f[0:3])
         return RobotStatus(T_base_flange=T, moving=bool(int(f[6])), segment_id=int(f[7]), t=f[9])
 
+    @property
+    def latched(self) -> str | None:
+        """The fault the controller reported latched at the last ``STATUS`` (``stopped``, ``watchdog``), or None."""
+        return self._latched
+
+    def ensure_ready(self) -> RobotStatus:
+        """``STATUS`` before a job. A fault latched on the controller (a ``STOP`` or a watchdog trip of an
+        earlier session) is the operator's to clear once the arm has been checked: raise RobotFault
+        naming it and the command that clears it (docs/protocols/robot.md §7)."""
+        st = self.status()
+        if self._latched is not None:
+            raise RobotFault(f"{self.link.name}: the controller holds a latched '{self._latched}' fault from an "
+                             "earlier stop; check the arm, then run `labctl robot clear`")
+        return st
+
     def wait_done(self, segment_id: int, timeout_s: float) -> None:
         """Wait for ``@DONE segment_id`` (heartbeating meanwhile); RobotFault if the watchdog tripped."""
         deadline = self.clock() + timeout_s

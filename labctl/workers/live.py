@@ -281,14 +281,18 @@ def _device_code(exc: BaseException, code: int) -> int | None:
 
 
 def _release(log, role: str, reason: str, *, stop: dict, close=(), link=None, tell_peer: bool = False,
-             t: float | None = None) -> list[dict]:
+             t: float | None = None, clear_robot: bool = False) -> list[dict]:
     """A worker's exit path: stop and confirm each moving device (every one is tried, every outcome
     recorded), tell the peer why when leaving abnormally, close everything; never raises.
-    ``t`` is when the stop began on the run's clock (s), for the record."""
-    from .stopping import close_all, stop_devices
+    ``t`` is when the stop began on the run's clock (s), for the record. ``clear_robot``: the run
+    ended by itself, so the STOP it latched is its own — cleared once the arm is confirmed still
+    (after any other exit the latch stays for the operator: ``labctl robot clear``)."""
+    from .stopping import clear_own_stop, close_all, stop_devices
 
     _shield()
     outcomes = stop_devices(stop)
+    if clear_robot and stop.get("robot") is not None:
+        clear_own_stop(stop["robot"], next(o for o in outcomes if o["device"] == "robot"))
     if tell_peer and link is not None:
         with contextlib.suppress(Exception):
             link.send(m.Stop.short(reason))
@@ -346,7 +350,7 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
     log = record.event if record is not None else (lambda *a, **k: None)
     log("worker_started", role="predictor", pid=os.getpid(), origin=args.origin)
     _log_to_record(record, "predictor")
-    table = robot = camera = link = None
+    table = robot = camera = link = planner = None
     code, reason, report_code = 0, "run finished", None
     alive = {"hello": False, "t_link": 0.0}
 
@@ -382,6 +386,7 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
         camera = _fixed_camera(args, lab)
         for dev in (robot, camera):
             dev.open()
+        robot.ensure_ready()
         now = _now(args.origin)
         planner = PredictorPlanner(ctx, robot, link.send, log, t_start=now, clock=lambda: _now(args.origin))
         progress = None
@@ -445,7 +450,8 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
                 log("worker_error", role="predictor", error=reason, traceback=traceback.format_exc())
     finally:
         outcomes = _release(log, "predictor", reason, stop={"robot": robot, "table": table},
-                            close=(camera, robot, table), link=link, tell_peer=code != 0, t=_now(args.origin))
+                            close=(camera, robot, table), link=link, tell_peer=code != 0, t=_now(args.origin),
+                            clear_robot=code == 0 and planner is not None and planner.finished)
         from .stopping import summary
 
         if code != 0:  # a supervisor confirms the stop itself and says so; a lone worker says it here

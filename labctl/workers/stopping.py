@@ -92,6 +92,20 @@ def stop_robot(robot, brake_limit_s: float = ROBOT_BRAKE_LIMIT_S) -> dict:
     return out
 
 
+def clear_own_stop(robot, outcome: dict) -> None:
+    """``CLEAR`` the STOP a run latched itself at its normal end, once ``outcome`` (of
+    :func:`stop_robot`) confirms the arm still, so that the next run can start; recorded in
+    ``outcome["cleared"]``. Never raises."""
+    outcome["cleared"] = False
+    if not outcome.get("confirmed"):
+        return
+    try:
+        robot.clear()
+        outcome["cleared"] = True
+    except Exception as exc:  # noqa: BLE001 — recorded; the latch then stays for the operator
+        outcome["error"] = f"clear: {_err(exc)}"
+
+
 def stop_devices(devices: Mapping[str, object]) -> list[dict]:
     """Stop and confirm each open device (``{"robot": r, "table": t}``; ``None`` entries skipped).
 
