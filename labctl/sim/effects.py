@@ -172,22 +172,43 @@ class ShadowMask:
 def shadow_mask(triangles_xy: np.ndarray, *, penumbra_mm: float = PENUMBRA_MM,
                 grid_mm: float = _SHADOW_GRID_MM) -> ShadowMask | None:
     """Rasterise the union of shadow triangles (K, 3, 2) mm into a :class:`ShadowMask` (each
-    triangle filled anti-aliased, sub-cell exact to 1/16 cell; blurred by the penumbra)."""
+    triangle filled anti-aliased, sub-cell exact to 1/16 cell; blurred by the penumbra).
+
+    Rasterised relative to the first vertex and cached: an object riding the table casts the same
+    shadow, translated, every frame, and the mask does not depend on where it was first drawn."""
     if len(triangles_xy) == 0:
         return None
+    origin = triangles_xy[0, 0].copy()
+    rel = triangles_xy - origin
+    key = (np.round(rel, 9).tobytes(), float(penumbra_mm), float(grid_mm))
+    hit = _shadow_cache.get(key)
+    if hit is None:
+        hit = _rasterise_shadow(rel, penumbra_mm, grid_mm)
+        if len(_shadow_cache) >= 32:
+            _shadow_cache.clear()
+        _shadow_cache[key] = hit
+    m, lo, res = hit
+    return ShadowMask(m, float(lo[0] + origin[0]), float(lo[1] + origin[1]), res)
+
+
+_shadow_cache: dict[tuple, tuple[np.ndarray, np.ndarray, float]] = {}
+
+
+def _rasterise_shadow(tris: np.ndarray, penumbra_mm: float, grid_mm: float):
     pad = 3.0 * penumbra_mm + 2.0 * grid_mm
-    lo = triangles_xy.reshape(-1, 2).min(axis=0) - pad
-    hi = triangles_xy.reshape(-1, 2).max(axis=0) + pad
+    lo = tris.reshape(-1, 2).min(axis=0) - pad
+    hi = tris.reshape(-1, 2).max(axis=0) + pad
     res = max(grid_mm, float((hi - lo).max()) / 1500.0)  # keep the grid bounded for large objects
     w, h = (np.ceil((hi - lo) / res).astype(int) + 1)
     mask = np.zeros((int(h), int(w)), np.uint8)
-    pts = np.round((triangles_xy - lo) / res * 16.0).astype(np.int32)
+    pts = np.round((tris - lo) / res * 16.0).astype(np.int32)
     for tri in pts:
         cv2.fillConvexPoly(mask, tri, 255, lineType=cv2.LINE_AA, shift=4)
     m = mask.astype(np.float32) * np.float32(1.0 / 255.0)
     if penumbra_mm > 0:
         m = cv2.GaussianBlur(m, (0, 0), penumbra_mm / 2.0 / res)
-    return ShadowMask(m, float(lo[0]), float(lo[1]), res)
+    m.flags.writeable = False
+    return m, lo, res
 
 
 def shadow_factor(light_w: np.ndarray, ambient: float, strength: float) -> float:
