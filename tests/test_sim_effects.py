@@ -196,3 +196,18 @@ def test_virtual_run_with_the_realistic_camera_identifies_its_object(tmp_path):
     assert res["failure"] is None, res
     assert res["correct"] is True and res["identity"] == res["true_identity"]
     assert res["marker_pose_error"]["normal_deg"] < 3.0
+
+
+def test_realistic_run_falls_back_to_a_suspect_marker_when_the_trusted_one_is_ambiguous(tmp_path):
+    # seed 1008 places angle_short so that, in JPEG frames, only its top marker is trusted (the side
+    # marker is flagged rough/blurred) and the top's standard view cannot tell it from tee; re-viewing
+    # the same marker failed ("still ambiguous after 3 standard views") before the recogniser took
+    # the more novel suspect marker as a last resort
+    from labctl.workers.context import RunContext
+    from labctl.workers.virtual import TrialSpec, simulate_run
+
+    lab = load_lab(init_workspace(tmp_path / "lab", preset="realistic-camera"))
+    res = simulate_run(lab, RunContext.load(lab), TrialSpec("line", 8.0, "angle_short", 1008))
+    assert res["failure"] is None, res
+    assert res["correct"] is True and res["views"] == 2
+    assert res["marker_pose_error"]["normal_deg"] < 3.0
