@@ -164,7 +164,7 @@ def test_bad_settings_are_refused(tmp_path):
     lab_dir = init_workspace(tmp_path / "lab")
     text = (lab_dir / "lab.yaml").read_text()
     for bad, key in (("preset: shiny", "sim.camera.preset"), ("shadows: 2", "sim.camera.shadows"),
-                     ("jpeg_quality: 0", "sim.camera.jpeg_quality"), ("bayer: rggb", "sim.camera.bayer")):
+                     ("jpeg_quality: 101", "sim.camera.jpeg_quality"), ("bayer: rggb", "sim.camera.bayer")):
         (lab_dir / "lab.yaml").write_text(text + f"sim:\n  camera:\n    {bad}\n")
         with pytest.raises(ConfigError) as err:
             load_lab(lab_dir)
@@ -184,6 +184,9 @@ def test_init_preset_makes_a_consistent_realistic_lab(tmp_path):
     lab = load_lab(lab.root)
     fx = effects_from_lab(lab, lab.fixed_camera)
     assert fx.jpeg_quality == 95 and fx.bayer is None and fx.shadows == 0.8
+    path.write_text(path.read_text().replace("jpeg_quality: 95", "jpeg_quality: 0"))
+    lab = load_lab(lab.root)
+    assert effects_from_lab(lab, lab.fixed_camera).jpeg_quality is None
 
 
 def test_virtual_run_with_the_realistic_camera_identifies_its_object(tmp_path):

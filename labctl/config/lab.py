@@ -96,7 +96,7 @@ class SimCameraConfig:
     shininess: Annotated[float, Range(ge=1)] | None = None  # Blinn-Phong exponent
     texture: Annotated[float, Range(ge=0, le=4)] | None = None  # table texture contrast (1: as drawn)
     bayer: Literal["none", "bilinear", "vng", "ea"] | None = None  # RGGB mosaic + OpenCV demosaicing
-    jpeg_quality: Annotated[int, Range(ge=1, le=100)] | None = None  # null: no JPEG
+    jpeg_quality: Annotated[int, Range(ge=0, le=100)] | None = None  # 0: no JPEG (null: the preset's)
 
     def settings(self) -> dict:
         """The effective settings: the preset's, overridden by the fields given here (plain values)."""
@@ -107,6 +107,8 @@ class SimCameraConfig:
                 base[name] = value
         if base.get("bayer") == "none":
             base["bayer"] = None
+        if base.get("jpeg_quality") == 0:
+            base["jpeg_quality"] = None
         return base
 
 
