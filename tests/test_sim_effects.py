@@ -169,6 +169,13 @@ def test_bad_settings_are_refused(tmp_path):
         with pytest.raises(ConfigError) as err:
             load_lab(lab_dir)
         assert key in str(err.value)
+    # a response the sim could not encode with (nor vision linearise by) is refused at load time
+    (lab_dir / "lab.yaml").write_text(text)
+    cam = lab_dir / "drivers" / "mobile_camera.yaml"
+    for bad in ("gamma 9", "gamma x", "[1.0, 0.5]"):
+        cam.write_text(cam.read_text().split("\nresponse:")[0] + f"\nresponse: {bad}\n")
+        with pytest.raises(ConfigError, match="response"):
+            load_lab(lab_dir)
 
 
 def test_init_preset_makes_a_consistent_realistic_lab(tmp_path):
