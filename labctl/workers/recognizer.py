@@ -64,6 +64,9 @@ def pair_markers(first: list, second: list, tol_mm: float = PAIR_MAX_MM) -> list
 
 
 _LAST_RESORT_FLAGS = {"rough", "blurred"}
+# ... and only with a normal σ (vision.marker_poses) within 0.6°, 1.5× a trusted marker's here (0.42–0.47°):
+# suspects in realistic-camera frames at 0.64–0.77° gave standard views 60 mm off target
+_LAST_RESORT_MAX_SIGMA_RAD = float(np.radians(0.6))
 
 
 def _to_world(T_w_c: np.ndarray, pose: CirclePose) -> CirclePose:
@@ -129,9 +132,9 @@ class Recognizer:
         rotation-invariant, so the camera frame's holds in W), for the duality test."""
         out = []
         # markers flagged only as rough or blurred (small oblique markers in JPEG 4:2:0 frames: their
-        # normals are ~1° off instead of ~0.3°) are a last resort, chosen only when they are more novel
-        # than every trusted marker or none is trusted (issue 14, realistic-camera trials); the
-        # noise-aware duality test and the standard view's own check still guard the answer
+        # normals are ~1° off instead of ~0.3°) with a small normal σ are a last resort: preferred only
+        # when more novel than every trusted marker or none is trusted, else spares (issue 14,
+        # realistic-camera trials); the noise-aware duality test and the standard view's check still guard
         every = detect_markers(frame.image, include_suspect=True, **self.detect_kw)
         for mk in (mk for mk in every if mk.trusted or set(mk.quality.flags) <= _LAST_RESORT_FLAGS):
             best = None
@@ -148,7 +151,7 @@ class Recognizer:
                 off = _height_misfit(float(poses[0].center[2]), self.z_table)
                 if best is None or off < best[0] - 1e-9:
                     best = (off, poses)
-            if best is not None:
+            if best is not None and (mk.trusted or best[1].sigma_rad <= _LAST_RESORT_MAX_SIGMA_RAD):
                 out.append((mk, best[1]))
         return out
 
