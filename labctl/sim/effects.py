@@ -20,7 +20,7 @@ All functions are pure (numpy in, numpy out); units mm and grey levels.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -99,9 +99,6 @@ class CameraEffects:
     def encode_lut(self) -> np.ndarray | None:
         """uint8 LUT from linear grey level to the camera's code (None for a linear camera)."""
         return self._enc
-
-    def with_(self, **kw) -> CameraEffects:
-        return replace(self, **kw)
 
 
 def encoding_lut(response: Response) -> np.ndarray:
