@@ -35,9 +35,40 @@ def find_lab(start: Path | str | None = None) -> Path:
     return sample_lab_path()
 
 
-def init_workspace(dest: Path | str, *, force: bool = False) -> Path:
-    """Copy the sample simulated lab into ``dest``. Refuses to overwrite an existing lab."""
+# `labctl init --preset NAME`: lab.yaml's sim section, and the camera driver files' keys that must agree with it
+INIT_PRESETS = {
+    "realistic-camera": {
+        "lab": "sim:\n  camera:\n    preset: realistic   # shadows, highlights, table grain, Bayer, JPEG 80 "
+               "(docs/notes/vision.md)\n",
+        # the sRGB response the simulated cameras render with and vision linearises by; the
+        # saturation floor `labctl vision learn-color` measures on these frames (0.21–0.25)
+        "cameras": {"response": "srgb", "marker_min_saturation": "0.25"},
+    },
+}
+
+
+def _set_top_level_keys(text: str, values: dict) -> str:
+    """A driver file's text with top-level ``key: value`` lines replaced (or appended); the rest kept."""
+    lines = text.splitlines()
+    for key, val in values.items():
+        for i, line in enumerate(lines):
+            if line.split(":", 1)[0].strip() == key and not line.startswith((" ", "#")):
+                lines[i] = f"{key}: {val}"
+                break
+        else:
+            lines.append(f"{key}: {val}")
+    return "\n".join(lines) + "\n"
+
+
+def init_workspace(dest: Path | str, *, force: bool = False, preset: str | None = None) -> Path:
+    """Copy the sample simulated lab into ``dest``. Refuses to overwrite an existing lab.
+
+    ``preset`` (:data:`INIT_PRESETS`): ``realistic-camera`` turns on the simulated cameras'
+    realistic effects (lab.yaml ``sim.camera.preset: realistic``) and gives both camera driver
+    files the matching ``response: srgb`` and marker saturation floor."""
     dest = Path(dest).resolve()
+    if preset is not None and preset not in INIT_PRESETS:
+        raise ValueError(f"unknown preset {preset!r} (known: {', '.join(INIT_PRESETS)})")
     if (dest / LAB_FILE).exists() and not force:
         raise FileExistsError(f"{dest} already holds a lab workspace (lab.yaml); not overwriting it")
     src = sample_lab_path()
@@ -50,6 +81,14 @@ def init_workspace(dest: Path | str, *, force: bool = False) -> Path:
         elif s.is_file():
             shutil.copy2(s, dest / item)
     (dest / "runs").mkdir(exist_ok=True)
+    if preset is not None:
+        spec = INIT_PRESETS[preset]
+        lab_file = dest / LAB_FILE
+        text = lab_file.read_text(encoding="utf-8")
+        lab_file.write_text(text.rstrip("\n") + "\n" + spec["lab"], encoding="utf-8")
+        for name in ("fixed_camera.yaml", "mobile_camera.yaml"):
+            path = dest / "drivers" / name
+            path.write_text(_set_top_level_keys(path.read_text(encoding="utf-8"), spec["cameras"]), encoding="utf-8")
     return dest
 
 

@@ -12,6 +12,10 @@
   table) with a status poll every 6 frames. Baseline: 10 s of real time. Target ratio ≥ 5. The
   process's first trial (building the texture, noise and ray caches, ~0.5 s) is run and reported
   apart; ``cpu_s`` is the process CPU time, which a machine busy with other work inflates less.
+* ``render … realistic camera``: the same frames with the ``realistic`` preset's effects (issue
+  14, ``labctl.sim.effects``: shadow, highlights, texture, Bayer, sRGB, JPEG 80) against the same
+  frames without, timed alternately in one loop (``ratio`` < 1: the effects' cost): the fixed
+  camera's object window as trials render it, its full frame, and the mobile camera's frame.
 * ``one virtual trial``: whole ``simulate_run`` trials (issue 16), the fixed camera rendered only
   in the object's window against full frames in the same run; simulated s per CPU s
   (``virtual_time_factor_cpu``, target ≥ 15) and whether the results are identical.
@@ -134,6 +138,35 @@ def _virtual_trials(lab, quick: bool) -> dict:
             "factor_full": round(sum(sim[True]) / sum(cpu[True]), 2), "identical": all(same)}
 
 
+def _effects_rows(lab, world, obj, repeat: int) -> list[dict]:
+    """Per-frame cost of the realistic-camera preset: each case with and without the effects,
+    alternated so machine load hits both alike."""
+    from ..config.lab import SimCameraConfig
+    from ..sim.effects import CameraEffects
+    from ..sim.world import random_placement
+
+    fx = CameraEffects(response="srgb", **SimCameraConfig(preset="realistic").settings())
+    world.place(obj, random_placement(obj, np.random.default_rng(3)))
+    cases = (("fixed camera, object window (trials)", "fixed", "object", 1),
+             ("fixed camera, full frame", "fixed", None, None), ("mobile camera, full frame", "mobile", None, None))
+    out = []
+    for label, role, window, ss in cases:
+        rig = world.rigs[role]
+        times: dict = {True: [], False: []}
+        for k in range(repeat + 2):
+            for on in (False, True):
+                rig.effects = fx if on else None
+                t0 = time.perf_counter()
+                world.render(role, 0.05 * k, np.random.default_rng(k), window=window, supersample=ss)
+                if k >= 2:  # warm-up: caches
+                    times[on].append(time.perf_counter() - t0)
+        rig.effects = None
+        on_s, off_s = float(np.median(times[True])), float(np.median(times[False]))
+        out.append(row(f"render {label}, realistic camera", on_s, baseline="same frame, no effects",
+                       baseline_s=off_s, ms=round(1000 * on_s, 2), ms_plain=round(1000 * off_s, 2)))
+    return out
+
+
 def run(quick: bool = False) -> dict:
     from ..config import load_lab
     from ..workspace import sample_lab_path
@@ -189,6 +222,7 @@ def _run(lab, quick, repeat, rows, fps, cpu_fps) -> dict:
                             baseline="painter's fillConvexPoly" if base else None, baseline_s=base,
                             fps=round(1.0 / med, 1), cpu_fps=round(1.0 / max(med_cpu, 1e-9), 1),
                             meets_60fps=bool(med <= 1 / 60)))
+    rows.extend(_effects_rows(lab, world, objs["test_block"], repeat))
     cold_wall, _, _ = _trial(lab, 1.0)  # first trial in a process: texture, noise and ray caches
     trial_runs = [_trial(lab, 3.0 if quick else 10.0) for _ in range(1 if quick else 3)]
     wall = float(np.median([w for w, _, _ in trial_runs]))

@@ -12,12 +12,15 @@ from ._common import emit, get_ctx, json_option
 @click.command("init")
 @click.argument("directory", type=click.Path(file_okay=False, path_type=Path))
 @click.option("--force", is_flag=True, help="Overwrite a workspace that already exists there.")
+@click.option("--preset", type=click.Choice(["realistic-camera"]), default=None,
+              help="realistic-camera: the simulated cameras render sRGB frames with shadows, highlights, "
+                   "table grain, Bayer demosaicing and JPEG (lab.yaml sim.camera and both camera driver files).")
 @json_option
-def init_cmd(directory: Path, force: bool) -> None:
+def init_cmd(directory: Path, force: bool, preset: str | None) -> None:
     """Write a fresh lab workspace (the sample simulated lab) into DIRECTORY."""
     from ..workspace import init_workspace
 
-    dest = init_workspace(directory, force=force)
+    dest = init_workspace(directory, force=force, preset=preset)
     emit({"lab": str(dest)}, lambda c: c.print(f"[green]lab workspace written:[/] {dest}"))
 
 

@@ -7,6 +7,7 @@ drivers. Units: mm, s, degrees only where the name says ``_deg``.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -136,6 +137,16 @@ class CameraConfig:
             return "response", f"expected linear, srgb, 'gamma G', a number or a 256-entry list, got {r!r}"
         if isinstance(r, list) and len(r) != 256:
             return "response", f"a response lookup table needs 256 entries, got {len(r)}"
+        if isinstance(r, list) and (any(b < a for a, b in zip(r, r[1:])) or not r[-1] > r[0]):
+            return "response", "a response lookup table must be non-decreasing (code 0…255 → radiance)"
+        gamma = r if isinstance(r, float | int) and not isinstance(r, bool) else None
+        if isinstance(r, str) and r.startswith("gamma"):
+            try:
+                gamma = float(r[5:].strip(" :="))
+            except ValueError:
+                return "response", f"expected 'gamma G' with a number G, got {r!r}"
+        if gamma is not None and not (math.isfinite(gamma) and 0.2 <= gamma <= 5.0):
+            return "response", f"a response gamma must be within 0.2–5, got {gamma:g}"
         return None
 
 

@@ -8,10 +8,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 from .devices import ROLE_TYPES, CameraConfig, HostLinkConfig, RobotConfig, TableConfig
-from .schema import ConfigError, NonNegative, Positive, PositiveInt, defaulted_keys, from_mapping, read_yaml
+from .schema import ConfigError, NonNegative, Positive, PositiveInt, Range, defaulted_keys, from_mapping, read_yaml
 
 LAB_FILE = "lab.yaml"
 
@@ -89,6 +89,58 @@ class RunConfig:
     spare_novelty_deg: NonNegative = 20.0  # a spare marker facing within this of a viewed face is not worth a view
 
 
+SIM_CAMERA_PRESETS = ("none", "realistic")
+
+
+@dataclass(frozen=True)
+class SimCameraConfig:
+    """What the simulated cameras add to the clean render (issue 14; ``labctl.sim.effects``).
+
+    ``preset`` picks a combination (``realistic``: shadows 0.8, specular 0.12 at shininess 60,
+    texture 1.5, Bayer bilinear, JPEG 80); any field set here overrides the preset's. The
+    response curve is each camera's own ``response:`` in its driver file (what vision linearises
+    with), so the two always agree. Off by default: frames exactly as without this section.
+    """
+
+    preset: Literal["none", "realistic"] = "none"
+    shadows: Annotated[float, Range(ge=0, le=1)] | None = None  # share of the direct light the object blocks
+    specular: NonNegative | None = None  # Blinn-Phong strength (fraction of full scale at n·h = 1)
+    shininess: Annotated[float, Range(ge=1)] | None = None  # Blinn-Phong exponent
+    texture: Annotated[float, Range(ge=0, le=4)] | None = None  # table texture contrast (1: as drawn)
+    bayer: Literal["none", "bilinear", "vng", "ea"] | None = None  # RGGB mosaic + OpenCV demosaicing
+    jpeg_quality: Annotated[int, Range(ge=0, le=100)] | None = None  # 0: no JPEG (null: the preset's)
+
+    def settings(self) -> dict:
+        """The effective settings: the preset's, overridden by the fields given here (plain values)."""
+        base = dict(SIM_PRESET_SETTINGS.get(self.preset, {}))
+        for name in ("shadows", "specular", "shininess", "texture", "bayer", "jpeg_quality"):
+            value = getattr(self, name)
+            if value is not None:
+                base[name] = value
+        if base.get("bayer") == "none":
+            base["bayer"] = None
+        if base.get("jpeg_quality") == 0:
+            base["jpeg_quality"] = None
+        return base
+
+
+# the presets' settings (labctl.sim.effects builds the renderer's effects from them)
+SIM_PRESET_SETTINGS: dict[str, dict] = {
+    "none": {},
+    # a colour industrial / webcam-class camera over a lit bench: the object's shadow, a glint on
+    # faces near the mirror angle, a stronger table grain, RGGB demosaicing and the JPEG a USB or IP
+    # camera streams (the sRGB response is the driver files' `response: srgb`, see `labctl init --preset`)
+    "realistic": dict(shadows=0.8, specular=0.12, shininess=60.0, texture=1.5, bayer="bilinear", jpeg_quality=80),
+}
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """Settings of the simulated lab only (ignored on hardware)."""
+
+    camera: SimCameraConfig = field(default_factory=SimCameraConfig)
+
+
 @dataclass(frozen=True)
 class LabConfig:
     name: str = "lab"
@@ -97,6 +149,7 @@ class LabConfig:
     viewing: ViewingConfig = field(default_factory=ViewingConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
     run: RunConfig = field(default_factory=RunConfig)
+    sim: SimConfig = field(default_factory=SimConfig)
 
 
 @dataclass(frozen=True)

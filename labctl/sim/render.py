@@ -37,6 +37,15 @@ import cv2
 import numpy as np
 
 from ..geometry import CameraModel, invert
+from .effects import (
+    CameraEffects,
+    blinn_phong,
+    camera_pipeline,
+    expand_window,
+    shadow_factor,
+    shadow_mask,
+    shadow_polygons_w,
+)
 
 _NEAR_MM = 1.0
 _EDGE_EPS = 1e-7  # normalised units (~0.0002 px): closes cracks on shared edges
@@ -160,9 +169,14 @@ def _table_grey(seed: int) -> np.ndarray:
 
 
 @lru_cache(maxsize=8)
-def _table_texture(seed: int, shade_milli: int) -> np.ndarray:
-    """The texture lit (shade in thousandths), uint8."""
-    return np.ascontiguousarray(np.clip(np.round(_table_grey(seed) * (shade_milli / 1000.0)), 0, 255).astype(np.uint8))
+def _table_texture(seed: int, shade_milli: int, contrast_milli: int = 1000) -> np.ndarray:
+    """The texture lit (shade in thousandths), uint8; ``contrast_milli`` scales its deviations from
+    its mean (thousandths; 1000: the texture as drawn)."""
+    grey = _table_grey(seed)
+    if contrast_milli != 1000:
+        mean = np.float32(grey.mean())
+        grey = np.clip(mean + (grey - mean) * np.float32(contrast_milli / 1000.0), 0.0, 255.0)
+    return np.ascontiguousarray(np.clip(np.round(grey * (shade_milli / 1000.0)), 0, 255).astype(np.uint8))
 
 
 @dataclass(frozen=True)
@@ -444,7 +458,7 @@ _RING = np.linspace(0, 2 * np.pi, 48, endpoint=False)
 
 
 def _marker_pass(camera: CameraModel, T_c_w: np.ndarray, light_w: np.ndarray, markers: list[MarkerDisc],
-                 colour: np.ndarray, invz: np.ndarray) -> list[int]:
+                 colour: np.ndarray, invz: np.ndarray, fx: CameraEffects | None = None) -> list[int]:
     """Blend each marker disc into ``colour`` (H×W×3 uint8, in place) with analytic edge coverage.
 
     Per pixel of the disc's box: intersect the pixel's ray with the marker plane, take the signed
@@ -476,6 +490,9 @@ def _marker_pass(camera: CameraModel, T_c_w: np.ndarray, light_w: np.ndarray, ma
             * (np.cos(_RING)[None, :, None] * e1[:, None, :] + np.sin(_RING)[None, :, None] * e2[:, None, :]))
     ring_px = camera.project(ring)
     shades = _lambert(normals_w[idx], light_w)
+    spec = None
+    if fx is not None and fx.specular > 0:  # Blinn-Phong at the marker's centre (camera frame: eye at 0)
+        spec = blinn_phong(normals[idx], centres[idx], np.zeros(3), R @ light_w, fx.specular, fx.shininess)
     for j, i in enumerate(idx):
         px = ring_px[j]
         if not np.all(np.isfinite(px)):
@@ -503,6 +520,8 @@ def _marker_pass(camera: CameraModel, T_c_w: np.ndarray, light_w: np.ndarray, ma
             z_near = np.where(zb > 0, 1.0 / zb, np.inf)
         cov = np.where(ok & (z <= z_near + np.maximum(0.5, 1e-3 * z)), cov, 0.0).astype(np.float32)
         mcol = np.asarray(markers[i].colour_bgr, dtype=np.float32) * np.float32(shades[j])
+        if spec is not None:
+            mcol = np.minimum(mcol + np.float32(spec[j]), np.float32(255.0))
         patch = colour[y0:y1 + 1, x0:x1 + 1].astype(np.float32)
         patch += cov[..., None] * (mcol - patch)
         colour[y0:y1 + 1, x0:x1 + 1] = np.round(patch).astype(np.uint8)
@@ -573,10 +592,47 @@ def _edge_supersample(camera: CameraModel, s: int, coef: np.ndarray, tri_colour:
     colour[ey, ex] = np.round(sub_colour.mean(axis=1)).astype(np.uint8)
 
 
+def _cast_shadow(grey: np.ndarray, camera: CameraModel, T_w_c: np.ndarray, geo: _TableGeometry,
+                 corners_w: np.ndarray, light_w: np.ndarray, strength: float) -> None:
+    """Darken the table image ``grey`` (H×W uint8, in place) where the meshes' shadow falls.
+
+    The shadow (:func:`~labctl.sim.effects.shadow_mask`, in table mm) is sampled at each pixel's
+    table point (the texture lookup's own map, so a window gets exactly the full frame's values),
+    only inside the image box of the shadow's bounds; radiance there × (1 − c·(1 − f)), c the
+    coverage, f the shadowed/lit ratio of the table's Lambert shading.
+    """
+    sm = shadow_mask(shadow_polygons_w(corners_w, light_w))
+    if sm is None:
+        return
+    x0, y0, x1, y1 = sm.bounds
+    gx, gy = np.meshgrid(np.linspace(x0, x1, 5), np.linspace(y0, y1, 5))
+    pts_w = np.stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)], axis=1)
+    T_c_w = invert(T_w_c)
+    P = pts_w @ T_c_w[:3, :3].T + T_c_w[:3, 3]
+    H, W = grey.shape
+    if np.all(P[:, 2] > _NEAR_MM):
+        px = camera.project(P)
+        if not np.all(np.isfinite(px)):
+            return
+        c0, r0 = (int(max(np.floor(v) - 2, 0)) for v in px.min(axis=0))
+        c1, r1 = (int(min(np.ceil(v) + 3, n)) for v, n in zip(px.max(axis=0), (W, H)))
+    else:  # part of the shadow behind the camera: test every pixel
+        c0, r0, c1, r1 = 0, 0, W, H
+    if c1 <= c0 or r1 <= r0:
+        return
+    wx = geo.map_x[r0:r1, c0:c1] * np.float32(_TEXTURE_MM_PER_TEXEL) - np.float32(_TEXTURE_SIZE * _TEXTURE_MM_PER_TEXEL)
+    wy = np.float32(_TEXTURE_SIZE * _TEXTURE_MM_PER_TEXEL) - geo.map_y[r0:r1, c0:c1] * np.float32(_TEXTURE_MM_PER_TEXEL)
+    cover = sm.sample(wx, wy)
+    f = np.float32(shadow_factor(light_w, _AMBIENT, strength))
+    patch = grey[r0:r1, c0:c1]
+    patch[...] = np.round(patch * (np.float32(1.0) - cover * (np.float32(1.0) - f))).astype(np.uint8)
+
+
 def _render_noiseless(camera: CameraModel, T_w_c: np.ndarray, meshes: Sequence[Mesh], table, light_w: np.ndarray,
-                      supersample: int):
+                      supersample: int, fx: CameraEffects | None = None):
     H, W = camera.height, camera.width
     T_c_w = invert(T_w_c)
+    corners_w, base_colour, _ = _gather_meshes(meshes)
     # table layer (uint8 BGR)
     if table is False or table is None:
         colour = np.zeros((H, W, 3), np.uint8)
@@ -585,19 +641,21 @@ def _render_noiseless(camera: CameraModel, T_w_c: np.ndarray, meshes: Sequence[M
         surface = table if isinstance(table, TableSurface) else TableSurface()
         geo = _table_geometry(camera, T_w_c)
         shade = surface.brightness * float(_lambert(np.array([[0.0, 0.0, 1.0]]), light_w)[0])
-        tex = _table_texture(surface.texture_seed, int(round(1000 * shade)))
+        contrast = 1000 if fx is None else int(round(1000 * fx.texture))
+        tex = _table_texture(surface.texture_seed, int(round(1000 * shade)), contrast)
         ox, oy = surface.origin_w
         map_x, map_y = geo.map_x, geo.map_y
         if ox or oy:
             map_x = map_x - np.float32(ox / _TEXTURE_MM_PER_TEXEL)
             map_y = map_y + np.float32(oy / _TEXTURE_MM_PER_TEXEL)
         grey = cv2.remap(tex, map_x, map_y, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+        if fx is not None and fx.shadows > 0 and len(corners_w):
+            _cast_shadow(grey, camera, T_w_c, geo, corners_w, light_w, fx.shadows)
         if not geo.all_hit:
             grey[~geo.hit] = 0
         colour = cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR)
         invz = geo.invz.copy()
     flat = colour.reshape(H * W, 3)
-    corners_w, base_colour, _ = _gather_meshes(meshes)
     tri_id = np.full(H * W, -1, np.int32)
     if len(corners_w):
         Pc = corners_w @ T_c_w[:3, :3].T + T_c_w[:3, 3]
@@ -607,6 +665,9 @@ def _render_noiseless(camera: CameraModel, T_w_c: np.ndarray, meshes: Sequence[M
             nw = _cross(cw[:, 1] - cw[:, 0], cw[:, 2] - cw[:, 0])
             nw /= np.maximum(np.linalg.norm(nw, axis=1, keepdims=True), 1e-300)
             tri_colour = (base_colour[idx] * _lambert(nw, light_w)[:, None]).astype(np.float32)
+            if fx is not None and fx.specular > 0:  # per face, viewed from its centroid
+                spec = blinn_phong(nw, cw.mean(axis=1), T_w_c[:3, 3], light_w, fx.specular, fx.shininess)
+                tri_colour = np.minimum(tri_colour + spec[:, None].astype(np.float32), np.float32(255.0))
             win_pix, win_tri = _rasterise(camera, coef, box, invz)
             if len(win_pix):
                 tri_id[win_pix] = win_tri
@@ -618,22 +679,28 @@ def _render_noiseless(camera: CameraModel, T_w_c: np.ndarray, meshes: Sequence[M
                 if supersample > 1:
                     _edge_supersample(camera, supersample, coef, tri_colour, colour, tri_id, table_roi, roi)
     markers = [mk for m in meshes for mk in m.markers]
-    counts = _marker_pass(camera, T_c_w, light_w, markers, colour, invz) if markers else []
+    counts = _marker_pass(camera, T_c_w, light_w, markers, colour, invz, fx) if markers else []
     return _Layer(colour=colour, tri_id=tri_id, invz=invz, marker_pixels=counts), T_c_w, markers
 
 
-def _window_fill(table, light_w: np.ndarray) -> int:
-    """Grey level outside a window: the lit table texture's mean (0 without a table)."""
+def _window_fill(table, light_w: np.ndarray, fx: CameraEffects | None = None) -> int:
+    """Grey level outside a window: the lit table texture's mean (0 without a table), as the
+    camera encodes it."""
     if table is False or table is None:
-        return 0
-    surface = table if isinstance(table, TableSurface) else TableSurface()
-    shade = surface.brightness * float(_lambert(np.array([[0.0, 0.0, 1.0]]), light_w)[0])
-    return _texture_mean(surface.texture_seed, int(round(1000 * shade)))
+        fill = 0
+    else:
+        surface = table if isinstance(table, TableSurface) else TableSurface()
+        shade = surface.brightness * float(_lambert(np.array([[0.0, 0.0, 1.0]]), light_w)[0])
+        contrast = 1000 if fx is None else int(round(1000 * fx.texture))
+        fill = _texture_mean(surface.texture_seed, int(round(1000 * shade)), contrast)
+    if fx is not None and fx.encode_lut is not None:
+        fill = int(fx.encode_lut[fill])
+    return fill
 
 
 @lru_cache(maxsize=8)
-def _texture_mean(seed: int, shade_milli: int) -> int:
-    return int(round(float(_table_texture(seed, shade_milli).mean())))
+def _texture_mean(seed: int, shade_milli: int, contrast_milli: int = 1000) -> int:
+    return int(round(float(_table_texture(seed, shade_milli, contrast_milli).mean())))
 
 
 def render(
@@ -649,6 +716,7 @@ def render(
     truth: bool = False,
     supersample: int = 3,
     window: tuple[int, int, int, int] | None = None,
+    effects: CameraEffects | None = None,
 ) -> RenderResult:
     """Render what ``camera`` at pose ``T_w_c`` (camera → world, mm) sees of ``meshes`` (world frame).
 
@@ -663,7 +731,11 @@ def render(
     those pixels, bit-for-bit as the full frame has them there (same rays, z-buffer and noise
     draws from ``rng``); the rest of the image is the lit table's mean grey without noise. For a
     consumer that reads only the window (the fixed camera's tracker looks for red markers, which
-    are all on the object); not with ``truth``.
+    are all on the object); not with ``truth``. ``effects``: a realistic camera and scene
+    (:class:`~labctl.sim.effects.CameraEffects`: cast shadows, specular highlights, table
+    texture, then on the noisy linear frame Bayer demosaicing, the response curve and JPEG);
+    None or all off renders exactly as without. With Bayer or JPEG a window is rendered larger
+    and on the 16 px grid, so its pixels still equal the full frame's.
 
     Geometry: Tsai's camera model (Tsai 1987 §II) applied per pixel; markers are the circular
     premarks of He et al. 1996 §2.
@@ -678,6 +750,7 @@ def render(
     if not np.all(np.isfinite(light_w)) or np.linalg.norm(light_w) == 0:
         raise RenderError("light_dir_w must be a finite non-zero vector")
     light_w = light_w / np.linalg.norm(light_w)
+    fx = effects if effects is not None and effects.any else None
     H, W = camera.height, camera.width
     full_camera, wx0, wy0 = camera, 0, 0
     if window is not None:
@@ -690,15 +763,18 @@ def render(
         wx0, wy0, wx1, wy1 = max(wx0, 0), max(wy0, 0), min(wx1, W), min(wy1, H)
         if wx1 - wx0 < 3 or wy1 - wy0 < 3:  # nothing (or a sliver) to draw: the mean grey, the noise draws kept
             wx0, wy0, wx1, wy1 = 0, 0, 3, 3
+        keep = (wx0, wy0, wx1, wy1)
+        if fx is not None and fx.needs_neighbourhood:
+            wx0, wy0, wx1, wy1 = expand_window(keep, W, H)
         camera = _window_camera(full_camera, (wx0, wy0, wx1, wy1))
     h, w = camera.height, camera.width
 
-    layer, T_c_w, markers = _render_noiseless(camera, T_w_c, meshes, table, light_w, supersample)
+    layer, T_c_w, markers = _render_noiseless(camera, T_w_c, meshes, table, light_w, supersample, fx)
     img = layer.colour
     if exposure_motion:
         acc = img.astype(np.float32)
         for T_sub, meshes_sub in exposure_motion:
-            sub, _, _ = _render_noiseless(camera, _check_pose(T_sub), meshes_sub, table, light_w, supersample)
+            sub, _, _ = _render_noiseless(camera, _check_pose(T_sub), meshes_sub, table, light_w, supersample, fx)
             acc += sub.colour
         img = acc / np.float32(1 + len(exposure_motion))
     if noise_sigma > 0:
@@ -713,10 +789,13 @@ def render(
         image = cv2.convertScaleAbs(img)
     else:
         image = img
+    if fx is not None:
+        image = camera_pipeline(image, fx)
     if window is not None:
         full = np.empty((H, W, 3), np.uint8)
-        full[...] = _window_fill(table, light_w)
-        full[wy0:wy0 + h, wx0:wx0 + w] = image
+        full[...] = _window_fill(table, light_w, fx)
+        kx0, ky0, kx1, ky1 = keep
+        full[ky0:ky1, kx0:kx1] = image[ky0 - wy0:ky1 - wy0, kx0 - wx0:kx1 - wx0]
         image = full
     result = RenderResult(image=image)
     if truth:

@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..geometry import CameraModel, apply, invert, look_at, make_T, rot_z, rotate
+from .effects import CameraEffects
 from .render import DEFAULT_LIGHT_DIR_W, MarkerDisc, Mesh, RenderResult, TableSurface, render
 
 CAMERA_ROLES = ("fixed", "mobile")
@@ -137,12 +138,14 @@ class CameraRig:
     """One camera of the world: its true model, sensor noise (grey levels) and exposure (s, 0: no blur).
 
     With an exposure, ``blur_samples`` (rounded down to even, plus the middle) sub-frames spread
-    over it are averaged; the frame's time stamp is the exposure's middle."""
+    over it are averaged; the frame's time stamp is the exposure's middle. ``effects``: what a
+    realistic camera and scene add (:class:`~labctl.sim.effects.CameraEffects`; None: nothing)."""
 
     model: CameraModel
     noise_sigma: float = 2.0
     exposure_s: float = 0.0
     blur_samples: int = 4
+    effects: CameraEffects | None = None
 
 
 @dataclass
@@ -280,7 +283,8 @@ class SimWorld:
             window = self.object_window(role, states)
         return render(rig.model, T_w_c, meshes, table=self.table_surface(t), light_dir_w=self.light_dir_w,
                       noise_sigma=rig.noise_sigma, rng=rng, exposure_motion=blur, truth=truth,
-                      supersample=self.supersample if supersample is None else supersample, window=window)
+                      supersample=self.supersample if supersample is None else supersample, window=window,
+                      effects=rig.effects)
 
     _WINDOW_MARGIN_PX = 8  # > the marker pass's 3 px and the anti-aliasing's 1 px, plus distortion's bow
 
@@ -329,6 +333,7 @@ class SimWorld:
         Defaults: the table held at the centre of its travel, the robot at home looking at the
         table's centre (:func:`home_flange_pose`).
         """
+        from .effects import effects_from_lab
         from .truth import camera_model, fixed_camera_pose, hand_eye
 
         T_f_c2 = hand_eye(lab.mobile_camera)
@@ -338,8 +343,10 @@ class SimWorld:
         if flange_pose_at is None:
             flange_pose_at = _constant(home_flange_pose(lab, T_f_c2))
         return cls(
-            fixed=CameraRig(camera_model(lab.fixed_camera), lab.fixed_camera.noise_sigma, exposure_s),
-            mobile=CameraRig(camera_model(lab.mobile_camera), lab.mobile_camera.noise_sigma, exposure_s),
+            fixed=CameraRig(camera_model(lab.fixed_camera), lab.fixed_camera.noise_sigma, exposure_s,
+                            effects=effects_from_lab(lab, lab.fixed_camera)),
+            mobile=CameraRig(camera_model(lab.mobile_camera), lab.mobile_camera.noise_sigma, exposure_s,
+                             effects=effects_from_lab(lab, lab.mobile_camera)),
             T_w_c1=fixed_camera_pose(lab.fixed_camera), T_f_c2=T_f_c2, table_origin_w=lab.table.origin_w_mm,
             table_position=table_position, flange_pose_at=flange_pose_at, obj=obj, placement=placement,
             supersample=supersample,
