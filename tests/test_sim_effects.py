@@ -209,14 +209,21 @@ def test_virtual_run_with_the_realistic_camera_identifies_its_object(tmp_path):
 
 
 def test_realistic_run_falls_back_to_a_suspect_marker_when_the_trusted_one_is_ambiguous(tmp_path):
+    # (with the marker-height gate off: the gate alone tells angle_short from tee in this placement)
     # seed 1008 places angle_short so that, in JPEG frames, only its top marker is trusted (the side
     # marker is flagged rough/blurred) and the top's standard view cannot tell it from tee; re-viewing
     # the same marker failed ("still ambiguous after 3 standard views") before the recogniser took
     # the more novel suspect marker as a last resort
+    import yaml
+
     from labctl.workers.context import RunContext
     from labctl.workers.virtual import TrialSpec, simulate_run
 
-    lab = load_lab(init_workspace(tmp_path / "lab", preset="realistic-camera"))
+    root = init_workspace(tmp_path / "lab", preset="realistic-camera")
+    cfg = yaml.safe_load((root / "lab.yaml").read_text())
+    cfg.setdefault("run", {})["height_gate_mm"] = 0.0  # the marker height alone would resolve it at once
+    (root / "lab.yaml").write_text(yaml.safe_dump(cfg))
+    lab = load_lab(root)
     res = simulate_run(lab, RunContext.load(lab), TrialSpec("line", 8.0, "angle_short", 1008))
     assert res["failure"] is None, res
     assert res["correct"] is True and res["views"] == 2
