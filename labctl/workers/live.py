@@ -554,7 +554,7 @@ class _TruthLog:
 
     def _robot_stop(self) -> list[float] | None:
         """[received, still] (s, run clock) of the robot controller's latest STOP: the emulator brakes
-        on its own profile (a quintic of max(2v/a_max, 1.5ω/ω_max) s), which no controller can shorten."""
+        on its stop ramp (each axis at a_stop = a_max/√3, docs/protocols/robot.md §Stopping)."""
         emu = getattr(self.sim, "robot_emu", None)
         if emu is None:
             return None
