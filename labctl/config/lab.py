@@ -75,6 +75,9 @@ class RunConfig:
     max_views: PositiveInt = 3
     second_image_azimuth_deg: float = 25.0  # camera moves this far round the marker between the two images
     fps: Positive = 30.0
+    # the robot must be able to brake to rest within this many seconds from any point of a planned move
+    # (issue 13: at rest within 0.5 s of a stop command): caps the planned speed at a_stop·budget (null: no cap)
+    robot_stop_budget_s: Positive | None = None
 
 
 @dataclass(frozen=True)
