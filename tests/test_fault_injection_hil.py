@@ -5,8 +5,9 @@
 emulators on ptys, the cameras as MJPEG streams, and a truth log of the emulators' motion
 sampled every 10 ms on CLOCK_MONOTONIC. ``DIR`` is a lab whose drivers are ``grbl``, ``serial``
 and ``stream`` only, with the calibration copied from the sample lab (it describes the served
-world). Each case puts the table back at the start (``table move --unlock``: a stop in motion
-leaves GRBL in Alarm, as real GRBL does), starts ``labctl run`` in its own session, strikes with
+world). Each case first does what an operator does after an emergency stop (the table back at the
+start with ``table move --unlock``: a stop in motion leaves GRBL in Alarm, as real GRBL does; the
+robot controller's latched STOP cleared), starts ``labctl run`` in its own session, strikes with
 one signal at one stage (tests/fault_harness.py, shared with the live simulated lab's table), and
 checks issue 13's promises against the served truth, which no labctl process writes.
 
@@ -38,6 +39,22 @@ def served(tmp_path_factory):
     with Served(root / "served", "--object", "tee", "--seed", "3", "--truth-log", str(truth)) as s:
         assert s.info["truth_log"] == str(truth)
         yield s, truth
+
+
+def _ready_for_a_run(lab: Path) -> None:
+    """What the operator does after an emergency stop, before the next run: the table back at the line's
+    start (``table move --unlock``: a stop in motion left GRBL in Alarm) and the robot controller's
+    latched stop cleared (``CLEAR``, through the real driver; a run never clears it by itself: E41)."""
+    from labctl.config import load_lab
+    from labctl.drivers.robot import SerialRobot
+
+    _unlock_at(lab, 150, 200)
+    robot = SerialRobot.from_config(load_lab(lab).robot)
+    robot.open()
+    try:
+        robot.clear()
+    finally:
+        robot.close()
 
 
 def _truth_rows(path: Path) -> list[dict]:
@@ -75,7 +92,7 @@ def test_truth_log_sees_a_table_move_it_was_not_told_about(served):
 @pytest.mark.parametrize("fault,target,stage", CASES)
 def test_hil_fault_stops_everything_within_half_a_second(served, fault, target, stage):
     s, truth_log = served
-    _unlock_at(s.out, 150, 200)  # the start of the line; a stop in motion left GRBL in Alarm
+    _ready_for_a_run(s.out)
     got = inject(s.out, fault, target, stage)
     _settled_truth(truth_log)
     truth = read_truth_log(truth_log, got["origin"], got["mono_start"], time.monotonic())
