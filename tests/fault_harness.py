@@ -178,9 +178,11 @@ def read_truth_log(path: Path, origin: float, mono_from: float, mono_to: float) 
     rows = []
     for text in Path(path).read_text().splitlines():
         try:
-            rows.append(json.loads(text))
+            row = json.loads(text)
         except ValueError:  # the line being written right now
             continue
+        if "robot_moving" in row:  # not the closing summary line
+            rows.append(row)
     before = [r for r in rows if r["mono"] < mono_from]
     window = before[-1:] + [r for r in rows if mono_from <= r["mono"] <= mono_to]
     return [{"event": "sim_truth", "t": r["mono"] - origin, "robot_moving": r["robot_moving"],

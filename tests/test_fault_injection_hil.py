@@ -58,7 +58,7 @@ def _ready_for_a_run(lab: Path) -> None:
 
 
 def _truth_rows(path: Path) -> list[dict]:
-    return [json.loads(x) for x in path.read_text().splitlines() if x.endswith("}")]
+    return [r for r in (json.loads(x) for x in path.read_text().splitlines() if x.endswith("}")) if "robot_moving" in r]
 
 
 def _settled_truth(path: Path, timeout_s: float = 5.0) -> None:

@@ -394,7 +394,8 @@ class TruthLogger:
     controller began braking and when it is at rest). Each line is one ``os.write`` on an
     ``O_APPEND`` descriptor: a reader never sees half a line except the one being written.
     Resolution: the sampling period, plus the sample's own time under load (``period_s`` bounds it
-    only on an idle machine; ``mono`` is taken after the sample, so a change is never early).
+    only on an idle machine; ``mono`` is taken after the sample, so a change is never early); the
+    last line, written on exit, gives the longest gap between samples.
     """
 
     def __init__(self, lab: LiveSimLab, path, period_s: float = 0.01):
@@ -406,7 +407,9 @@ class TruthLogger:
         self._halt = threading.Event()
         self._thread = threading.Thread(target=self._loop, name="truth-log", daemon=True)
         self.lines = 0
+        self.samples = 0
         self.max_gap_s = 0.0  # the longest time between two samples (the log's real resolution)
+        self.gaps_over_20ms = 0
 
     def start(self) -> TruthLogger:
         self._thread.start()
@@ -433,15 +436,25 @@ class TruthLogger:
             key = (line["robot_moving"], line["table_moving"], line["table_state"], line["robot_stop"])
             if last_t is not None:
                 self.max_gap_s = max(self.max_gap_s, line["mono"] - last_t)
+                self.gaps_over_20ms += line["mono"] - last_t > 0.02
             last_t = line["mono"]
+            self.samples += 1
             if key != last_key:
                 last_key = key
                 self._write(line)
             self._halt.wait(self.period_s)
 
     def stop(self) -> None:
+        """Stop sampling; the last line says how well the log kept its period: ``{"mono", "end": true,
+        "samples", "max_gap_s", "gaps_over_20ms"}`` (no ``robot_moving``: readers of motion skip it)."""
+        import contextlib
+        import time
+
         self._halt.set()
         self._thread.join(timeout=2.0)
+        with contextlib.suppress(OSError):
+            self._write({"mono": round(time.monotonic(), 4), "end": True, "samples": self.samples,
+                         "max_gap_s": round(self.max_gap_s, 4), "gaps_over_20ms": self.gaps_over_20ms})
         os.close(self._fd)
 
 
