@@ -26,6 +26,8 @@ from labctl.workers.stopping import still_after
 STAGES = {  # when to strike: the first event of the run that matches
     "wait": lambda e: e["event"] == "table_program",
     "intercept": lambda e: e["event"] == "segment",
+    # halfway through the first robot segment (its peak speed, a rest-to-rest quintic): the longest braking
+    "cruise": lambda e: e["event"] == "segment",
     "standard": lambda e: e["event"] == "stage" and e.get("stage") == "standard",
 }
 # (fault, target) -> exit status; -9: the supervisor itself is killed (the shell reports -9)
@@ -102,6 +104,9 @@ def inject(lab: Path, fault: str, target: str, stage: str, seed: int = 3) -> dic
         run_dir, events = _wait_for_stage(lab, before, stage, p, 150)
         started = {e["role"]: e for e in events if e["event"] == "worker_started"}
         origin = started["predictor"]["origin"]
+        if stage == "cruise":
+            seg = next(e for e in events if STAGES[stage](e))
+            time.sleep(max(0.0, origin + 0.5 * (seg["t"] + seg["t_end"]) - time.monotonic()))
         pid = p.pid if target in ("supervisor", "group") else started[target]["pid"]
         t_fault = time.monotonic() - origin
         sig = getattr(signal, fault)

@@ -27,7 +27,7 @@ from test_hil import Served, _unlock_at
 
 pytestmark = pytest.mark.skipif(sys.platform != "linux", reason="ptys and the served lab need Linux")
 
-DEFAULT_CASES = [("SIGINT", "group", "intercept"), ("SIGSTOP", "predictor", "intercept"),
+DEFAULT_CASES = [("SIGINT", "group", "cruise"), ("SIGSTOP", "predictor", "intercept"),
                  ("SIGKILL", "supervisor", "wait")]
 CASES = ALL_CASES if FULL else DEFAULT_CASES
 
