@@ -96,5 +96,4 @@ def test_hil_fault_stops_everything_within_half_a_second(served, fault, target, 
     got = inject(s.out, fault, target, stage)
     _settled_truth(truth_log)
     truth = read_truth_log(truth_log, got["origin"], got["mono_start"], time.monotonic())
-    assert any(e["robot_moving"] for e in truth) or stage == "wait", "the served robot never moved"
     check_fault(got, fault, target, stage, truth=truth, setup="hil")
