@@ -97,3 +97,15 @@ def test_hil_fault_stops_everything_within_half_a_second(served, fault, target, 
     _settled_truth(truth_log)
     truth = read_truth_log(truth_log, got["origin"], got["mono_start"], time.monotonic())
     check_fault(got, fault, target, stage, truth=truth, setup="hil")
+
+
+def test_truth_log_in_a_missing_folder_is_bad_input(capsys, tmp_path):
+    from fakes import run_cli
+
+    from labctl.workspace import sample_lab_path
+
+    code, out, err = run_cli(capsys, "--lab", str(sample_lab_path()), "sim", "serve", "--truth-log",
+                             str(tmp_path / "no-such-folder" / "truth.jsonl"))
+    assert code == 2 and out == "", (code, out, err)
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and "no-such-folder" in lines[0] and "Traceback" not in err
