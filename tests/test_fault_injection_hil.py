@@ -11,7 +11,7 @@ robot controller's latched STOP cleared), starts ``labctl run`` in its own sessi
 one signal at one stage (tests/fault_harness.py, shared with the live simulated lab's table), and
 checks issue 13's promises against the served truth, which no labctl process writes.
 
-Default: three cases; ``LABCTL_FAULT_TABLE=full``: every signal × target × stage.
+Default: two cases; ``LABCTL_FAULT_TABLE=full``: every signal × target × stage.
 """
 
 from __future__ import annotations
@@ -27,8 +27,8 @@ from test_hil import Served, _unlock_at
 
 pytestmark = pytest.mark.skipif(sys.platform != "linux", reason="ptys and the served lab need Linux")
 
-DEFAULT_CASES = [("SIGINT", "group", "cruise"), ("SIGSTOP", "predictor", "intercept"),
-                 ("SIGKILL", "supervisor", "wait")]
+# the live table's default set also has SIGKILL of the supervisor; here two cases keep CI short (~15 s each)
+DEFAULT_CASES = [("SIGINT", "group", "cruise"), ("SIGSTOP", "predictor", "intercept")]
 CASES = ALL_CASES if FULL else DEFAULT_CASES
 
 
@@ -78,7 +78,6 @@ def test_truth_log_sees_a_table_move_it_was_not_told_about(served):
     s, truth = served
     before = time.monotonic()
     _unlock_at(s.out, 200, 230)
-    _unlock_at(s.out, 150, 200)
     after = time.monotonic()
     _settled_truth(truth)
     rows = [r for r in _truth_rows(truth) if before <= r["mono"] <= after + 0.5]
