@@ -17,6 +17,7 @@ Default: two cases; ``LABCTL_FAULT_TABLE=full``: every signal × target × stage
 from __future__ import annotations
 
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -36,7 +37,8 @@ CASES = ALL_CASES if FULL else DEFAULT_CASES
 def served(tmp_path_factory):
     root = tmp_path_factory.mktemp("hil_faults")
     truth = root / "truth.jsonl"
-    with Served(root / "served", "--object", "tee", "--seed", "3", "--truth-log", str(truth)) as s:
+    tcp = ("--tcp",) if os.environ.get("LABCTL_FAULT_HIL_TCP") == "1" else ()  # devices behind a ser2net-style bridge
+    with Served(root / "served", "--object", "tee", "--seed", "3", "--truth-log", str(truth), *tcp) as s:
         assert s.info["truth_log"] == str(truth)
         yield s, truth
 
