@@ -40,9 +40,12 @@ def sim_group() -> None:
 @click.option("--scene", type=click.Choice(["object", "calibration"]), default="object", show_default=True,
               help="What the table carries at first: the run's object, or the lab's calibration target "
                    "(switch later with `labctl sim place-target` / `labctl sim scene`).")
+@click.option("--truth-log", "truth_log", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Append the served table's and robot's motion (moving/still, GRBL state, the robot's stop ramp; "
+                   "CLOCK_MONOTONIC) to this file as JSON lines, sampled from the emulators every 10 ms.")
 @json_option
 def sim_serve(baud, tcp, lab_out, force, seed, object_name, trajectory, conveyor, conveyor_delay, speed, http_port,
-              jpeg_quality, fps, scene) -> None:
+              jpeg_quality, fps, scene, truth_log) -> None:
     """Serve the simulated lab out of process in real time, from one world, until Ctrl-C.
 
     The GRBL table and robot controller emulators on pseudo-terminals (or TCP ports), and both
@@ -67,6 +70,8 @@ def sim_serve(baud, tcp, lab_out, force, seed, object_name, trajectory, conveyor
         names = sorted(load_library(lab.library_dir))
         if object_name not in names:
             raise UserInputError(f"no object {object_name!r} in the library (have: {', '.join(names)})")
+    if truth_log is not None and not truth_log.parent.is_dir():
+        raise UserInputError(f"--truth-log: no folder {truth_log.parent}")
     if lab_out is not None and lab_out.exists() and any(lab_out.iterdir()) and not (
             force and (lab_out / "served_truth.json").is_file()):
         raise UserInputError(f"--lab-out {lab_out} is not empty; not overwriting it")
@@ -82,6 +87,12 @@ def sim_serve(baud, tcp, lab_out, force, seed, object_name, trajectory, conveyor
     try:
         with ServedLab(lab, spec) as served:
             info = served.endpoints()
+            if truth_log is not None:
+                try:
+                    served.log_truth(truth_log)
+                except OSError as exc:
+                    raise UserInputError(f"--truth-log {truth_log}: {exc.strerror or exc}") from None
+                info["truth_log"] = str(truth_log)
             if lab_out is not None:
                 info["lab_out"] = str(write_served_lab(lab, lab_out, served, force=force))
             info["object"] = served.object_name

@@ -87,6 +87,9 @@ class RunConfig:
     replan_until_s: NonNegative = 0.4  # ... and not in the last this-many seconds before arrival
     marker_lost_s: Positive = 2.0  # no fixed-camera sighting for this long: the marker is lost
     spare_novelty_deg: NonNegative = 20.0  # a spare marker facing within this of a viewed face is not worth a view
+    # the robot must be able to brake to rest within this many seconds from any point of a planned move
+    # (issue 13: at rest within 0.5 s of a stop command): caps the planned speed at a_stop·budget (null: no cap)
+    robot_stop_budget_s: Positive | None = None
 
 
 SIM_CAMERA_PRESETS = ("none", "realistic")

@@ -586,7 +586,7 @@ class _TruthLog:
 
     def _robot_stop(self) -> list[float] | None:
         """[received, still] (s, run clock) of the robot controller's latest STOP: the emulator brakes
-        on its own profile (a quintic of max(2v/a_max, 1.5ω/ω_max) s), which no controller can shorten."""
+        on its stop ramp (each axis at a_stop = a_max/√3, docs/protocols/robot.md §Stopping)."""
         emu = getattr(self.sim, "robot_emu", None)
         if emu is None:
             return None
@@ -853,9 +853,21 @@ class LiveRun:
 
     def _abort(self, lab, exc, endpoints, procs, controls, sim_conn, origin) -> RunAborted:
         """Stop everything after a dead/hung worker, Ctrl-C or SIGTERM; confirm it; record it."""
-        from .stopping import confirm_stopped, confirmed, send_stop_bytes, summary
+        from .stopping import _ports, confirm_stopped, confirmed, send_stop_bytes, summary
 
         t0 = time.monotonic()
+        hung = exc.role if isinstance(exc, WorkerDied) and exc.hung else None
+
+        def signal_workers():  # a live worker stops its own devices on SIGTERM; a hung one is killed
+            for role, p in procs.items():
+                if p.is_alive():
+                    p.kill() if role == hung or _stopped(p.pid) else p.terminate()
+
+        # A port without a stop line of our own (a network URL: a ser2net-style server takes one client,
+        # the worker's) cannot take our stop bytes while a worker holds it: the workers' own stop comes first.
+        shared = bool(set(_ports(lab, endpoints)) - set(self._stop_fds))
+        if shared:
+            signal_workers()
         sent = send_stop_bytes(lab, endpoints, fds=self._stop_fds)  # motion ends now, whatever the workers do
         t_sent = time.monotonic() - t0
         after = None
@@ -868,16 +880,15 @@ class LiveRun:
                 time.sleep(0.01)
             if after is not None:
                 after["still_after_s"] = time.monotonic() - t0
-        hung = exc.role if isinstance(exc, WorkerDied) and exc.hung else None
-        for role, p in procs.items():  # a live worker stops its own devices on SIGTERM; a hung one is killed
-            if p.is_alive():
-                p.kill() if role == hung or _stopped(p.pid) else p.terminate()
+        signal_workers()
         deadline = time.monotonic() + 8.0
         for p in procs.values():
             p.join(timeout=max(0.0, deadline - time.monotonic()))
             if p.is_alive():
                 p.kill()
                 p.join(timeout=2)
+        if shared:  # the workers are gone and the ports free: the stop bytes now reach every device
+            sent = send_stop_bytes(lab, endpoints, fds=self._stop_fds)
         worker_outcomes = {}
         for role, conn in controls.items():
             with contextlib.suppress(EOFError, OSError):

@@ -258,6 +258,13 @@ class LiveSimLab:
         return {"t": self.clock.now(), "robot_moving": robot_moving, "table_moving": table_moving,
                 "table_state": table_state}
 
+    def robot_stop(self) -> list[float] | None:
+        """``[start, end]`` (s, this lab's clock) of the robot controller's latest stop ramp — the braking
+        that follows a received ``STOP`` (or the controller's own watchdog): None before any."""
+        with self.robot_pty.lock:
+            stops = [(s.t0, s.t1) for s in self.robot_emu.segments if s.seg_id == -1]
+        return list(stops[-1]) if stops else None
+
 
 class ServedLab(LiveSimLab):
     """``labctl sim serve``: the whole simulated lab out of process, in real time, from one world.
@@ -390,6 +397,12 @@ class ServedLab(LiveSimLab):
                 "fixed_camera": self.mjpeg.url("fixed"), "mobile_camera": self.mjpeg.url("mobile"),
                 "scene_control": self.mjpeg.control_url("scene"), "link_control": self.mjpeg.control_url("link")}
 
+    def log_truth(self, path, period_s: float = 0.01) -> TruthLogger:
+        """Start logging the served devices' motion to ``path`` (:class:`TruthLogger`); stopped on exit."""
+        logger = TruthLogger(self, path, period_s).start()
+        self._stack.callback(logger.stop)
+        return logger
+
     def check_alive(self) -> None:
         """Raise if an emulator's thread died (the served lab would silently stop answering)."""
         for role, dev in (("table", self.table_pty), ("robot", self.robot_pty)):
@@ -419,6 +432,85 @@ class ServedLab(LiveSimLab):
             "scene": self.spec.get("scene") or "object",
             "calibration_target": self.target.kind,
         }
+
+
+class TruthLogger:
+    """The served world's ground truth of motion as JSON lines (``sim serve --truth-log FILE``, issue 13).
+
+    A thread samples the emulators themselves — not any driver or labctl process — every
+    ``period_s`` (default 10 ms) and appends one line per change, plus a first line when it starts:
+    ``{"mono": s, "t": s, "robot_moving": bool, "table_moving": bool, "table_state": GRBL state,
+    "robot_stop": [start, end] | null}``. ``mono`` is CLOCK_MONOTONIC (``time.monotonic()``, shared
+    by every process on the host, so a run's record converts it with its own ``origin``); ``t`` is
+    the served lab's clock; ``robot_stop`` is the latest stop ramp on CLOCK_MONOTONIC (when the
+    controller began braking and when it is at rest). Each line is one ``os.write`` on an
+    ``O_APPEND`` descriptor: a reader never sees half a line except the one being written.
+    Resolution: the sampling period, plus the sample's own time under load (``period_s`` bounds it
+    only on an idle machine; ``mono`` is taken after the sample, so a change is never early); the
+    last line, written on exit, gives the longest gap between samples.
+    """
+
+    def __init__(self, lab: LiveSimLab, path, period_s: float = 0.01):
+        import threading
+
+        self.lab, self.period_s = lab, float(period_s)
+        self._fd = os.open(os.fspath(path), os.O_WRONLY | os.O_CREAT | os.O_APPEND | getattr(os, "O_CLOEXEC", 0),
+                           0o666)
+        self._halt = threading.Event()
+        self._thread = threading.Thread(target=self._loop, name="truth-log", daemon=True)
+        self.lines = 0
+        self.samples = 0
+        self.max_gap_s = 0.0  # the longest time between two samples (the log's real resolution)
+        self.gaps_over_20ms = 0
+
+    def start(self) -> TruthLogger:
+        """Start sampling in a daemon thread; returns self."""
+        self._thread.start()
+        return self
+
+    def sample(self) -> dict:
+        """The served devices' state now: monotonic time (s), robot/table moving, GRBL state, and the
+        robot's stop ramp [start, end] (monotonic s) if one ran."""
+        st = self.lab.device_state()
+        ramp = self.lab.robot_stop()
+        origin = self.lab.origin
+        return {"mono": round(st["t"] + origin, 4), "t": round(st["t"], 4), "robot_moving": st["robot_moving"],
+                "table_moving": st["table_moving"], "table_state": st["table_state"],
+                "robot_stop": None if ramp is None else [round(ramp[0] + origin, 4), round(ramp[1] + origin, 4)]}
+
+    def _write(self, line: dict) -> None:
+        import json
+
+        os.write(self._fd, (json.dumps(line) + "\n").encode())
+        self.lines += 1
+
+    def _loop(self) -> None:
+        last_key, last_t = None, None
+        while not self._halt.is_set():
+            line = self.sample()
+            key = (line["robot_moving"], line["table_moving"], line["table_state"], line["robot_stop"])
+            if last_t is not None:
+                self.max_gap_s = max(self.max_gap_s, line["mono"] - last_t)
+                self.gaps_over_20ms += line["mono"] - last_t > 0.02
+            last_t = line["mono"]
+            self.samples += 1
+            if key != last_key:
+                last_key = key
+                self._write(line)
+            self._halt.wait(self.period_s)
+
+    def stop(self) -> None:
+        """Stop sampling; the last line says how well the log kept its period: ``{"mono", "end": true,
+        "samples", "max_gap_s", "gaps_over_20ms"}`` (no ``robot_moving``: readers of motion skip it)."""
+        import contextlib
+        import time
+
+        self._halt.set()
+        self._thread.join(timeout=2.0)
+        with contextlib.suppress(OSError):
+            self._write({"mono": round(time.monotonic(), 4), "end": True, "samples": self.samples,
+                         "max_gap_s": round(self.max_gap_s, 4), "gaps_over_20ms": self.gaps_over_20ms})
+        os.close(self._fd)
 
 
 def write_served_lab(lab: Lab, out, served: ServedLab, *, force: bool = False):

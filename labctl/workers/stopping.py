@@ -58,7 +58,7 @@ def stop_table(table) -> dict:
 
 
 #: how long a robot may take to brake after STOP before it counts as not stopped (s); the simulated
-#: controller brakes on a quintic of up to 1.5 s
+#: controller's stop ramp (docs/protocols/robot.md §Stopping) lasts max(|v_i|/a_stop, ‖ω‖/alpha_stop)
 ROBOT_BRAKE_LIMIT_S = 3.0
 
 
@@ -291,15 +291,18 @@ def confirm_stopped(lab, endpoints: Mapping) -> list[dict]:
 # ---- reading the simulator's ground truth back (tests, notes) ----------------------------------------
 
 def still_after(events: list[dict], t_stop: float) -> dict[str, float]:
-    """Seconds after ``t_stop`` at which the ground truth last saw each device stop for good (0 if it
-    was already still); raises if a device is still moving at the end of the log.
-
-    The robot's entry discounts the controller's own braking: the emulator brings the flange to rest
-    on a quintic of max(2v/a_max, 1.5ω/ω_max) s (up to 1.5 s at full turning speed) once STOP is
-    received; what the labctl side controls is how soon that STOP arrives (``robot_stop`` =
-    [received, still] in the ground truth)."""
+    """Seconds after the first stop command ``t_stop`` (s, the run's clock) at which the simulator's
+    ground truth saw each device come to rest for good: ``{"robot": s, "table": s}``, 0 if it was
+    already still. ``events`` are ``sim_truth`` transitions (``t``, ``robot_moving``,
+    ``table_moving``; others ignored), from the live simulated lab's record or a served lab's truth
+    log (:class:`labctl.workers.simlab.TruthLogger`) put on the run's clock. The robot counts as
+    still only when its controller's stop ramp has ended (the flange at rest), not when ``STOP``
+    arrived. Also, where the truth carries the robot's stop ramps (``robot_stop`` = [start, end]):
+    ``robot_stop_received_s``, from ``t_stop`` to the first ramp that began after it, and
+    ``robot_braking_s``, that ramp's length. Raises ValueError if a device is still moving at the
+    end of the log (issue 13's fault table)."""
     truth = [e for e in events if e["event"] == "sim_truth"]
-    out = {}
+    out: dict[str, float] = {}
     for dev in ("robot", "table"):
         moving = [i for i, e in enumerate(truth) if e[f"{dev}_moving"]]
         if not moving:
@@ -308,12 +311,10 @@ def still_after(events: list[dict], t_stop: float) -> dict[str, float]:
         last = moving[-1]
         if last + 1 >= len(truth):
             raise ValueError(f"the {dev} is still moving at the end of the ground truth")
-        t_still = truth[last + 1]["t"]
-        # the first STOP the robot controller received after the stop command, and the braking that followed
-        stops = sorted({tuple(e["robot_stop"]) for e in truth if dev == "robot" and e.get("robot_stop")
-                        and e["robot_stop"][0] >= t_stop - 0.05})
-        if stops and t_still <= max(s[1] for s in stops) + 0.3:
-            out["robot_braking_s"] = t_still - stops[0][0]
-            t_still = stops[0][0]  # at rest once the controller's braking profile ends, as sampled
-        out[dev] = max(0.0, t_still - t_stop)
+        out[dev] = max(0.0, truth[last + 1]["t"] - t_stop)
+    ramps = sorted({tuple(e["robot_stop"]) for e in truth if e.get("robot_stop")
+                    and e["robot_stop"][0] >= t_stop - 0.05})
+    if ramps:
+        out["robot_stop_received_s"] = max(0.0, ramps[0][0] - t_stop)
+        out["robot_braking_s"] = ramps[0][1] - ramps[0][0]
     return out
