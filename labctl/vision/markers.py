@@ -718,8 +718,8 @@ def find_markers(image_bgr, *, hue_range_deg=(-15.0, 15.0), min_saturation: floa
         # instead (the sub-pixel edge still reads the original pixels)
         found2, rejected2, largest2, _ = search(_red_mask(cv2.blur(sub, (3, 3)), hue_range_deg, min_saturation,
                                                           min_value))
-        if sum(m.trusted for m in found2) > sum(m.trusted for m in found) or (found2 and not found):
-            found, rejected, largest = found2, rejected2, largest2
+        found, rejected = _merge_searches(found, rejected, found2, rejected2)
+        largest = max(largest, largest2)
     found.sort(key=lambda m: -m.area)
     reason = None
     if not found:
@@ -731,6 +731,32 @@ def find_markers(image_bgr, *, hue_range_deg=(-15.0, 15.0), min_saturation: floa
         else:
             reason = f"too small: the largest blob of the marker colour has {largest:.0f} px < {min_area_px} px"
     return MarkerSearch(found, rejected, reason)
+
+
+def _rank(m: Marker) -> tuple:
+    """Order of preference between two answers for one marker: trusted, fewer flags, larger."""
+    flags = m.quality.flags if m.quality is not None else ("no_quality",)
+    return (not flags, -len(flags), m.area)
+
+
+def _merge_searches(found, rejected, found2, rejected2):
+    """Markers of two searches of one frame (the colour mask as is, and of a 3×3 mean): a marker
+    of either, and where two overlap (one's centre inside the other's ellipse) the better one by
+    :func:`_rank`. A noisy mask breaks a marker into fragments, each small and flagged, while the
+    smoothed mask keeps it whole; a fragment must not hide the whole marker (dim frames)."""
+    def inside(p, m):
+        return m.ellipse.conic @ np.array([p[0] ** 2, p[0] * p[1], p[1] ** 2, p[0], p[1], 1.0]) <= 0.0
+
+    out = list(found)
+    for m2 in found2:
+        clash = [m for m in out if inside(m2.ellipse.center, m) or inside(m.ellipse.center, m2)]
+        if not clash:
+            out.append(m2)
+        elif all(_rank(m2) > _rank(m) for m in clash):
+            out = [m for m in out if not any(m is c for c in clash)] + [m2]
+    # the blobs not taken: those of the search whose markers were kept (of the first when both)
+    only_second = bool(out) and not any(m is f for m in out for f in found)
+    return out, rejected2 if only_second else rejected
 
 
 def detect_markers(image_bgr, *, hue_range_deg=(-15.0, 15.0), min_saturation: float = 0.45,
