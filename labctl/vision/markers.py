@@ -554,7 +554,8 @@ def _motion_refit(signal, contrast, prof, kept, row, sgn, seeds, normals, arc, o
     from the ramp widths (width² · (s·n)² ≈ nᵀ(L² uuᵀ + w₀² I)n, s the scan direction; fitted by
     least squares), each point at its scan's half-level, points whose chord along u (on the
     current ellipse) is under L/2 + 1 px dropped, and the robust fit redone."""
-    widths = _transition_width(prof).astype(np.float64) / 0.8  # 10–90 % of a ramp is 0.8 of it
+    # samples strictly between 10 % and 90 % of a ramp of width w: ≈ 0.8 w − 1
+    widths = (_transition_width(prof).astype(np.float64) + 1.0) / 0.8
     s_dir = np.where(row[:, None], np.stack([sgn, 0 * sgn], 1), np.stack([0 * sgn, sgn], 1)).astype(np.float64)
     cos_sn = np.abs(np.sum(s_dir * normals, axis=1))
     m = kept & (cos_sn > 0.5)
@@ -572,7 +573,7 @@ def _motion_refit(signal, contrast, prof, kept, row, sgn, seeds, normals, arc, o
     # rescan at full length, centred on the first estimate, so both plateaus lie beyond the ramp
     shift = np.clip(np.rint(off - 0.5).astype(np.int64), -6, 6)
     _, _, k0, prof = _scans(signal, seeds, normals, _SCAN_HALF_MAX, shift)
-    reach = np.clip(0.5 * L * np.abs(normals @ u) / np.maximum(cos_sn, 0.5) + 1.0, 1.5, 6.0)
+    reach = np.clip(0.5 * L * np.abs(normals @ u) / np.maximum(cos_sn, 0.5) + 1.0, 1.5, 7.0)
     pos, ok2 = _half_level_offsets(prof, k0, off, reach, contrast)
     ok = kept & ok2 & (np.abs(pos - off) < 1.5)
     edge = seeds + np.where(ok, pos, off)[:, None] * s_dir
