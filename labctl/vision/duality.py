@@ -146,7 +146,7 @@ def resolve_duality(first, second, motion: str = "translation", plane_normal=Non
 # boundary noise only; a normal is never known better than 0.05°, a centre than 0.02 mm
 CONSISTENCY_NORMAL_FLOOR_RAD = math.radians(0.05)
 CONSISTENCY_CENTRE_FLOOR_MM = 0.02
-DEFAULT_CONSISTENCY_K = 5.0
+DEFAULT_CONSISTENCY_K = 4.0
 
 
 @dataclass(frozen=True)
