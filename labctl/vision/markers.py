@@ -762,8 +762,13 @@ def find_markers(image_bgr, *, hue_range_deg=(-15.0, 15.0), min_saturation: floa
     6. **Gates**: axis ratio ≥ ``min_axis_ratio`` (bars), inlier residual ≤ ``max_residual_rel``
        of the minor semi-axis and ≤ ``max_fit_rms_px``, rim coverage ≥ 50 %; what passes
        carries a :class:`MarkerQuality` with flags for partial or suspect markers.
+    7. **Motion smear**: where the edge ramps are wider than 3 px and anisotropic (a box blur along
+       one direction), the rim is re-measured at each ramp's half level away from the points whose
+       normal is ⊥ the blur, and refitted (:func:`_motion_refit`).
 
-    A 16-bit image is scaled (not clipped) for the threshold and linearised at full depth.
+    A dim frame whose mask fragments is searched again on a 3×3 mean, and the two answers are
+    merged per marker (:func:`_merge_searches`). A 16-bit image is scaled (not clipped) for the
+    threshold and linearised at full depth.
     Raises :class:`MarkerImageError` only for an array that is not an image.
     """
     from .response import parse_response
