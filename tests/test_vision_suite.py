@@ -251,3 +251,35 @@ def test_two_views_that_disagree_with_the_known_motion_are_inconsistent():
                 caught += not chk.consistent
     assert len(clean_z) >= 4 and max(clean_z) < 2.0, clean_z
     assert unflagged_gross >= 3 and caught >= unflagged_gross - 1, (unflagged_gross, caught)
+
+
+def test_pair_consistency_compares_in_the_first_frame():
+    """The same pair, its second image expressed in a camera frame rotated by R (poses and
+    covariances), checked with R_first_second = R: the same verdict and distances."""
+    from dataclasses import replace
+
+    from labctl.bench._vision_suite import _labctl_camera
+    from labctl.vision import CirclePose
+
+    rng = np.random.default_rng(13)
+    cam = oracle.Cam(f=2000.0)
+    d1 = _frontalish(rng, cam)
+    d2 = oracle.translated(d1, (15.0, -10.0, 5.0))
+    p1, p2 = (marker_poses(find_markers(oracle.render(cam, d, oracle.Conditions(), rng)[0]).markers[0],
+                           _labctl_camera(cam, False), 10.0) for d in (d1, d2))
+    shift = np.subtract(d2.center, d1.center)
+    ref = pose_pair_consistency(p1, p2, displacement_mm=shift)
+    a, b = 0.4, -0.7
+    R = np.array([[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0], [0.0, 0.0, 1.0]]) @ \
+        np.array([[1.0, 0.0, 0.0], [0.0, math.cos(b), -math.sin(b)], [0.0, math.sin(b), math.cos(b)]])
+    # second-frame quantities: x₂' = Rᵀ x₂, so that R x₂' is the original
+    rot = replace(p2, candidates=tuple(CirclePose(R.T @ c.center, R.T @ c.normal) for c in p2.candidates),
+                  normal_cov=np.stack([R.T @ c @ R for c in p2.normal_cov]),
+                  center_cov=np.stack([R.T @ c @ R for c in p2.center_cov]))
+    out = pose_pair_consistency(p1, rot, displacement_mm=shift, R_first_second=R)
+    assert out.consistent == ref.consistent and out.pair == ref.pair
+    assert out.normal_z == pytest.approx(ref.normal_z, rel=1e-9)
+    assert out.centre_z == pytest.approx(ref.centre_z, rel=1e-9)
+    assert ref.consistent
+    wrong = pose_pair_consistency(p1, rot, displacement_mm=shift)  # the rotation forgotten
+    assert not wrong.consistent
