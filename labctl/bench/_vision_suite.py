@@ -138,12 +138,13 @@ def _pct(v, q):
 
 def run_case(cond: oracle.Conditions, cam_over: dict, opts: dict, n_pairs: int, seed: int) -> dict:
     """Both methods on ``n_pairs`` image pairs of one condition; the statistics of the module doc."""
-    from ..vision import resolve_duality_detailed, resolve_duality_noise_aware
+    from ..vision import pose_pair_consistency, resolve_duality_detailed, resolve_duality_noise_aware
 
     rng = np.random.default_rng(seed)
     methods = {"labctl": _ours, "opencv": _baseline}
     acc = {m: {"n": 0, "found": 0, "normal": [], "centre": [], "gross": 0, "cw_img": 0,
-               "dual": [0, 0, 0], "cw_pair": 0, "n_pairs": 0} for m in methods}
+               "dual": [0, 0, 0], "cw_pair": 0, "n_pairs": 0,
+               "inconsistent": 0} for m in methods}
     for _ in range(n_pairs):
         cam = oracle.Cam(f=float(rng.uniform(1200, 2500)), **cam_over)
         d1 = oracle.random_pose(rng, cam)
@@ -180,14 +181,22 @@ def run_case(cond: oracle.Conditions, cam_over: dict, opts: dict, n_pairs: int, 
                 a["centre"].append(ce)
                 gross = ne > GROSS_NORMAL_DEG or ce > GROSS_CENTRE_PCT
                 a["gross"] += gross
-                if gross and trusted and not fp:
-                    a["cw_img"] += 1
-                results[name].append((cands, trusted, poses))
+                results[name].append([cands, trusted, poses, gross and not fp])  # fp: counted above
         for name in methods:
             r1, r2 = results[name]
+            a = acc[name]
+            if name == "labctl" and r1 is not None and r2 is not None:
+                # the two images must agree with the known motion (the disc's shift): a pose pair
+                # that does not is flagged ``inconsistent`` (both markers)
+                chk = pose_pair_consistency(r1[2], r2[2], displacement_mm=np.subtract(d2.center, d1.center))
+                a["inconsistent"] += not chk.consistent
+                if not chk.consistent:
+                    r1[1] = r2[1] = False
+            for r in (r1, r2):
+                if r is not None and r[3] and r[1]:
+                    a["cw_img"] += 1
             if r1 is None or r2 is None:
                 continue
-            a = acc[name]
             a["n_pairs"] += 1
             if name == "labctl":
                 res = resolve_duality_noise_aware(r1[2], r2[2], motion="translation")
@@ -213,6 +222,7 @@ def run_case(cond: oracle.Conditions, cam_over: dict, opts: dict, n_pairs: int, 
             "gross": a["gross"] / nd if nd else 0.0,
             "confident_wrong": a["cw_img"] / a["n"] + (a["cw_pair"] / a["n_pairs"] if a["n_pairs"] else 0.0),
             "duality_right_ambiguous_wrong": list(a["dual"]),
+            "inconsistent_pairs": a["inconsistent"],
         }
     return out
 

@@ -4,7 +4,14 @@ Pure functions on images and arrays; no devices, no clocks.
 """
 
 from .circle_pose import CirclePose, CirclePoseError, MarkerPoses, circle_poses, marker_pose_candidates, marker_poses
-from .duality import DualityResult, resolve_duality, resolve_duality_detailed, resolve_duality_noise_aware
+from .duality import (
+    DualityResult,
+    PairConsistency,
+    pose_pair_consistency,
+    resolve_duality,
+    resolve_duality_detailed,
+    resolve_duality_noise_aware,
+)
 from .ellipse import Ellipse, EllipseFitError, ellipse_from_cv_box, fit_ellipse
 from .markers import (
     Marker,
@@ -25,5 +32,7 @@ __all__ = [
     "MarkerPoses", "MarkerQuality", "MarkerSearch", "marker_poses", "resolve_duality_noise_aware",
     "Response", "ResponseError", "find_markers", "parse_response", "why_no_marker",
     "circle_poses", "detect_markers", "detect_markers_windowed", "ellipse_from_cv_box", "fit_ellipse",
-    "marker_pose_candidates", "red_blob_centroid", "red_mask", "resolve_duality", "resolve_duality_detailed",
+    "marker_pose_candidates",
+    "PairConsistency", "pose_pair_consistency", "red_blob_centroid", "red_mask", "resolve_duality",
+    "resolve_duality_detailed",
 ]

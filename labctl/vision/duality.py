@@ -140,3 +140,75 @@ def resolve_duality(first, second, motion: str = "translation", plane_normal=Non
     See :func:`resolve_duality_detailed` for the arguments and the margin."""
     return resolve_duality_detailed(first, second, motion, plane_normal, R_first_second=R_first_second,
                                     min_margin_rad=min_margin_rad).pose
+
+
+# floors of the per-image covariances in the pair test: the propagated covariances are of the
+# boundary noise only; a normal is never known better than 0.05°, a centre than 0.02 mm
+CONSISTENCY_NORMAL_FLOOR_RAD = math.radians(0.05)
+CONSISTENCY_CENTRE_FLOOR_MM = 0.02
+DEFAULT_CONSISTENCY_K = 4.0
+
+
+@dataclass(frozen=True)
+class PairConsistency:
+    """Whether two images' poses of one marker agree with the known motion between them.
+
+    ``consistent``: the best pairing of candidates agrees within ``k_sigma``; ``pair``: that
+    pairing (index in the first, index in the second); ``normal_z`` / ``centre_z``: its
+    Mahalanobis distances (σ units; centre_z is 0 when no displacement was given)."""
+
+    consistent: bool
+    pair: tuple[int, int]
+    normal_z: float
+    centre_z: float
+    k_sigma: float
+
+    def to_dict(self) -> dict:
+        return {"consistent": self.consistent, "pair": list(self.pair), "normal_z": self.normal_z,
+                "centre_z": self.centre_z, "k_sigma": self.k_sigma}
+
+
+def _mahalanobis(d: np.ndarray, cov: np.ndarray, floor: float) -> float:
+    s = np.asarray(cov, float) + np.eye(3) * floor * floor
+    try:
+        return math.sqrt(max(float(d @ np.linalg.solve(s, d)), 0.0))
+    except np.linalg.LinAlgError:
+        return math.inf
+
+
+def pose_pair_consistency(first, second, *, displacement_mm=None, R_first_second=None,
+                          k_sigma: float = DEFAULT_CONSISTENCY_K) -> PairConsistency:
+    """Check two :class:`~.circle_pose.MarkerPoses` of one marker against the known motion
+    between the images (paper §3.3's two views, used as a cross-check of §3.2's poses).
+
+    One image cannot tell a smooth systematic error (an uncalibrated lens bends the image of a
+    marker into another ellipse) from the truth; two images can, because the error differs
+    between them while the motion is known. For each pairing (i, j) of candidates: the normals,
+    expressed in the first frame (``R_first_second`` = R_{c1←c2}, default identity), must agree
+    — translation keeps a normal — and, when ``displacement_mm`` (the expected
+    R_{c1←c2} c₂ − c₁, mm, first camera frame: the marker's motion less the camera's) is given,
+    the centres must have moved by it. Agreement is judged by the Mahalanobis distance under the
+    sum of both poses' covariances (with floors :data:`CONSISTENCY_NORMAL_FLOOR_RAD`,
+    :data:`CONSISTENCY_CENTRE_FLOOR_MM`); the pair is consistent when the best pairing has both
+    distances ≤ ``k_sigma``. Translation-only motion (normals kept) is assumed."""
+    R = np.eye(3) if R_first_second is None else np.asarray(R_first_second, dtype=float)
+    if R.shape != (3, 3) or not np.all(np.isfinite(R)):
+        raise ValueError("R_first_second must be a finite 3×3 rotation")
+    disp = None if displacement_mm is None else np.asarray(displacement_mm, dtype=float).reshape(3)
+    best = None
+    for i in range(2):
+        for j in range(2):
+            n1, n2 = np.asarray(first.candidates[i].normal, float), R @ np.asarray(second.candidates[j].normal, float)
+            zn = _mahalanobis(n2 - n1, first.normal_cov[i] + R @ second.normal_cov[j] @ R.T,
+                              CONSISTENCY_NORMAL_FLOOR_RAD)
+            zc = 0.0
+            if disp is not None:
+                c1 = np.asarray(first.candidates[i].center, float)
+                c2 = R @ np.asarray(second.candidates[j].center, float)
+                zc = _mahalanobis(c2 - c1 - disp, first.center_cov[i] + R @ second.center_cov[j] @ R.T,
+                                  CONSISTENCY_CENTRE_FLOOR_MM)
+            key = max(zn, zc)
+            if best is None or key < best[0]:
+                best = (key, (i, j), zn, zc)
+    key, pair, zn, zc = best
+    return PairConsistency(bool(key <= k_sigma), pair, zn, zc, float(k_sigma))

@@ -490,6 +490,13 @@ def _analyse_contour(img8: np.ndarray, linear_crop, contour: np.ndarray, touches
         flags.append("outliers")
     if edge_contrast < 0.04:
         flags.append("low_contrast")
+    if blur_px > 3.0:  # a wide ramp: if it is a motion smear, measure the edge where the smear leaves it
+        redo = _motion_refit(signal, contrast, prof, kept, row, sgn, seeds, normals, arc, off, ell, (x0, y0), (cx, cy),
+                             scale, support & kept)
+        if redo is not None:
+            ell, bpts, bw_ = redo
+            resid = _sampson(ell.conic, bpts)
+            rms = math.sqrt(float(bw_ @ (resid * resid)) / float(bw_.sum()))
     if blur_px > max(3.0, 0.2 * b):  # motion or defocus blur wide against the marker: its shape is smeared
         flags.append("blurred")
     if area_fill > 1.3 * ell.area + 2.0 * math.pi * (a + b) * 0.5:
@@ -497,6 +504,106 @@ def _analyse_contour(img8: np.ndarray, linear_crop, contour: np.ndarray, touches
     quality = MarkerQuality(coverage, residual_rel, inlier_fraction, solidity, edge_contrast, tuple(flags))
     return Marker(tuple(ell.center), ell, float(ell.area), bpts, bw_, (int(bx), int(by), int(bx + bw), int(by + bh)),
                   touches, rms, quality)
+
+
+def _half_level_offsets(prof: np.ndarray, k0: np.ndarray, near: np.ndarray, reach: np.ndarray, contrast: float):
+    """Where each scan (inside → outside) crosses half-way between its plateaus, for a ramp of
+    half-width ``reach`` (px along the scan) around ``near`` (px from the seed): plateaus = means of
+    the samples 0.5–2.5 px beyond the ramp on either side (no farther, so a highlight or a neighbour
+    inside does not count), the crossing = the least-squares line through the ramp's samples
+    between 15 % and 85 % (it averages the noise a two-sample crossing would follow), at 0.5. For a
+    ramp this is the 50 % level, which a box blur leaves on the true edge wherever the chord along
+    the blur is long enough. Returns (offset px from the seed, kept: contrast ≥ 20 % of the blob's,
+    no second edge, ≥ 3 ramp samples)."""
+    k = (k0[:, None] + np.arange(prof.shape[1])).astype(np.float64)
+    rel = k - near[:, None]
+    r = reach[:, None]
+    win_in = (rel <= -r - 0.5) & (rel >= -r - 2.5)
+    win_out = (rel >= r + 0.5) & (rel <= r + 2.5)
+    n_in, n_out = win_in.sum(axis=1), win_out.sum(axis=1)
+    inside = (prof * win_in).sum(axis=1) / np.maximum(n_in, 1)
+    outside = (prof * win_out).sum(axis=1) / np.maximum(n_out, 1)
+    local = inside - outside
+    c = (prof - outside[:, None]) / np.where(np.abs(local) > 1e-6, local, 1e-6)[:, None]
+    ramp = np.abs(rel) < r + 0.5
+    w = (ramp & (c > 0.15) & (c < 0.85)).astype(np.float64)
+    sw = w.sum(axis=1)
+    safe = np.maximum(sw, 1.0)
+    mk = (w * k).sum(axis=1) / safe
+    mc = (w * c).sum(axis=1) / safe
+    skc = (w * (k - mk[:, None]) * (c - mc[:, None])).sum(axis=1)
+    skk = (w * (k - mk[:, None]) ** 2).sum(axis=1)
+    slope = skc / np.maximum(skk, 1e-9)
+    pos = mk + (0.5 - mc) / np.where(slope < -1e-3, slope, -1e-3)
+    span = (rel >= -r - 2.5) & (rel <= r + 2.5)
+    cs = np.where(span, c, 0.5)
+    sm = 0.5 * cs[:, 1:-1] + 0.25 * (cs[:, :-2] + cs[:, 2:])
+    kept = ((local > 0.2 * contrast) & (n_in >= 1) & (n_out >= 1) & (sm.min(axis=1) > -0.45)
+            & (sm.max(axis=1) < 1.45) & (sw >= 2) & (slope < -0.05))
+    return pos, kept
+
+
+def _motion_refit(signal, contrast, prof, kept, row, sgn, seeds, normals, arc, off, ell, origin, centre, scale, start):
+    """Boundary of a motion-smeared marker (paper §3.1's fit, made to survive a blur): returns
+    (ellipse, boundary points, weights) in image px, or None when the blur looks isotropic
+    (defocus) or too little rim is left.
+
+    A box blur of length L along u turns each edge into a ramp of width L·|u·n| across it (n the
+    edge normal); its 50 % level stays on the true edge wherever the disc's chord along u is at
+    least L/2 long, and falls inside it only near the two points whose normal is ⊥ u. So: u and L
+    from the ramp widths (width² · (s·n)² ≈ nᵀ(L² uuᵀ + w₀² I)n, s the scan direction; fitted by
+    least squares), each point at its scan's half-level, points whose chord along u (on the
+    current ellipse) is under L/2 + 1 px dropped, and the robust fit redone."""
+    # samples strictly between 10 % and 90 % of a ramp of width w: ≈ 0.8 w − 1
+    widths = (_transition_width(prof).astype(np.float64) + 1.0) / 0.8
+    s_dir = np.where(row[:, None], np.stack([sgn, 0 * sgn], 1), np.stack([0 * sgn, sgn], 1)).astype(np.float64)
+    cos_sn = np.abs(np.sum(s_dir * normals, axis=1))
+    m = kept & (cos_sn > 0.5)
+    if np.count_nonzero(m) < 12:
+        return None
+    nx, ny = normals[m, 0], normals[m, 1]
+    y = (widths[m] * cos_sn[m]) ** 2
+    A = np.stack([nx * nx, 2 * nx * ny, ny * ny], axis=1)
+    sol, *_ = np.linalg.lstsq(A, y, rcond=None)
+    lam, vec = np.linalg.eigh(np.array([[sol[0], sol[1]], [sol[1], sol[2]]]))
+    if not (lam[1] > 0 and lam[1] - max(lam[0], 0.0) > 9.0):  # an anisotropic ramp ≥ 3 px: motion
+        return None
+    L = math.sqrt(lam[1] - max(lam[0], 0.0))
+    u = vec[:, 1]
+    # rescan at full length, centred on the first estimate, so both plateaus lie beyond the ramp
+    shift = np.clip(np.rint(off - 0.5).astype(np.int64), -6, 6)
+    _, _, k0, prof = _scans(signal, seeds, normals, _SCAN_HALF_MAX, shift)
+    reach = np.clip(0.5 * L * np.abs(normals @ u) / np.maximum(cos_sn, 0.5) + 1.0, 1.5, 7.0)
+    pos, ok2 = _half_level_offsets(prof, k0, off, reach, contrast)
+    ok = kept & ok2 & (np.abs(pos - off) < 1.5)
+    edge = seeds + np.where(ok, pos, off)[:, None] * s_dir
+    # chord of the current ellipse along u through each point
+    gx, gy = edge[:, 0] + origin[0], edge[:, 1] + origin[1]
+    a_, b_, c_, d_, e_, f_ = ell.conic
+    qa = a_ * u[0] ** 2 + b_ * u[0] * u[1] + c_ * u[1] ** 2
+    qb = 2 * a_ * gx * u[0] + b_ * (gx * u[1] + gy * u[0]) + 2 * c_ * gy * u[1] + d_ * u[0] + e_ * u[1]
+    qc = a_ * gx * gx + b_ * gx * gy + c_ * gy * gy + d_ * gx + e_ * gy + f_
+    chord = np.sqrt(np.maximum(qb * qb - 4 * qa * qc, 0.0)) / max(qa, 1e-300)
+    ok &= chord >= 0.5 * L + 1.0
+    if np.count_nonzero(ok) < 12:
+        return None
+    rel = edge[ok] - centre
+    w = arc[ok]
+    st = start[ok]
+    if np.count_nonzero(st) < 8:
+        st = np.ones(len(rel), bool)
+    try:
+        _, inl = _robust_fit(rel, w, st, scale)
+        conic, _ = _fit(rel[inl], w[inl], None, origin=(0.0, 0.0), scale=scale)
+        if not _conic_is_ellipse(conic):
+            return None
+        new = Ellipse.from_conic(_shift_conic(conic, centre[0] + origin[0], centre[1] + origin[1]))
+    except EllipseFitError:
+        return None
+    pts = rel[inl] + (centre[0] + origin[0], centre[1] + origin[1])
+    if _arc_coverage(new, pts) < 0.5:
+        return None
+    return new, pts, w[inl]
 
 
 _K3 = np.ones((3, 3), np.uint8)
@@ -655,8 +762,13 @@ def find_markers(image_bgr, *, hue_range_deg=(-15.0, 15.0), min_saturation: floa
     6. **Gates**: axis ratio ≥ ``min_axis_ratio`` (bars), inlier residual ≤ ``max_residual_rel``
        of the minor semi-axis and ≤ ``max_fit_rms_px``, rim coverage ≥ 50 %; what passes
        carries a :class:`MarkerQuality` with flags for partial or suspect markers.
+    7. **Motion smear**: where the edge ramps are wider than 3 px and anisotropic (a box blur along
+       one direction), the rim is re-measured at each ramp's half level away from the points whose
+       normal is ⊥ the blur, and refitted (:func:`_motion_refit`).
 
-    A 16-bit image is scaled (not clipped) for the threshold and linearised at full depth.
+    A dim frame whose mask fragments is searched again on a 3×3 mean, and the two answers are
+    merged per marker (:func:`_merge_searches`). A 16-bit image is scaled (not clipped) for the
+    threshold and linearised at full depth.
     Raises :class:`MarkerImageError` only for an array that is not an image.
     """
     from .response import parse_response
@@ -718,8 +830,8 @@ def find_markers(image_bgr, *, hue_range_deg=(-15.0, 15.0), min_saturation: floa
         # instead (the sub-pixel edge still reads the original pixels)
         found2, rejected2, largest2, _ = search(_red_mask(cv2.blur(sub, (3, 3)), hue_range_deg, min_saturation,
                                                           min_value))
-        if sum(m.trusted for m in found2) > sum(m.trusted for m in found) or (found2 and not found):
-            found, rejected, largest = found2, rejected2, largest2
+        found, rejected = _merge_searches(found, rejected, found2, rejected2)
+        largest = max(largest, largest2)
     found.sort(key=lambda m: -m.area)
     reason = None
     if not found:
@@ -731,6 +843,32 @@ def find_markers(image_bgr, *, hue_range_deg=(-15.0, 15.0), min_saturation: floa
         else:
             reason = f"too small: the largest blob of the marker colour has {largest:.0f} px < {min_area_px} px"
     return MarkerSearch(found, rejected, reason)
+
+
+def _rank(m: Marker) -> tuple:
+    """Order of preference between two answers for one marker: trusted, fewer flags, larger."""
+    flags = m.quality.flags if m.quality is not None else ("no_quality",)
+    return (not flags, -len(flags), m.area)
+
+
+def _merge_searches(found, rejected, found2, rejected2):
+    """Markers of two searches of one frame (the colour mask as is, and of a 3×3 mean): a marker
+    of either, and where two overlap (one's centre inside the other's ellipse) the better one by
+    :func:`_rank`. A noisy mask breaks a marker into fragments, each small and flagged, while the
+    smoothed mask keeps it whole; a fragment must not hide the whole marker (dim frames)."""
+    def inside(p, m):
+        return m.ellipse.conic @ np.array([p[0] ** 2, p[0] * p[1], p[1] ** 2, p[0], p[1], 1.0]) <= 0.0
+
+    out = list(found)
+    for m2 in found2:
+        clash = [m for m in out if inside(m2.ellipse.center, m) or inside(m.ellipse.center, m2)]
+        if not clash:
+            out.append(m2)
+        elif all(_rank(m2) > _rank(m) for m in clash):
+            out = [m for m in out if not any(m is c for c in clash)] + [m2]
+    # the blobs not taken: those of the search whose markers were kept (of the first when both)
+    only_second = bool(out) and not any(m is f for m in out for f in found)
+    return out, rejected2 if only_second else rejected
 
 
 def detect_markers(image_bgr, *, hue_range_deg=(-15.0, 15.0), min_saturation: float = 0.45,
