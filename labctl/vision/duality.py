@@ -195,7 +195,7 @@ def pose_pair_consistency(first, second, *, displacement_mm=None, R_first_second
     if R.shape != (3, 3) or not np.all(np.isfinite(R)):
         raise ValueError("R_first_second must be a finite 3×3 rotation")
     disp = None if displacement_mm is None else np.asarray(displacement_mm, dtype=float).reshape(3)
-    best = None
+    best: tuple[float, tuple[int, int], float, float] | None = None
     for i in range(2):
         for j in range(2):
             n1, n2 = np.asarray(first.candidates[i].normal, float), R @ np.asarray(second.candidates[j].normal, float)
@@ -210,5 +210,6 @@ def pose_pair_consistency(first, second, *, displacement_mm=None, R_first_second
             key = max(zn, zc)
             if best is None or key < best[0]:
                 best = (key, (i, j), zn, zc)
+    assert best is not None  # four pairings were scored
     key, pair, zn, zc = best
     return PairConsistency(bool(key <= k_sigma), pair, zn, zc, float(k_sigma))
