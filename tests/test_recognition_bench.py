@@ -31,10 +31,11 @@ def test_every_sample_view_is_identified_with_extra_views(lab_cam_lib):
     from labctl.bench.recognition import evaluate, render_pool
 
     pool = render_pool(lib, cam, lab.config.viewing.standoff_mm, 2, np.random.default_rng(11))
-    res = evaluate(lib, pool, np.random.default_rng(11), max_views=lab.config.run.max_views, first_per_view=1)
+    res = evaluate(lib, pool, np.random.default_rng(11), max_views=lab.config.run.max_views, first_per_view=1,
+                   height_tol_mm=4.0)  # with the marker-height gate (opt-in: run.height_gate_mm)
     assert res["silhouette_failures"] == 0
     assert res["rates"]["aos_with_extra_views"] == 1.0, res["errors"]
-    # the silhouettes alone (no marker height) leave some first views ambiguous: the extra-view path
+    # the silhouettes alone (the default: no height gate) leave some first views ambiguous: the extra-view path
     silhouettes = {k: [q.features if q is not None else None for q in v] for k, v in pool.items()}
     res = evaluate(lib, silhouettes, np.random.default_rng(11), max_views=lab.config.run.max_views, first_per_view=1)
     assert res["rates"]["aos_with_extra_views"] == 1.0, res["errors"]

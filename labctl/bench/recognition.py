@@ -93,14 +93,16 @@ def _other_marker_view(obj, pool: dict, name: str, tried: list[int], rng: np.ran
 
 
 def evaluate(library: dict, pool: dict, rng: np.random.Generator, *, threshold: float = DEFAULT_THRESHOLD,
-             max_views: int = 3, first_per_view: int | None = None, **match_kw) -> dict:
+             max_views: int = 3, first_per_view: int | None = None, height_tol_mm: float = 0.0, **match_kw) -> dict:
     """Identification rates over the pool: every pooled view is a first view (or the first
     ``first_per_view`` of each); extra views are other pooled renders of the marker reached.
 
     A first view with no usable silhouette is followed, as in a run, by the view of another marker
     (:func:`_other_marker_view`); every view taken counts towards ``max_views``. The single-view
-    rates count such a first view as wrong."""
+    rates count such a first view as wrong.
+    ``height_tol_mm`` > 0 gates views by the queries' marker heights, as ``run.height_gate_mm`` does in a run."""
     index = LibraryIndex.from_library(library)
+    match_kw = {**match_kw, "height_tol_mm": height_tol_mm}
     n = 0
     ok = {"aos_with_extra_views": 0, "aos_single_view": 0, "hu_single_view": 0, "fd_single_view": 0}
     ambiguous = extra_views = failures = unresolved = recovered = 0
@@ -158,10 +160,11 @@ def evaluate(library: dict, pool: dict, rng: np.random.Generator, *, threshold: 
 
 
 def _evaluate(library: dict, camera, standoff: float, trials: int, rng: np.random.Generator, *,
-              threshold: float = DEFAULT_THRESHOLD, max_views: int = 3) -> dict:
+              threshold: float = DEFAULT_THRESHOLD, max_views: int = 3, height_tol_mm: float = 0.0) -> dict:
     """Render a pool with ``trials + 1`` renders per view; ``trials`` of them are first views."""
     pool = render_pool(library, camera, standoff, trials + 1, rng)
-    return evaluate(library, pool, rng, threshold=threshold, max_views=max_views, first_per_view=trials)
+    return evaluate(library, pool, rng, threshold=threshold, max_views=max_views, first_per_view=trials,
+                    height_tol_mm=height_tol_mm)
 
 
 def generated_library(n_objects: int, camera, lab, rng: np.random.Generator) -> dict:
@@ -286,7 +289,7 @@ def run(quick: bool = False) -> dict:
     standoff = lab.config.viewing.standoff_mm
     sample = load_library(lab.library_dir)
     run_cfg = {"threshold": lab.config.run.ambiguity_threshold or DEFAULT_THRESHOLD,
-               "max_views": lab.config.run.max_views}
+               "max_views": lab.config.run.max_views, "height_tol_mm": lab.config.run.height_gate_mm}
     res_sample = _evaluate(sample, camera, standoff, trials=2 if quick else 4, rng=rng, **run_cfg)
     gen = generated_library(30, camera, lab, rng)
     res_gen = _evaluate(gen, camera, standoff, trials=1 if quick else 2, rng=rng, **run_cfg)
