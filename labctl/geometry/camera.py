@@ -30,6 +30,8 @@ from .transforms import apply
 
 @dataclass(frozen=True)
 class CameraModel:
+    """Tsai camera model: pinhole intrinsics plus radial distortion κ1 (Tsai 1987 §II); fields as in the module doc."""
+
     f: float
     kappa1: float
     sx: float
@@ -50,6 +52,7 @@ class CameraModel:
 
     @property
     def dpy(self) -> float:
+        """Effective y size of a frame-buffer pixel on the sensor (mm); ``dpy = dy``."""
         return self.dy
 
     @property
@@ -60,6 +63,7 @@ class CameraModel:
         )
 
     def with_(self, **changes) -> CameraModel:
+        """A copy of this model with the given fields replaced."""
         return replace(self, **changes)
 
     # --- sensor <-> pixel ------------------------------------------------------------
@@ -130,6 +134,7 @@ class CameraModel:
         return rays / np.linalg.norm(rays, axis=-1, keepdims=True)
 
     def contains(self, px: np.ndarray, margin: float = 0.0) -> np.ndarray:
+        """Boolean mask of pixels ``px`` (..., 2) lying at least ``margin`` px inside the image."""
         px = np.asarray(px, dtype=float)
         return (
             (px[..., 0] >= margin)
@@ -214,8 +219,10 @@ class CameraModel:
 
     # --- serialisation -----------------------------------------------------------------
     def to_dict(self) -> dict:
+        """Plain-float dict of the fields (for YAML/JSON); inverse of :meth:`from_dict`."""
         return {k: (float(v) if isinstance(v, float | np.floating) else v) for k, v in asdict(self).items()}
 
     @classmethod
     def from_dict(cls, d: dict) -> CameraModel:
+        """Model from a dict of fields; keys that are not fields are ignored."""
         return cls(**{k: d[k] for k in cls.__dataclass_fields__ if k in d})

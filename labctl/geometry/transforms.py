@@ -41,16 +41,19 @@ def rotate(T: np.ndarray, vectors: np.ndarray) -> np.ndarray:
 
 
 def rot_x(a: float) -> np.ndarray:
+    """3×3 rotation by ``a`` rad about the x axis."""
     c, s = np.cos(a), np.sin(a)
     return np.array([[1.0, 0, 0], [0, c, -s], [0, s, c]])
 
 
 def rot_y(a: float) -> np.ndarray:
+    """3×3 rotation by ``a`` rad about the y axis."""
     c, s = np.cos(a), np.sin(a)
     return np.array([[c, 0, s], [0, 1.0, 0], [-s, 0, c]])
 
 
 def rot_z(a: float) -> np.ndarray:
+    """3×3 rotation by ``a`` rad about the z axis."""
     c, s = np.cos(a), np.sin(a)
     return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
 

@@ -77,6 +77,7 @@ class LibraryIndex:
 
     @classmethod
     def from_views(cls, views: Sequence[tuple[str, int, ShapeFeatures]]) -> LibraryIndex:
+        """Index of ``(object name, marker id, ShapeFeatures)`` standard views; raises ValueError if empty."""
         if not views:
             raise ValueError("the library has no standard views")
         return cls(
@@ -107,6 +108,7 @@ class LibraryIndex:
         return len(self.names)
 
     def view_index(self, name: str, marker_id: int) -> int:
+        """Row of the standard view ``name``/``marker_id``; raises KeyError if the library has none."""
         for i, (n, m) in enumerate(zip(self.names, self.marker_ids, strict=True)):
             if n == name and m == marker_id:
                 return i
@@ -143,6 +145,7 @@ class MatchResult:
 
     @property
     def accepted(self) -> bool:
+        """True when at least one object scored within the threshold."""
         return bool(self.candidates)
 
 

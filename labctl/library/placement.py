@@ -62,11 +62,13 @@ class Marker:
     radius: float
 
     def to_dict(self) -> dict:
+        """JSON-ready dict: id, centre (mm, frame O), unit normal, radius (mm)."""
         return {"id": int(self.id), "center": [round(float(v), 4) for v in self.center],
                 "normal": [round(float(v), 6) for v in self.normal], "radius": float(self.radius)}
 
     @classmethod
     def from_dict(cls, d: dict) -> Marker:
+        """Marker from :meth:`to_dict` output; ValueError on a bad centre, normal or radius."""
         c = np.asarray(d["center"], dtype=float).reshape(3)
         n = np.asarray(d["normal"], dtype=float).reshape(3)
         if not np.all(np.isfinite(c)) or not np.isfinite(n).all() or abs(np.linalg.norm(n) - 1) > 1e-3:
@@ -99,6 +101,13 @@ class ViewingGeometry:
 
 @dataclass
 class PlacementResult:
+    """Chosen marker set of the placement problem (paper §4.1) and how well it covers the sampled poses.
+
+    ``markers``: chosen sites; ``candidates``: all sites; ``method``/``bound``: solver and its approximation
+    bound; ``n_rows``: sampled (stable pose, yaw) rows; ``min_visible``: worst-case count of visible
+    chosen markers; ``coverage``/``overhead_coverage``: visibility tables (see the field comments).
+    """
+
     markers: list[Marker]
     candidates: list[Marker]
     method: str  # "exact" (milp) or "greedy"

@@ -36,21 +36,25 @@ def _profile(poly, height, *, lay_flat: bool = False) -> trimesh.Trimesh:
 
 
 def l_profile(w: float, h: float, t: float, length: float) -> list:
+    """Outline (mm) of an L-section ``w`` wide and ``h`` high with legs ``t`` thick (``length`` unused)."""
     return [(0, 0), (w, 0), (w, t), (t, t), (t, h), (0, h)]
 
 
 def t_profile(w: float, h: float, bar: float, stem: float) -> list:
+    """Outline (mm) of a T-section ``w``×``h`` with a top bar ``bar`` high and a stem ``stem`` wide."""
     x0 = (w - stem) / 2
     return [(x0, 0), (x0 + stem, 0), (x0 + stem, h - bar), (w, h - bar), (w, h), (0, h), (0, h - bar), (x0, h - bar)]
 
 
 def regular_polygon(n: int, across_flats: float) -> list:
+    """Vertices (mm) of a regular ``n``-gon ``across_flats`` wide, centred on the origin."""
     r = across_flats / 2 / np.cos(np.pi / n)
     a = np.pi / n + np.arange(n) * 2 * np.pi / n
     return list(zip(r * np.cos(a), r * np.sin(a), strict=True))
 
 
 def stepped(length: float, heights: list[float]) -> list:
+    """Outline (mm) of a staircase ``length`` long with equal-width steps of the given ``heights``."""
     w = length / len(heights)
     pts = [(0.0, 0.0), (length, 0.0)]
     for i in range(len(heights) - 1, -1, -1):
@@ -59,6 +63,7 @@ def stepped(length: float, heights: list[float]) -> list:
 
 
 def trapezoid(bottom: float, top: float, h: float) -> list:
+    """Outline (mm) of a trapezoid with parallel sides ``bottom`` and ``top``, ``h`` high."""
     d = (bottom - top) / 2
     return [(0, 0), (bottom, 0), (bottom - d, h), (d, h)]
 
@@ -114,6 +119,7 @@ def random_object(rng: np.random.Generator) -> trimesh.Trimesh:
 
 
 def write_sample_models(folder: Path | str = SAMPLE_MODELS_DIR) -> list[Path]:
+    """Export each of :func:`sample_objects` as ``folder/NAME.stl`` (mm); returns the paths written."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     out = []

@@ -60,6 +60,7 @@ class LibraryObject:
     path: Path | None = None
 
     def marker(self, marker_id: int) -> Marker:
+        """The marker with id ``marker_id``; raises KeyError if the object has none."""
         for m in self.markers:
             if m.id == marker_id:
                 return m
@@ -88,6 +89,7 @@ def _crop_to_object(image: np.ndarray, margin: int = 24) -> np.ndarray:
 
 
 def check_name(name: str) -> str:
+    """``name`` if it is a valid object name (:data:`NAME_RE`), else raise LibraryError."""
     if not isinstance(name, str) or not NAME_RE.match(name):
         raise LibraryError(f"bad object name {name!r}: use letters, digits, '_', '-', '.' (max 64)")
     return name
@@ -252,6 +254,7 @@ def load_library_checked(library_dir: Path | str) -> tuple[dict[str, LibraryObje
 
 
 def warn_stderr(message: str) -> None:
+    """Write ``warning: MESSAGE`` as one line to stderr (the default ``warn`` of :func:`load_library`)."""
     sys.stderr.write(f"warning: {message}\n")
 
 

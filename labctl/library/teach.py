@@ -110,6 +110,7 @@ def coverage_warnings(name: str, cov: dict, view: ViewingGeometry, curve: dict |
 
 
 def file_sha256(path: Path | str) -> str:
+    """Hex SHA-256 digest of the file at ``path`` (read in 1 MiB chunks)."""
     h = hashlib.sha256()
     with open(path, "rb") as fh:
         for chunk in iter(lambda: fh.read(1 << 20), b""):

@@ -58,6 +58,7 @@ class Interception:
 
     @property
     def reachable(self) -> bool:
+        """True if the robot can reach G (``t_hit`` is set)."""
         return self.t_hit is not None
 
 

@@ -279,10 +279,12 @@ class Trajectory:
 
     @property
     def t_start(self) -> float:
+        """Start time (s) of the first segment."""
         return self.segments[0].t0
 
     @property
     def t_end(self) -> float:
+        """End time (s) of the last segment."""
         return self.segments[-1].t1
 
     def segment_at(self, t) -> QuinticSegment:

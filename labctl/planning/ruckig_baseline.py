@@ -28,6 +28,7 @@ class RuckigInterception:
 
     @property
     def reachable(self) -> bool:
+        """True if ruckig found an interception (``t_hit`` is set)."""
         return self.t_hit is not None
 
 

@@ -72,6 +72,7 @@ class Scenario:
     sigma_mm: float
 
     def truth(self, t) -> np.ndarray:
+        """Noise-free positions (N, 2) mm of the true path at times ``t`` (s)."""
         return positions(self.family, self.theta, t)
 
     def current_motion(self, t_now: float, t_future) -> np.ndarray:

@@ -26,6 +26,7 @@ class TableTrajectory:
     _state: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]]
 
     def state(self, times) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Position (mm), velocity (mm/s) and acceleration (mm/s²), each (N, 2), at ``times`` (s)."""
         return self._state(np.atleast_1d(np.asarray(times, dtype=float)))
 
 

@@ -115,6 +115,7 @@ class MixturePath:
     paths: tuple[PredictedPath, ...]
 
     def __call__(self, times) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Mixture-weighted positions, velocities and accelerations, each (N, 2), at ``times`` (s)."""
         out = [np.zeros((len(np.atleast_1d(times)), 2)) for _ in range(3)]
         for w, path in zip(self.weights, self.paths):
             for acc, part in zip(out, path(times)):

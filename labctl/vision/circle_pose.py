@@ -45,6 +45,7 @@ class CirclePose:
         return bool(np.array_equal(self.center, other.center) and np.array_equal(self.normal, other.normal))
 
     def to_dict(self) -> dict:
+        """JSON-ready dict: ``center_mm`` (camera frame, mm) and unit ``normal``."""
         return {"center_mm": [float(v) for v in self.center], "normal": [float(v) for v in self.normal]}
 
 
@@ -255,6 +256,7 @@ class MarkerPoses:
     flags: tuple[str, ...] = ()
 
     def to_dict(self) -> dict:
+        """JSON-ready dict of the candidates, their normal σ (deg) and centre σ (mm), ``trusted`` and ``flags``."""
         return {"candidates": [c.to_dict() for c in self.candidates],
                 "normal_sigma_deg": [math.degrees(s) for s in self.normal_sigma_rad],
                 "center_sigma_mm": [float(math.sqrt(max(np.trace(c), 0.0))) for c in self.center_cov],

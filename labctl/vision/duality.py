@@ -48,6 +48,7 @@ class DualityResult:
     suspect: bool = False  # a marker behind it carries a quality flag: never silently trusted
 
     def to_dict(self) -> dict:
+        """JSON-ready dict of the resolution: chosen index, margin, threshold and scores (deg), chosen pose."""
         return {"resolved": not self.ambiguous, "index": self.index, "margin_deg": math.degrees(self.margin_rad),
                 "threshold_deg": math.degrees(self.threshold_rad), "suspect": self.suspect,
                 "scores_deg": [math.degrees(s) for s in self.scores_rad], "pose": self.best.to_dict()}
@@ -164,6 +165,7 @@ class PairConsistency:
     k_sigma: float
 
     def to_dict(self) -> dict:
+        """JSON-ready dict: whether the pair is consistent, the chosen pair, z-scores and ``k_sigma``."""
         return {"consistent": self.consistent, "pair": list(self.pair), "normal_z": self.normal_z,
                 "centre_z": self.centre_z, "k_sigma": self.k_sigma}
 

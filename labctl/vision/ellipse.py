@@ -108,6 +108,7 @@ class Ellipse:
 
     @property
     def area(self) -> float:
+        """Area π·A·B of the ellipse (units² of its points)."""
         return float(np.pi * self.axes[0] * self.axes[1])
 
     def points(self, n: int = 64, t0: float = 0.0, t1: float = 2.0 * np.pi) -> np.ndarray:
@@ -129,6 +130,7 @@ class Ellipse:
         return np.abs(q) / np.maximum(np.hypot(gx, gy), 1e-300)
 
     def to_dict(self) -> dict:
+        """JSON-ready dict: centre, semi-axes, angle (rad) and conic coefficients."""
         return {"center": [float(v) for v in self.center], "axes": [float(v) for v in self.axes],
                 "angle_rad": float(self.angle), "conic": [float(v) for v in self.conic]}
 

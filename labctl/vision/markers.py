@@ -63,6 +63,7 @@ class Marker:
         return self.quality is not None and self.quality.trusted
 
     def to_dict(self) -> dict:
+        """JSON-ready dict of the marker (px), its ellipse and, if measured, its quality."""
         out = {"centroid_px": [float(v) for v in self.centroid], "area_px": float(self.area),
                "bbox": list(self.bbox), "touches_border": bool(self.touches_border),
                "fit_rms_px": float(self.fit_rms_px), "boundary_points": int(len(self.boundary)),
@@ -165,9 +166,11 @@ class MarkerQuality:
 
     @property
     def trusted(self) -> bool:
+        """True when no flag is raised."""
         return not self.flags
 
     def to_dict(self) -> dict:
+        """JSON-ready dict of the quality measures, flags and ``trusted``."""
         return {"arc_coverage": round(float(self.arc_coverage), 4), "residual_rel": float(self.residual_rel),
                 "inlier_fraction": round(float(self.inlier_fraction), 4), "solidity": round(float(self.solidity), 4),
                 "edge_contrast": float(self.edge_contrast), "flags": list(self.flags), "trusted": self.trusted}
@@ -668,6 +671,7 @@ class MarkerSearch:
     reason: str | None = None
 
     def to_dict(self) -> dict:
+        """JSON-ready dict of the markers found, the reason if none, and the rejected blobs (bbox, reason)."""
         return {"markers": [m.to_dict() for m in self.markers], "reason": self.reason,
                 "rejected": [{"bbox": list(b), "reason": r} for b, r in self.rejected]}
 

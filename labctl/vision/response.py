@@ -40,6 +40,7 @@ class Response:
 
     @property
     def is_linear(self) -> bool:
+        """True for the identity (linear) response."""
         return self.name == "linear"
 
     def linearise(self, image: np.ndarray) -> np.ndarray:

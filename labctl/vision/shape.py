@@ -295,6 +295,7 @@ class ShapeFeatures:
     extra: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
+        """JSON-ready dict of the features (chain code as a digit string); inverse of :meth:`from_dict`."""
         return {
             "eccentricity": self.eccentricity, "size_mm": self.size_mm, "perimeter_mm": self.perimeter_mm,
             "chain_start": list(self.chain_start),
@@ -305,6 +306,7 @@ class ShapeFeatures:
 
     @classmethod
     def from_dict(cls, d: dict) -> ShapeFeatures:
+        """Features from :meth:`to_dict` output; raises ValueError on a malformed signature, chain code or start."""
         code = np.frombuffer(str(d["chain_code"]).encode("ascii"), dtype=np.uint8) - ord("0")
         aos = np.asarray(d["aos"], dtype=float)
         if aos.ndim != 2 or aos.shape[0] != len(AOS_SCALES) or aos.shape[1] != N_SAMPLES:
