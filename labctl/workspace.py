@@ -93,10 +93,12 @@ def init_workspace(dest: Path | str, *, force: bool = False, preset: str | None 
 
 
 def calibration_entries(root: Path) -> list[str]:
+    """Names of the ``*.yaml`` files in ``root/calibration`` (sorted; empty if there is no folder)."""
     d = Path(root) / "calibration"
     return sorted(p.name for p in d.glob("*.yaml")) if d.is_dir() else []
 
 
 def library_entries(root: Path) -> list[str]:
+    """Names of the objects (non-hidden folders) in ``root/object_library`` (sorted; empty if none)."""
     d = Path(root) / "object_library"
     return sorted(p.name for p in d.iterdir() if p.is_dir() and not p.name.startswith(".")) if d.is_dir() else []

@@ -35,6 +35,8 @@ class DotError(ValueError):
 
 @dataclass(frozen=True)
 class Blobs:
+    """Dots found by :func:`detect_dots`: sub-pixel centres (N, 2) px, areas (N,) px² and chroma (N,)."""
+
     centers: np.ndarray  # (N, 2) px, grey-level centroids
     areas: np.ndarray  # (N,) px², weighted area of the dot
     chroma: np.ndarray  # (N,) (max − min)/max of the dot core's mean BGR (0 for grey dots)

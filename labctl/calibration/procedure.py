@@ -97,6 +97,7 @@ class Plan:
     problems: list[str] = field(default_factory=list)
 
     def to_dict(self) -> dict:
+        """JSON-ready summary of the plan; robot poses as flange position (mm) and tilt from straight down (deg)."""
         def pose(T):
             return {"xyz_mm": [round(float(v), 3) for v in T[:3, 3]],
                     "tilt_deg": round(float(np.degrees(np.arccos(np.clip(-T[2, 2], -1, 1)))), 2)}
@@ -214,6 +215,13 @@ def plan_calibration(target: Target, *, cameras: str, travel_mm, workspace, T_w_
 # --- capture (the only part that touches devices) -----------------------------------------------
 @dataclass
 class Captures:
+    """Images taken by the procedure, in plan order.
+
+    ``fixed``: (spacer mm, table xy mm, C1 image); ``stations``: (C2 image, reported ``T_b_f``);
+    ``registration``: (table xy mm, C1 image, C2 image); ``robot_recovered``: moves re-commanded after a
+    watchdog stop.
+    """
+
     fixed: list[tuple[float, tuple[float, float], np.ndarray]] = field(default_factory=list)
     stations: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)  # (image, reported T_b_f)
     registration: list[tuple[tuple[float, float], np.ndarray, np.ndarray]] = field(default_factory=list)
@@ -443,6 +451,8 @@ def calibrate_single_view(image: np.ndarray, target: Target, nominal: CameraMode
 
 @dataclass
 class FixedCalibration:
+    """Fixed camera C1: Tsai model, ``T_table_c1`` (C1 → table machine frame, mm) and the target fit."""
+
     camera: CameraModel
     T_table_c1: np.ndarray  # C1 in the table's machine frame
     view: TargetView
@@ -459,6 +469,13 @@ def calibrate_fixed(cap: Captures, target: Target, nominal: CameraModel, *, full
 
 @dataclass
 class MobileCalibration:
+    """Mobile camera C2: Tsai model and hand-eye ``T_f_c2`` (C2 → flange F, mm).
+
+    ``T_b_f``/``T_c_t`` are the used stations' flange poses in the robot base B and target poses in C2;
+    ``T_b_t`` the target in B; the Tsai–Lenz and OpenCV hand-eye solutions are kept for comparison;
+    ``skipped`` lists the stations left out.
+    """
+
     camera: CameraModel
     T_f_c2: np.ndarray
     intrinsics_view: TargetView
@@ -567,5 +584,6 @@ def table_plane_error(cam: CameraModel, T_w_c: np.ndarray, cam_true: CameraModel
 
 
 def hand_eye_error(X: np.ndarray, X_true: np.ndarray) -> dict:
+    """``{rotation_deg, translation_mm}`` between an estimated hand-eye pose ``X`` and ``X_true``."""
     rot, trans = pose_error(X, X_true)
     return {"rotation_deg": rot, "translation_mm": trans}

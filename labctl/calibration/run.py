@@ -145,6 +145,7 @@ def nominal_for(lab) -> Nominal:
 
 
 def make_plan(target: Target, nominal: Nominal, cameras: str) -> Plan:
+    """The calibration plan for ``target`` and ``cameras`` under the lab's nominal geometry (mm, 4×4 poses)."""
     return plan_calibration(target, cameras=cameras, travel_mm=nominal.travel_mm, workspace=nominal.workspace,
                             T_w_table=nominal.T_w_table, nominal_mobile=nominal.mobile_camera, X_nominal=nominal.X,
                             nominal_fixed=nominal.fixed_camera, T_w_c1=nominal.T_w_c1)

@@ -59,21 +59,25 @@ def _matrix(T) -> list[list[float]]:
 
 
 def fixed_camera_text(camera: CameraModel, T_w_c: np.ndarray, stats: dict) -> str:
+    """YAML text of ``fixed_camera.yaml``: C1's Tsai model, ``T_w_c`` (C1 → world W, mm) and ``stats``."""
     return _dump("# Fixed camera C1 (labctl calibrate): Tsai model and pose T_w_c (C1 -> world W), mm.\n",
                  {"camera": camera.to_dict(), "T_w_c": _matrix(T_w_c), "stats": stats})
 
 
 def mobile_camera_text(camera: CameraModel, T_f_c: np.ndarray, stats: dict) -> str:
+    """YAML text of ``mobile_camera.yaml``: C2's Tsai model, hand-eye ``T_f_c`` (C2 → flange F, mm), ``stats``."""
     return _dump("# Mobile camera C2 (labctl calibrate): Tsai model and hand-eye X = T_f_c (C2 -> flange F), mm.\n",
                  {"camera": camera.to_dict(), "T_f_c": _matrix(T_f_c), "stats": stats})
 
 
 def table_text(T_w_table: np.ndarray, stats: dict) -> str:
+    """YAML text of ``table.yaml``: ``T_w_table`` (table machine zero → world W, mm) and ``stats``."""
     return _dump("# NC table registration (labctl calibrate): machine-zero frame in the world W, mm.\n",
                  {"T_w_table": _matrix(T_w_table), "stats": stats})
 
 
 def ros_camera_info_text(camera: CameraModel, name: str) -> str:
+    """YAML text of a ROS ``camera_info`` for ``camera`` (plumb_bob distortion fitted to κ1)."""
     return _dump(f"# ROS camera_info for {name} (plumb_bob fitted to Tsai's kappa1 by labctl).\n",
                  camera_info_dict(camera, name))
 
@@ -89,6 +93,7 @@ def write_files(cal_dir: Path | str, files: dict[str, str]) -> list[Path]:
 
 
 def save_ros_camera_info(cal_dir: Path | str, camera: CameraModel, name: str) -> Path:
+    """Write ``cal_dir/NAME_info.yaml`` (ROS ``camera_info``) atomically; returns its path."""
     path = Path(cal_dir) / f"{name}_info.yaml"
     atomic_write_text(path, ros_camera_info_text(camera, name))
     return path

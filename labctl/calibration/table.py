@@ -24,6 +24,8 @@ class TableRegistrationError(ValueError):
 
 @dataclass(frozen=True)
 class TableRegistration:
+    """NC table registration: ``T_w_table`` (machine zero → world W, mm), axis scales, skew (deg), residuals (mm)."""
+
     T_w_table: np.ndarray  # 4×4, machine zero of the table in W
     scale: tuple[float, float]  # measured mm per commanded mm along X and Y (1 for a true table)
     skew_deg: float  # deviation of the measured axes from perpendicular
@@ -31,6 +33,7 @@ class TableRegistration:
 
     @property
     def rms_mm(self) -> float:
+        """Root-mean-square fit residual (mm) in the table plane."""
         return float(np.sqrt(np.mean(np.sum(self.residuals_mm**2, axis=1))))
 
 

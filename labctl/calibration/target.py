@@ -46,6 +46,7 @@ class Solid:
     radii: np.ndarray  # (N,) mm
 
     def transformed(self, T: np.ndarray) -> Solid:
+        """This solid moved by the 4×4 pose ``T`` (new frame ← solid frame)."""
         R, t = T[:3, :3], T[:3, 3]
         return Solid(self.vertices @ R.T + t, self.faces, self.dots @ R.T + t, self.normals @ R.T, self.radii)
 
@@ -133,6 +134,7 @@ class Layout:
 
     @property
     def fiducial_indices(self) -> np.ndarray:
+        """Indices of the fiducial dots in :meth:`dot_table` order."""
         table = self.dot_table()
         return np.array([table.index(tuple(f)) for f in self.fiducials])
 
@@ -143,6 +145,7 @@ class Layout:
 
     @property
     def footprint_mm(self) -> tuple[float, float]:
+        """(width, length) of the target's base (mm)."""
         return (self.width_mm, self.length_mm)
 
 
@@ -180,6 +183,7 @@ class RoofTarget(Layout):
 
     @property
     def height_mm(self) -> float:
+        """Height of the target above its base (mm): the ridge height."""
         return self.ridge_height_mm
 
     def solid(self) -> Solid:
@@ -208,6 +212,7 @@ class RoofTarget(Layout):
         return self._measured(Solid(V, F, np.array(dots), np.array(normals), np.array(radii)))
 
     def check(self) -> None:
+        """Raise TargetError (one line) if the roof layout is inconsistent or the dots do not fit."""
         s = self._face(1)[2]
         last = self.first_dot_mm + (self.dots_per_face - 1) * self.pitch_mm
         if min(self.width_mm, self.length_mm, self.pitch_mm, self.dot_radius_mm) <= 0:
@@ -245,18 +250,22 @@ class PlaneTarget(Layout):
 
     @property
     def width_mm(self) -> float:
+        """Plate width (mm): the dot columns plus the margin on both sides."""
         return self.cols * self.pitch_mm + 2 * self.margin_mm
 
     @property
     def length_mm(self) -> float:
+        """Plate length (mm): the dot rows plus the margin on both sides."""
         return self.rows * self.pitch_mm + 2 * self.margin_mm
 
     @property
     def height_mm(self) -> float:
+        """Height of the dotted face above the base (mm): the plate thickness."""
         return self.thickness_mm
 
     @property
     def needs_heights(self) -> int:
+        """Two distinct spacer heights: a flat plate needs them for Tsai's non-coplanar method."""
         return 2
 
     def dot_table(self) -> list[tuple[int, int]]:
@@ -269,6 +278,7 @@ class PlaneTarget(Layout):
                          for i, j in self.dot_table()])
 
     def solid(self) -> Solid:
+        """The plate in its own frame t: box mesh and its dots on the top face (z = thickness, mm)."""
         V, F = _box(np.array([self.width_mm / 2.0, self.length_mm / 2.0]), 0.0, self.thickness_mm)
         xy = self.dot_centres_2d()
         dots = np.column_stack([xy, np.full(len(xy), self.thickness_mm)])
@@ -276,6 +286,7 @@ class PlaneTarget(Layout):
         return self._measured(Solid(V, F, dots, n, np.full(len(xy), self.dot_radius_mm)))
 
     def check(self) -> None:
+        """Raise TargetError (one line) if the plate layout is inconsistent or the dots overlap."""
         if min(self.cols, self.rows) < 3 or min(self.pitch_mm, self.dot_radius_mm, self.thickness_mm) <= 0:
             raise TargetError("a plane target needs at least 3×3 dots and positive sizes")
         if self.margin_mm < 0:

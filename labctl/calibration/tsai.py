@@ -54,6 +54,7 @@ class Sensor:
     sx: float = 1.0  # used as known in the coplanar case
 
     def camera(self, f: float = 1.0, kappa1: float = 0.0, sx: float | None = None) -> CameraModel:
+        """A camera model of this sensor with the given ``f`` (mm), ``kappa1`` (1/mm²) and ``sx``."""
         return CameraModel(f=f, kappa1=kappa1, sx=self.sx if sx is None else sx, cx=self.cx, cy=self.cy,
                            dx=self.dx, dy=self.dy, ncx=self.ncx, nfx=self.nfx, width=self.width,
                            height=self.height)
@@ -76,14 +77,17 @@ class TsaiResult:
 
     @property
     def rms_px(self) -> float:
+        """Root-mean-square reprojection residual (px)."""
         return float(np.sqrt(np.mean(np.sum(self.residuals_px**2, axis=1))))
 
     @property
     def max_px(self) -> float:
+        """Largest reprojection residual (px)."""
         return float(np.max(np.linalg.norm(self.residuals_px, axis=1)))
 
     @property
     def n_points(self) -> int:
+        """Number of calibration points used."""
         return int(len(self.residuals_px))
 
     def summary(self) -> dict:

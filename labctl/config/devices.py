@@ -34,6 +34,7 @@ class TableConfig:
     origin_w_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def validate(self):
+        """Cross-field check after loading: ``(key, what was expected)`` for the first problem, or None."""
         if self.kind == "grbl" and not self.port:
             return "port", "a grbl table needs a port (device path or pyserial URL)"
         if self.baud <= 0:
@@ -66,6 +67,7 @@ class RobotConfig:
     reconnect_s: NonNegative = 0.0  # after the port drops, retry opening it (with backoff) for this long
 
     def validate(self):
+        """Cross-field check (port, workspace box, heartbeat < watchdog, home inside): ``(key, message)`` or None."""
         if self.kind == "serial" and not self.port:
             return "port", "a serial robot needs a port (device path or pyserial URL)"
         if any(lo >= hi for lo, hi in zip(self.workspace_min_mm, self.workspace_max_mm)):
@@ -97,6 +99,8 @@ class LensConfig:
 
 @dataclass(frozen=True)
 class CameraConfig:
+    """A camera driver file (``drivers/*_camera.yaml``): source, image size (px), fps, timing (s), lens, response."""
+
     kind: Literal["sim", "v4l2", "stream", "replay"] = "sim"
     device: str | int | None = None  # v4l2: index or /dev/videoN
     url: str | None = None  # stream: http://host:8080/?action=stream (MJPEG), rtsp://… (OpenCV/FFmpeg)
@@ -122,6 +126,7 @@ class CameraConfig:
     hand_eye_rpy_deg: tuple[float, float, float] = (1.5, -1.0, 90.0)  # sim: C2 axes in F
 
     def validate(self):
+        """Cross-field check (source settings, timing, image size, response curve): ``(key, message)`` or None."""
         if self.kind == "v4l2" and self.device is None:
             return "device", "a v4l2 camera needs a device (index or /dev/videoN)"
         if self.kind == "stream" and not self.url:
@@ -166,6 +171,7 @@ class HostLinkConfig:
     key_file: str | None = None  # tcp: file holding the shared HMAC key (or $LABCTL_LINK_KEY); relative to the lab
 
     def validate(self):
+        """Cross-field check (baud; heartbeat below dead_after_s and stall_after_s): ``(key, message)`` or None."""
         if self.baud <= 0:
             return "baud", f"expected a positive baud rate, got {self.baud}"
         if not self.heartbeat_s < min(self.dead_after_s, self.stall_after_s):

@@ -18,6 +18,8 @@ LAB_FILE = "lab.yaml"
 
 @dataclass(frozen=True)
 class DriverFiles:
+    """Paths of the driver files, relative to the lab folder (``table: null``: no table)."""
+
     table: str | None = "drivers/table.yaml"  # null: no table (parts arrive on a conveyor labctl does not drive)
     robot: str = "drivers/robot.yaml"
     fixed_camera: str = "drivers/fixed_camera.yaml"
@@ -27,6 +29,8 @@ class DriverFiles:
 
 @dataclass(frozen=True)
 class MarkerConfig:
+    """Marker size (mm) and the size ladder for faces too small for ``radius_mm`` (issue 15)."""
+
     radius_mm: Positive = 8.0
     # faces too small for radius_mm get smaller markers, radius_mm·size_ratio^k, down to the one whose
     # face-on image at the initial viewing distance is min_image_diameter_px across (issue 15)
@@ -34,6 +38,7 @@ class MarkerConfig:
     size_ratio: Positive = 0.8
 
     def validate(self):
+        """Range check of the marker sizes: ``(key, message)`` or None."""
         if self.radius_mm <= 0:
             return "radius_mm", f"expected a positive radius, got {self.radius_mm}"
         if not self.min_image_diameter_px > 0:
@@ -55,6 +60,8 @@ class ViewingConfig:
 
 @dataclass(frozen=True)
 class TrackingConfig:
+    """Fixed-camera tracking (paper §5.2): motion model, noise (mm), gate (σ), search window (px), commit policy."""
+
     model: Literal["cv", "ct", "ca", "imm"] = "imm"  # chosen by measurement: docs/notes/planning.md
     process_noise: NonNegative = 0.01  # sqrt of the white-acceleration spectral density (mm/s^1.5); near 0: exact paths
     measurement_noise_mm: Positive = 0.7
@@ -68,6 +75,8 @@ class TrackingConfig:
 
 @dataclass(frozen=True)
 class RunConfig:
+    """One run's settings: trajectory, speed (mm/s), timeout (s), matching, predictor policy (paper §5.2–5.3)."""
+
     trajectory: str = "line"
     speed_mm_s: Positive = 8.0
     timeout_s: Positive = 90.0
@@ -148,6 +157,8 @@ class SimConfig:
 
 @dataclass(frozen=True)
 class LabConfig:
+    """The lab's ``lab.yaml``: name, driver files, marker, viewing, tracking, run and simulator settings."""
+
     name: str = "lab"
     drivers: DriverFiles = field(default_factory=DriverFiles)
     marker: MarkerConfig = field(default_factory=MarkerConfig)
@@ -174,10 +185,12 @@ class Lab:
 
     @property
     def calibration_dir(self) -> Path:
+        """The lab's ``calibration/`` folder."""
         return self.root / "calibration"
 
     @property
     def library_dir(self) -> Path:
+        """The lab's ``object_library/`` folder."""
         return self.root / "object_library"
 
     @property

@@ -51,6 +51,7 @@ class Range:
     lt: float | None = None
 
     def problem(self, value: float) -> str | None:
+        """What ``value`` violates (e.g. ``"> 0"``), or None when it is in range."""
         for bound, ok, word in ((self.gt, lambda b: value > b, ">"), (self.ge, lambda b: value >= b, "≥"),
                                 (self.le, lambda b: value <= b, "≤"), (self.lt, lambda b: value < b, "<")):
             if bound is not None and not ok(bound):

@@ -157,6 +157,7 @@ class RunRecord:
 
     @property
     def events_path(self) -> Path:
+        """Path of the record's event log."""
         return self.path / EVENTS
 
     # ---- pickling: the fd belongs to one process ----------------------------------------------
@@ -335,6 +336,7 @@ class RunData:
 
     @property
     def finished(self) -> bool:
+        """True when the run wrote its result."""
         return self.result is not None
 
     def of(self, name: str) -> list[dict]:
