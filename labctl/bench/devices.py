@@ -68,6 +68,7 @@ def _stream_virtual(lines: list[str], baud: int) -> dict:
 
 
 def run(quick: bool = False) -> dict:
+    """Time GRBL streaming at 9600 bps (pty and virtual) and the GRBL/robot reply parsers; rows plus raw data."""
     from ..drivers.grbl_protocol import parse_line
     from ..drivers.robot_protocol import parse_reply
 

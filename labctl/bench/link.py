@@ -95,6 +95,7 @@ def _paced_carry_s(msg, repeat: int) -> float | None:
 
 
 def run(quick: bool = False) -> dict:
+    """Host-link message sizes and 9600-bps wire times per type, a typical run's utilisation, codec speed vs JSON."""
     cfg = HostLinkConfig()
     msgs = examples()
     rep = 200 if quick else 2000

@@ -282,6 +282,7 @@ def scale_library(n_objects: int, camera, lab, rng: np.random.Generator, library
 
 
 def run(quick: bool = False) -> dict:
+    """Identification rates and matching speed on the sample, generated and scale libraries (paper §3.4)."""
     from ..library.storage import load_library
 
     lab, camera = _setup()

@@ -168,6 +168,7 @@ def _effects_rows(lab, world, obj, repeat: int) -> list[dict]:
 
 
 def run(quick: bool = False) -> dict:
+    """Frame rendering rate against the fillConvexPoly baseline and virtual-time trial speed, on one core."""
     from ..config import load_lab
     from ..workspace import sample_lab_path
 

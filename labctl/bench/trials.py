@@ -30,6 +30,7 @@ def _sweep(lab, n: int, jobs: int) -> tuple[float, dict]:
 
 
 def run(quick: bool = False) -> dict:
+    """Time a trial sweep on one process and on a pool of all cores; speed-up, identity of results, sim-time rate."""
     from ..config import load_lab
     from ..workspace import sample_lab_path
 

@@ -33,6 +33,7 @@ def _interleaved(cases: dict, repeat: int, warmup: int = 3) -> dict:
 
 
 def run(quick: bool = False) -> dict:
+    """Time marker detection, fit + pose and the ellipse fitters against baselines, then run the degradation suite."""
     from ..vision import (
         circle_poses,
         detect_markers,

@@ -48,10 +48,14 @@ def _load(name: str) -> click.Command | None:
 
 
 class LazyGroup(click.Group):
+    """Click group that imports each subcommand's module only when it is listed or called."""
+
     def list_commands(self, ctx):
+        """Names of the subcommands built into this installation."""
         return [n for n in COMMANDS if _load(n) is not None]
 
     def get_command(self, ctx, name):
+        """The subcommand ``name`` (imported now), or None if unknown or not built in."""
         return _load(name) if name in COMMANDS else None
 
 

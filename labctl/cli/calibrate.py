@@ -60,6 +60,7 @@ class TerminalPrompt:
         self.console = console
 
     def place_target(self, spacer_mm: float, index: int, count: int) -> None:
+        """Ask for the target on spacer ``spacer_mm`` (mm), wait for Enter; UserInputError if stdin is closed."""
         import sys
 
         from ..errors import UserInputError
@@ -85,6 +86,7 @@ class CommandPrompt:
         self.argv = shlex.split(command)
 
     def place_target(self, spacer_mm: float, index: int, count: int) -> None:
+        """Run ``CMD SPACER_MM INDEX COUNT`` (index from 1); UserInputError if it fails or exits non-zero."""
         import subprocess
 
         from ..errors import UserInputError

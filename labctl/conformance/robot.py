@@ -31,6 +31,8 @@ class CannotTalk(Exception):
 
 @dataclass
 class Result:
+    """One rule's outcome: its name as in docs/protocols/robot.md, PASS/FAIL/SKIP and what was seen."""
+
     rule: str
     status: str  # PASS, FAIL, SKIP
     detail: str = ""
@@ -50,6 +52,8 @@ def _num(x: float) -> str:
 
 @dataclass
 class Line:
+    """One received line: host arrival time (s, monotonic), text without checksum, raw text, checksum verdict."""
+
     t: float  # host monotonic time of arrival
     text: str  # without checksum
     raw: str
@@ -77,12 +81,14 @@ class Client:
         self.latencies: list[float] = []
 
     def close(self) -> None:
+        """Close the port; errors on closing are swallowed."""
         try:
             self.port.close()
         except Exception:  # noqa: BLE001 — closing a dead port must not hide the result
             pass
 
     def write(self, data: bytes) -> None:
+        """Write raw bytes to the port and flush."""
         self.port.write(data)
         self.port.flush()
 
@@ -107,11 +113,13 @@ class Client:
             time.sleep(0.002)
 
     def drain(self, wait_s: float = 0.0) -> list[Line]:
+        """Lines received and not yet consumed, after reading for up to ``wait_s`` s."""
         self._pump(wait_s)
         out, self.pending = self.pending, []
         return out
 
     def next_seq(self) -> int:
+        """The next request sequence number (1…65535, wrapping)."""
         self.seq = self.seq % 65535 + 1
         return self.seq
 
@@ -133,6 +141,7 @@ class Client:
         return None
 
     def wait_reply(self, seq: int, t_sent: float, timeout_s: float | None = None, sent_bytes: int = 0) -> Line | None:
+        """The reply ``$<seq>`` to a request sent at ``t_sent`` (None on timeout); logs its latency beyond wire time."""
         deadline = t_sent + (self.timeout_s if timeout_s is None else timeout_s)
         while True:
             for i, ln in enumerate(self.pending):
@@ -186,6 +195,10 @@ def sample(c: np.ndarray, T: float, n: int = 4001):
 
 @dataclass
 class Limits:
+    """The controller's LIMITS reply (§9): workspace box (mm), vmax (mm/s), amax (mm/s²), wmax (rad/s),
+    watchdog (s), stop deceleration a_stop (mm/s²) and home pose (x y z mm, rotation vector rad).
+    """
+
     box_min: np.ndarray
     box_max: np.ndarray
     v_max: float
@@ -198,6 +211,8 @@ class Limits:
 
 @dataclass
 class Suite:
+    """The suite's state: client, rule filter, results, and what HELLO and LIMITS reported."""
+
     client: Client
     no_motion: bool = False
     only: list[str] = field(default_factory=list)
@@ -211,9 +226,11 @@ class Suite:
 
     # --- helpers --------------------------------------------------------------------------
     def want(self, rule: str) -> bool:
+        """True if ``rule`` matches one of the ``only`` glob patterns (or there are none)."""
         return not self.only or any(fnmatch.fnmatch(rule, pat) for pat in self.only)
 
     def record(self, rule: str, ok: bool | None, detail: str = "") -> None:
+        """Append the rule's result (None: SKIP, True: PASS, False: FAIL) and pass it to ``log``."""
         status = "SKIP" if ok is None else ("PASS" if ok else "FAIL")
         res = Result(rule, status, detail)
         self.results.append(res)
@@ -221,13 +238,16 @@ class Suite:
             self.log(res)
 
     def req(self, body: str, **kw) -> tuple[str, list[str]]:
+        """Send ``body`` and return the reply as ``(code, fields)`` (see :func:`reply_fields`)."""
         return reply_fields(self.client.request(body, **kw))
 
     @property
     def v11(self) -> bool:
+        """True for a dialect 1.1 session."""
         return self.version != "1.0"
 
     def status(self) -> dict:
+        """STATUS parsed: ``p`` (mm), rotation vector ``rv`` (rad), moving, segment id, queued, ``t`` (s), fault."""
         code, f = self.req("STATUS")
         if code != "ok" or len(f) < 11:
             raise AssertionError(f"STATUS answered {code} {' '.join(f)}")
@@ -236,6 +256,7 @@ class Suite:
                 "queued": int(f[8]), "t": float(f[9]), "fault": f[10]}
 
     def seg(self, p, rv, T, v=None, cmd="SEG", seg_id=None) -> tuple[str, list[str], int]:
+        """SEG (or ``cmd``) to pose (``p`` mm, ``rv`` rad) in ``T`` s, end velocity ``v`` (mm/s): (code, fields, id)."""
         sid = self.new_id() if seg_id is None else seg_id
         args = [str(sid), *map(_num, p), *map(_num, rv), _num(T)]
         if v is not None:
@@ -244,6 +265,7 @@ class Suite:
         return code, f, sid
 
     def new_id(self) -> int:
+        """A fresh segment id (wrapping below 60000)."""
         self.next_id = self.next_id % 60000 + 1
         return self.next_id
 
@@ -256,6 +278,7 @@ class Suite:
             self.client._pump(min(step, max(end - time.monotonic(), 0.0)))
 
     def wait_rest(self, timeout_s: float = 10.0) -> dict:
+        """Poll STATUS until the arm is at rest or ``timeout_s`` passes; returns the last status."""
         end = time.monotonic() + timeout_s
         while True:
             st = self.status()
@@ -264,6 +287,7 @@ class Suite:
             self.client._pump(min(0.05, self.limits.watchdog_s / 4))
 
     def wait_done(self, seg_id: int, timeout_s: float) -> bool:
+        """True once ``@DONE seg_id`` arrives within ``timeout_s`` (s); feeds the watchdog meanwhile."""
         end = time.monotonic() + timeout_s
         while time.monotonic() < end:
             self.client._pump(0.0)
@@ -275,6 +299,7 @@ class Suite:
         return False
 
     def done_seen(self, seg_id: int) -> bool:
+        """True if ``@DONE seg_id`` has been received."""
         return any(ln.text.split() == ["@DONE", str(seg_id)] for ln in self.client.lines)
 
     def recover(self) -> None:
@@ -285,6 +310,7 @@ class Suite:
 
     # --- run ------------------------------------------------------------------------------
     def run(self) -> list[Result]:
+        """HELLO, every selected rule (a crash is a FAIL), then the checksum and reply-timing rules; the results."""
         self.hello()
         for name, fn in self.rules():
             if not self.want(name):
@@ -312,6 +338,7 @@ class Suite:
         return self.results
 
     def rules(self) -> Iterator[tuple[str, Callable[[], None]]]:
+        """(rule name, method) pairs in run order; motion rules only without ``no_motion``."""
         yield from [
             ("hello.reply", self.r_hello),
             ("status.format", self.r_status_format),
@@ -344,6 +371,7 @@ class Suite:
         ]
 
     def hello(self) -> None:
+        """Open the session (HELLO 1.1, else HELLO), read queue size, profiles and LIMITS; CannotTalk if silent."""
         self.client.drain(0.05)
         line = self.client.request("HELLO 1.1")
         if line is None:
@@ -377,6 +405,7 @@ class Suite:
 
     # --- framing and errors (no motion) -----------------------------------------------------
     def r_hello(self) -> None:
+        """hello.reply: HELLO answers ``ok <name> <version>``; a 1.1 session lists queue=N and the quintic profile."""
         code, f = self.hello_fields
         problems = []
         if code != "ok" or len(f) < 2 or not VERSION_RE.match(f[1]):
@@ -389,6 +418,7 @@ class Suite:
         self.record("hello.reply", not problems, "; ".join(problems) or f"{' '.join(f)}")
 
     def r_status_format(self) -> None:
+        """status.format: STATUS has 11 fields of the documented types."""
         code, f = self.req("STATUS")
         ok = code == "ok" and len(f) == 11 and f[6] in ("0", "1") and f[7].isdigit() and f[8].isdigit() \
             and f[10] in ("none", "stopped", "watchdog")
@@ -400,6 +430,7 @@ class Suite:
         self.record("status.format", ok, " ".join(f))
 
     def r_limits_format(self) -> None:
+        """limits.format: LIMITS has 10 (1.0) or 18 (1.1) fields, a non-empty box and a_stop ≥ amax/√3."""
         code, f = self.req("LIMITS")
         want = 18 if self.v11 else 10
         ok = code == "ok" and len(f) == want and self.limits is not None \
@@ -409,10 +440,12 @@ class Suite:
         self.record("limits.format", ok, f"{len(f)} fields (want {want}); a_stop ≥ amax/√3" if ok else " ".join(f))
 
     def r_checksum_optional(self) -> None:
+        """checksum.optional: a request without ``*HH`` is accepted."""
         code, _ = self.req("HB", checksum=False)
         self.record("checksum.optional", code == "ok", f"HB without *HH → {code}")
 
     def r_checksum_reject(self) -> None:
+        """checksum.reject: a STOP with a wrong checksum is answered E05 and not executed."""
         seq = self.client.next_seq()
         line = f"#{seq} STOP"
         bad = "00" if _xor(line) != "00" else "01"
@@ -432,6 +465,7 @@ class Suite:
         self.record("checksum.reject", not problems, "; ".join(problems) or "answered E05, not executed")
 
     def r_leniency(self) -> None:
+        """framing.leniency: lower case, extra blanks, CR LF and a lower-case checksum are accepted."""
         checks = {
             "lower-case command": self.req("hb")[0],
             "tabs and double spaces": self.req("\t STATUS  ")[0],
@@ -446,6 +480,7 @@ class Suite:
         self.record("framing.leniency", not bad, ", ".join(f"{k} → {v}" for k, v in bad.items()) or "all accepted")
 
     def r_line_length(self) -> None:
+        """framing.line_length: a 240-byte line is accepted; a 241-byte one gives @ERR E04 and no reply."""
         seq = self.client.next_seq()
         head = f"#{seq} HB"
         pad = 240 - len(head) - 3
@@ -469,10 +504,12 @@ class Suite:
                     f"{' @ERR E04' if errs else ' no @ERR E04'}")
 
     def r_unknown(self) -> None:
+        """errors.unknown: an unknown command is answered E01."""
         code, _ = self.req("FLY")
         self.record("errors.unknown", code == "E01", f"FLY → {code}")
 
     def r_arguments(self) -> None:
+        """errors.arguments: wrong argument counts, NaN, overflow and bad ids are answered E02 and not executed."""
         st = self.status()
         here = [*map(_num, st["p"]), *map(_num, st["rv"])]
         cases = ["STATUS 1", "HB 1", "LIMITS x", "CLEAR 1", "HELLO 1.1 x", "HELLO one", "SEG 1 2 3",
@@ -492,6 +529,7 @@ class Suite:
                     or f"{len(cases)} bad requests → E02")
 
     def r_malformed(self) -> None:
+        """errors.malformed: lines without a valid ``#<seq>`` give @ERR E03."""
         got = []
         for text in ("hello", "#abc HB", "#70000 HB"):
             self.client.write((text + "\n").encode())
@@ -519,6 +557,7 @@ class Suite:
         return st["p"], st["rv"]
 
     def r_home(self) -> None:
+        """home.arrives: HOME runs as segment 0, takes at least 1 s, sends @DONE 0 and rests at LIMITS' home."""
         code, f = self.req("HOME")
         if code != "ok":
             self.record("home.arrives", False, f"HOME → {code}")
@@ -536,6 +575,7 @@ class Suite:
         self.record("home.arrives", not problems, "; ".join(problems) or f"home in {t1 - t0:.3f} s, @DONE 0")
 
     def r_arrival(self) -> None:
+        """timing.arrival, done.sent: a rest-to-rest SEG follows the quintic, ends on target in T s and sends @DONE."""
         p0, rv = self._here()
         ax, sgn, room = self._room(p0)
         D = min(60.0, room / 4)
@@ -586,6 +626,7 @@ class Suite:
         self.record(rule, code == want, f"{why} → {code}")
 
     def r_speed(self) -> None:
+        """limits.speed: a rest-to-rest segment peaking at 1.1·vmax is refused with E12."""
         p0, rv = self._here()
         ax, sgn, room = self._room(p0)
         T = 3.6 * self.limits.v_max / self.limits.a_max
@@ -598,6 +639,7 @@ class Suite:
         self._expect_refusal("limits.speed", "E12", p1, rv, T, why=f"rest-to-rest {D:.0f} mm in {T:.2f} s (1.1·vmax)")
 
     def r_accel(self) -> None:
+        """limits.acceleration: a segment peaking at 1.2·amax is refused with E13."""
         p0, rv = self._here()
         ax, sgn, _ = self._room(p0)
         T = 0.2
@@ -610,6 +652,7 @@ class Suite:
         self._expect_refusal("limits.acceleration", "E13", p1, rv, T, why=f"{D:.1f} mm in {T:.3f} s (1.2·amax)")
 
     def r_angular(self) -> None:
+        """limits.angular: a rotation peaking at 1.2·wmax is refused with E14."""
         p0, rv = self._here()
         T = 0.5
         theta = 1.2 * self.limits.w_max * T / 1.875
@@ -620,6 +663,7 @@ class Suite:
                              why=f"{math.degrees(theta):.0f}° in {T} s (1.2·wmax)")
 
     def r_box(self) -> None:
+        """limits.box: a target 20 mm outside the workspace box is refused with E10."""
         p0, rv = self._here()
         ax, sgn, room = self._room(p0)
         p1 = p0.copy()
@@ -691,6 +735,7 @@ class Suite:
         return c, t0, T, before, after, rest, code, sid
 
     def r_stop_ramp(self) -> None:
+        """stop.ramp: STOP mid-move brakes at a_stop (§6): rests no further than allowed, inside the box, no @DONE."""
         c, t0, T, before, after, rest, code, sid = self._run_and_stop()
         if code != "ok":
             self.record("stop.ramp", False, f"STOP → {code}")
@@ -724,6 +769,7 @@ class Suite:
         self.req("CLEAR")
 
     def r_latch(self) -> None:
+        """stop.latch (1.1): after STOP, SEG, HOME and SEGNOW get E41 until CLEAR; then SEG is accepted."""
         if not self.v11:
             self.record("stop.latch", None, "a 1.0 session: STOP does not latch")
             return
@@ -743,6 +789,7 @@ class Suite:
         self.wait_done(sid, 2.0)
 
     def r_cut(self) -> None:
+        """done.not_after_cut: a SEGNOW that replaces a running segment sends @DONE for itself only."""
         p0, rv = self._here()
         ax, sgn, room = self._room(p0)
         p1 = p0.copy()
@@ -757,6 +804,7 @@ class Suite:
                     f"{'seen' if done_b else 'missing'}, @DONE {a} {'SENT' if self.done_seen(a) else 'not sent'}")
 
     def r_queue(self) -> None:
+        """queue.full, queue.segnow_when_full: 1 running + ``queue`` waiting SEGs fit, one more is E20; SEGNOW runs."""
         p0, rv = self._here()
         ax, sgn, room = self._room(p0)
         codes = []
@@ -772,6 +820,7 @@ class Suite:
         self.wait_done(now[2], 3.0)
 
     def r_watchdog_fed(self) -> None:
+        """watchdog.fed: any valid request (STATUS here) keeps the watchdog from tripping over a 3-watchdog segment."""
         p0, rv = self._here()
         ax, sgn, room = self._room(p0)
         p1 = p0.copy()
@@ -790,6 +839,7 @@ class Suite:
                     f"{'@DONE' if done else 'no @DONE'}, {len(trips)} @WATCHDOG")
 
     def r_watchdog_trips(self) -> None:
+        """watchdog.trips: silence past the watchdog stops the arm (@WATCHDOG, fault, E40 on SEG) until CLEAR."""
         p0, rv = self._here()
         ax, sgn, room = self._room(p0)
         p1 = p0.copy()
