@@ -45,14 +45,17 @@ class Cam:
 
     @property
     def c(self) -> tuple[float, float]:
+        """Principal point (cx, cy) in px: the image centre."""
         return (self.width - 1) / 2.0, (self.height - 1) / 2.0
 
     @property
     def K(self) -> np.ndarray:
+        """3×3 pinhole matrix (px) of the undistorted image."""
         cx, cy = self.c
         return np.array([[self.f, 0.0, cx], [0.0, self.f, cy], [0.0, 0.0, 1.0]])
 
     def undistort(self, u: np.ndarray, v: np.ndarray):
+        """Undistorted pixel coordinates of distorted ``u``, ``v``: offsets from ``c`` scaled by 1 + k_px·r²."""
         if self.k_px == 0.0:
             return u, v
         cx, cy = self.c
@@ -72,6 +75,7 @@ class Cam:
         return c + d
 
     def project(self, X: np.ndarray) -> np.ndarray:
+        """Distorted pixels (..., 2) of camera-frame points ``X`` (..., 3) in mm."""
         X = np.asarray(X, float)
         cx, cy = self.c
         return self.distort_points(np.stack([self.f * X[..., 0] / X[..., 2] + cx,
@@ -371,4 +375,5 @@ def random_pose(rng: np.random.Generator, cam: Cam, *, range_mm=(600.0, 1200.0),
 
 
 def translated(disc: Disc, shift_mm) -> Disc:
+    """``disc`` with its centre moved by ``shift_mm`` (3-vector, mm, camera frame)."""
     return replace(disc, center=tuple(np.asarray(disc.center) + np.asarray(shift_mm, float)))

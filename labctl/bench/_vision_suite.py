@@ -263,4 +263,5 @@ def acceptance(rows: list[dict]) -> dict:
 
 
 def replace_cond(cond: oracle.Conditions, **kw) -> oracle.Conditions:
+    """A copy of ``cond`` with the given fields replaced."""
     return replace(cond, **kw)

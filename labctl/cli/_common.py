@@ -14,6 +14,8 @@ import numpy as np
 
 @dataclass
 class Ctx:
+    """The click context object: ``--lab`` path, ``--json``, ``-v`` count and the lab, loaded once."""
+
     lab_path: Path | None = None  # None: resolve with find_lab()
     json: bool = False
     verbose: int = 0
@@ -21,6 +23,7 @@ class Ctx:
 
     @property
     def lab_root(self) -> Path:
+        """The lab folder: ``--lab`` if given, else :func:`labctl.workspace.find_lab`."""
         from ..workspace import find_lab
 
         return Path(self.lab_path) if self.lab_path else find_lab()
@@ -45,12 +48,14 @@ class Ctx:
 
     @property
     def console(self):
+        """A rich console for people: on stderr under ``--json`` (stdout carries the JSON)."""
         from rich.console import Console
 
         return Console(stderr=self.json)
 
 
 def get_ctx() -> Ctx:
+    """The current command's :class:`Ctx` (created if the group did not make one)."""
     ctx = click.get_current_context()
     obj = ctx.find_object(Ctx)
     if obj is None:
@@ -81,6 +86,7 @@ def _default(o):
 
 
 def to_json(data: Any) -> str:
+    """``data`` as indented JSON; numpy arrays and scalars and paths converted, NaN refused (ValueError)."""
     return json.dumps(data, default=_default, indent=2, allow_nan=False)
 
 
