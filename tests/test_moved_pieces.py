@@ -75,7 +75,7 @@ def test_predictor_policy_is_a_run_setting(tmp_path, capsys):
     """The predictor's interception horizon comes from lab.yaml run:, not a constant in the worker."""
     import json
 
-    from tests.fakes import run_cli
+    from fakes import run_cli
 
     root = _lab_with(tmp_path, "  plan_horizon_s: 0.05")
     code, out, err = run_cli(capsys, "--lab", str(root), "--json", "run", "--virtual", "--seed", "1")
@@ -85,7 +85,7 @@ def test_predictor_policy_is_a_run_setting(tmp_path, capsys):
 
 @pytest.mark.parametrize("line", ["  max_viewpoints: 0", "  replan_every_s: -1", "  recognizer_timeout_s: .nan"])
 def test_predictor_policy_settings_are_checked_at_load(tmp_path, capsys, line):
-    from tests.fakes import run_cli
+    from fakes import run_cli
 
     root = _lab_with(tmp_path, line)
     code, out, err = run_cli(capsys, "--lab", str(root), "lab", "show")

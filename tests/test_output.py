@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from fakes import run_cli
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -18,7 +19,6 @@ from labctl.config import load_lab
 from labctl.config.lab import LabConfig
 from labctl.config.schema import defaulted_keys
 from labctl.workspace import init_workspace
-from tests.fakes import run_cli
 
 KEY_LINE = re.compile(r"^[^\s:][^:]*: .*$")
 

@@ -184,7 +184,7 @@ def test_unfinished_run_report_leads_with_the_last_event(tmp_path):
 def test_report_command_redraws_a_failed_run_and_names_the_reason(tmp_path, capsys):
     import json
 
-    from tests.fakes import run_cli
+    from fakes import run_cli
 
     rec = RunRecord.create(tmp_path, {"trajectory": "line"})
     rec.finish({"identity": None, "failure": "the object left the fixed camera's field of view"})
