@@ -241,10 +241,9 @@ def check_cmd() -> int:
     lab = get_ctx().lab()
     ok, problems = check_library(lab.library_dir)
 
-    def human(console):
+    if not get_ctx().json:  # the problems go to stderr however stdout is read (terminal or pipe)
         for line in problems:
             click.echo(line, err=True)
-        console.print(f"{len(ok)} objects ok, {len(problems)} problems")
-
-    emit({"ok": ok, "problems": problems}, human)
+    emit({"ok": ok, "problems": problems},
+         lambda console: console.print(f"{len(ok)} objects ok, {len(problems)} problems"))
     return 2 if problems else 0
