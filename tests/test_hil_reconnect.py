@@ -159,152 +159,145 @@ def _table_state(lab: Path) -> dict:
     return json.loads(r.stdout)
 
 
-@pytest.mark.timeout(300)
-def test_table_link_that_stays_down_ends_the_run_with_exit_3_in_bounded_time(tmp_path):
+@pytest.fixture
+def served_lab(tmp_path):
+    """A lab served over TCP in another process (its own per test: a run leaves the controllers in their
+    end state), ``reconnect_s`` set in its driver files, the table unlocked and moved to the start."""
     lab = tmp_path / "served"
     with Served(lab, "--tcp", "--object", "tee", "--seed", "3") as served:
         _configure(lab)
         assert labctl("table", "move", "150", "200", "--unlock", lab=lab, timeout=60).returncode == 0
-        run = DroppedRun(served, lab, "table", down_s=None)
-        error = run.first("worker_error")
-        assert error is not None and "LinkLost" in error["error"]
-        detect = run.log_wall("link dropped") - run.dropped["t_wall"]
-        typed = error["wall"] - run.dropped["t_wall"]
-        print(f"table, no return: detected {detect:.2f} s, LinkLost {typed:.2f} s, exit {run.drop_to_exit_s:.2f} s "
-              "after the drop", file=sys.stderr)
-        assert run.code == 3, run.stderr
-        err = run.stderr.strip().splitlines()
-        assert len(err) == 1 and "LinkLost" in err[0] and f"within {RECONNECT_S:g} s" in err[0], err
-        assert "robot stopped (confirmed)" in err[0] and "record kept" in err[0] and "Traceback" not in run.stderr
-        # bounded: the window (plus one open attempt), then the stop path; never hangs
-        assert 0 <= detect < 1.5, detect  # noticed at the table's status rate (5 Hz), not at the program's end
-        assert RECONNECT_S <= typed - detect < RECONNECT_S + 1.0, (detect, typed)
-        assert RECONNECT_S <= run.drop_to_exit_s < RECONNECT_S + MARGIN_S, run.drop_to_exit_s
-        # the record is kept and says why; the robot was stopped and confirmed still
-        aborted = run.first("run_aborted")
-        assert aborted is not None and aborted["exit_code"] == 3 and "robot" in aborted["devices_stopped"]
-        assert "LinkLost" in aborted["reason"]
-        assert _robot_still(lab)
-        assert run.workers_gone()
-        assert served.proc.poll() is None  # the served lab (the "hardware") is still there
+        yield served, lab
 
 
 @pytest.mark.timeout(300)
-def test_table_link_back_within_reconnect_s_recovers_then_the_robot_link_that_stays_down_is_exit_3(tmp_path):
+def test_table_link_that_stays_down_ends_the_run_with_exit_3_in_bounded_time(served_lab):
+    served, lab = served_lab
+    run = DroppedRun(served, lab, "table", down_s=None)
+    error = run.first("worker_error")
+    assert error is not None and "LinkLost" in error["error"]
+    detect = run.log_wall("link dropped") - run.dropped["t_wall"]
+    typed = error["wall"] - run.dropped["t_wall"]
+    print(f"table, no return: detected {detect:.2f} s, LinkLost {typed:.2f} s, exit {run.drop_to_exit_s:.2f} s "
+          "after the drop", file=sys.stderr)
+    assert run.code == 3, run.stderr
+    err = run.stderr.strip().splitlines()
+    assert len(err) == 1 and "LinkLost" in err[0] and f"within {RECONNECT_S:g} s" in err[0], err
+    assert "robot stopped (confirmed)" in err[0] and "record kept" in err[0] and "Traceback" not in run.stderr
+    # bounded: the window (plus one open attempt), then the stop path; never hangs
+    assert 0 <= detect < 1.5, detect  # noticed at the table's status rate (5 Hz), not at the program's end
+    assert RECONNECT_S <= typed - detect < RECONNECT_S + 1.0, (detect, typed)
+    assert RECONNECT_S <= run.drop_to_exit_s < RECONNECT_S + MARGIN_S, run.drop_to_exit_s
+    # the record is kept and says why; the robot was stopped and confirmed still
+    aborted = run.first("run_aborted")
+    assert aborted is not None and aborted["exit_code"] == 3 and "robot" in aborted["devices_stopped"]
+    assert "LinkLost" in aborted["reason"]
+    assert _robot_still(lab)
+    assert run.workers_gone()
+    assert served.proc.poll() is None  # the served lab (the "hardware") is still there
+
+
+@pytest.mark.timeout(300)
+def test_table_link_back_within_reconnect_s_recovers_then_the_robot_link_that_stays_down_is_exit_3(served_lab):
     """One run, two drops: the table's link comes back after 1 s (the run reads GRBL's state again and
     goes on), then the robot's link drops for good (LinkLost, exit 3, the table stopped)."""
-    lab = tmp_path / "served"
-    with Served(lab, "--tcp", "--object", "tee", "--seed", "3") as served:
-        _configure(lab)
-        assert labctl("table", "move", "150", "200", "--unlock", lab=lab, timeout=60).returncode == 0
-        times = {}
+    served, lab = served_lab
+    times = {}
 
-        def drop_robot(run: DroppedRun) -> None:
-            times["restored"] = run.wait_for_log("link restored", RECONNECT_S + 5.0)["wall"]
-            times["robot_dropped"] = _link(served, "robot", up=False)["t_wall"]
+    def drop_robot(run: DroppedRun) -> None:
+        times["restored"] = run.wait_for_log("link restored", RECONNECT_S + 5.0)["wall"]
+        times["robot_dropped"] = _link(served, "robot", up=False)["t_wall"]
 
-        run = DroppedRun(served, lab, "table", down_s=1.0, then=drop_robot)
-        detect = run.log_wall("link dropped") - run.dropped["t_wall"]
-        back = times["restored"] - run.restored["t_wall"]
-        robot_exit = run.t_exit - times["robot_dropped"]
-        error = run.first("worker_error")
-        assert error is not None and "LinkLost" in error["error"] and "robot@" in error["error"], error
-        robot_typed = error["wall"] - times["robot_dropped"]
-        print(f"table back after 1 s: detected {detect:.2f} s after the drop, restored {back:.2f} s after the "
-              f"link came back; robot, no return: LinkLost {robot_typed:.2f} s, exit {robot_exit:.2f} s after the "
-              "drop", file=sys.stderr)
-        # the table: dropped, noticed, reconnected and its state read again (still running its line)
-        assert 0 <= detect < 1.5, detect
-        assert back < 2.5 + 1.0, back  # the next reconnect attempt (backoff ≤ 2 s) and the state read
-        assert "state Run" in run.first("log", "link restored")["message"]
-        assert run.first("worker_error", "grbl@") is None  # the table's drop did not end the run
-        # the robot: a typed error in bounded time, the table stopped, the record kept
-        assert run.code == 3, run.stderr
-        err = run.stderr.strip().splitlines()
-        assert len(err) == 1 and "LinkLost" in err[0] and "robot@" in err[0] and "record kept" in err[0], err
-        assert RECONNECT_S <= robot_typed < RECONNECT_S + 1.5, robot_typed
-        assert RECONNECT_S <= robot_exit < RECONNECT_S + MARGIN_S, robot_exit
-        aborted = run.first("run_aborted")
-        assert aborted is not None and aborted["exit_code"] == 3 and "table" in aborted["devices_stopped"]
-        assert run.workers_gone()
-        assert _table_state(lab)["state"] in ("Idle", "Hold:0")
+    run = DroppedRun(served, lab, "table", down_s=1.0, then=drop_robot)
+    detect = run.log_wall("link dropped") - run.dropped["t_wall"]
+    back = times["restored"] - run.restored["t_wall"]
+    robot_exit = run.t_exit - times["robot_dropped"]
+    error = run.first("worker_error")
+    assert error is not None and "LinkLost" in error["error"] and "robot@" in error["error"], error
+    robot_typed = error["wall"] - times["robot_dropped"]
+    print(f"table back after 1 s: detected {detect:.2f} s after the drop, restored {back:.2f} s after the "
+          f"link came back; robot, no return: LinkLost {robot_typed:.2f} s, exit {robot_exit:.2f} s after the "
+          "drop", file=sys.stderr)
+    # the table: dropped, noticed, reconnected and its state read again (still running its line)
+    assert 0 <= detect < 1.5, detect
+    assert back < 2.5 + 1.0, back  # the next reconnect attempt (backoff ≤ 2 s) and the state read
+    assert "state Run" in run.first("log", "link restored")["message"]
+    assert run.first("worker_error", "grbl@") is None  # the table's drop did not end the run
+    # the robot: a typed error in bounded time, the table stopped, the record kept
+    assert run.code == 3, run.stderr
+    err = run.stderr.strip().splitlines()
+    assert len(err) == 1 and "LinkLost" in err[0] and "robot@" in err[0] and "record kept" in err[0], err
+    assert RECONNECT_S <= robot_typed < RECONNECT_S + 1.5, robot_typed
+    assert RECONNECT_S <= robot_exit < RECONNECT_S + MARGIN_S, robot_exit
+    aborted = run.first("run_aborted")
+    assert aborted is not None and aborted["exit_code"] == 3 and "table" in aborted["devices_stopped"]
+    assert run.workers_gone()
+    assert _table_state(lab)["state"] in ("Idle", "Hold:0")
 
 
 @long_only
 @pytest.mark.timeout(300)
-def test_table_link_back_within_reconnect_s_the_run_recovers_and_identifies(tmp_path):
-    lab = tmp_path / "served"
-    with Served(lab, "--tcp", "--object", "tee", "--seed", "3") as served:
-        _configure(lab)
-        assert labctl("table", "move", "150", "200", "--unlock", lab=lab, timeout=60).returncode == 0
-        run = DroppedRun(served, lab, "table", down_s=1.0)
-        back = run.log_wall("link restored") - run.restored["t_wall"]
-        print(f"table back after 1 s, alone: restored {back:.2f} s after the link came back", file=sys.stderr)
-        assert run.code == 0, run.stderr
-        assert json.loads(run.stdout)["identity"] == served.truth["true_identity"]
-        assert "state Run" in run.first("log", "link restored")["message"] and run.first("worker_error") is None
+def test_table_link_back_within_reconnect_s_the_run_recovers_and_identifies(served_lab):
+    served, lab = served_lab
+    run = DroppedRun(served, lab, "table", down_s=1.0)
+    back = run.log_wall("link restored") - run.restored["t_wall"]
+    print(f"table back after 1 s, alone: restored {back:.2f} s after the link came back", file=sys.stderr)
+    assert run.code == 0, run.stderr
+    assert json.loads(run.stdout)["identity"] == served.truth["true_identity"]
+    assert "state Run" in run.first("log", "link restored")["message"] and run.first("worker_error") is None
 
 
 @long_only
 @pytest.mark.timeout(300)
-def test_table_reset_while_away_ends_in_an_alarm_and_nothing_moves(tmp_path):
-    lab = tmp_path / "served"
-    with Served(lab, "--tcp", "--object", "tee", "--seed", "3") as served:
-        _configure(lab)
-        assert labctl("table", "move", "150", "200", "--unlock", lab=lab, timeout=60).returncode == 0
-        run = DroppedRun(served, lab, "table", down_s=0.5, reset=True)
-        error = run.first("worker_error")
-        assert error is not None and "GrblAlarm" in error["error"], error
-        print(f"table reset while away: GrblAlarm {error['wall'] - run.dropped['t_wall']:.2f} s, exit "
-              f"{run.drop_to_exit_s:.2f} s after the drop: {run.stderr.strip()}", file=sys.stderr)
-        assert run.code == 3, run.stderr
-        assert "GrblAlarm" in run.stderr and "position may be lost" in run.stderr
-        assert run.drop_to_exit_s < RECONNECT_S + MARGIN_S
-        st = _table_state(lab)
-        time.sleep(1.0)
-        st2 = _table_state(lab)
-        assert st["state"] == st2["state"] == "Alarm" and st["position"] == st2["position"]  # nothing moved
-        assert run.workers_gone()
+def test_table_reset_while_away_ends_in_an_alarm_and_nothing_moves(served_lab):
+    served, lab = served_lab
+    run = DroppedRun(served, lab, "table", down_s=0.5, reset=True)
+    error = run.first("worker_error")
+    assert error is not None and "GrblAlarm" in error["error"], error
+    print(f"table reset while away: GrblAlarm {error['wall'] - run.dropped['t_wall']:.2f} s, exit "
+          f"{run.drop_to_exit_s:.2f} s after the drop: {run.stderr.strip()}", file=sys.stderr)
+    assert run.code == 3, run.stderr
+    assert "GrblAlarm" in run.stderr and "position may be lost" in run.stderr
+    assert run.drop_to_exit_s < RECONNECT_S + MARGIN_S
+    st = _table_state(lab)
+    time.sleep(1.0)
+    st2 = _table_state(lab)
+    assert st["state"] == st2["state"] == "Alarm" and st["position"] == st2["position"]  # nothing moved
+    assert run.workers_gone()
 
 
 @long_only
 @pytest.mark.timeout(300)
-def test_robot_link_that_stays_down_ends_the_run_with_exit_3_in_bounded_time(tmp_path):
-    lab = tmp_path / "served"
-    with Served(lab, "--tcp", "--object", "tee", "--seed", "3") as served:
-        _configure(lab)
-        assert labctl("table", "move", "150", "200", "--unlock", lab=lab, timeout=60).returncode == 0
-        run = DroppedRun(served, lab, "robot", down_s=None)
-        print(f"robot, no return: drop→exit {run.drop_to_exit_s:.2f} s", file=sys.stderr)
-        assert run.code == 3, run.stderr
-        err = run.stderr.strip().splitlines()
-        assert len(err) == 1 and "LinkLost" in err[0] and "robot@" in err[0] and "record kept" in err[0], err
-        assert run.drop_to_exit_s < RECONNECT_S + MARGIN_S
-        aborted = run.first("run_aborted")
-        assert aborted is not None and aborted["exit_code"] == 3 and "table" in aborted["devices_stopped"]
-        assert run.workers_gone()
-        st = _table_state(lab)
-        assert st["state"] in ("Idle", "Hold:0")
+def test_robot_link_that_stays_down_ends_the_run_with_exit_3_in_bounded_time(served_lab):
+    served, lab = served_lab
+    run = DroppedRun(served, lab, "robot", down_s=None)
+    print(f"robot, no return: drop→exit {run.drop_to_exit_s:.2f} s", file=sys.stderr)
+    assert run.code == 3, run.stderr
+    err = run.stderr.strip().splitlines()
+    assert len(err) == 1 and "LinkLost" in err[0] and "robot@" in err[0] and "record kept" in err[0], err
+    assert run.drop_to_exit_s < RECONNECT_S + MARGIN_S
+    aborted = run.first("run_aborted")
+    assert aborted is not None and aborted["exit_code"] == 3 and "table" in aborted["devices_stopped"]
+    assert run.workers_gone()
+    st = _table_state(lab)
+    assert st["state"] in ("Idle", "Hold:0")
 
 
 @long_only
 @pytest.mark.timeout(300)
-def test_robot_link_back_quickly_recovers_or_ends_on_the_controllers_watchdog(tmp_path):
+def test_robot_link_back_quickly_recovers_or_ends_on_the_controllers_watchdog(served_lab):
     """A 0.2 s robot drop mid-intercept races the controller's 0.5 s watchdog: back in time, the run
     reads the state again (HELLO, STATUS) and goes on; too late, the arm was stopped and its segments
     are lost (RobotFault, exit 3, nothing resent). Either way within the window; the test says which."""
-    lab = tmp_path / "served"
-    with Served(lab, "--tcp", "--object", "tee", "--seed", "3") as served:
-        _configure(lab)
-        assert labctl("table", "move", "150", "200", "--unlock", lab=lab, timeout=60).returncode == 0
-        run = DroppedRun(served, lab, "robot", down_s=0.2, at=lambda e: e["event"] == "segment")  # the arm moves
-        print(f"robot back after 0.2 s: exit {run.code} {run.drop_to_exit_s:.2f} s after the drop; "
-              f"{run.stderr.strip() or json.loads(run.stdout)['identity']}", file=sys.stderr)
-        assert run.first("log", "robot@") is not None  # the drop was noticed
-        if run.code == 0:
-            assert run.first("log", "link restored") is not None
-            assert json.loads(run.stdout)["identity"] == served.truth["true_identity"]
-        else:
-            assert run.code == 3 and "RobotFault" in run.stderr and "nothing was sent again" in run.stderr, run.stderr
-            assert run.drop_to_exit_s < RECONNECT_S + MARGIN_S
-        assert run.workers_gone()
+    served, lab = served_lab
+    run = DroppedRun(served, lab, "robot", down_s=0.2, at=lambda e: e["event"] == "segment")  # the arm moves
+    print(f"robot back after 0.2 s: exit {run.code} {run.drop_to_exit_s:.2f} s after the drop; "
+          f"{run.stderr.strip() or json.loads(run.stdout)['identity']}", file=sys.stderr)
+    assert run.first("log", "robot@") is not None  # the drop was noticed
+    if run.code == 0:
+        assert run.first("log", "link restored") is not None
+        assert json.loads(run.stdout)["identity"] == served.truth["true_identity"]
+    else:
+        assert run.code == 3 and "RobotFault" in run.stderr and "nothing was sent again" in run.stderr, run.stderr
+        assert run.drop_to_exit_s < RECONNECT_S + MARGIN_S
+    assert run.workers_gone()

@@ -581,18 +581,8 @@ class _TruthLog:
             self.last = key
             with contextlib.suppress(Exception):
                 self.log("sim_truth", t=st["t"], robot_moving=key[0], table_moving=key[1], table_state=key[2],
-                         robot_stop=self._robot_stop())
+                         robot_stop=self.sim.robot_stop())
         return {**st, "robot_still_since": self.still_since["robot"], "table_still_since": self.still_since["table"]}
-
-    def _robot_stop(self) -> list[float] | None:
-        """[received, still] (s, run clock) of the robot controller's latest STOP: the emulator brakes
-        on its stop ramp (each axis at a_stop = a_max/√3, docs/protocols/robot.md §Stopping)."""
-        emu = getattr(self.sim, "robot_emu", None)
-        if emu is None:
-            return None
-        with self.sim.robot_pty.lock:
-            stops = [(s.t0, s.t1) for s in emu.segments if s.seg_id == -1]
-        return list(stops[-1]) if stops else None
 
     def still_for(self) -> float:
         return time.monotonic() - self.t_moving
