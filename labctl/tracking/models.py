@@ -145,3 +145,21 @@ def straight_transition_5d(dt: float) -> np.ndarray:
     F = np.eye(5)
     F[0, 1] = F[2, 3] = dt
     return F
+
+
+def turn_positions(x, d) -> np.ndarray:
+    """Positions (N, 2) mm of the coordinated turn ``x = [x, vx, y, vy, κ]`` after times ``d`` (N,) s.
+
+    The same motion as :func:`turn_transition` (which it matches to round-off), for many times
+    at once and for negative ``d`` too (the path before the state's time): what the re-linearised
+    batch fit of the turn (``MarkerTracker``'s CT refit) evaluates on every frame.
+    """
+    x = np.asarray(x, dtype=float).reshape(-1)
+    d = np.asarray(d, dtype=float)
+    w = x[4] * np.hypot(x[1], x[3])
+    wt = w * d
+    small = np.abs(wt) < 1e-4
+    safe = np.where(small, 1.0, wt)
+    s_over = d * np.where(small, 1.0 - wt**2 / 6.0, np.sin(safe) / safe)  # sin(ω d)/ω
+    c_over = d * np.where(small, wt / 2.0 - wt**3 / 24.0, (1.0 - np.cos(safe)) / safe)  # (1 - cos(ω d))/ω
+    return np.column_stack([x[0] + s_over * x[1] - c_over * x[3], x[2] + c_over * x[1] + s_over * x[3]])
