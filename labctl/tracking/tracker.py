@@ -47,6 +47,7 @@ from .models import (
     straight_transition_5d,
     turn_jacobian,
     turn_positions,
+    turn_positions_jacobian,
     turn_process_noise,
     turn_transition,
 )
@@ -355,6 +356,8 @@ class MarkerTracker:
         self._anchor: tuple[float, np.ndarray, np.ndarray] | None = None
         self._curv_prior = (0.0, self._init_sigmas[1] ** 2)
         self._rev = 0
+        self._segment = 0  # counts (re)starts of the quiet modes: a warm start never crosses one
+        self._refit_warm: tuple[int, float, np.ndarray] | None = None
         self._refit_cache: tuple[int, list[tuple[np.ndarray, np.ndarray]]] | None = None
         self.corners: list[float] = []  # estimated corner times (s) the IMM restarted its quiet modes at
 
@@ -405,6 +408,7 @@ class MarkerTracker:
         self._anchor = None
         self._curv_prior = (0.0, curvature_sigma**2)
         self._rev += 1
+        self._segment += 1
 
     def _matrices(self, mode: _Mode, dt: float, *, extrapolate: bool = False):
         """``(F, Q)`` of ``mode`` over ``dt`` (F is None for the CT mode: its mean is nonlinear)."""
@@ -575,6 +579,7 @@ class MarkerTracker:
         self._anchor = (float(t0), x0[self._pos, 0].copy(), np.linalg.cholesky(np.linalg.inv(Pp)).T)
         self._curv_prior = (float(x0[4, 0]), float(P0[4, 4]))
         self._rev += 1
+        self._segment += 1
         for kf, mode in zip(self._kfs, self._modes):
             x = x0.copy()
             P = P0.copy()
@@ -633,33 +638,41 @@ class MarkerTracker:
         if len(frames) < 10:
             return x_ekf.reshape(-1, 1), P_ekf
         t_last = frames[-1][0]
-        d = np.array([f[0] for f in frames]) - t_last
+        d = np.fromiter((f[0] for f in frames), float, len(frames)) - t_last
         zs = np.array([f[1] for f in frames])
         w_meas = 1.0 / np.sqrt(self._R[0, 0])
         anchor = self._anchor
         if anchor is not None and t_last - anchor[0] > self._refit_window:
             anchor = None
         k_mean, k_var = self._curv_prior
+        k_w = 1.0 / np.sqrt(k_var)
         speed_var = self._init_sigmas[0] ** 2
 
         def residuals(x):
             r = [((turn_positions(x, d) - zs) * w_meas).reshape(-1)]
             if anchor is not None:
                 r.append(anchor[2] @ (turn_positions(x, [anchor[0] - t_last])[0] - anchor[1]))
-            r.append([(x[4] - k_mean) / np.sqrt(k_var)])
+            r.append([(x[4] - k_mean) * k_w])
             return np.concatenate(r)
 
+        def jacobian(x):
+            J = [turn_positions_jacobian(x, d).reshape(-1, 5) * w_meas]
+            if anchor is not None:
+                J.append(anchor[2] @ turn_positions_jacobian(x, [anchor[0] - t_last])[0])
+            J.append(np.array([[0.0, 0.0, 0.0, 0.0, k_w]]))
+            return np.vstack(J)
+
+        # start at the last refit carried forward along its turn (one or two iterations then), else at the EKF
+        warm = self._refit_warm
         x = x_ekf.copy()
+        if warm is not None and warm[0] == self._segment:
+            x = turn_transition(warm[2], t_last - warm[1])
         r = residuals(x)
         cost = float(r @ r)
         converged = False
         for _ in range(8):
-            J = np.empty((len(r), 5))
+            J = jacobian(x)
             speed = max(np.hypot(x[1], x[3]), 1.0)
-            for k, h in ((0, 1e-3), (1, 1e-6 * speed), (2, 1e-3), (3, 1e-6 * speed), (4, 1e-8)):
-                e = np.zeros(5)
-                e[k] = h
-                J[:, k] = (residuals(x + e) - residuals(x - e)) / (2 * h)
             A = J.T @ J
             A[[1, 3], [1, 3]] += 1.0 / speed_var  # the track's diffuse velocity prior, as the EKF started
             try:
@@ -675,13 +688,14 @@ class MarkerTracker:
                 step = 0.5 * step
             else:
                 break
-            small = np.all(np.abs(step) <= 1e-6 * np.maximum(np.abs(x), [1, speed, 1, speed, 1e-3]))
+            small = np.all(np.abs(step) <= 1e-5 * np.maximum(np.abs(x), [1, speed, 1, speed, 1e-3]))
             x, r, cost = x_new, r_new, cost_new
             if small:
                 converged = True
                 break
         if not converged or not np.all(np.isfinite(x)):
             return x_ekf.reshape(-1, 1), P_ekf
+        self._refit_warm = (self._segment, t_last, x.copy())
         P = np.linalg.inv(A)
         return x.reshape(-1, 1), 0.5 * (P + P.T)
 
@@ -690,8 +704,9 @@ class MarkerTracker:
         if self._refit_cache is not None and self._refit_cache[0] == self._rev:
             return self._refit_cache[1]
         states = []
-        for kf, mode in zip(self._kfs, self._modes):
-            states.append(self._turn_refit(kf) if mode.kind == "ct" else (kf.x.copy(), kf.P.copy()))
+        for kf, mode, mu in zip(self._kfs, self._modes, self._weights()):
+            refit = mode.kind == "ct" and mu > 0.0  # a mode the prediction drops needs no refit
+            states.append(self._turn_refit(kf) if refit else (kf.x.copy(), kf.P.copy()))
         self._refit_cache = (self._rev, states)
         return states
 
