@@ -253,7 +253,7 @@ class MarkerTracker:
         jerk_noise: float = 2.0,
         imm_switch_prob: float = 1e-6,
         maneuver_exit_prob: float = 0.3,
-        curve_prior: float = 0.2,
+        curve_prior: float = 0.05,
         init_speed_sigma: float = 150.0,
         init_curvature_sigma: float = 1 / 80,
         init_accel_sigma: float = 50.0,
