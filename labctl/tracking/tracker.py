@@ -23,7 +23,10 @@ The CV, CT and manoeuvre modes share the state ``[x, vx, y, vy, κ]`` so the IMM
 Long-horizon predictions propagate the CT mode's mean through the turn and its covariance by
 the cubature rule (2n points, Arasaratnam & Haykin 2009), which keeps the banana-shaped
 uncertainty of a poorly known turn rate honest; the manoeuvre mode extrapolates with the quiet
-CV noise (a corner is a transient, not a motion that continues).
+CV noise (a corner is a transient, not a motion that continues). The CT mode's estimate behind
+those predictions is re-linearised by a Gauss-Newton fit of the turn to its recent frames (see
+``MarkerTracker._turn_refit``): the EKF alone kept its first frames' linearisation errors. Mode
+weights below :data:`MIX_FLOOR` are left out of the IMM's mixing and predictions.
 
 Built on filterpy 2.0.0 with its pitfalls avoided (docs/architecture.md, "Hand-written versus
 library code"): measurements always go in as (2, 1) column vectors, ``update`` is never given
@@ -232,9 +235,11 @@ class MarkerTracker:
     velocity, so its size scales with the speed); ``jerk_noise`` that of the standalone CA model
     (mm/s^2.5). ``imm_switch_prob`` is the per-update probability of leaving a quiet mode (half
     to each other mode); the manoeuvre mode is left with ``maneuver_exit_prob``, to CT with the
-    prior odds ``curve_prior`` (also the initial odds of a curve). ``init_curvature_sigma`` is the
+    prior probability ``curve_prior`` (also the initial probability of a curve; the lab's value is
+    chosen by measurement, docs/notes/planning.md). ``init_curvature_sigma`` is the
     curvature prior (the table's tightest radius). ``corner_window_s``: frames kept for the
-    corner restart (see :meth:`_after_imm_update`).
+    corner restart (see :meth:`_after_imm_update`); ``refit_window_s``: frames the CT mode's
+    re-linearised fit uses (see :meth:`_turn_refit`).
     ``measurement_noise_mm`` is the centroid's standard deviation per axis on the table plane.
     A measurement whose Mahalanobis distance from the prediction exceeds ``gate_sigma`` is
     rejected; after ``max_misses`` consecutive rejections the track is restarted on the newest
