@@ -133,6 +133,9 @@ def test_bad_input_raises_typed_errors_and_reset_forgets():
         MarkerTracker("kalman")
     with pytest.raises(TrackingError):
         MarkerTracker("cv", process_noise=-1.0)
+    for bad in ({"curve_prior": 1.0}, {"refit_window_s": 0.0}):
+        with pytest.raises(TrackingError):
+            MarkerTracker("imm", **bad)
     trk = MarkerTracker.from_config(TrackingConfig(model="imm", process_noise=0.2, measurement_noise_mm=0.6))
     assert trk.model == "imm" and not trk.initialized
     with pytest.raises(TrackingError):
