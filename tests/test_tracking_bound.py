@@ -51,39 +51,50 @@ def _ct_tracker():
     return MarkerTracker.from_config(TrackingConfig(model="ct"))
 
 
-def _cv_tracker():
-    return MarkerTracker.from_config(TrackingConfig(model="cv"))
+# Where the acceptance holds in `labctl bench planning` with a margin (64 runs; docs/notes/planning.md lists
+# every cell, including the ones that fail and why). 16 runs here keep the test quick.
+SMOOTH_CASES = [("line", 50.0), ("arc", 100.0), ("circle", 50.0)]
 
 
-# Where the acceptance holds in `labctl bench planning` (docs/notes/planning.md); the gaps are listed there.
-SMOOTH_CASES = [
-    (_lab_tracker, "line", 100.0),
-    (_lab_tracker, "arc", 12.0), (_lab_tracker, "arc", 100.0),
-    (_lab_tracker, "circle", 100.0),
-    (_cv_tracker, "line", 12.0), (_ct_tracker, "circle", 12.0),
-]
+@pytest.mark.parametrize(("family", "speed"), SMOOTH_CASES)
+def test_lab_tracker_reaches_the_bound_on_smooth_paths(family, speed):
+    """After 2 s: RMS ≤ 1.2× the bound; after 4 s: ≤ 1.3×.
 
-
-@pytest.mark.parametrize(("make", "family", "speed"), SMOOTH_CASES)
-def test_tracker_reaches_the_bound_on_smooth_paths(make, family, speed):
-    """After 2 s: RMS ≤ 1.2× the bound; after 4 s: ≤ 1.3× (bound: the smaller of CRB and ML, Monte Carlo)."""
-    res = compare_with_bound(make, family, speed, runs=12, rate_hz=FPS, sigma_mm=SIGMA, seed=int(speed))
+    With this few runs the bound is the ML fit of the true model on the very same measurements
+    (paired: the sampling noise of a 12-run RMS, ~20 %, is common to both); the bench's 64-run
+    table uses the smaller of that and the CRB. And the 5-s NEES (2 dof) inside its two-sided
+    95 % bounds for that many runs: a CV mode at 1e-6 whose 5-s prediction is 500 mm off added as
+    much spread as the whole covariance on a fast circle, and the manoeuvre mode's mixing doubled
+    the CV mode's velocity variance on fast lines (NEES 0.7-0.9); weights below 1e-3 are dropped now.
+    """
+    res = compare_with_bound(_lab_tracker, family, speed, runs=12, rate_hz=FPS, sigma_mm=SIGMA, seed=int(speed))
     for t, limit in ((2.0, 1.2), (4.0, 1.3)):
         r = res[t]
-        assert r["rms_mm"] <= limit * min(r["crb_mm"], r["ml_rms_mm"]), (family, speed, t, r)
-
-
-def test_lab_tracker_nees_inside_its_95_percent_bounds_on_a_fast_circle():
-    """Mean NEES of the 5-s prediction (2 dof) inside its two-sided 95 % bounds for the number of runs.
-
-    Only where it holds: on lines the IMM is conservative and on slow curves overconfident
-    (docs/notes/planning.md has every cell).
-    """
-    res = compare_with_bound(_lab_tracker, "circle", 50.0, runs=16, rate_hz=FPS, sigma_mm=SIGMA, with_ml=False,
-                             seed=50)
-    for t, r in res.items():
+        assert r["rms_mm"] <= limit * r["ml_rms_mm"], (family, speed, t, r)
         lo, hi = r["nees_bounds"]
-        assert lo <= r["nees"] <= hi, (t, r)
+        assert lo <= r["nees"] <= hi, (family, speed, t, r)
+
+
+def test_ct_refit_is_as_good_as_the_ml_fit_on_a_fast_circle():
+    """The CT mode re-linearised over its frames (Gauss-Newton) matches the ML fit of the true model on the
+    same measurements; the EKF alone was 1.24× the ML there (1.35× the CRB) after 4 s."""
+    res = compare_with_bound(_ct_tracker, "circle", 50.0, runs=12, rate_hz=FPS, sigma_mm=SIGMA, seed=50)
+    for t in (2.0, 4.0):
+        r = res[t]
+        assert r["rms_mm"] <= 1.03 * r["ml_rms_mm"], (t, r)
+    assert res[4.0]["rms_mm"] <= 1.3 * min(res[4.0]["crb_mm"], res[4.0]["ml_rms_mm"])
+
+
+def test_curve_prior_balances_the_confusable_line_and_circle():
+    """At 12 mm/s after 2 s the 80 mm circle's curvature is 3.1σ of its CRB from a line: no rule meets 1.2×
+    on both (docs/notes/planning.md). The lab's curve prior is chosen so neither is worse than ~2.2× (64
+    runs in the bench); the old prior (0.2) left the line at 3.8×."""
+    worst = 0.0
+    for family in ("line", "circle"):
+        r = compare_with_bound(_lab_tracker, family, 12.0, runs=16, rate_hz=FPS, sigma_mm=SIGMA, seed=12,
+                               track_s=(2.0,))[2.0]
+        worst = max(worst, r["rms_mm"] / min(r["crb_mm"], r["ml_rms_mm"]))
+    assert worst <= 2.6, worst
 
 
 def test_zigzag_corner_switches_modes_within_a_few_frames_and_settles_near_the_bound():

@@ -30,7 +30,7 @@ def test_cv_on_a_line_at_10_mm_s_predicts_5_s_ahead_within_half_a_millimetre():
 
 def test_imm_on_a_100_mm_arc_at_10_mm_s_predicts_5_s_ahead_within_1_mm():
     """The CV+CA IMM managed 5.9 mm here; the coordinated-turn mode has the arc's shape (issue 18)."""
-    traj = make_trajectory("arc", 10.0, duration_s=30.0)
+    traj = make_trajectory("arc", 10.0, duration_s=20.0)
     errs = []
     for seed in range(2):
         trk = MarkerTracker("imm", process_noise=0.01, measurement_noise_mm=0.5)
@@ -133,6 +133,9 @@ def test_bad_input_raises_typed_errors_and_reset_forgets():
         MarkerTracker("kalman")
     with pytest.raises(TrackingError):
         MarkerTracker("cv", process_noise=-1.0)
+    for bad in ({"curve_prior": 1.0}, {"refit_window_s": 0.0}):
+        with pytest.raises(TrackingError):
+            MarkerTracker("imm", **bad)
     trk = MarkerTracker.from_config(TrackingConfig(model="imm", process_noise=0.2, measurement_noise_mm=0.6))
     assert trk.model == "imm" and not trk.initialized
     with pytest.raises(TrackingError):

@@ -28,11 +28,18 @@ from ._timing import median_time, row
 MODELS = {
     "cv": dict(model="cv", process_noise=0.01),
     "ct": dict(model="ct", process_noise=0.01),
-    "imm": dict(model="imm", process_noise=0.01),
+    "imm": {},  # the lab's default (TrackingConfig: model, noises, curve prior)
     "ca": dict(model="ca", jerk_noise=0.1),
     "cv (before: process_noise 0.5)": dict(model="cv", process_noise=0.5),
 }
 AFTER_CORNER_S = (0.1, 0.2, 0.3, 0.5, 1.0)
+RUNS = 64  # Monte-Carlo runs per cell: at 16 the RMS ratio's run-to-run sd was ~12 %, heavy-tailed on lines
+# issue 18's acceptance: the 5-s prediction RMS over the bound after 2 s / 4 s of tracking, and 0.5 s after a corner
+ACCEPTANCE = {2.0: 1.2, 4.0: 1.3, 0.5: 1.5}
+
+
+def _make_tracker(kw: dict) -> MarkerTracker:
+    return MarkerTracker.from_config(TrackingConfig(), **kw)
 
 
 def _bound_table(quick: bool, models=None) -> list[dict]:
@@ -49,7 +56,7 @@ def _bound_table(quick: bool, models=None) -> list[dict]:
     from ..tracking.synthetic import compare_with_bound
 
     sigma, fps = TrackingConfig().measurement_noise_mm, RunConfig().fps
-    runs = 6 if quick else 16
+    runs = 8 if quick else RUNS
     speeds = (12.0, 100.0) if quick else SPEEDS
     rows = []
     for family in FAMILIES:
@@ -57,7 +64,7 @@ def _bound_table(quick: bool, models=None) -> list[dict]:
             zig = family == "zigzag"
             ml = None
             for name, kw in (models or MODELS).items():
-                res = compare_with_bound(lambda kw=kw: MarkerTracker(measurement_noise_mm=sigma, **kw), family, speed,
+                res = compare_with_bound(lambda kw=kw: _make_tracker(kw), family, speed,
                                          runs=runs, rate_hz=fps, sigma_mm=sigma, with_ml=ml is None,
                                          track_s=(1.9,) if zig else (2.0, 4.0),
                                          after_corner_s=AFTER_CORNER_S if zig else (), seed=int(speed))
@@ -65,13 +72,18 @@ def _bound_table(quick: bool, models=None) -> list[dict]:
                     ml = {t: r["ml_rms_mm"] for t, r in res.items()}
                 for t, r in res.items():
                     ref = min(r["crb_mm"], ml[t])
-                    rows.append({"family": family, "speed_mm_s": speed, "model": name,
-                                 "at_s": round(t - 2.0, 3) if zig and t > 2.0 else t,
-                                 "after_corner": bool(zig and t > 2.0),
+                    at = round(t - 2.0, 3) if zig and t > 2.0 else t
+                    after_corner = bool(zig and t > 2.0)
+                    limit = ACCEPTANCE.get(at) if (after_corner or not zig) else None
+                    lo, hi = r["nees_bounds"]
+                    rows.append({"family": family, "speed_mm_s": speed, "model": name, "at_s": at,
+                                 "after_corner": after_corner,
                                  "rms_mm": round(r["rms_mm"], 3), "bound_mm": round(r["crb_mm"], 3),
                                  "ml_mm": round(ml[t], 3), "ratio": round(r["rms_mm"] / ref, 3),
+                                 "ratio_limit": limit,
+                                 "ratio_holds": None if limit is None else bool(r["rms_mm"] / ref <= limit),
                                  "nees": round(r["nees"], 2), "nees_95": [round(v, 2) for v in r["nees_bounds"]],
-                                 "runs": runs})
+                                 "nees_holds": bool(lo <= r["nees"] <= hi), "runs": runs})
     return rows
 
 
@@ -200,7 +212,7 @@ def _tracker_rows(quick: bool) -> list[dict]:
     rng = np.random.default_rng(0)
     zs = rng.normal(0, 0.5, (4000, 2))
     for name, kw in MODELS.items():
-        trk = MarkerTracker(**kw)
+        trk = _make_tracker(kw)
         state = {"k": 0}
 
         def step(trk=trk, state=state):
@@ -209,8 +221,15 @@ def _tracker_rows(quick: bool) -> list[dict]:
 
         upd = median_time(step, repeat=100 if quick else 500)
         pred = median_time(lambda trk=trk: trk.predict(trk.time + 5.0), repeat=100 if quick else 500)
+
+        def step_and_predict(trk=trk, step=step):  # the CT refit runs on the first prediction after an update
+            step()
+            trk.predict(trk.time + 5.0)
+
+        both = median_time(step_and_predict, repeat=100 if quick else 500)
         rows.append(row(f"track update {name} (filterpy)", upd))
-        rows.append(row(f"predict 5 s ahead {name}", pred))
+        rows.append(row(f"predict 5 s ahead {name} (again, same update)", pred))
+        rows.append(row(f"update + first 5-s prediction {name}", both))
     return rows
 
 

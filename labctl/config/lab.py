@@ -64,6 +64,9 @@ class TrackingConfig:
 
     model: Literal["cv", "ct", "ca", "imm"] = "imm"  # chosen by measurement: docs/notes/planning.md
     process_noise: NonNegative = 0.01  # sqrt of the white-acceleration spectral density (mm/s^1.5); near 0: exact paths
+    # imm: prior probability of a curve (CT mode) against a line; minimax over the confusable line/circle
+    # cells of `labctl bench planning` (docs/notes/planning.md, "Prediction at the estimation bound")
+    curve_prior: Annotated[float, Range(gt=0, lt=1)] = 0.05
     measurement_noise_mm: Positive = 0.7
     gate_sigma: Positive = 4.0
     window_px: PositiveInt = 48

@@ -145,3 +145,59 @@ def straight_transition_5d(dt: float) -> np.ndarray:
     F = np.eye(5)
     F[0, 1] = F[2, 3] = dt
     return F
+
+
+def turn_positions(x, d) -> np.ndarray:
+    """Positions (N, 2) mm of the coordinated turn ``x = [x, vx, y, vy, κ]`` after times ``d`` (N,) s.
+
+    The same motion as :func:`turn_transition` (which it matches to round-off), for many times
+    at once and for negative ``d`` too (the path before the state's time): what the re-linearised
+    batch fit of the turn (``MarkerTracker``'s CT refit) evaluates on every frame.
+    """
+    x = np.asarray(x, dtype=float).reshape(-1)
+    d = np.asarray(d, dtype=float)
+    S, C, _, _ = _turn_sc(x[4] * np.hypot(x[1], x[3]), d, derivatives=False)
+    return np.column_stack([x[0] + S * x[1] - C * x[3], x[2] + C * x[1] + S * x[3]])
+
+
+def _turn_sc(w: float, d: np.ndarray, derivatives: bool = True):
+    """``S = sin(w d)/w``, ``C = (1 − cos(w d))/w`` and (optionally) their w-derivatives, at every ``d``.
+
+    Series in ``w d`` when the whole span turns by less than 1e-3 rad (the exact forms cancel there).
+    """
+    if abs(w) * (np.max(np.abs(d)) if d.size else 0.0) < 1e-3:
+        wd = w * d
+        S = d * (1.0 - wd**2 / 6.0)
+        C = d * (wd / 2.0 - wd**3 / 24.0)
+        if not derivatives:
+            return S, C, None, None
+        return S, C, -w * d**3 / 3.0 + w**3 * d**5 / 30.0, d**2 / 2.0 - w**2 * d**4 / 8.0
+    sn, cs = np.sin(w * d), np.cos(w * d)
+    S, C = sn / w, (1.0 - cs) / w
+    if not derivatives:
+        return S, C, None, None
+    return S, C, (d * cs - S) / w, (d * sn - C) / w
+
+
+def turn_positions_jacobian(x, d) -> np.ndarray:
+    """d turn_positions(x, d) / dx, shape (N, 2, 5), analytic (series for small ω·d).
+
+    With ``w = κ|v|``, ``S = sin(w d)/w``, ``C = (1 − cos(w d))/w``: ``p = p0 + S v + C v⊥``
+    (v⊥ = (−vy, vx)), so ``∂p/∂κ = |v| (S' v + C' v⊥)`` and ``∂p/∂v = S I + C [[0, −1], [1, 0]]
+    + (S' v + C' v⊥) κ vᵀ/|v|`` with ``S' = ∂S/∂w = (d cos(w d) − S)/w``, ``C' = (d sin(w d) − C)/w``.
+    """
+    x = np.asarray(x, dtype=float).reshape(-1)
+    d = np.asarray(d, dtype=float)
+    vx, vy, k = x[1], x[3], x[4]
+    speed = np.hypot(vx, vy)
+    S, C, dS, dC = _turn_sc(k * speed, d)
+    g = np.column_stack([dS * vx - dC * vy, dS * vy + dC * vx])  # ∂p/∂w
+    J = np.zeros((len(d), 2, 5))
+    J[:, 0, 0] = J[:, 1, 2] = 1.0
+    u = np.array([vx, vy]) / speed if speed > 0 else np.zeros(2)
+    J[:, 0, 1] = S + g[:, 0] * k * u[0]
+    J[:, 1, 1] = C + g[:, 1] * k * u[0]
+    J[:, 0, 3] = -C + g[:, 0] * k * u[1]
+    J[:, 1, 3] = S + g[:, 1] * k * u[1]
+    J[:, :, 4] = g * speed
+    return J
