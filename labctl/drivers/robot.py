@@ -283,22 +283,25 @@ class SerialRobot(OpenClose):
     def segment(self, T_base_flange: np.ndarray, duration_s: float, segment_id: int, *,
                 end_velocity_mm_s=None, end_omega_rad_s=None, replace: bool = False,
                 profile: str | None = None, end_acceleration_mm_s2=None,
-                j_max_mm_s3: float | None = None) -> tuple[float, float]:
+                limits: dict | None = None) -> tuple[float, float]:
         """Queue (or with ``replace`` start now) a segment; returns its controller (t0, t1).
 
         ``profile`` (default the controller's ``quintic``) must be one HELLO listed (pick it with
         :meth:`choose_profile`); id 0 is HOME's from dialect 1.1 on, so ids are 1–65535 there. With
         ``profile="ruckig"`` (dialect 1.2) ``duration_s`` is the least duration (0: as fast as the
         limits allow; t1 says when it arrives), and the segment may end with an acceleration
-        ``end_acceleration_mm_s2`` and run under a lower jerk limit ``j_max_mm_s3``."""
+        ``end_acceleration_mm_s2`` and run under its own ``limits`` (``vmax amax jmax wmax``: mm/s,
+        mm/s², mm/s³, deg/s; each at most the controller's, e.g. :meth:`JerkLimits.wire`)."""
         T = np.asarray(T_base_flange, float)
         ruckig = profile is not None and profile.lower() == "ruckig"
         if T.shape != (4, 4) or not np.all(np.isfinite(T)):
             raise ValueError("T_base_flange must be a finite 4×4 matrix")
         if not ((duration_s >= 0 if ruckig else duration_s > 0) and np.isfinite(duration_s)):
             raise ValueError(f"segment duration must be positive, got {duration_s}")
-        if not ruckig and (end_acceleration_mm_s2 is not None or j_max_mm_s3 is not None):
-            raise ValueError("an end acceleration or a jerk limit needs profile='ruckig'")
+        if not ruckig and (end_acceleration_mm_s2 is not None or limits):
+            raise ValueError("an end acceleration or segment limits need profile='ruckig'")
+        if limits and not set(limits) <= {"vmax", "amax", "jmax", "wmax"}:
+            raise ValueError(f"segment limits are vmax, amax, jmax, wmax; got {sorted(limits)}")
         lowest = 1 if self.dialect != "1.0" else 0
         if not lowest <= int(segment_id) <= MAX_SEQ:
             raise ValueError(f"segment id must be {lowest}..{MAX_SEQ}, got {segment_id}")
@@ -314,8 +317,8 @@ class SerialRobot(OpenClose):
             args += [*map(float, np.asarray(end_acceleration_mm_s2, float).reshape(3))]
         if profile is not None and profile.lower() != "quintic":
             args.append(f"profile={profile.lower()}")
-        if j_max_mm_s3 is not None:
-            args.append(f"jmax={fmt_num(float(j_max_mm_s3))}")
+        for key, value in (limits or {}).items():
+            args.append(f"{key}={fmt_num(float(value))}")
         self._commanded = True
         try:
             reply = self.request("SEGNOW" if replace else "SEG", *args)

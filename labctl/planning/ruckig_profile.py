@@ -62,17 +62,38 @@ class JerkLimits:
 
     @property
     def jw_max(self) -> float:
-        """Angular jerk limit (rad/s³): the angular deceleration scaled as the linear jerk is to a_max."""
+        """Angular jerk limit (rad/s³): the angular acceleration limit scaled as jerk is to acceleration."""
         return self.alpha_max * self.j_max / self.a_max
 
     @classmethod
-    def from_limits(cls, limits, j_max: float | None = None, alpha_max: float | None = None) -> JerkLimits:
-        """From :class:`labctl.planning.limits.Limits`; ``j_max`` defaults to 10·a_max per second and
-        ``alpha_max`` to the reference controller's angular braking, 4·w_max per second."""
+    def from_limits(cls, limits, j_max: float | None = None, alpha_max: float | None = None,
+                    a_stop: float | None = None) -> JerkLimits:
+        """From :class:`labctl.planning.limits.Limits`; ``j_max`` defaults to 10·a_max per second,
+        ``alpha_max`` to 4·w_max per second (the reference controller's angular braking) and ``a_stop``
+        to the limits' own (a_max/√3; pass the controller's when ``limits`` are a planner's reduced ones)."""
         return cls(float(limits.v_max), float(limits.a_max),
                    float(j_max if j_max is not None else 10.0 * limits.a_max), float(limits.w_max),
                    float(alpha_max if alpha_max is not None else 4.0 * limits.w_max),
-                   np.asarray(limits.box_min, float), np.asarray(limits.box_max, float), float(limits.a_stop))
+                   np.asarray(limits.box_min, float), np.asarray(limits.box_max, float),
+                   float(a_stop if a_stop is not None else limits.a_stop))
+
+    def wire(self) -> dict[str, float]:
+        """The limits as a segment carries them (docs/protocols/robot.md §5, ``profile=ruckig``):
+        ``vmax amax jmax`` (mm/s, mm/s², mm/s³) and ``wmax`` (deg/s), each rounded *down* to 0.1 (short
+        lines: 9600 bps) — plan with :meth:`rounded` so the host's plan is the controller's."""
+        return {"vmax": _down(self.v_max), "amax": _down(self.a_max), "jmax": _down(self.j_max),
+                "wmax": _down(math.degrees(self.w_max))}
+
+    def rounded(self) -> JerkLimits:
+        """These limits as the controller reads them back from :meth:`wire`."""
+        w = self.wire()
+        return JerkLimits(w["vmax"], w["amax"], w["jmax"], math.radians(w["wmax"]), self.alpha_max, self.box_min,
+                          self.box_max, self.a_stop)
+
+
+def _down(x: float) -> float:
+    """``x`` rounded down to 0.1 (a limit on the wire never exceeds the planner's)."""
+    return math.floor(float(x) * 10.0 + 1e-9) / 10.0
 
 
 def axis_shares(d) -> np.ndarray:
@@ -203,7 +224,7 @@ class _Solver:
         return cls._inst
 
 
-def plan_ruckig(start, p1, R1, v1, w1, a1, T_min: float, lim: JerkLimits) -> RuckigPlan:
+def plan_ruckig(start, p1, R1, v1, w1, a1, T_min: float, lim: JerkLimits, *, full: bool = True) -> RuckigPlan:
     """The ruckig segment from ``start = (p0, v0, a0, R0, ω0)`` (mm, mm/s, mm/s², 3×3, rad/s base frame)
     to the target pose (``p1``, ``R1``) with end velocity ``v1``, angular velocity ``w1`` (base frame),
     end acceleration ``a1``, lasting at least ``T_min`` s (0: as fast as the limits allow).
@@ -212,7 +233,8 @@ def plan_ruckig(start, p1, R1, v1, w1, a1, T_min: float, lim: JerkLimits) -> Ruc
     φ(0) = 0, φ̇(0) = R0ᵀω0 (exact: J_r(0) = I), φ̈(0) = 0 (as for quintics: the angular acceleration
     is continuous across a joint only when it is zero there), φ(T) = log(R0ᵀR1) (the shorter way),
     φ̇(T) = J_r(φ1)⁻¹R1ᵀw1, φ̈(T) = 0. ``code`` is 17 if ruckig finds no trajectory for the state
-    (e.g. an end velocity beyond a per-axis limit), 11 if it would last more than 60 s.
+    (e.g. an end velocity beyond a per-axis limit), 11 if it would last more than 60 s. With
+    ``full=False`` only the duration is computed (``pos``/``rot`` None: a planner's quick look).
     """
     p0, v0, a0, R0, w0 = (np.asarray(x, float) for x in start)
     p1, v1, a1, w1 = (np.asarray(x, float).reshape(3) for x in (p1, v1, a1, w1))
@@ -243,6 +265,8 @@ def plan_ruckig(start, p1, R1, v1, w1, a1, T_min: float, lim: JerkLimits) -> Ruc
         return RuckigPlan(None, None, R0, R1, math.nan, 17)
     if traj.duration > MAX_DURATION_S:
         return RuckigPlan(None, None, R0, R1, float(traj.duration), 11)
+    if not full:
+        return RuckigPlan(None, None, R0, R1, float(traj.duration), 0)
     pw = pieces(traj, 6)
     pos = Piecewise(pw.breaks, pw.coeffs[:, :, :3].copy())
     rot = Piecewise(pw.breaks, pw.coeffs[:, :, 3:].copy())

@@ -51,6 +51,7 @@ from ...planning.safety import stop_envelope_range
 NAME = "labctl-robot"
 DIALECT = "1.2"
 PROFILES = ("quintic", "ruckig")
+LIMIT_KEYS = ("vmax", "amax", "jmax", "wmax")  # a ruckig segment's own limits (1.2), at most the controller's
 PROFILES_BEFORE = {"1.0": ("quintic",), "1.1": ("quintic",)}  # what a session of an older version lists
 IDENT = f"{NAME} {DIALECT}"
 QUEUE_SIZE = 8
@@ -600,21 +601,27 @@ class RobotEmulator:
 
     def _parse_segment(self, req: Request):
         """(id, numbers, options) or an error code. Options are the trailing ``key=value`` words:
-        ``profile=`` (1.1), ``jmax=`` (1.2, ruckig only); 17 numbers (end acceleration) only for ruckig."""
+        ``profile=`` (1.1); ``vmax= amax= jmax= wmax=`` (1.2, ruckig only: the segment's own limits, mm/s,
+        mm/s², mm/s³, deg/s); 17 numbers (with the end acceleration) only for ruckig."""
         args = list(req.args)
         opts: dict[str, str] = {}
         while args and "=" in args[-1]:
             key, _, value = args.pop().partition("=")
             key = key.lower()
-            if key in opts or key not in ("profile", "jmax") or (key == "jmax" and self.session in PROFILES_BEFORE):
+            older = key != "profile" and self.session in PROFILES_BEFORE  # limits are 1.2's
+            if key in opts or key not in ("profile", *LIMIT_KEYS) or older:
                 return 2
             opts[key] = value.lower() if key == "profile" else value
         opts.setdefault("profile", "quintic")
         ruckig = opts["profile"] == "ruckig"
         if len(args) not in ((8, 14, 17) if ruckig else (8, 14)):
             return 2
-        if "jmax" in opts and (not ruckig or parse_number(opts["jmax"]) is None or parse_number(opts["jmax"]) <= 0):
-            return 2
+        for key in LIMIT_KEYS:
+            if key in opts:
+                value = parse_number(opts[key])
+                if not ruckig or value is None or value <= 0:
+                    return 2
+                opts[key] = value
         lowest = 0 if self.session == "1.0" else 1  # 1.1 reserves id 0 for HOME
         if not args[0].isdigit() or not lowest <= int(args[0]) <= 65535:
             return 2
@@ -641,8 +648,8 @@ class RobotEmulator:
         if profile not in self._profiles():
             self._error(req.seq, 15)
             return
-        j_max = parse_number(opts["jmax"]) if "jmax" in opts else self.j_max
-        if j_max > self.j_max * (1 + REL_TOL):
+        mine = {"vmax": self.v_max, "amax": self.a_max, "jmax": self.j_max, "wmax": math.degrees(self.w_max)}
+        if any(opts.get(k, 0.0) > mine[k] * (1 + REL_TOL) for k in LIMIT_KEYS):
             self._error(req.seq, 16)
             return
         p1 = np.array(vals[0:3])
@@ -650,15 +657,17 @@ class RobotEmulator:
         v1 = np.array(vals[7:10]) if len(vals) >= 13 else np.zeros(3)
         w1 = np.array(vals[10:13]) if len(vals) >= 13 else np.zeros(3)
         a1 = np.array(vals[13:16]) if len(vals) == 16 else np.zeros(3)
-        ruckig = (j_max, a1) if profile == "ruckig" else None
+        ruckig = (self.jerk_limits(**{k: opts.get(k) for k in LIMIT_KEYS}), a1) if profile == "ruckig" else None
         self._queue_segment(req.seq, seg_id, p1, R1, T, v1, w1, replace=replace, ruckig=ruckig)
 
     def _cmd_segnow(self, req: Request) -> None:
         self._cmd_seg(req, replace=True)
 
-    def jerk_limits(self, j_max: float | None = None) -> JerkLimits:
-        """The limits a ruckig segment runs under (``j_max`` mm/s³ at most the controller's)."""
-        return JerkLimits(self.v_max, self.a_max, self.j_max if j_max is None else float(j_max), self.w_max,
+    def jerk_limits(self, vmax=None, amax=None, jmax=None, wmax=None) -> JerkLimits:
+        """The limits a ruckig segment runs under: the segment's own (mm/s, mm/s², mm/s³, deg/s; at most
+        the controller's) or the controller's; angular acceleration ``alpha_stop`` (LIMITS field 12)."""
+        return JerkLimits(self.v_max if vmax is None else vmax, self.a_max if amax is None else amax,
+                          self.j_max if jmax is None else jmax, self.w_max if wmax is None else math.radians(wmax),
                           self.alpha_stop, self.box_min, self.box_max, self.a_stop)
 
     def _queue_segment(self, seq, seg_id, p1, R1, T, v1, w1, replace: bool, ruckig=None) -> None:
@@ -674,9 +683,9 @@ class RobotEmulator:
             t0 = max(self.now, last)
             start = self._end_state() if last > self.now else self.state_at(self.now)
         if ruckig is not None:
-            j_max, a1 = ruckig
-            plan = plan_ruckig(start, p1, R1, v1, w1, a1, T, self.jerk_limits(j_max))
-            code = check_ruckig(plan, self.jerk_limits(j_max))
+            lim, a1 = ruckig
+            plan = plan_ruckig(start, p1, R1, v1, w1, a1, T, lim)
+            code = check_ruckig(plan, lim)
             seg = RuckigSegment(seg_id, t0, t0 + plan.duration, plan) if not code else None
         else:
             seg = self._plan(seg_id, p1, R1, T, v1, w1, t0, start)
