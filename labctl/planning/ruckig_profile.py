@@ -16,7 +16,9 @@ displacement), the limits of axis i are ``vmax·s_i``, ``amax·s_i``, ``jmax·s_
 and ruckig is asked for *phase* synchronisation: whenever the start and target velocities and
 accelerations are parallel to d (every rest-to-rest move, every splice along the line of travel)
 all axes follow one 1-D profile along the straight line and the norms are exactly the 1-D
-limits. Otherwise (a splice across the line of travel) ruckig time-synchronises the axes and the
+limits. Otherwise (a splice across the line of travel, or a rare case where ruckig's phase
+synchronisation fails and *time* synchronisation is asked for instead) the axes are synchronised
+in time only and the
 norms may exceed the limits: :func:`check_ruckig` then refuses the segment (E12/E13), exactly.
 
 **Exact checks.** Every degree of freedom of a ruckig trajectory is piecewise cubic in time
@@ -209,11 +211,12 @@ class _Solver:
     _inst: _Solver | None = None
 
     def __init__(self):
-        from ruckig import InputParameter, Result, Ruckig, Synchronization, Trajectory
+        from ruckig import InputParameter, Result, Ruckig, RuckigError, Synchronization, Trajectory
 
         self.otg = Ruckig(6)
         self.inp = InputParameter(6)
-        self.inp.synchronization = Synchronization.Phase
+        self.Sync = Synchronization
+        self.Error = RuckigError
         self.Trajectory = Trajectory
         self.ok = (Result.Working, Result.Finished)
 
@@ -257,10 +260,16 @@ def plan_ruckig(start, p1, R1, v1, w1, a1, T_min: float, lim: JerkLimits, *, ful
     inp.max_jerk = [*(lim.j_max * sp), *(lim.jw_max * sr)]
     inp.minimum_duration = float(T_min) if T_min > 0 else None
     traj = solver.Trajectory(6)
-    try:
-        result = solver.otg.calculate(inp, traj)
-    except RuntimeError:  # ruckig refuses an input it cannot serve (e.g. a target velocity over a limit)
-        return RuckigPlan(None, None, R0, R1, math.nan, 17)
+    result = None
+    # phase synchronisation first (straight lines, exact norms); if ruckig cannot, time synchronisation
+    for sync in (solver.Sync.Phase, solver.Sync.Time):
+        inp.synchronization = sync
+        try:
+            result = solver.otg.calculate(inp, traj)
+        except (solver.Error, RuntimeError):  # an input ruckig cannot serve (e.g. an end velocity over a limit)
+            result = None
+        if result in solver.ok:
+            break
     if result not in solver.ok:
         return RuckigPlan(None, None, R0, R1, math.nan, 17)
     if traj.duration > MAX_DURATION_S:

@@ -81,7 +81,8 @@ class PredictorPlanner:
     """Host 1's logic. ``send(msg)`` goes to the recognizer; ``log(event, **fields)`` to the record."""
 
     def __init__(self, ctx: RunContext, robot: Robot, send: Callable[[m.Message], None],
-                 log: Callable[..., None], *, t_start: float = 0.0, clock: Callable[[], float] | None = None):
+                 log: Callable[..., None], *, t_start: float = 0.0, clock: Callable[[], float] | None = None,
+                 profile: str | None = None):
         self.ctx, self.robot, self.send, self.log = ctx, robot, send, log
         # the runtime's clock: device round trips take time, so a command leaves later than the frame's time
         self.clock_fn = clock
@@ -125,7 +126,7 @@ class PredictorPlanner:
         self.min_quintic_s = 0.0  # the same with the paper's quintic profile
         # the segment profile (run.profile): ruckig only if the controller lists it (dialect 1.2)
         choose = getattr(robot, "choose_profile", None)
-        self.profile = choose(cfg.run.profile) if choose is not None else "quintic"
+        self.profile = choose(profile or cfg.run.profile) if choose is not None else "quintic"
         self.jerk = ruckig_limits(ctx.limits, ctx.lab.robot) if self.profile == "ruckig" else None
 
     # -- helpers ------------------------------------------------------------------------------
