@@ -9,17 +9,21 @@ controller (:mod:`labctl.sim.emulators.robot`) and the host's planner
 host knows exactly what the controller will run, and both check it with :func:`check_ruckig`.
 
 **Per-axis limits from the direction of travel.** ruckig limits each degree of freedom on its own,
-while the dialect limits the Euclidean norms ‖v‖ ≤ vmax and ‖a‖ ≤ amax. With
-``s = |d|/‖d‖`` (d = target − start, per part, floored at :data:`FLOOR`; ``(1, 1, 1)/√3`` for no
-displacement), the limits of axis i are ``vmax·s_i``, ``amax·s_i``, ``jmax·s_i`` (rotation:
-``wmax·s_i``, ``alpha·s_i``, ``alpha·jmax/amax·s_i``, alpha the angular braking deceleration)
-and ruckig is asked for *phase* synchronisation: whenever the start and target velocities and
-accelerations are parallel to d (every rest-to-rest move, every splice along the line of travel)
-all axes follow one 1-D profile along the straight line and the norms are exactly the 1-D
-limits. Otherwise (a splice across the line of travel, or a rare case where ruckig's phase
-synchronisation fails and *time* synchronisation is asked for instead) the axes are synchronised
-in time only and the
-norms may exceed the limits: :func:`check_ruckig` then refuses the segment (E12/E13), exactly.
+while the dialect limits the Euclidean norms ‖v‖ ≤ vmax and ‖a‖ ≤ amax. Each part (position,
+rotation) gets per-axis shares ``s`` with ‖s‖ = 1 (:func:`axis_shares`): ``s_i ∝ max(|d_i|/‖d‖,
+|v0_i|/vmax, |a0_i|/amax, |v1_i|/vmax, |a1_i|/amax, 0.001)`` (d = target − start; the start and end
+velocities and accelerations count so that an axis already moving is not starved), and axis i is
+limited to ``vmax·s_i``, ``amax·s_i``, ``jmax·s_i`` (rotation: ``wmax·s_i``, ``alpha·s_i``,
+``alpha·jmax/amax·s_i``, alpha the controller's angular braking deceleration). As ‖s‖ = 1, any
+motion within the per-axis limits is within the norm limits. ruckig is asked for *phase*
+synchronisation: whenever the start and end states are parallel to d (every rest-to-rest move,
+every splice along the line of travel) s = |d|/‖d‖ and all axes follow one 1-D profile along the
+straight line — exactly the 1-D time-optimal move under the norm limits. Otherwise (a splice
+across the line of travel, or a rare case where ruckig's phase synchronisation fails and *time*
+synchronisation is used instead) the axes are synchronised in time only; the motion is then
+within the limits but not time-optimal in the norm sense. :func:`check_ruckig` still checks the
+norms exactly (an axis braking from above its share — ruckig's brake pre-phase — is the one case
+the shares do not bound).
 
 **Exact checks.** Every degree of freedom of a ruckig trajectory is piecewise cubic in time
 (constant jerk per phase; an optional brake pre-phase; constant acceleration after its own
@@ -41,7 +45,7 @@ import numpy as np
 from .quintic import _poly_range
 from .rotation import exp_so3, log_so3, right_jacobian
 
-FLOOR = 0.02  # smallest per-axis share of a norm limit: an axis off the line of travel may still brake
+FLOOR = 1e-3  # smallest per-axis share of a norm limit (ruckig needs positive limits)
 REL_TOL = 1e-6  # relative slack on rates (round-off of a state spliced right at a limit), as for quintics
 BOX_TOL_MM = 1e-6
 MAX_DURATION_S = 60.0
@@ -98,13 +102,19 @@ def _down(x: float) -> float:
     return math.floor(float(x) * 10.0 + 1e-9) / 10.0
 
 
-def axis_shares(d) -> np.ndarray:
-    """Per-axis share ``|d_i|/‖d‖`` of a norm limit (floored at :data:`FLOOR`); ``1/√3`` each if d ≈ 0."""
+def axis_shares(d, *rates) -> np.ndarray:
+    """Per-axis shares ``s`` (‖s‖ = 1) of a norm limit: ``s_i ∝ max(|d_i|/‖d‖, |r_i| for r in rates, FLOOR)``.
+
+    ``d``: displacement (any unit); ``rates``: start/end velocities and accelerations already divided by
+    their norm limits (dimensionless). For d and rates parallel with ‖rate‖ ≤ 1 this is |d|/‖d‖ (up to
+    the floor)."""
     d = np.asarray(d, float)
     n = float(np.linalg.norm(d))
-    if n < 1e-9:
-        return np.full(3, 1.0 / math.sqrt(3.0))
-    return np.maximum(np.abs(d) / n, FLOOR)
+    raw = np.abs(d) / n if n > 1e-9 else np.zeros(3)
+    for r in rates:
+        raw = np.maximum(raw, np.abs(np.asarray(r, float)))
+    raw = np.maximum(raw, FLOOR)
+    return raw / float(np.linalg.norm(raw))
 
 
 @dataclass(frozen=True)
@@ -246,7 +256,8 @@ def plan_ruckig(start, p1, R1, v1, w1, a1, T_min: float, lim: JerkLimits, *, ful
     R1 = R0 @ exp_so3(phi1)
     dphi0 = R0.T @ w0
     dphi1 = np.linalg.solve(right_jacobian(phi1), R1.T @ w1)
-    sp, sr = axis_shares(p1 - p0), axis_shares(phi1)
+    sp = axis_shares(p1 - p0, v0 / lim.v_max, a0 / lim.a_max, v1 / lim.v_max, a1 / lim.a_max)
+    sr = axis_shares(phi1, dphi0 / lim.w_max, dphi1 / lim.w_max)
     solver = _Solver.get()
     inp = solver.inp
     inp.current_position = [*p0, 0.0, 0.0, 0.0]

@@ -19,7 +19,7 @@ Units: mm, s, rad.
 The class is written to be subclassed (tests/ build deliberately broken controllers from it):
 the line parser (:meth:`RobotEmulator._parse_line`), the watchdog deadline
 (:meth:`RobotEmulator._watchdog_due`), the stop ramp (:meth:`RobotEmulator._make_ramp`) and the
-segment check (:meth:`RobotEmulator._check`) are separate methods.
+segment checks (:meth:`RobotEmulator._check`, :meth:`RobotEmulator._check_ruckig`) are separate methods.
 """
 
 from __future__ import annotations
@@ -453,6 +453,11 @@ class RobotEmulator:
             return 10
         return 10 if self._stop_leaves_box(seg, b, lo_box, hi_box) else 0
 
+    def _check_ruckig(self, plan: RuckigPlan, lim: JerkLimits) -> int:
+        """0 if a ruckig segment may run, else its error code (:func:`labctl.planning.ruckig_profile.check_ruckig`:
+        the quintic's rules, exactly, on each cubic interval)."""
+        return check_ruckig(plan, lim)
+
     def _stop_leaves_box(self, seg: Segment, b: np.ndarray, lo_box: np.ndarray, hi_box: np.ndarray) -> bool:
         """Would the stop ramp from some instant of the segment end outside (grown box), or from its end
         outside the box itself? Exact (:func:`labctl.planning.safety.stop_envelope_range`)."""
@@ -685,7 +690,7 @@ class RobotEmulator:
         if ruckig is not None:
             lim, a1 = ruckig
             plan = plan_ruckig(start, p1, R1, v1, w1, a1, T, lim)
-            code = check_ruckig(plan, lim)
+            code = self._check_ruckig(plan, lim)
             seg = RuckigSegment(seg_id, t0, t0 + plan.duration, plan) if not code else None
         else:
             seg = self._plan(seg_id, p1, R1, T, v1, w1, t0, start)
