@@ -155,7 +155,7 @@ def test_ruckig_checks_refuse_what_the_limits_forbid():
     assert send(emu, seg_line(10, "SEG", 1, p, rv, 0))[0].split()[1] == "E15"
     assert len(send(emu, "#11 LIMITS")[0].split()) == 2 + 18
     send(emu, "#12 HELLO 1.2")
-    assert send(emu, "#13 LIMITS")[0].split()[-1] == "15000"
+    assert send(emu, "#13 LIMITS")[0].split()[-1] == "30000"
 
 
 def test_host_plan_is_what_the_controller_runs():
@@ -176,7 +176,7 @@ def test_host_plan_is_what_the_controller_runs():
             p = np.stack([500 + 8 * t, -200 + 0 * t, 700 + 0 * t], 1)
             return p, np.zeros_like(p), np.zeros_like(p)
 
-    jerk = JerkLimits.from_limits(limits, j_max=0.98 * 15000.0, alpha_max=4 * math.radians(120), a_stop=A_STOP)
+    jerk = JerkLimits.from_limits(limits, j_max=0.98 * 30000.0, alpha_max=4 * math.radians(120), a_stop=A_STOP)
     res = plan_interception_ruckig((start[:3, 3], np.zeros(3), np.zeros(3)), 0.0, G(), limits, 10.0,
                                    R0=start[:3, :3], jerk=jerk)
     assert res.reachable
@@ -201,7 +201,7 @@ def test_driver_runs_ruckig_segments_and_falls_back_to_quintic():
     T1 = make_T(rot_x(math.pi), [420.0, -380.0, 820.0])
     with fake_robot() as dev, SerialRobot(dev.path, 115200, timeout_s=2.0, heartbeat_s=0.1) as robot:
         assert robot.choose_profile("ruckig") == "ruckig"
-        assert robot.limits()["j_max_mm_s3"] == pytest.approx(15000.0)
+        assert robot.limits()["j_max_mm_s3"] == pytest.approx(30000.0)
         t0, t1 = robot.segment(T1, 0.0, 5, profile="ruckig", limits={"vmax": 300.0, "jmax": 9000.0})
         assert 0.0 < t1 - t0 < 2.0
         robot.wait_done(5, timeout_s=5)

@@ -14,11 +14,13 @@ controller itself starts the new segment from its state. Units: mm, s, rad; worl
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from .interception import Interception, TargetFn, _as_state, _unreachable_reason
 from .limits import Limits, PlanningError
-from .ruckig_profile import JerkLimits, RuckigPlan, check_ruckig, plan_ruckig
+from .ruckig_profile import JerkLimits, RuckigPlan, check_ruckig, controller_limits, plan_ruckig
 
 
 class RuckigTrajectory:
@@ -28,9 +30,9 @@ class RuckigTrajectory:
 
     profile = "ruckig"
 
-    def __init__(self, plan: RuckigPlan, t0: float, limits: JerkLimits | None = None):
+    def __init__(self, plan: RuckigPlan, t0: float, limits: JerkLimits | None = None, base: JerkLimits | None = None):
         self.plan, self.t0, self.t1 = plan, float(t0), float(t0) + plan.duration
-        self.limits = limits  # what the segment carries on the wire (``limits.wire()``)
+        self.limits, self.base = limits, base  # the segment carries ``limits.wire(base)``
         self.rot_coeffs = True  # it carries an orientation (the run reads the end pose from it)
 
     @property
@@ -70,30 +72,31 @@ class RuckigTrajectory:
         return self.plan.state(self._tau(t))[4]
 
 
-def ruckig_limits(limits: Limits, robot_cfg) -> JerkLimits:
-    """The limits a run's ruckig segments carry: the planner's ``limits`` (the controller's with the
-    run's margin and stop budget, :func:`labctl.workers.context.planning_limits`), the jerk limit scaled
-    by the same margin from the controller's (``j_max_mm_s3``, default 10·a_max per second), and the
-    controller's angular acceleration (4·w_max per second) and braking deceleration (a_max/√3)."""
-    a_ctrl = float(robot_cfg.a_max_mm_s2)
-    j_ctrl = float(getattr(robot_cfg, "j_max_mm_s3", None) or 10.0 * a_ctrl)
-    return JerkLimits.from_limits(limits, j_max=j_ctrl * limits.a_max / a_ctrl,
-                                  alpha_max=4.0 * np.deg2rad(robot_cfg.w_max_deg_s), a_stop=a_ctrl / np.sqrt(3.0))
+def ruckig_limits(robot_cfg, stop_budget_s: float | None = None) -> JerkLimits:
+    """The limits a run's ruckig segments carry: the controller's own (:func:`controller_limits`) with the
+    speed capped, with ``stop_budget_s`` (lab.yaml ``run.robot_stop_budget_s``), so that the stop ramp
+    brings the arm to rest within the budget (``v ≤ a_stop·budget``, as for the quintic planner). No
+    further margin: the controller re-plans the segment from its own state and checks it exactly."""
+    ctrl = controller_limits(robot_cfg)
+    if stop_budget_s is None:
+        return ctrl
+    return replace(ctrl, v_max=min(ctrl.v_max, ctrl.a_stop * float(stop_budget_s)))
 
 
 def plan_interception_ruckig(state0, t0: float, G: TargetFn, limits: Limits, horizon_s: float = 10.0, *,
-                             R0=None, w0=None, jerk: JerkLimits | None = None, t_min: float = 0.02,
+                             R0=None, w0=None, jerk: JerkLimits | None = None, base: JerkLimits | None = None,
+                             t_min: float = 0.02,
                              n_coarse: int = 64, tol_s: float = 1e-3) -> Interception:
     """Earliest arrival on G(t) by one controller-checked ruckig segment from ``state0 = (p, v, a)`` at ``t0``.
 
     ``R0`` is the flange's rotation now (world ← flange; identity if None), ``w0`` its angular
     velocity (rad/s, base frame; 0 if None); the segment ends at ``G.rotation`` (or keeps ``R0``)
     with zero angular velocity. ``jerk`` are the limits the segment will carry (``vmax amax jmax
-    wmax`` on the wire; default :meth:`JerkLimits.from_limits` of ``limits``): the plan uses them as
-    the controller reads them back (:meth:`JerkLimits.rounded`), so it is what the controller runs
-    from the same state. Returns an :class:`~labctl.planning.interception.Interception`
-    whose trajectory is a :class:`RuckigTrajectory`; unreachable targets come back with
-    ``t_hit=None`` and a reason, never as an exception.
+    wmax`` on the wire; default :meth:`JerkLimits.from_limits` of ``limits``), ``base`` the
+    controller's own (those equal to it are not sent): the plan uses them as the controller runs them
+    (:meth:`JerkLimits.rounded`), so it is what the controller runs from the same state. Returns an
+    :class:`~labctl.planning.interception.Interception` whose trajectory is a :class:`RuckigTrajectory`;
+    unreachable targets come back with ``t_hit=None`` and a reason, never as an exception.
     """
     p0, v0, a0 = _as_state(state0)
     if not (np.isfinite(t0) and np.isfinite(horizon_s) and horizon_s > t_min > 0):
@@ -105,7 +108,7 @@ def plan_interception_ruckig(state0, t0: float, G: TargetFn, limits: Limits, hor
     w0 = np.zeros(3) if w0 is None else np.asarray(w0, float).reshape(3)
     R1 = getattr(G, "rotation", None)
     R1 = R0 if R1 is None else np.asarray(R1, float)
-    lim = (jerk if jerk is not None else JerkLimits.from_limits(limits)).rounded()
+    lim = (jerk if jerk is not None else JerkLimits.from_limits(limits)).rounded(base)
     start = (p0, v0, a0, R0, w0)
     zero = np.zeros(3)
 
@@ -141,7 +144,7 @@ def plan_interception_ruckig(state0, t0: float, G: TargetFn, limits: Limits, hor
             Tb = hi * (1.0 + bump)
             plan = segment(Tb, at(Tb))
             if plan.code == 0 and plan.duration <= Tb * (1 + 1e-9) + 1e-9 and check_ruckig(plan, lim) == 0:
-                traj = RuckigTrajectory(plan, t0, lim)
+                traj = RuckigTrajectory(plan, t0, lim, base)
                 return Interception(traj.t1, traj, None, "ok", G)
         prev = T
     code, reason = _unreachable_reason(bool(in_box.any()), gp, limits, horizon_s)

@@ -45,6 +45,10 @@ import numpy as np
 from .quintic import _poly_range
 from .rotation import exp_so3, log_so3, right_jacobian
 
+#: default jerk limit per unit of a_max (1/s): 20·a_max per second (60 000 mm/s³ at a_max 3000) — within
+#: what the paper's quintics already ask of the arm on the run's legs (their peak jerk, 60·d/T³ at the
+#: fastest T, is 31 000–73 000 mm/s³ for 500–90 mm legs at a_max 2940: docs/notes/planning.md)
+JERK_PER_ACCEL = 20.0
 FLOOR = 1e-3  # smallest per-axis share of a norm limit (ruckig needs positive limits)
 REL_TOL = 1e-6  # relative slack on rates (round-off of a state spliced right at a limit), as for quintics
 BOX_TOL_MM = 1e-6
@@ -74,27 +78,43 @@ class JerkLimits:
     @classmethod
     def from_limits(cls, limits, j_max: float | None = None, alpha_max: float | None = None,
                     a_stop: float | None = None) -> JerkLimits:
-        """From :class:`labctl.planning.limits.Limits`; ``j_max`` defaults to 10·a_max per second,
+        """From :class:`labctl.planning.limits.Limits`; ``j_max`` defaults to 20·a_max per second,
         ``alpha_max`` to 4·w_max per second (the reference controller's angular braking) and ``a_stop``
         to the limits' own (a_max/√3; pass the controller's when ``limits`` are a planner's reduced ones)."""
         return cls(float(limits.v_max), float(limits.a_max),
-                   float(j_max if j_max is not None else 10.0 * limits.a_max), float(limits.w_max),
+                   float(j_max if j_max is not None else JERK_PER_ACCEL * limits.a_max), float(limits.w_max),
                    float(alpha_max if alpha_max is not None else 4.0 * limits.w_max),
                    np.asarray(limits.box_min, float), np.asarray(limits.box_max, float),
                    float(a_stop if a_stop is not None else limits.a_stop))
 
-    def wire(self) -> dict[str, float]:
-        """The limits as a segment carries them (docs/protocols/robot.md §5, ``profile=ruckig``):
-        ``vmax amax jmax`` (mm/s, mm/s², mm/s³) and ``wmax`` (deg/s), each rounded *down* to 0.1 (short
-        lines: 9600 bps) — plan with :meth:`rounded` so the host's plan is the controller's."""
-        return {"vmax": _down(self.v_max), "amax": _down(self.a_max), "jmax": _down(self.j_max),
-                "wmax": _down(math.degrees(self.w_max))}
+    def _values(self) -> dict[str, float]:
+        return {"vmax": self.v_max, "amax": self.a_max, "jmax": self.j_max, "wmax": math.degrees(self.w_max)}
 
-    def rounded(self) -> JerkLimits:
-        """These limits as the controller reads them back from :meth:`wire`."""
-        w = self.wire()
+    def wire(self, base: JerkLimits | None = None) -> dict[str, float]:
+        """The limits as a segment carries them (docs/protocols/robot.md §5, ``profile=ruckig``):
+        ``vmax amax jmax`` (mm/s, mm/s², mm/s³) and ``wmax`` (deg/s), each rounded *down* to 0.1 — only
+        those that differ from the controller's own ``base`` (short lines: 9600 bps). Plan with
+        :meth:`rounded` so the host's plan is the controller's."""
+        mine, theirs = self._values(), (base._values() if base is not None else {})
+        return {k: _down(v) for k, v in mine.items() if k not in theirs or abs(v - theirs[k]) > 1e-9 * max(v, 1.0)}
+
+    def rounded(self, base: JerkLimits | None = None) -> JerkLimits:
+        """These limits as the controller runs them after :meth:`wire` (``base``: its own, for the rest)."""
+        w = {**self._values(), **self.wire(base)}
         return JerkLimits(w["vmax"], w["amax"], w["jmax"], math.radians(w["wmax"]), self.alpha_max, self.box_min,
                           self.box_max, self.a_stop)
+
+
+def controller_limits(robot_cfg) -> JerkLimits:
+    """A controller's own ruckig limits from its :class:`labctl.config.devices.RobotConfig` (LIMITS fields 7–9,
+    11, 12, 19): vmax, amax, ``j_max_mm_s3`` (default 20·amax per second), wmax, angular acceleration
+    4·wmax per second (the reference's angular braking), a_stop = amax/√3 and the box."""
+    a = float(robot_cfg.a_max_mm_s2)
+    j = getattr(robot_cfg, "j_max_mm_s3", None)
+    w = math.radians(float(robot_cfg.w_max_deg_s))
+    return JerkLimits(float(robot_cfg.v_max_mm_s), a, float(j) if j else JERK_PER_ACCEL * a, w, 4.0 * w,
+                      np.asarray(robot_cfg.workspace_min_mm, float), np.asarray(robot_cfg.workspace_max_mm, float),
+                      a / math.sqrt(3.0))
 
 
 def _down(x: float) -> float:

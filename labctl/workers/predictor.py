@@ -29,6 +29,7 @@ from ..errors import DeviceError
 from ..geometry import make_T, matrix_to_rotvec
 from ..planning import Interception, camera_placement_trajectory, plan_interception, rest_to_rest_times
 from ..planning.ruckig_interception import plan_interception_ruckig, ruckig_limits
+from ..planning.ruckig_profile import controller_limits
 from ..planning.targets import prediction_margin_mm, standard_view_path, viewing_distance_with_margin
 from ..tracking.tracker import MarkerTracker
 from ..vision import detect_markers, detect_markers_windowed, red_blob_centroid
@@ -127,7 +128,8 @@ class PredictorPlanner:
         # the segment profile (run.profile): ruckig only if the controller lists it (dialect 1.2)
         choose = getattr(robot, "choose_profile", None)
         self.profile = choose(profile or cfg.run.profile) if choose is not None else "quintic"
-        self.jerk = ruckig_limits(ctx.limits, ctx.lab.robot) if self.profile == "ruckig" else None
+        self.jerk = ruckig_limits(ctx.lab.robot, cfg.run.robot_stop_budget_s)  # what ruckig segments carry
+        self.jerk_ctrl = controller_limits(ctx.lab.robot)  # the controller's own: not sent
 
     # -- helpers ------------------------------------------------------------------------------
     @property
@@ -184,7 +186,7 @@ class PredictorPlanner:
         now = self._now(now)
         kw = {}
         if getattr(end, "profile", "quintic") == "ruckig":  # the controller re-runs ruckig from its own state
-            kw = {"profile": "ruckig", "limits": end.limits.wire()}
+            kw = {"profile": "ruckig", "limits": end.limits.wire(end.base)}
         t0c, t1c = self.robot.segment(T_end, end.t1 - end.t0, self.segment_id, replace=True, **kw)
         # The controller reports when it started the segment; on the same clock (the simulated lab)
         # that measures the command latency, and the plan is re-timed to what the robot really does.
@@ -217,7 +219,8 @@ class PredictorPlanner:
         if self.profile == "ruckig":
             traj = self.plan.trajectory if self.plan is not None else None
             w = traj.angular_velocity(t0 - self.plan_shift) if hasattr(traj, "angular_velocity") else None
-            plan = plan_interception_ruckig(state, t0, target, self.ctx.limits, horizon, R0=R, w0=w, jerk=self.jerk)
+            plan = plan_interception_ruckig(state, t0, target, self.ctx.limits, horizon, R0=R, w0=w, jerk=self.jerk,
+                                            base=self.jerk_ctrl)
             if plan.reachable:
                 return plan
         return plan_interception(state, t0, target, self.ctx.limits, horizon_s=horizon, R0=R)

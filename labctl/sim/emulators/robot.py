@@ -45,7 +45,7 @@ from ...drivers.robot_protocol import (
 from ...geometry import make_T, matrix_to_rotvec, rotvec_to_matrix
 from ...planning.quintic import _derivative, _norm_max, _poly_range
 from ...planning.rotation import right_jacobian
-from ...planning.ruckig_profile import JerkLimits, RuckigPlan, check_ruckig, plan_ruckig
+from ...planning.ruckig_profile import JERK_PER_ACCEL, JerkLimits, RuckigPlan, check_ruckig, plan_ruckig
 from ...planning.safety import stop_envelope_range
 
 NAME = "labctl-robot"
@@ -243,7 +243,7 @@ class RobotEmulator:
         self.a_stop = self.a_max / math.sqrt(3.0)
         self.alpha_stop = ANGULAR_STOP_PER_S * self.w_max
         j_max = getattr(cfg, "j_max_mm_s3", None)
-        self.j_max = float(j_max) if j_max else 10.0 * self.a_max  # ruckig profile: LIMITS field 19
+        self.j_max = float(j_max) if j_max else JERK_PER_ACCEL * self.a_max  # ruckig profile: LIMITS field 19
         self.watchdog_s = float(cfg.watchdog_s)
         self.home_T = make_T(_rpy(*HOME_RPY), cfg.home_mm)
         self.queue_size = queue_size
