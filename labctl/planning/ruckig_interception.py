@@ -109,6 +109,7 @@ def plan_interception_ruckig(state0, t0: float, G: TargetFn, limits: Limits, hor
     R1 = getattr(G, "rotation", None)
     R1 = R0 if R1 is None else np.asarray(R1, float)
     lim = (jerk if jerk is not None else JerkLimits.from_limits(limits)).rounded(base)
+    check = base if base is not None else lim  # the controller checks against its own limits
     start = (p0, v0, a0, R0, w0)
     zero = np.zeros(3)
 
@@ -143,7 +144,7 @@ def plan_interception_ruckig(state0, t0: float, G: TargetFn, limits: Limits, hor
         for bump in (0.0, 0.001, 0.004, 0.016, 0.064):  # the exact check decides
             Tb = hi * (1.0 + bump)
             plan = segment(Tb, at(Tb))
-            if plan.code == 0 and plan.duration <= Tb * (1 + 1e-9) + 1e-9 and check_ruckig(plan, lim) == 0:
+            if plan.code == 0 and plan.duration <= Tb * (1 + 1e-9) + 1e-9 and check_ruckig(plan, check) == 0:
                 traj = RuckigTrajectory(plan, t0, lim, base)
                 return Interception(traj.t1, traj, None, "ok", G)
         prev = T

@@ -690,7 +690,7 @@ class RobotEmulator:
         if ruckig is not None:
             lim, a1 = ruckig
             plan = plan_ruckig(start, p1, R1, v1, w1, a1, T, lim)
-            code = self._check_ruckig(plan, lim)
+            code = self._check_ruckig(plan, self.jerk_limits())  # safety: the controller's own limits
             seg = RuckigSegment(seg_id, t0, t0 + plan.duration, plan) if not code else None
         else:
             seg = self._plan(seg_id, p1, R1, T, v1, w1, t0, start)
