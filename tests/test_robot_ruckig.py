@@ -262,3 +262,26 @@ def test_run_ruckig_legs_brake_within_the_stop_budget():
     assert planned >= 10
     assert worst <= budget * (1 + 1e-6), worst
     assert worst > 0.8 * budget
+
+
+def test_trials_sweep_profiles_on_the_same_seeds(capsys):
+    """``labctl trials --profile quintic,ruckig`` plans both profiles on the same seeds; the summary splits them;
+    a bad profile is exit 2 with one line."""
+    from fakes import run_cli
+
+    from labctl.workers.trials import plan_specs, summarize
+
+    specs = plan_specs(2, ["line", "zigzag"], [4.0, 8.0], ["a", "b"], 10, ["quintic", "ruckig"])
+    assert len(specs) == 16
+    by = {p: [(s["trajectory"], s["speed_mm_s"], s["seed"], s["object_name"]) for s in specs if s["profile"] == p]
+          for p in ("quintic", "ruckig")}
+    assert by["quintic"] == by["ruckig"]
+    results = [{"profile": s["profile"], "speed_mm_s": s["speed_mm_s"], "correct": s["seed"] == 10, "views": 1,
+                "time_to_identity_s": 5.0 if s["profile"] == "quintic" else 4.0, "stages": {"standard": 1.0},
+                "lower_bound_s": 2.0, "lower_bound_quintic_s": 2.5, "index": i, "seed": s["seed"]}
+               for i, s in enumerate(specs)]
+    out = {row["profile"]: row for row in summarize(results)["by_profile"]}
+    assert out["quintic"]["time_to_identity_s_median"] == 5.0 and out["ruckig"]["time_to_identity_s_median"] == 4.0
+    assert out["ruckig"]["success_rate"] == 0.5 and out["ruckig"]["stage_medians_s"] == {"standard": 1.0}
+    code, _, err = run_cli(capsys, "trials", "--n", "1", "--profile", "trapezoid")
+    assert code == 2 and err.count("\n") == 1 and "--profile" in err, err
