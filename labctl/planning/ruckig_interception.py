@@ -59,7 +59,7 @@ class RuckigTrajectory:
 
     def state(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Position (mm), velocity (mm/s), acceleration (mm/s²) at ``t`` (clamped to the segment)."""
-        return self.plan.pos.state(self._tau(t))
+        return self.plan.position.state(self._tau(t))
 
     def orientation(self, t: float) -> np.ndarray:
         """Rotation world ← flange at ``t``."""

@@ -227,10 +227,24 @@ class RuckigPlan:
     duration: float
     code: int = 0
 
+    @property
+    def position(self) -> Piecewise:
+        """The position pieces (mm); ValueError for a plan ruckig did not find (``code`` ≠ 0)."""
+        if self.pos is None:
+            raise ValueError(f"no ruckig trajectory (E{self.code:02d})")
+        return self.pos
+
+    @property
+    def rotation(self) -> Piecewise:
+        """The φ pieces (rad); ValueError for a plan ruckig did not find (``code`` ≠ 0)."""
+        if self.rot is None:
+            raise ValueError(f"no ruckig trajectory (E{self.code:02d})")
+        return self.rot
+
     def state(self, tau: float):
         """(p, v, a, R, ω) at τ (s): ω the true angular velocity R·J_r(φ)·φ̇ (base frame)."""
-        p, v, a = self.pos.state(tau)
-        phi, dphi, _ = self.rot.state(tau)
+        p, v, a = self.position.state(tau)
+        phi, dphi, _ = self.rotation.state(tau)
         R = self.R0 @ exp_so3(phi)
         return p, v, a, R, R @ right_jacobian(phi) @ dphi
 
@@ -317,10 +331,10 @@ def _true_angular_max(plan: RuckigPlan, k: int, limit: float) -> float:
     """Largest true angular speed on interval k: 65 samples, each local maximum refined (bounded Brent, 1e-12 s)."""
     from scipy.optimize import minimize_scalar
 
-    t0, t1 = plan.rot.breaks[k], plan.rot.breaks[k + 1]
+    t0, t1 = plan.rotation.breaks[k], plan.rotation.breaks[k + 1]
 
     def speed(t):
-        phi, dphi, _ = plan.rot.state(t)
+        phi, dphi, _ = plan.rotation.state(t)
         return float(np.linalg.norm(right_jacobian(phi) @ dphi))
 
     ts = np.linspace(t0, t1, 65)
@@ -383,20 +397,20 @@ def check_ruckig(plan: RuckigPlan, lim: JerkLimits) -> int:
     """
     if plan.code:
         return plan.code
-    b, h = _stack(plan.pos)  # (4, K, 3)
+    b, h = _stack(plan.position)  # (4, K, 3)
     dv = np.stack([b[1], 2 * b[2], 3 * b[3]])  # d/du, quadratic
     if np.any(np.sqrt(np.maximum(_sq_norm_max(dv), 0.0)) / h > lim.v_max * (1 + REL_TOL)):
         return 12
     a_ends = np.stack([2 * b[2], 2 * b[2] + 6 * b[3]]) / (h ** 2)[None, :, None]  # (2, K, 3)
     if np.linalg.norm(a_ends, axis=-1).max() > lim.a_max * (1 + REL_TOL):
         return 13
-    r, hr = _stack(plan.rot)
+    r, hr = _stack(plan.rotation)
     wbound = np.sqrt(np.maximum(_sq_norm_max(np.stack([r[1], 2 * r[2], 3 * r[3]])), 0.0)) / hr
     wlim = lim.w_max * (1 + REL_TOL)
     for k in np.flatnonzero(wbound > wlim):
         if _true_angular_max(plan, int(k), wlim) > wlim:
             return 14
-    p0, v0, _ = plan.pos.state(0.0)
+    p0, v0, _ = plan.position.state(0.0)
     e0 = p0 + v0 * np.abs(v0) / (2 * lim.a_stop)
     lo_box = np.minimum(np.minimum(lim.box_min, p0), e0) - BOX_TOL_MM
     hi_box = np.maximum(np.maximum(lim.box_max, p0), e0) + BOX_TOL_MM
@@ -411,7 +425,7 @@ def check_ruckig(plan: RuckigPlan, lim: JerkLimits) -> int:
     hi = np.maximum(x, e).max(axis=(0, 1))
     if np.any(lo < lo_box) or np.any(hi > hi_box):
         return 10
-    p1, v1, _ = plan.pos.state(plan.duration)
+    p1, v1, _ = plan.position.state(plan.duration)
     rest = p1 + v1 * np.abs(v1) / (2 * lim.a_stop)
     for q in (p1, rest):
         if np.any(q < lim.box_min - BOX_TOL_MM) or np.any(q > lim.box_max + BOX_TOL_MM):

@@ -170,7 +170,7 @@ class RuckigSegment:
 
     def position(self, t: float) -> np.ndarray:
         """Flange position (mm) at time t, clamped to the segment."""
-        return self.plan.pos.state(min(max(t - self.t0, 0.0), self.t1 - self.t0))[0]
+        return self.plan.position.state(min(max(t - self.t0, 0.0), self.t1 - self.t0))[0]
 
     def state(self, t: float):
         """(p, v, a, R, ω) at time t, clamped to the segment; ω the true angular velocity (base frame)."""
