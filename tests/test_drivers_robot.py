@@ -104,15 +104,15 @@ def test_driver_negotiates_down_to_a_1_0_controller(cls):
         assert "a_stop_mm_s2" in robot.limits()  # the reference underneath still sends 18 fields
 
 
-def test_driver_speaks_1_1_stop_latches_until_clear():
+def test_driver_speaks_1_2_stop_latches_until_clear():
     with fake_robot(limits=SLOW_WATCHDOG) as dev, \
             SerialRobot(dev.path, 115200, timeout_s=2.0, heartbeat_s=0.1) as robot:
-        assert robot.dialect == "1.1" and "quintic" in robot.profiles
+        assert robot.dialect == "1.2" and robot.profiles == ("quintic", "ruckig")
         assert robot.limits()["a_stop_mm_s2"] == pytest.approx(1500 / math.sqrt(3), abs=1e-5)
         with pytest.raises(ValueError):
             robot.segment(make_T(rot_x(math.pi), [420.0, -380.0, 820.0]), 1.0, 0)  # HOME's id
         with pytest.raises(ValueError):
-            robot.segment(make_T(rot_x(math.pi), [420.0, -380.0, 820.0]), 1.0, 3, profile="ruckig")
+            robot.segment(make_T(rot_x(math.pi), [420.0, -380.0, 820.0]), 1.0, 3, profile="trapezoid")
         robot.segment(make_T(rot_x(math.pi), [420.0, -380.0, 820.0]), 1.0, 3)
         robot.stop()
         with pytest.raises(RobotError) as err:

@@ -227,6 +227,7 @@ def test_realistic_run_falls_back_to_a_suspect_marker_when_the_trusted_one_is_am
     cfg.setdefault("run", {})["height_gate_mm"] = 0.0  # the marker height alone would resolve it at once
     # the robot limits this placement was found with: the viewpoints, and so which markers are seen, follow them
     cfg["run"]["robot_stop_budget_s"] = None
+    cfg["run"]["profile"] = "quintic"  # (and the segment profile it was found with)
     (root / "lab.yaml").write_text(yaml.safe_dump(cfg))
     robot = yaml.safe_load((root / "drivers" / "robot.yaml").read_text())
     robot["a_max_mm_s2"] = 1500.0

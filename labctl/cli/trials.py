@@ -14,7 +14,11 @@ from .run import TRAJECTORIES, _speed
 
 @click.command("trials")
 @click.option("--n", "n", type=int, default=20, show_default=True, help="Number of simulated runs per speed.")
-@click.option("--trajectory", default=None, help="line, arc, circle or zigzag (default: lab.yaml).")
+@click.option("--trajectory", default=None,
+              help="line, arc, circle or zigzag, or a comma-separated list to sweep (default: lab.yaml).")
+@click.option("--profile", "profile", default=None,
+              help="Robot segment profile quintic or ruckig, or a comma-separated list to compare on the same seeds "
+                   "(default: lab.yaml's run.profile).")
 @click.option("--speed", default=None, help="Table speed mm/s, or a comma-separated list to sweep.")
 @click.option("--objects", default=None, help="Comma-separated objects to cycle through (default: all).")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the first trial.")
@@ -25,7 +29,7 @@ from .run import TRAJECTORIES, _speed
 @click.option("--resume", type=click.Path(path_type=Path), default=None,
               help="Continue an interrupted sweep folder (runs/trials-…); other options are ignored.")
 @json_option
-def trials_cmd(n, trajectory, speed, objects, seed, record, jobs, scheduler, resume) -> None:
+def trials_cmd(n, trajectory, profile, speed, objects, seed, record, jobs, scheduler, resume) -> None:
     """Many simulated runs in virtual time with deterministic seeds, in parallel.
 
     Writes one folder, runs/trials-<time>/: spec, per-trial results and records, summary.json and
@@ -46,9 +50,14 @@ def trials_cmd(n, trajectory, speed, objects, seed, record, jobs, scheduler, res
     for s in speeds:
         _speed(s, lab)
     names = [o.strip() for o in objects.split(",") if o.strip()] if objects else None
-    traj = trajectory or lab.config.run.trajectory
-    if traj not in TRAJECTORIES:
-        raise UserInputError(f"--trajectory must be one of {', '.join(TRAJECTORIES)}, got {traj!r}")
+    trajs = [t.strip() for t in (trajectory or lab.config.run.trajectory).split(",") if t.strip()]
+    for traj in trajs or [""]:
+        if traj not in TRAJECTORIES:
+            raise UserInputError(f"--trajectory must be one of {', '.join(TRAJECTORIES)}, got {traj!r}")
+    profiles = [p.strip().lower() for p in profile.split(",") if p.strip()] if profile else [None]
+    for prof in profiles or [""]:
+        if prof not in (None, "quintic", "ruckig"):
+            raise UserInputError(f"--profile must be quintic or ruckig (or both, comma-separated), got {prof!r}")
     if resume is not None and not resume.is_dir():
         raise UserInputError(f"--resume: no sweep folder at {resume}")
 
@@ -56,8 +65,9 @@ def trials_cmd(n, trajectory, speed, objects, seed, record, jobs, scheduler, res
     progress = _Progress(con) if con is not None else None
     try:
         with progress or _nothing():
-            summary = run_sweep(lab, n=n, trajectory=traj, speeds=speeds, objects=names, seed=seed, record=record,
-                                n_jobs=n_jobs, scheduler=scheduler, resume=resume,
+            summary = run_sweep(lab, n=n, trajectory=trajs[0] if len(trajs) == 1 else trajs, speeds=speeds,
+                                objects=names, seed=seed, record=record, n_jobs=n_jobs, scheduler=scheduler,
+                                resume=resume, profiles=profiles,
                                 on_result=progress.update if progress else None)
     except KeyboardInterrupt as exc:
         partial = getattr(exc, "summary", None)
@@ -123,6 +133,14 @@ def _print_trials(console, s: dict) -> None:
     for k, v in s["stage_medians_s"].items():
         st.add_row(k, f"{v:.2f}")
     console.print(st)
+    if len(s.get("by_profile", [])) > 1:  # robot segment profiles compared on the same seeds
+        stages = list(s["stage_medians_s"])
+        pt = Table("profile", "n", "success", "time to identity (median)", *stages, title="robot segment profiles")
+        for row in s["by_profile"]:
+            pt.add_row(str(row["profile"]), str(row["n"]), f"{100 * row['success_rate']:.1f} %",
+                       _num(row["time_to_identity_s_median"], " s"),
+                       *[_num(row["stage_medians_s"].get(k), "") for k in stages])
+        console.print(pt)
     head = f"success rate {100 * s['success_rate']:.1f} % of {s['n']} trials"
     if s.get("interrupted"):
         head += f" (interrupted: {s['n']} of {s.get('planned')} done; --resume {s['sweep']} continues)"

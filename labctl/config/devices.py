@@ -63,6 +63,7 @@ class RobotConfig:
     v_max_mm_s: Positive = 500.0
     a_max_mm_s2: Positive = 1500.0
     w_max_deg_s: Positive = 120.0
+    j_max_mm_s3: Positive | None = None  # jerk limit of ruckig segments (dialect 1.2); null: 20·a_max per second
     home_mm: tuple[float, float, float] = (300.0, -450.0, 900.0)
     reconnect_s: NonNegative = 0.0  # after the port drops, retry opening it (with backoff) for this long
 

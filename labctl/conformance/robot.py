@@ -1,4 +1,4 @@
-"""The robot dialect's conformance suite (docs/protocols/robot.md, dialect 1.1), run over a serial port.
+"""The robot dialect's conformance suite (docs/protocols/robot.md, dialect 1.2), run over a serial port.
 
 Written from the document, not from the reference controller: its own framing, its own checksum,
 its own quintic (a 6×6 solve) and its own stop-ramp arithmetic (dense samples), so it can judge
@@ -207,6 +207,7 @@ class Limits:
     watchdog_s: float
     a_stop: float
     home: np.ndarray | None = None  # x y z rx ry rz
+    j_max: float | None = None  # mm/s³, dialect 1.2 (the ruckig profile)
 
 
 @dataclass
@@ -243,8 +244,13 @@ class Suite:
 
     @property
     def v11(self) -> bool:
-        """True for a dialect 1.1 session."""
+        """True for a dialect 1.1 (or later) session."""
         return self.version != "1.0"
+
+    @property
+    def ruckig(self) -> bool:
+        """True for a dialect 1.2 session whose controller lists the ``ruckig`` profile."""
+        return self.version == "1.2" and "ruckig" in self.profiles
 
     def status(self) -> dict:
         """STATUS parsed: ``p`` (mm), rotation vector ``rv`` (rad), moving, segment id, queued, ``t`` (s), fault."""
@@ -368,12 +374,15 @@ class Suite:
             ("queue.full", self.r_queue),
             ("watchdog.fed", self.r_watchdog_fed),
             ("watchdog.trips", self.r_watchdog_trips),
+            ("ruckig.arrival", self.r_ruckig_arrival),
+            ("ruckig.splice", self.r_ruckig_splice),
+            ("ruckig.limits", self.r_ruckig_limits),
         ]
 
     def hello(self) -> None:
-        """Open the session (HELLO 1.1, else HELLO), read queue size, profiles and LIMITS; CannotTalk if silent."""
+        """Open the session (HELLO 1.2, else HELLO), read queue size, profiles and LIMITS; CannotTalk if silent."""
         self.client.drain(0.05)
-        line = self.client.request("HELLO 1.1")
+        line = self.client.request("HELLO 1.2")
         if line is None:
             line = self.client.request("HELLO")
         if line is None:
@@ -383,7 +392,8 @@ class Suite:
             code, f = self.req("HELLO")
         self.hello_fields = (code, f)
         if code == "ok" and len(f) >= 2 and VERSION_RE.match(f[1]):
-            self.version = "1.1" if tuple(map(int, f[1].split("."))) >= (1, 1) else "1.0"
+            got = tuple(map(int, f[1].split(".")))
+            self.version = "1.2" if got >= (1, 2) else "1.1" if got >= (1, 1) else "1.0"
         for item in f[2:]:
             key, _, value = item.partition("=")
             if key == "queue" and value.isdigit():
@@ -395,7 +405,7 @@ class Suite:
             x = [float(v) for v in lf]
             self.limits = Limits(np.array(x[0:3]), np.array(x[3:6]), x[6], x[7], math.radians(x[8]), x[9],
                                  x[10] if len(x) >= 18 else x[7] / math.sqrt(3.0),
-                                 np.array(x[12:18]) if len(x) >= 18 else None)
+                                 np.array(x[12:18]) if len(x) >= 18 else None, x[18] if len(x) >= 19 else None)
         if self.limits is None and not self.no_motion:
             raise CannotTalk(f"no usable LIMITS reply ({code} {' '.join(lf)}): motion rules need it")
         if not self.no_motion:
@@ -405,14 +415,17 @@ class Suite:
 
     # --- framing and errors (no motion) -----------------------------------------------------
     def r_hello(self) -> None:
-        """hello.reply: HELLO answers ``ok <name> <version>``; a 1.1 session lists queue=N and the quintic profile."""
+        """hello.reply: HELLO answers ``ok <name> <version>``; a 1.1 or 1.2 session lists queue=N and the quintic
+        profile (``ruckig`` only in a 1.2 session)."""
         code, f = self.hello_fields
         problems = []
         if code != "ok" or len(f) < 2 or not VERSION_RE.match(f[1]):
             problems.append(f"reply {code} {' '.join(f)!r} is not 'ok <name> <version> …'")
         if self.v11:
-            if f[1] != "1.1":
-                problems.append(f"session version {f[1]} after HELLO 1.1")
+            if f[1] not in ("1.1", "1.2"):
+                problems.append(f"session version {f[1]} after HELLO 1.2")
+            if "ruckig" in self.profiles and f[1] != "1.2":
+                problems.append(f"ruckig listed in a {f[1]} session")
             if not any(x.startswith("queue=") for x in f) or "quintic" not in self.profiles:
                 problems.append("no queue=N or profiles=… listing quintic")
         self.record("hello.reply", not problems, "; ".join(problems) or f"{' '.join(f)}")
@@ -430,9 +443,9 @@ class Suite:
         self.record("status.format", ok, " ".join(f))
 
     def r_limits_format(self) -> None:
-        """limits.format: LIMITS has 10 (1.0) or 18 (1.1) fields, a non-empty box and a_stop ≥ amax/√3."""
+        """limits.format: LIMITS has 10 (1.0), 18 (1.1) or 19 (1.2) fields, a non-empty box and a_stop ≥ amax/√3."""
         code, f = self.req("LIMITS")
-        want = 18 if self.v11 else 10
+        want = {"1.0": 10, "1.1": 18}.get(self.version, 19)
         ok = code == "ok" and len(f) == want and self.limits is not None \
             and bool(np.all(self.limits.box_min < self.limits.box_max))
         if ok and self.v11:
@@ -860,6 +873,147 @@ class Suite:
                     f"rest {'short of' if not self.done_seen(sid) else 'AT'} the target")
         if not ok:
             self.recover()
+
+
+    # --- the ruckig profile (1.2) -------------------------------------------------------------------
+    def _ruckig_seg(self, p, rv, T, cmd="SEG", extra: str = "") -> tuple[str, list[str], int]:
+        sid = self.new_id()
+        args = [str(sid), *map(_num, p), *map(_num, rv), _num(T)]
+        code, f = self.req(f"{cmd} {' '.join(args)} profile=ruckig{(' ' + extra) if extra else ''}")
+        return code, f, sid
+
+    def _skip_ruckig(self, rule: str) -> bool:
+        if not self.ruckig:
+            self.record(rule, None, f"the controller does not list ruckig in a 1.2 session (profiles "
+                        f"{','.join(self.profiles)}, session {self.version})")
+            return True
+        if self.limits.j_max is None:
+            self.record(rule, False, "ruckig listed but LIMITS has no field 19 (jmax)")
+            return True
+        return False
+
+    def _ruckig_1d(self, D: float):
+        """The time-optimal jerk-limited rest-to-rest move of D mm under LIMITS' vmax, amax, jmax (ruckig, 1 DoF):
+        the document's ruckig segment along one axis (§5: the limits of the axis of travel are the full ones)."""
+        from ruckig import InputParameter, Ruckig, Trajectory
+
+        inp, traj = InputParameter(1), Trajectory(1)
+        inp.current_position, inp.target_position = [0.0], [D]
+        inp.max_velocity, inp.max_acceleration = [self.limits.v_max], [self.limits.a_max]
+        inp.max_jerk = [self.limits.j_max]
+        Ruckig(1).calculate(inp, traj)
+        return traj
+
+    def r_ruckig_arrival(self) -> None:
+        """ruckig.arrival (1.2): a rest-to-rest ``profile=ruckig`` SEG with T = 0 along one axis runs the
+        time-optimal jerk-limited move (t1 − t0 and the positions on the way as ruckig computes them from
+        LIMITS' vmax, amax, jmax), ends on target and sends @DONE."""
+        if self._skip_ruckig("ruckig.arrival"):
+            return
+        p0, rv = self._here()
+        ax, sgn, room = self._room(p0)
+        D = min(120.0, room / 4)
+        p1 = p0.copy()
+        p1[ax] += sgn * D
+        code, f, sid = self._ruckig_seg(p1, rv, 0)
+        if code != "ok":
+            self.record("ruckig.arrival", False, f"ruckig SEG of {D:.0f} mm, T = 0 → {code}")
+            return
+        t0, t1 = float(f[0]), float(f[1])
+        ref = self._ruckig_1d(D)
+        mid_err = 0.0
+        for _ in range(3):
+            self.client._pump(ref.duration / 5)
+            st = self.status()
+            tau = st["t"] - t0
+            if 0 < tau < ref.duration:
+                pos, vel, _ = ref.at_time(tau)[:3]
+                want = p0.copy()
+                want[ax] += sgn * pos[0]
+                mid_err = max(mid_err, float(np.linalg.norm(st["p"] - want)) - abs(vel[0]) * 5e-5)
+        done = self.wait_done(sid, ref.duration + 2.0)
+        st = self.wait_rest()
+        end_err = float(np.linalg.norm(st["p"] - p1))
+        problems = []
+        if abs((t1 - t0) - ref.duration) > 2e-4:
+            problems.append(f"t1 − t0 = {t1 - t0:.4f} s, ruckig's time-optimal move takes {ref.duration:.4f} s")
+        if not done:
+            problems.append(f"no @DONE {sid}")
+        if end_err > 0.01:
+            problems.append(f"rests {end_err:.4f} mm from the target")
+        if mid_err > 0.05:
+            problems.append(f"{mid_err:.3f} mm off ruckig's trajectory on the way")
+        self.record("ruckig.arrival", not problems, "; ".join(problems)
+                    or f"{D:.0f} mm in {t1 - t0:.4f} s (ruckig: {ref.duration:.4f} s), on the way to "
+                       f"{max(mid_err, 0):.4f} mm, target to {end_err:.4f} mm, @DONE")
+
+    def r_ruckig_splice(self) -> None:
+        """ruckig.splice (1.2): a ruckig SEGNOW sent mid-move (from a moving state: p, v, a) is accepted, runs
+        from where the arm is — the STATUS positions around the splice move on smoothly — and ends on target."""
+        if self._skip_ruckig("ruckig.splice"):
+            return
+        p0, rv = self._here()
+        ax, sgn, room = self._room(p0)
+        D = min(150.0, room / 4)
+        p1, p2 = p0.copy(), p0.copy()
+        p1[ax] += sgn * D
+        p2[ax] += sgn * D / 2
+        p2[(ax + 1) % 3] += min(40.0, self._room(p0)[2] / 4) * (1 if p0[(ax + 1) % 3] < np.mean(
+            [self.limits.box_min[(ax + 1) % 3], self.limits.box_max[(ax + 1) % 3]]) else -1)
+        code, f, a = self._ruckig_seg(p1, rv, 2.0)
+        if code != "ok":
+            self.record("ruckig.splice", False, f"ruckig SEG of {D:.0f} mm in 2 s → {code}")
+            return
+        self.wait(0.6)
+        before = self.status()
+        code2, f2, b = self._ruckig_seg(p2, rv, 0, cmd="SEGNOW")
+        after = self.status()
+        done = self.wait_done(b, 5.0)
+        st = self.wait_rest()
+        problems = []
+        if code2 != "ok":
+            problems.append(f"SEGNOW ruckig mid-move → {code2}")
+        else:
+            # the arm moved on from `before` at no more than vmax: no jump back to a rest state
+            dt = after["t"] - before["t"]
+            jump = float(np.linalg.norm(after["p"] - before["p"]))
+            if jump > self.limits.v_max * dt + 0.05:
+                problems.append(f"moved {jump:.2f} mm in {dt:.4f} s across the splice")
+            if not done:
+                problems.append(f"no @DONE {b}")
+            if self.done_seen(a):
+                problems.append(f"@DONE {a} sent for the cut segment")
+            if float(np.linalg.norm(st["p"] - p2)) > 0.01:
+                problems.append(f"rests {float(np.linalg.norm(st['p'] - p2)):.4f} mm from the new target")
+        self.record("ruckig.splice", not problems, "; ".join(problems)
+                    or f"spliced at {before['t']:.3f}–{after['t']:.3f} s, ends on the new target, @DONE {b} only")
+
+    def r_ruckig_limits(self) -> None:
+        """ruckig.limits (1.2): ``jmax=`` above LIMITS' is E16; a ruckig segment whose end needs more room to
+        brake than the box has (5 mm from the wall, ending at a speed that needs 20 mm) is E10; neither runs."""
+        if self._skip_ruckig("ruckig.limits"):
+            return
+        p0, rv = self._here()
+        ax, sgn, room = self._room(p0)
+        p1 = p0.copy()
+        p1[ax] += sgn * min(30.0, room / 4)
+        c16, _, _ = self._ruckig_seg(p1, rv, 0, extra=f"jmax={_num(2 * self.limits.j_max)}")
+        wall = self.limits.box_max[ax] if sgn > 0 else self.limits.box_min[ax]
+        p2 = p0.copy()
+        p2[ax] = wall - sgn * 5.0
+        u = math.sqrt(2 * self.limits.a_stop * 20.0)
+        v = np.zeros(3)
+        v[ax] = sgn * min(u, 0.9 * self.limits.v_max)
+        sid = self.new_id()
+        args = [str(sid), *map(_num, p2), *map(_num, rv), "0", *map(_num, v), "0", "0", "0"]
+        c10, _ = self.req(f"SEG {' '.join(args)} profile=ruckig")
+        for c in (c16, c10):
+            if c == "ok":
+                self.recover()
+        need = float(v[ax] ** 2 / (2 * self.limits.a_stop))
+        self.record("ruckig.limits", (c16, c10) == ("E16", "E10"),
+                    f"jmax 2·LIMITS → {c16} (want E16); ends 5 mm from the wall at {abs(v[ax]):.0f} mm/s outwards "
+                    f"(needs {need:.0f} mm) → {c10} (want E10)")
 
 
 def run_suite(port: str, baud: int = 9600, *, no_motion: bool = False, only: list[str] | None = None,

@@ -32,12 +32,12 @@ import numpy as np
 from ..errors import DeviceError
 from ..geometry import make_T, matrix_to_rotvec, rotvec_to_matrix
 from .interfaces import OpenClose, Robot, RobotStatus
-from .robot_protocol import ERROR_CODES, MAX_SEQ, RobotReply, format_request, parse_reply
+from .robot_protocol import ERROR_CODES, MAX_SEQ, RobotReply, fmt_num, format_request, parse_reply
 from .serial_link import DeviceTimeout, LinkError, LinkLost, SerialLink
 
 log = logging.getLogger(__name__)
 
-HOST_DIALECT = "1.1"  # the highest dialect version this driver speaks
+HOST_DIALECT = "1.2"  # the highest dialect version this driver speaks (1.2: the ruckig profile)
 
 # what a supervisor writes straight to the port in an emergency
 STOP_LINE = (format_request(0, "STOP") + "\n").encode("ascii")
@@ -110,7 +110,7 @@ class SerialRobot(OpenClose):
             raise
 
     def negotiate(self) -> str:
-        """``HELLO 1.1``, or a plain ``HELLO`` if the controller refuses the argument (a strict 1.0
+        """``HELLO 1.2``, or a plain ``HELLO`` if the controller refuses the argument (a strict 1.0
         controller); sets ``dialect`` (the session version), ``queue`` and ``profiles``
         (docs/protocols/robot.md §1). Returns the session version."""
         try:
@@ -270,18 +270,38 @@ class SerialRobot(OpenClose):
             self._on_async(line)
 
     # --- Robot interface --------------------------------------------------------------------
+    def choose_profile(self, wanted: str) -> str:
+        """The segment profile to plan with: ``wanted`` if the controller listed it in HELLO, else
+        ``quintic`` (every controller runs it), with a warning (docs/protocols/robot.md §1)."""
+        wanted = wanted.lower()
+        if wanted in self.profiles:
+            return wanted
+        log.warning("%s: the controller runs the profiles %s, not %r: falling back to quintic",
+                    self.link.name, ",".join(self.profiles), wanted)
+        return "quintic"
+
     def segment(self, T_base_flange: np.ndarray, duration_s: float, segment_id: int, *,
                 end_velocity_mm_s=None, end_omega_rad_s=None, replace: bool = False,
-                profile: str | None = None) -> tuple[float, float]:
+                profile: str | None = None, end_acceleration_mm_s2=None,
+                limits: dict | None = None) -> tuple[float, float]:
         """Queue (or with ``replace`` start now) a segment; returns its controller (t0, t1).
 
-        ``profile`` (default the controller's ``quintic``) must be one HELLO listed; id 0 is HOME's
-        in dialect 1.1, so ids are 1–65535 there."""
+        ``profile`` (default the controller's ``quintic``) must be one HELLO listed (pick it with
+        :meth:`choose_profile`); id 0 is HOME's from dialect 1.1 on, so ids are 1–65535 there. With
+        ``profile="ruckig"`` (dialect 1.2) ``duration_s`` is the least duration (0: as fast as the
+        limits allow; t1 says when it arrives), and the segment may end with an acceleration
+        ``end_acceleration_mm_s2`` and run under its own ``limits`` (``vmax amax jmax wmax``: mm/s,
+        mm/s², mm/s³, deg/s; each at most the controller's, e.g. :meth:`JerkLimits.wire`)."""
         T = np.asarray(T_base_flange, float)
+        ruckig = profile is not None and profile.lower() == "ruckig"
         if T.shape != (4, 4) or not np.all(np.isfinite(T)):
             raise ValueError("T_base_flange must be a finite 4×4 matrix")
-        if not (duration_s > 0 and np.isfinite(duration_s)):
+        if not ((duration_s >= 0 if ruckig else duration_s > 0) and np.isfinite(duration_s)):
             raise ValueError(f"segment duration must be positive, got {duration_s}")
+        if not ruckig and (end_acceleration_mm_s2 is not None or limits):
+            raise ValueError("an end acceleration or segment limits need profile='ruckig'")
+        if limits and not set(limits) <= {"vmax", "amax", "jmax", "wmax"}:
+            raise ValueError(f"segment limits are vmax, amax, jmax, wmax; got {sorted(limits)}")
         lowest = 1 if self.dialect != "1.0" else 0
         if not lowest <= int(segment_id) <= MAX_SEQ:
             raise ValueError(f"segment id must be {lowest}..{MAX_SEQ}, got {segment_id}")
@@ -289,12 +309,16 @@ class SerialRobot(OpenClose):
             raise ValueError(f"the controller runs the profiles {', '.join(self.profiles)}, not {profile!r}")
         rv = matrix_to_rotvec(T[:3, :3])
         args: list = [int(segment_id), *map(float, T[:3, 3]), *map(float, rv), float(duration_s)]
-        if end_velocity_mm_s is not None or end_omega_rad_s is not None:
+        if end_velocity_mm_s is not None or end_omega_rad_s is not None or end_acceleration_mm_s2 is not None:
             v = np.zeros(3) if end_velocity_mm_s is None else np.asarray(end_velocity_mm_s, float)
             w = np.zeros(3) if end_omega_rad_s is None else np.asarray(end_omega_rad_s, float)
             args += [*map(float, v), *map(float, w)]
+        if end_acceleration_mm_s2 is not None:
+            args += [*map(float, np.asarray(end_acceleration_mm_s2, float).reshape(3))]
         if profile is not None and profile.lower() != "quintic":
             args.append(f"profile={profile.lower()}")
+        for key, value in (limits or {}).items():
+            args.append(f"{key}={fmt_num(float(value))}")
         self._commanded = True
         try:
             reply = self.request("SEGNOW" if replace else "SEG", *args)
@@ -349,7 +373,7 @@ class SerialRobot(OpenClose):
 
     def limits(self) -> dict:
         """The controller's LIMITS; dialect 1.1 adds ``a_stop_mm_s2``, ``alpha_stop_deg_s2`` and
-        ``home`` (x y z mm, rotation vector rad)."""
+        ``home`` (x y z mm, rotation vector rad), 1.2 ``j_max_mm_s3`` (the ruckig profile's jerk limit)."""
         reply = self.request("LIMITS")
         f = reply.floats(10)
         if f is None:
@@ -359,6 +383,9 @@ class SerialRobot(OpenClose):
         g = reply.floats(18)
         if g is not None:
             out.update(a_stop_mm_s2=g[10], alpha_stop_deg_s2=g[11], home=g[12:18])
+        h = reply.floats(19)
+        if h is not None:
+            out["j_max_mm_s3"] = h[18]
         return out
 
     def status(self) -> RobotStatus:

@@ -19,6 +19,7 @@ ERROR_CODES = {
     5: "checksum mismatch",
     10: "outside the workspace (path or stop)", 11: "bad duration", 12: "too fast (linear speed limit)",
     13: "acceleration limit exceeded", 14: "too fast (angular speed limit)", 15: "profile not supported",
+    16: "jerk limit above the controller's", 17: "no jerk-limited trajectory to that state",
     20: "segment queue full", 40: "stopped by the watchdog: send CLEAR", 41: "stopped: send CLEAR",
 }
 

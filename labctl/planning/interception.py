@@ -18,6 +18,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import lru_cache
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -26,6 +27,9 @@ from .quintic import QuinticSegment, Trajectory, basis, quintic_coefficients
 from .rotation import log_so3
 from .safety import check_segment
 from .targets import MarkerPath, TargetPath, standard_view_path
+
+if TYPE_CHECKING:
+    from .ruckig_interception import RuckigTrajectory
 
 TargetFn = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]]
 
@@ -51,7 +55,7 @@ class Interception:
     """
 
     t_hit: float | None
-    trajectory: Trajectory | None
+    trajectory: Trajectory | RuckigTrajectory | None  # a RuckigTrajectory from plan_interception_ruckig
     reason: str | None = None
     code: str = "ok"
     target: TargetFn | None = None
@@ -301,6 +305,6 @@ def shortest_quintic(p0, v0, a0, p1, v1, a1, limits: Limits, t0: float = 0.0, ma
             return tuple(np.tile(x, (n, 1)) for x in end)
 
     res = plan_interception((p0, v0, a0), t0, _Fixed(), limits, max_duration_s, R0=R0, t_min=1e-3, n_coarse=128)
-    if not res.reachable or res.trajectory is None:
+    if not res.reachable or not isinstance(res.trajectory, Trajectory):
         raise PlanningError(f"no quintic within {max_duration_s:.0f} s meets the limits ({res.code})")
     return res.trajectory.segments[0]

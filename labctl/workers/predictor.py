@@ -28,6 +28,8 @@ from ..drivers.interfaces import Frame, Robot
 from ..errors import DeviceError
 from ..geometry import make_T, matrix_to_rotvec
 from ..planning import Interception, camera_placement_trajectory, plan_interception, rest_to_rest_times
+from ..planning.ruckig_interception import plan_interception_ruckig, ruckig_limits
+from ..planning.ruckig_profile import controller_limits
 from ..planning.targets import prediction_margin_mm, standard_view_path, viewing_distance_with_margin
 from ..tracking.tracker import MarkerTracker
 from ..vision import detect_markers, detect_markers_windowed, red_blob_centroid
@@ -80,7 +82,8 @@ class PredictorPlanner:
     """Host 1's logic. ``send(msg)`` goes to the recognizer; ``log(event, **fields)`` to the record."""
 
     def __init__(self, ctx: RunContext, robot: Robot, send: Callable[[m.Message], None],
-                 log: Callable[..., None], *, t_start: float = 0.0, clock: Callable[[], float] | None = None):
+                 log: Callable[..., None], *, t_start: float = 0.0, clock: Callable[[], float] | None = None,
+                 profile: str | None = None):
         self.ctx, self.robot, self.send, self.log = ctx, robot, send, log
         # the runtime's clock: device round trips take time, so a command leaves later than the frame's time
         self.clock_fn = clock
@@ -122,6 +125,11 @@ class PredictorPlanner:
         self.t_robot_log = -math.inf
         self.min_motion_s = 0.0  # sum over legs of the robot-limited rest-to-rest time (lower bound)
         self.min_quintic_s = 0.0  # the same with the paper's quintic profile
+        # the segment profile (run.profile): ruckig only if the controller lists it (dialect 1.2)
+        choose = getattr(robot, "choose_profile", None)
+        self.profile = choose(profile or cfg.run.profile) if choose is not None else "quintic"
+        self.jerk = ruckig_limits(ctx.lab.robot, cfg.run.robot_stop_budget_s)  # what ruckig segments carry
+        self.jerk_ctrl = controller_limits(ctx.lab.robot)  # the controller's own: not sent
 
     # -- helpers ------------------------------------------------------------------------------
     @property
@@ -176,7 +184,10 @@ class PredictorPlanner:
                        end.state(end.t1)[0])
         self.segment_id += 1
         now = self._now(now)
-        t0c, _ = self.robot.segment(T_end, end.t1 - end.t0, self.segment_id, replace=True)
+        kw = {}
+        if getattr(end, "profile", "quintic") == "ruckig":  # the controller re-runs ruckig from its own state
+            kw = {"profile": "ruckig", "limits": end.limits.wire(end.base)}
+        t0c, t1c = self.robot.segment(T_end, end.t1 - end.t0, self.segment_id, replace=True, **kw)
         # The controller reports when it started the segment; on the same clock (the simulated lab)
         # that measures the command latency, and the plan is re-timed to what the robot really does.
         if math.isfinite(t0c) and 0.0 <= t0c - now < 1.0:
@@ -184,7 +195,7 @@ class PredictorPlanner:
             self.plan_shift = t0c - end.t0
         else:
             self.plan_shift = 0.0
-        self.log("segment", t=now, id=self.segment_id, kind=self.plan_kind, t_end=end.t1,
+        self.log("segment", t=now, id=self.segment_id, kind=self.plan_kind, t_end=end.t1, t0c=t0c, t1c=t1c,
                  p=T_end[:3, 3], rotvec=matrix_to_rotvec(T_end[:3, :3]))
 
     # -- planning ----------------------------------------------------------------------------
@@ -204,7 +215,15 @@ class PredictorPlanner:
         """Plan from where the robot will be when the command reaches the controller."""
         t0 = self._now(now) + self.latency_s
         state, R = self._flange_state(t0)
-        return plan_interception(state, t0, target, self.ctx.limits, horizon_s=self.cfg.run.plan_horizon_s, R0=R)
+        horizon = self.cfg.run.plan_horizon_s
+        if self.profile == "ruckig":
+            traj = self.plan.trajectory if self.plan is not None else None
+            w = traj.angular_velocity(t0 - self.plan_shift) if hasattr(traj, "angular_velocity") else None
+            plan = plan_interception_ruckig(state, t0, target, self.ctx.limits, horizon, R0=R, w0=w, jerk=self.jerk,
+                                            base=self.jerk_ctrl)
+            if plan.reachable:
+                return plan
+        return plan_interception(state, t0, target, self.ctx.limits, horizon_s=horizon, R0=R)
 
     def _start_move(self, now: float, kind: str, plan: Interception) -> None:
         state, _ = self._flange_state(now)

@@ -73,10 +73,13 @@ def run_one(lab_root: str, index: int, spec: dict, records_dir: str | None) -> d
     return to_jsonable(res)
 
 
-def plan_specs(n: int, trajectory: str, speeds: Sequence[float], objects: Sequence[str], seed: int) -> list[dict]:
-    """``n`` trials per speed with seeds ``seed, seed+1, …``; objects cycle through ``objects``."""
-    return [asdict(TrialSpec(trajectory, float(v), objects[i % len(objects)], seed + i))
-            for v in speeds for i in range(n)]
+def plan_specs(n: int, trajectory: str | Sequence[str], speeds: Sequence[float], objects: Sequence[str], seed: int,
+               profiles: Sequence[str | None] = (None,)) -> list[dict]:
+    """``n`` trials per speed (per trajectory, per robot profile) with seeds ``seed, seed+1, …``; objects
+    cycle through ``objects``. Every profile runs the same seeds (paired comparison)."""
+    trajectories = [trajectory] if isinstance(trajectory, str) else list(trajectory)
+    return [asdict(TrialSpec(traj, float(v), objects[i % len(objects)], seed + i, prof))
+            for prof in profiles for traj in trajectories for v in speeds for i in range(n)]
 
 
 # ---- executors: each yields results as they finish -------------------------------------------------
@@ -219,6 +222,7 @@ class Sweep:
 
 def run_sweep(lab, *, n: int, trajectory: str, speeds: Sequence[float], objects: Sequence[str] | None,
               seed: int = 0, record: bool = True, n_jobs: int = 1, scheduler: str | None = None,
+              profiles: Sequence[str | None] = (None,),
               resume: Path | None = None, on_result: Callable[[dict, int, int], None] | None = None) -> dict:
     """Run (or resume) a sweep and return its summary; the summary is also written to the folder.
 
@@ -237,7 +241,7 @@ def run_sweep(lab, *, n: int, trajectory: str, speeds: Sequence[float], objects:
             raise UserInputError(f"no object {missing[0]!r} in the library (have: {', '.join(ctx.names)})")
         spec = {"lab": str(lab.root), "trajectory": trajectory, "speeds": [float(v) for v in speeds],
                 "objects": names, "n": n, "seed": seed, "record": record,
-                "trials": plan_specs(n, trajectory, speeds, names, seed)}
+                "profiles": list(profiles), "trials": plan_specs(n, trajectory, speeds, names, seed, profiles)}
         sweep = Sweep.create(Path(lab.runs_dir), spec)
     done = sweep.results()
     jobs = [(i, s) for i, s in enumerate(spec["trials"]) if i not in done]
@@ -294,11 +298,20 @@ def summarize(results: list[dict]) -> dict:
     stages = [k for k in STAGE_ORDER if k in seen] + sorted(seen - set(STAGE_ORDER))
     stage_medians = {k: _median([r["stages"].get(k) for r in results if r["correct"]]) for k in stages}
     link_util = [r["link"]["utilisation"] for r in results if "link" in r]
+    by_profile = []
+    for prof in sorted({r.get("profile") or "" for r in results}):  # robot segment profiles (issue 16)
+        rs = [r for r in results if (r.get("profile") or "") == prof]
+        ok = [r for r in rs if r["correct"]]
+        by_profile.append({"profile": prof or None, "n": len(rs), "success_rate": len(ok) / len(rs),
+                           "time_to_identity_s_median": _median([r["time_to_identity_s"] for r in ok]),
+                           "stage_medians_s": {k: v for k in stages
+                                               if (v := _median([r["stages"].get(k) for r in ok])) is not None}})
     return {
         "n": len(results),
         "success_rate": sum(r["correct"] for r in results) / len(results) if results else 0.0,
         "by_speed": by_speed,
         "stage_medians_s": {k: v for k, v in stage_medians.items() if v is not None},
+        "by_profile": by_profile,
         "link_utilisation_median": _median(link_util),
         "failed": [{k: r.get(k) for k in ("index", "seed", "true_identity", "identity", "speed_mm_s", "failure",
                                           "record")}

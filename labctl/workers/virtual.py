@@ -24,11 +24,13 @@ from .recognizer import Recognizer
 
 @dataclass(frozen=True)
 class TrialSpec:
-    """One virtual trial: trajectory, table speed (mm/s), object (None: chosen by the seed) and seed."""
+    """One virtual trial: trajectory, table speed (mm/s), object (None: chosen by the seed), seed and the
+    robot's segment profile (None: lab.yaml's ``run.profile``)."""
     trajectory: str = "line"
     speed_mm_s: float = 8.0
     object_name: str | None = None
     seed: int = 0
+    profile: str | None = None
 
 
 class LinkMeter:
@@ -91,7 +93,8 @@ def simulate_run(lab: Lab, ctx: RunContext, spec: TrialSpec, record=None, *, hea
     save = record.save_image if record is not None else None
     meter = LinkMeter()
     outbox: list[m.Message] = []
-    predictor = PredictorPlanner(ctx, bench.robot, outbox.append, log, t_start=t0, clock=clock.now)
+    predictor = PredictorPlanner(ctx, bench.robot, outbox.append, log, t_start=t0, clock=clock.now,
+                                 profile=spec.profile)
     seq = {"mobile": 0}
 
     def grab_mobile() -> Frame:
@@ -139,6 +142,7 @@ def simulate_run(lab: Lab, ctx: RunContext, spec: TrialSpec, record=None, *, hea
         "seed": spec.seed,
         "trajectory": spec.trajectory,
         "speed_mm_s": spec.speed_mm_s,
+        "profile": predictor.profile,  # the robot segment profile the run used
         "sim_time_s": t_end - t0,
         "link": meter.summary(t_end - t0),
         "truth": {"placement": truth.to_dict()["placement"]},

@@ -1,4 +1,4 @@
-"""The reference robot controller of docs/protocols/robot.md (dialect 1.1), on an injectable clock.
+"""The reference robot controller of docs/protocols/robot.md (dialect 1.2), on an injectable clock.
 
 Task-space segments are quintic polynomials (the paper's time-optimal task-space quintics,
 §4.2): position p(τ) per axis and orientation R(τ) = R0·exp([φ(τ)]×) with φ a quintic vector
@@ -7,15 +7,19 @@ and true angular velocity) to the target with the requested end velocities and z
 acceleration over the given duration. Before a segment is accepted the controller checks,
 exactly (critical points of the polynomials, :mod:`labctl.planning.safety`): the path inside the
 workspace box, the braking rest point (each axis at ``a_stop = a_max/√3``) inside the box at
-every instant, peak speed and acceleration, and the peak *true* angular speed. STOP, the
-watchdog and the end of a segment that ends moving brake with that ramp, so the arm never
-leaves the box. ``STOP`` latches ``stopped`` and the watchdog ``watchdog`` until ``CLEAR``.
+every instant, peak speed and acceleration, and the peak *true* angular speed.
+Dialect 1.2 adds the ``ruckig`` profile: the time-optimal jerk-limited trajectory from the
+current state (p, v, a; R, ω) to the target, computed by the controller itself with ruckig
+(:mod:`labctl.planning.ruckig_profile`) and checked exactly by the same rules on each of its
+cubic intervals. STOP, the watchdog and the end of a segment that ends moving brake with that
+ramp, so the arm never leaves the box. ``STOP`` latches ``stopped`` and the watchdog
+``watchdog`` until ``CLEAR``.
 Units: mm, s, rad.
 
 The class is written to be subclassed (tests/ build deliberately broken controllers from it):
 the line parser (:meth:`RobotEmulator._parse_line`), the watchdog deadline
 (:meth:`RobotEmulator._watchdog_due`), the stop ramp (:meth:`RobotEmulator._make_ramp`) and the
-segment check (:meth:`RobotEmulator._check`) are separate methods.
+segment checks (:meth:`RobotEmulator._check`, :meth:`RobotEmulator._check_ruckig`) are separate methods.
 """
 
 from __future__ import annotations
@@ -41,11 +45,14 @@ from ...drivers.robot_protocol import (
 from ...geometry import make_T, matrix_to_rotvec, rotvec_to_matrix
 from ...planning.quintic import _derivative, _norm_max, _poly_range
 from ...planning.rotation import right_jacobian
+from ...planning.ruckig_profile import JERK_PER_ACCEL, JerkLimits, RuckigPlan, check_ruckig, plan_ruckig
 from ...planning.safety import stop_envelope_range
 
 NAME = "labctl-robot"
-DIALECT = "1.1"
-PROFILES = ("quintic",)
+DIALECT = "1.2"
+PROFILES = ("quintic", "ruckig")
+LIMIT_KEYS = ("vmax", "amax", "jmax", "wmax")  # a ruckig segment's own limits (1.2), at most the controller's
+PROFILES_BEFORE = {"1.0": ("quintic",), "1.1": ("quintic",)}  # what a session of an older version lists
 IDENT = f"{NAME} {DIALECT}"
 QUEUE_SIZE = 8
 MAX_DURATION_S = 60.0
@@ -145,6 +152,32 @@ class Segment:
 
 
 @dataclass
+class RuckigSegment:
+    """One ``ruckig`` segment from t0 to t1 (controller time): the exact piecewise-cubic plan of
+    :func:`labctl.planning.ruckig_profile.plan_ruckig`."""
+
+    seg_id: int
+    t0: float
+    t1: float
+    plan: RuckigPlan
+    done_reported: bool = False
+    commanded: bool = True
+
+    @property
+    def R0(self) -> np.ndarray:
+        """Start rotation (world ← flange)."""
+        return self.plan.R0
+
+    def position(self, t: float) -> np.ndarray:
+        """Flange position (mm) at time t, clamped to the segment."""
+        return self.plan.position.state(min(max(t - self.t0, 0.0), self.t1 - self.t0))[0]
+
+    def state(self, t: float):
+        """(p, v, a, R, ω) at time t, clamped to the segment; ω the true angular velocity (base frame)."""
+        return self.plan.state(min(max(t - self.t0, 0.0), self.t1 - self.t0))
+
+
+@dataclass
 class StopRamp:
     """The stop ramp (docs/protocols/robot.md §Stopping): from (p, v, R, ω) at t0 each axis brakes at
     constant ``a_stop`` to rest, and the rotation at constant ``alpha`` about its fixed axis (base frame)."""
@@ -209,6 +242,8 @@ class RobotEmulator:
         self.w_max = math.radians(cfg.w_max_deg_s)
         self.a_stop = self.a_max / math.sqrt(3.0)
         self.alpha_stop = ANGULAR_STOP_PER_S * self.w_max
+        j_max = getattr(cfg, "j_max_mm_s3", None)
+        self.j_max = float(j_max) if j_max else JERK_PER_ACCEL * self.a_max  # ruckig profile: LIMITS field 19
         self.watchdog_s = float(cfg.watchdog_s)
         self.home_T = make_T(_rpy(*HOME_RPY), cfg.home_mm)
         self.queue_size = queue_size
@@ -418,6 +453,11 @@ class RobotEmulator:
             return 10
         return 10 if self._stop_leaves_box(seg, b, lo_box, hi_box) else 0
 
+    def _check_ruckig(self, plan: RuckigPlan, lim: JerkLimits) -> int:
+        """0 if a ruckig segment may run, else its error code (:func:`labctl.planning.ruckig_profile.check_ruckig`:
+        the quintic's rules, exactly, on each cubic interval)."""
+        return check_ruckig(plan, lim)
+
     def _stop_leaves_box(self, seg: Segment, b: np.ndarray, lo_box: np.ndarray, hi_box: np.ndarray) -> bool:
         """Would the stop ramp from some instant of the segment end outside (grown box), or from its end
         outside the box itself? Exact (:func:`labctl.planning.safety.stop_envelope_range`)."""
@@ -493,7 +533,12 @@ class RobotEmulator:
         host = tuple(int(x) for x in req.args[0].split(".")) if req.args else (1, 0)
         mine = tuple(int(x) for x in self.dialect.split("."))
         self.session = ".".join(str(x) for x in min(host, mine))
-        self._reply(req.seq, f"{self.name} {self.session} queue={self.queue_size} profiles={','.join(PROFILES)}")
+        self._reply(req.seq, f"{self.name} {self.session} queue={self.queue_size} "
+                             f"profiles={','.join(self._profiles())}")
+
+    def _profiles(self) -> tuple[str, ...]:
+        """The profiles of this session: ``ruckig`` from dialect 1.2 on."""
+        return PROFILES_BEFORE.get(self.session, PROFILES)
 
     def _cmd_hb(self, req: Request) -> None:
         if self._no_args(req):
@@ -518,6 +563,8 @@ class RobotEmulator:
         home = [*self.home_T[:3, 3], *canonical_rotvec(matrix_to_rotvec(self.home_T[:3, :3]))]
         vals = [*self.box_min, *self.box_max, self.v_max, self.a_max, math.degrees(self.w_max), self.watchdog_s,
                 self.a_stop, math.degrees(self.alpha_stop), *home]
+        if self.session not in PROFILES_BEFORE:  # 1.2: field 19, the jerk limit of the ruckig profile
+            vals.append(self.j_max)
         self._reply(req.seq, " ".join(fmt_num(v) for v in vals))
 
     def _cmd_status(self, req: Request) -> None:
@@ -558,46 +605,77 @@ class RobotEmulator:
         self._reply(req.seq, f"{fmt_fixed(seg.t0)} {fmt_fixed(seg.t1)}")
 
     def _parse_segment(self, req: Request):
+        """(id, numbers, options) or an error code. Options are the trailing ``key=value`` words:
+        ``profile=`` (1.1); ``vmax= amax= jmax= wmax=`` (1.2, ruckig only: the segment's own limits, mm/s,
+        mm/s², mm/s³, deg/s); 17 numbers (with the end acceleration) only for ruckig."""
         args = list(req.args)
-        profile = "quintic"
-        if args and args[-1].lower().startswith("profile="):
-            profile = args.pop()[len("profile="):].lower()
-        if len(args) not in (8, 14):
+        opts: dict[str, str] = {}
+        while args and "=" in args[-1]:
+            key, _, value = args.pop().partition("=")
+            key = key.lower()
+            older = key != "profile" and self.session in PROFILES_BEFORE  # limits are 1.2's
+            if key in opts or key not in ("profile", *LIMIT_KEYS) or older:
+                return 2
+            opts[key] = value.lower() if key == "profile" else value
+        opts.setdefault("profile", "quintic")
+        ruckig = opts["profile"] == "ruckig"
+        if len(args) not in ((8, 14, 17) if ruckig else (8, 14)):
             return 2
+        for key in LIMIT_KEYS:
+            if key in opts:
+                value = parse_number(opts[key])
+                if not ruckig or value is None or value <= 0:
+                    return 2
+                opts[key] = value
         lowest = 0 if self.session == "1.0" else 1  # 1.1 reserves id 0 for HOME
         if not args[0].isdigit() or not lowest <= int(args[0]) <= 65535:
             return 2
         vals = [parse_number(a) for a in args[1:]]
         if any(v is None for v in vals):
             return 2
-        return int(args[0]), vals, profile
+        return int(args[0]), vals, opts
 
     def _cmd_seg(self, req: Request, replace: bool = False) -> None:
         parsed = self._parse_segment(req)
         if isinstance(parsed, int):
             self._error(req.seq, parsed)
             return
-        seg_id, vals, profile = parsed
+        seg_id, vals, opts = parsed
+        profile = opts["profile"]
         if self.fault:
             self._error(req.seq, self._fault_code())
             return
         T = vals[6]
-        if not (0.0 < T <= MAX_DURATION_S):
+        # ruckig: T is the least duration, 0 = as fast as the limits allow
+        if not ((0.0 <= T if profile == "ruckig" else 0.0 < T) and T <= MAX_DURATION_S):
             self._error(req.seq, 11)
             return
-        if profile not in PROFILES:
+        if profile not in self._profiles():
             self._error(req.seq, 15)
+            return
+        mine = {"vmax": self.v_max, "amax": self.a_max, "jmax": self.j_max, "wmax": math.degrees(self.w_max)}
+        if any(opts.get(k, 0.0) > mine[k] * (1 + REL_TOL) for k in LIMIT_KEYS):
+            self._error(req.seq, 16)
             return
         p1 = np.array(vals[0:3])
         R1 = rotvec_to_matrix(np.array(vals[3:6]))
-        v1 = np.array(vals[7:10]) if len(vals) == 13 else np.zeros(3)
-        w1 = np.array(vals[10:13]) if len(vals) == 13 else np.zeros(3)
-        self._queue_segment(req.seq, seg_id, p1, R1, T, v1, w1, replace=replace)
+        v1 = np.array(vals[7:10]) if len(vals) >= 13 else np.zeros(3)
+        w1 = np.array(vals[10:13]) if len(vals) >= 13 else np.zeros(3)
+        a1 = np.array(vals[13:16]) if len(vals) == 16 else np.zeros(3)
+        ruckig = (self.jerk_limits(**{k: opts.get(k) for k in LIMIT_KEYS}), a1) if profile == "ruckig" else None
+        self._queue_segment(req.seq, seg_id, p1, R1, T, v1, w1, replace=replace, ruckig=ruckig)
 
     def _cmd_segnow(self, req: Request) -> None:
         self._cmd_seg(req, replace=True)
 
-    def _queue_segment(self, seq, seg_id, p1, R1, T, v1, w1, replace: bool) -> None:
+    def jerk_limits(self, vmax=None, amax=None, jmax=None, wmax=None) -> JerkLimits:
+        """The limits a ruckig segment runs under: the segment's own (mm/s, mm/s², mm/s³, deg/s; at most
+        the controller's) or the controller's; angular acceleration ``alpha_stop`` (LIMITS field 12)."""
+        return JerkLimits(self.v_max if vmax is None else vmax, self.a_max if amax is None else amax,
+                          self.j_max if jmax is None else jmax, self.w_max if wmax is None else math.radians(wmax),
+                          self.alpha_stop, self.box_min, self.box_max, self.a_stop)
+
+    def _queue_segment(self, seq, seg_id, p1, R1, T, v1, w1, replace: bool, ruckig=None) -> None:
         if replace:
             t0 = self.now
             start = self.state_at(t0)
@@ -609,8 +687,14 @@ class RobotEmulator:
             last = max((s.t1 for s in self.segments), default=-math.inf)
             t0 = max(self.now, last)
             start = self._end_state() if last > self.now else self.state_at(self.now)
-        seg = self._plan(seg_id, p1, R1, T, v1, w1, t0, start)
-        code = self._check(seg, start[0])
+        if ruckig is not None:
+            lim, a1 = ruckig
+            plan = plan_ruckig(start, p1, R1, v1, w1, a1, T, lim)
+            code = self._check_ruckig(plan, self.jerk_limits())  # safety: the controller's own limits
+            seg = RuckigSegment(seg_id, t0, t0 + plan.duration, plan) if not code else None
+        else:
+            seg = self._plan(seg_id, p1, R1, T, v1, w1, t0, start)
+            code = self._check(seg, start[0])
         if code:
             self._error(seq, code)
             return
@@ -623,7 +707,7 @@ class RobotEmulator:
     def _end_state(self):
         last = max(self.segments, key=lambda s: s.t1)
         p, v, a, R, w = last.state(last.t1)
-        return p, v, np.zeros(3), R, w
+        return p, v, (a if isinstance(last, RuckigSegment) else np.zeros(3)), R, w
 
 
 def _rpy(rx: float, ry: float, rz: float) -> np.ndarray:

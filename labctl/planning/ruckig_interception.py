@@ -1,0 +1,152 @@
+"""Interception with one ``ruckig`` segment (robot dialect 1.2; issue 16 part A; paper §4.3, jerk-limited).
+
+The problem of :func:`labctl.planning.interception.plan_interception` — the earliest ``t`` at
+which the robot, from its state at ``t0``, arrives on the target path G(t) with G's velocity and
+acceleration — solved with the segment the controller's ``ruckig`` profile runs
+(:func:`labctl.planning.ruckig_profile.plan_ruckig`, the same code and inputs the controller
+uses): for an arrival time ``t0 + T`` the segment to G(t0 + T) asked to last at least ``T``
+is feasible when it lasts no longer than ``T`` and passes the controller's exact check
+(:func:`~labctl.planning.ruckig_profile.check_ruckig`). A geometric coarse grid, bisection to
+``tol_s``, then the exact check (bumping T a little, as the quintic search does, if it fails).
+Re-planning from the current ruckig segment's state (p, v, a; R, ω) splices continuously: the
+controller itself starts the new segment from its state. Units: mm, s, rad; world = robot base.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from .interception import Interception, TargetFn, _as_state, _unreachable_reason
+from .limits import Limits, PlanningError
+from .ruckig_profile import JerkLimits, RuckigPlan, check_ruckig, controller_limits, plan_ruckig
+
+
+class RuckigTrajectory:
+    """A planned ruckig segment on the host's time line, with the interface the run uses of a
+    :class:`labctl.planning.quintic.Trajectory` (``t_start``, ``t_end``, ``state``, ``orientation``,
+    ``segments``) and of its one segment (``t0``, ``t1``, ``rot_coeffs``); ``profile`` is ``"ruckig"``."""
+
+    profile = "ruckig"
+
+    def __init__(self, plan: RuckigPlan, t0: float, limits: JerkLimits | None = None, base: JerkLimits | None = None):
+        self.plan, self.t0, self.t1 = plan, float(t0), float(t0) + plan.duration
+        self.limits, self.base = limits, base  # the segment carries ``limits.wire(base)``
+        self.rot_coeffs = True  # it carries an orientation (the run reads the end pose from it)
+
+    @property
+    def t_start(self) -> float:
+        """Start time (s)."""
+        return self.t0
+
+    @property
+    def t_end(self) -> float:
+        """Arrival time (s)."""
+        return self.t1
+
+    @property
+    def segments(self) -> tuple[RuckigTrajectory]:
+        """The one segment (itself)."""
+        return (self,)
+
+    def segment_at(self, t: float) -> RuckigTrajectory:
+        """The segment running at ``t`` (itself)."""
+        return self
+
+    def _tau(self, t: float) -> float:
+        return min(max(float(t) - self.t0, 0.0), self.plan.duration)
+
+    def state(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Position (mm), velocity (mm/s), acceleration (mm/s²) at ``t`` (clamped to the segment)."""
+        return self.plan.position.state(self._tau(t))
+
+    def orientation(self, t: float) -> np.ndarray:
+        """Rotation world ← flange at ``t``."""
+        return self.plan.state(self._tau(t))[3]
+
+    def angular_velocity(self, t: float) -> np.ndarray:
+        """True angular velocity (rad/s, base frame) at ``t``; 0 after the end."""
+        if float(t) >= self.t1:
+            return np.zeros(3)
+        return self.plan.state(self._tau(t))[4]
+
+
+def ruckig_limits(robot_cfg, stop_budget_s: float | None = None) -> JerkLimits:
+    """The limits a run's ruckig segments carry: the controller's own (:func:`controller_limits`) with the
+    speed capped, with ``stop_budget_s`` (lab.yaml ``run.robot_stop_budget_s``), so that the stop ramp
+    brings the arm to rest within the budget (``v ≤ a_stop·budget``, as for the quintic planner). No
+    further margin: the controller re-plans the segment from its own state and checks it exactly."""
+    ctrl = controller_limits(robot_cfg)
+    if stop_budget_s is None:
+        return ctrl
+    return replace(ctrl, v_max=min(ctrl.v_max, ctrl.a_stop * float(stop_budget_s)))
+
+
+def plan_interception_ruckig(state0, t0: float, G: TargetFn, limits: Limits, horizon_s: float = 10.0, *,
+                             R0=None, w0=None, jerk: JerkLimits | None = None, base: JerkLimits | None = None,
+                             t_min: float = 0.02,
+                             n_coarse: int = 64, tol_s: float = 1e-3) -> Interception:
+    """Earliest arrival on G(t) by one controller-checked ruckig segment from ``state0 = (p, v, a)`` at ``t0``.
+
+    ``R0`` is the flange's rotation now (world ← flange; identity if None), ``w0`` its angular
+    velocity (rad/s, base frame; 0 if None); the segment ends at ``G.rotation`` (or keeps ``R0``)
+    with zero angular velocity. ``jerk`` are the limits the segment will carry (``vmax amax jmax
+    wmax`` on the wire; default :meth:`JerkLimits.from_limits` of ``limits``), ``base`` the
+    controller's own (those equal to it are not sent): the plan uses them as the controller runs them
+    (:meth:`JerkLimits.rounded`), so it is what the controller runs from the same state. Returns an
+    :class:`~labctl.planning.interception.Interception` whose trajectory is a :class:`RuckigTrajectory`;
+    unreachable targets come back with ``t_hit=None`` and a reason, never as an exception.
+    """
+    p0, v0, a0 = _as_state(state0)
+    if not (np.isfinite(t0) and np.isfinite(horizon_s) and horizon_s > t_min > 0):
+        raise PlanningError(f"need finite t0 and horizon_s > t_min > 0, got t0={t0!r}, horizon_s={horizon_s!r}")
+    if not limits.contains(p0):
+        return Interception(None, None, f"the robot is outside the workspace box at {np.round(p0, 1).tolist()} mm",
+                            "start_outside_box", G)
+    R0 = np.eye(3) if R0 is None else np.asarray(R0, float)
+    w0 = np.zeros(3) if w0 is None else np.asarray(w0, float).reshape(3)
+    R1 = getattr(G, "rotation", None)
+    R1 = R0 if R1 is None else np.asarray(R1, float)
+    lim = (jerk if jerk is not None else JerkLimits.from_limits(limits)).rounded(base)
+    check = base if base is not None else lim  # the controller checks against its own limits
+    start = (p0, v0, a0, R0, w0)
+    zero = np.zeros(3)
+
+    def segment(T: float, g, full: bool = True) -> RuckigPlan:
+        return plan_ruckig(start, g[0], R1, g[1], zero, g[2], T, lim, full=full)
+
+    def in_time(T: float, g) -> bool:
+        if np.any(g[0] < limits.box_min) or np.any(g[0] > limits.box_max):
+            return False
+        plan = segment(T, g, full=False)
+        return plan.code == 0 and plan.duration <= T * (1 + 1e-9) + 1e-9
+
+    def at(T: float):
+        gp, gv, ga = G(np.array([t0 + T]))
+        return gp[0], gv[0], ga[0]
+
+    Ts = np.geomspace(t_min, horizon_s, n_coarse)
+    gp, gv, ga = G(t0 + Ts)
+    in_box = limits.contains(gp)
+    prev = 0.0
+    for k, T in enumerate(Ts):
+        if not in_box[k] or not in_time(T, (gp[k], gv[k], ga[k])):
+            prev = T
+            continue
+        lo, hi = prev, float(T)
+        while hi - lo > tol_s:
+            mid = 0.5 * (lo + hi)
+            if in_time(mid, at(mid)):
+                hi = mid
+            else:
+                lo = mid
+        for bump in (0.0, 0.001, 0.004, 0.016, 0.064):  # the exact check decides
+            Tb = hi * (1.0 + bump)
+            plan = segment(Tb, at(Tb))
+            if plan.code == 0 and plan.duration <= Tb * (1 + 1e-9) + 1e-9 and check_ruckig(plan, check) == 0:
+                traj = RuckigTrajectory(plan, t0, lim, base)
+                return Interception(traj.t1, traj, None, "ok", G)
+        prev = T
+    code, reason = _unreachable_reason(bool(in_box.any()), gp, limits, horizon_s)
+    return Interception(None, None, reason.replace("quintic", "ruckig segment"), code, G)
