@@ -23,7 +23,7 @@ from ..drivers.interfaces import Frame
 from ..geometry import make_T, rotvec_to_matrix
 from ..library.matching import DEFAULT_THRESHOLD, evidence_leader, match
 from ..library.views import mm_per_px
-from ..vision import CirclePose, CirclePoseError, EllipseFitError, detect_markers, marker_poses
+from ..vision import CirclePose, CirclePoseError, EllipseFitError, MarkerPoses, detect_markers, marker_poses
 from ..vision.duality import DEFAULT_K_SIGMA, DEFAULT_MIN_MARGIN_RAD, pose_pair_consistency, resolve_duality_detailed
 from ..vision.shape import ShapeError, features_from_image, silhouette_mask
 from . import messages as m
@@ -95,8 +95,8 @@ class _Candidates(tuple):
     two-view consistency check)."""
 
     sigma_rad: float = 0.0
-    camera_poses = None
-    R_w_c = None
+    camera_poses: MarkerPoses | None = None
+    R_w_c: np.ndarray | None = None
 
 
 class Recognizer:
@@ -177,7 +177,7 @@ class Recognizer:
         """Two-view check of one marker's poses (vision.pose_pair_consistency, paper §3.3's two images): the
         normals, the second image's rotated into the first camera's frame, must agree within the poses'
         covariances. None when either pose has no covariance."""
-        if poses1.camera_poses is None or poses2.camera_poses is None:
+        if poses1.camera_poses is None or poses2.camera_poses is None or poses1.R_w_c is None or poses2.R_w_c is None:
             return None
         return pose_pair_consistency(poses1.camera_poses, poses2.camera_poses,
                                      R_first_second=poses1.R_w_c.T @ poses2.R_w_c)
