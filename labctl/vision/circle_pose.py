@@ -284,12 +284,12 @@ def _lens_sigma_point(boundary, weights, K, radius: float, base, sigma_px: float
     k = sigma_px / (0.5 * math.hypot(width, height)) ** 3
     rel = boundary - (cx, cy)
     r2 = np.square(rel).sum(axis=1)
+    Kc = [[K[0][0], K[0][1], 0.0], [K[1][0], K[1][1], 0.0], K[2]]  # K for points about the principal point
     out = []
     for sgn in (1.0, -1.0):
         bent = rel * (1.0 + sgn * k * r2)[:, None]
         try:
             conic = _fit(bent, weights, None, origin=bent[0].tolist())[0]
-            Kc = [[K[0][0], K[0][1], 0.0], [K[1][0], K[1][1], 0.0], K[2]]
             out.append(_poses_from_cone(_cone(conic, Kc), radius))
         except (CirclePoseError, EllipseFitError, ValueError):
             return None
