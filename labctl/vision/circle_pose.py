@@ -232,9 +232,18 @@ def marker_pose_candidates(marker, camera, radius: float) -> tuple[CirclePose, C
 # inflated by this factor (≈ correlation length in points), and the per-point σ has a floor.
 NOISE_INFLATION = 2.0
 POINT_SIGMA_FLOOR_PX = 0.05
+# Unmodelled lens (Tsai κ1 = 0, i.e. no distortion was calibrated): the assumed 1σ radial distortion at the
+# image's half-diagonal, px (0.5 % of it on a 640×480 image; a plain machine-vision or webcam lens bends the
+# corner by 0.5–3 %). Its effect on a marker is exactly the family x → c + (x − c)(1 + k r²), so it enters
+# the covariance as one more sigma point, large for a marker far off-axis and near-frontal (its tilt is read
+# from a ~1 % stretch there), small near the axis. See :func:`marker_poses`.
+UNMODELLED_LENS_SIGMA_PX = 2.0
 # a pose whose normal σ exceeds this is flagged ``uncertain_normal``: a sixth of the 3° gross error, since
 # highlights and blur add systematic errors of up to ~6 σ (measured on the degradation suite)
 MAX_TRUSTED_NORMAL_SIGMA_RAD = math.radians(0.5)
+# ... and one whose centre σ exceeds this fraction of its range ``uncertain_centre``: likewise a sixth of the
+# gross centre error (2 % of the range); an unmodelled lens scales a marker's image by ~1 % off-axis
+MAX_TRUSTED_CENTRE_SIGMA_FRACTION = 0.02 / 6.0
 
 
 @dataclass(frozen=True)
@@ -246,7 +255,8 @@ class MarkerPoses:
     2×3×3 covariances (unit-less / mm², camera frame) propagated from the ellipse's covariance
     (boundary-point noise σ from the fit residual, inflated by :data:`NOISE_INFLATION`);
     ``flags``: the marker's quality flags, plus ``uncertain_normal`` when a normal's σ exceeds
-    :data:`MAX_TRUSTED_NORMAL_SIGMA_RAD`; ``trusted``: no flag."""
+    :data:`MAX_TRUSTED_NORMAL_SIGMA_RAD` and ``uncertain_centre`` when a centre's σ exceeds
+    :data:`MAX_TRUSTED_CENTRE_SIGMA_FRACTION` of its range; ``trusted``: no flag."""
 
     candidates: tuple[CirclePose, CirclePose]
     normal_sigma_rad: tuple[float, float]
@@ -263,16 +273,61 @@ class MarkerPoses:
                 "trusted": self.trusted, "flags": list(self.flags)}
 
 
-def marker_poses(marker, camera, radius: float) -> MarkerPoses:
+def _lens_sigma_point(boundary, weights, K, radius: float, base, sigma_px: float, camera):
+    """Half the change (normal, centre) of each candidate when the boundary is bent by ±1σ of an
+    unmodelled radial distortion: x → c + (x − c)(1 ± k r²), k = ``sigma_px`` / r_ref³ (px⁻², r_ref
+    the image's half-diagonal, c the principal point), refitted and posed again. None when a bent
+    boundary gives no pose (the caller counts that as a huge error)."""
+    cx, cy = K[0][2], K[1][2]  # 0 when the boundary was already taken about the principal point
+    width = float(getattr(camera, "width", 0) or 2.0 * (cx + 0.5))
+    height = float(getattr(camera, "height", 0) or 2.0 * (cy + 0.5))
+    k = sigma_px / (0.5 * math.hypot(width, height)) ** 3
+    rel = boundary - (cx, cy)
+    r2 = np.square(rel).sum(axis=1)
+    Kc = [[K[0][0], K[0][1], 0.0], [K[1][0], K[1][1], 0.0], K[2]]  # K for points about the principal point
+    out = []
+    for sgn in (1.0, -1.0):
+        bent = rel * (1.0 + sgn * k * r2)[:, None]
+        try:
+            conic = _fit(bent, weights, None, origin=bent[0].tolist())[0]
+            out.append(_poses_from_cone(_cone(conic, Kc), radius))
+        except (CirclePoseError, EllipseFitError, ValueError):
+            return None
+    deltas = []
+    for j in range(2):
+        ref = base[j].normal
+        plus = max(out[0], key=lambda c: float(c.normal @ ref))
+        minus = max(out[1], key=lambda c: float(c.normal @ ref))
+        deltas.append((0.5 * (plus.normal - minus.normal), 0.5 * (plus.center - minus.center)))
+    return deltas
+
+
+def marker_poses(marker, camera, radius: float, *, lens_sigma_px: float | None = None) -> MarkerPoses:
     """Both pose candidates of a marker (as :func:`marker_pose_candidates`) with their covariance.
 
     The ellipse's five parameters (centre, semi-axes, angle) get the covariance σ² (JᵀJ)⁻¹ of a
     least-squares fit, J the Jacobian of the points' geometric (Sampson) distances, σ² the
     weighted mean squared residual (floor :data:`POINT_SIGMA_FLOOR_PX`) × :data:`NOISE_INFLATION`.
     It is propagated to each candidate's normal and centre by central differences along its
-    principal axes (sigma points). Raises as :func:`marker_pose_candidates`.
+    principal axes (sigma points).
+
+    Model error: a camera with no distortion term (``camera.kappa1 == 0``: its lens was not
+    calibrated) may bend the image of a marker into another, equally good ellipse, which no fit
+    residual shows. ``lens_sigma_px`` (default :data:`UNMODELLED_LENS_SIGMA_PX` when κ1 = 0, else
+    0) is the assumed 1σ radial distortion at the image's half-diagonal; its effect on each
+    candidate (one more sigma point: the boundary bent by ±1σ of Tsai's radial model, refitted
+    and posed) is added to both covariances. It grows with the marker's distance from the
+    principal point (the local stretch is ∝ r²), so off-axis markers of an uncalibrated camera
+    get honest, larger normal σ (``uncertain_normal``, ambiguous duality) instead of confident
+    wrong poses. Pass 0 for a camera known to be an exact pinhole. Raises as
+    :func:`marker_pose_candidates`.
     """
     radius = _check_radius(radius)
+    if lens_sigma_px is None:
+        lens_sigma_px = UNMODELLED_LENS_SIGMA_PX if camera.kappa1 == 0.0 else 0.0
+    lens_sigma_px = float(lens_sigma_px)
+    if not (math.isfinite(lens_sigma_px) and lens_sigma_px >= 0.0):
+        raise ValueError(f"lens_sigma_px must be a number of px ≥ 0, got {lens_sigma_px!r}")
     boundary, weights, K = _undistorted_boundary(marker, camera)
     conic = _fit(boundary, weights, None, origin=boundary[0].tolist())[0]
     base = _poses_from_cone(_cone(conic, K), radius)
@@ -329,11 +384,24 @@ def marker_poses(marker, camera, radius: float) -> MarkerPoses:
                 dc = 0.5 * (plus.center - minus.center)
                 ncov[j] += np.outer(dn, dn)
                 ccov[j] += np.outer(dc, dc)
+    if lens_sigma_px > 0.0:
+        lens = _lens_sigma_point(boundary, weights, K, radius, base, lens_sigma_px, camera)
+        for j in range(2):
+            if lens is None:
+                ncov[j] += np.eye(3)
+                ccov[j] += np.eye(3) * 1e4
+            else:
+                dn, dc = lens[j]
+                ncov[j] += np.outer(dn, dn)
+                ccov[j] += np.outer(dc, dc)
     sig0, sig1 = (float(math.sqrt(max(np.trace(c), 0.0))) for c in ncov)
     sig = (sig0, sig1)
     q = getattr(marker, "quality", None)
     flags = tuple(q.flags) if q is not None else ("no_quality",)
     if not max(sig) <= MAX_TRUSTED_NORMAL_SIGMA_RAD:  # e.g. a marker facing the camera: its tilt is ill-defined
         flags += ("uncertain_normal",)
+    if not all(math.sqrt(max(float(np.trace(ccov[j])), 0.0)) <= MAX_TRUSTED_CENTRE_SIGMA_FRACTION
+               * float(np.linalg.norm(base[j].center)) for j in range(2)):
+        flags += ("uncertain_centre",)
     trusted = not flags
     return MarkerPoses(base, sig, ncov, ccov, trusted, flags)

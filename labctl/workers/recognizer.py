@@ -23,8 +23,8 @@ from ..drivers.interfaces import Frame
 from ..geometry import make_T, rotvec_to_matrix
 from ..library.matching import DEFAULT_THRESHOLD, evidence_leader, match
 from ..library.views import mm_per_px
-from ..vision import CirclePose, CirclePoseError, EllipseFitError, detect_markers, marker_poses
-from ..vision.duality import DEFAULT_K_SIGMA, DEFAULT_MIN_MARGIN_RAD, resolve_duality_detailed
+from ..vision import CirclePose, CirclePoseError, EllipseFitError, MarkerPoses, detect_markers, marker_poses
+from ..vision.duality import DEFAULT_K_SIGMA, DEFAULT_MIN_MARGIN_RAD, pose_pair_consistency, resolve_duality_detailed
 from ..vision.shape import ShapeError, features_from_image, silhouette_mask
 from . import messages as m
 from .context import RunContext
@@ -90,9 +90,13 @@ def _angle(u, v) -> float:
 
 
 class _Candidates(tuple):
-    """A marker's two world-frame pose candidates, with ``sigma_rad``: their normal's noise (rad)."""
+    """A marker's two world-frame pose candidates, with ``sigma_rad``: their normal's noise (rad), and
+    ``camera_poses`` / ``R_w_c``: the camera-frame poses with covariances and the camera's rotation (for the
+    two-view consistency check)."""
 
     sigma_rad: float = 0.0
+    camera_poses: MarkerPoses | None = None
+    R_w_c: np.ndarray | None = None
 
 
 class Recognizer:
@@ -153,6 +157,7 @@ class Recognizer:
                 a, b = mp.candidates
                 poses = _Candidates((_to_world(T_w_c2, a), _to_world(T_w_c2, b)))
                 poses.sigma_rad = max(mp.normal_sigma_rad)
+                poses.camera_poses, poses.R_w_c = mp, T_w_c2[:3, :3]
                 off = _height_misfit(float(poses[0].center[2]), self.z_table)
                 if best is None or off < best[0] - 1e-9:
                     best = (off, poses)
@@ -166,6 +171,16 @@ class Recognizer:
         s1, s2 = poses1.sigma_rad, poses2.sigma_rad
         t = DEFAULT_K_SIGMA * float(np.sqrt(2.0 * (s1 * s1 + s2 * s2)))
         return max(t, DEFAULT_MIN_MARGIN_RAD) if np.isfinite(t) else float("inf")
+
+    @staticmethod
+    def _consistency(poses1, poses2):
+        """Two-view check of one marker's poses (vision.pose_pair_consistency, paper §3.3's two images): the
+        normals, the second image's rotated into the first camera's frame, must agree within the poses'
+        covariances. None when either pose has no covariance."""
+        if poses1.camera_poses is None or poses2.camera_poses is None or poses1.R_w_c is None or poses2.R_w_c is None:
+            return None
+        return pose_pair_consistency(poses1.camera_poses, poses2.camera_poses,
+                                     R_first_second=poses1.R_w_c.T @ poses2.R_w_c)
 
     def _initial(self, msg: m.CaptureRequest, frame: Frame, T_w_c2: np.ndarray) -> list[m.Message]:
         found = self._candidates(frame, T_w_c2)
@@ -195,22 +210,29 @@ class Recognizer:
         # initial2: the object translated between the images; pair the markers under one common shift
         self.save_image("initial2", frame.image)
         replies: list[m.Message] = [m.FrameTaken(view_id=msg.view_id, t=frame.t)]
+        suspects: list[m.Message] = []
         for k, j in pair_markers([_mid(p) for _, p in self.first], [_mid(p) for _, p in found]):
             mk1, poses1 = self.first[k]
             mk2, poses2 = found[j]
             res = resolve_duality_detailed(poses1, poses2, motion="translation",
                                            min_margin_rad=self._duality_threshold(poses1, poses2))
             pose = res.best
+            # the two views must agree with each other (vision.pose_pair_consistency, normals only: the object
+            # translated, by an amount the recogniser is not told): a pair that does not is suspect
+            chk = self._consistency(poses1, poses2)
             ellipses = {"initial1": _ellipse_row(mk1.ellipse), "initial2": _ellipse_row(mk2.ellipse)}
             self.log("marker_pose", t=frame.t, view_id=msg.view_id, marker=k, ellipses=ellipses,
-                     center_w=pose.center, normal_w=pose.normal, **res.to_dict())
+                     center_w=pose.center, normal_w=pose.normal, **res.to_dict(),
+                     consistency=None if chk is None else chk.to_dict())
             if not res.ambiguous:
                 self.resolved_normals.append(np.asarray(pose.normal))
             elif k > 0:
                 continue  # only the preferred marker is worth reporting unresolved
-            replies.append(m.MarkerPose(view_id=msg.view_id, center_w=tuple(pose.center),
-                                        normal_w=tuple(pose.normal), ambiguous=bool(res.ambiguous),
-                                        margin=float(res.margin_rad)))
+            reply = m.MarkerPose(view_id=msg.view_id, center_w=tuple(pose.center), normal_w=tuple(pose.normal),
+                                 ambiguous=bool(res.ambiguous), margin=float(res.margin_rad))
+            # an inconsistent pair is treated as a suspect marker: a last resort behind every consistent one
+            (suspects if chk is not None and not chk.consistent and not res.ambiguous else replies).append(reply)
+        replies += suspects
         if len(replies) == 1:
             return [m.Failure(code=m.FailureCode.MARKER_LOST, text=f"marker not found again in image {msg.view_id}")]
         return replies
