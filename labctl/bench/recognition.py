@@ -20,7 +20,15 @@ from __future__ import annotations
 import numpy as np
 
 from ..geometry import invert, make_T, rot_z
-from ..library.matching import DEFAULT_THRESHOLD, UNUSABLE_VIEW, LibraryIndex, StandardViewQuery, identify, match
+from ..library.matching import (
+    DEFAULT_THRESHOLD,
+    LibraryIndex,
+    StandardViewQuery,
+    UnusableView,
+    identify,
+    match,
+    split_query,
+)
 from ..library.views import marker_frame, mm_per_px, perturbed_view_pose, standard_view_pose
 from ..vision.shape import ShapeError, features_from_image, silhouette_mask
 from ._timing import median_time, row
@@ -66,14 +74,6 @@ def render_pool(library: dict, camera, standoff: float, per_view: int, rng: np.r
     return pool
 
 
-def _features(q):
-    return q.features if isinstance(q, StandardViewQuery) else q
-
-
-def _height(q) -> dict:
-    return {"height_mm": q.height_mm} if isinstance(q, StandardViewQuery) and q.height_mm is not None else {}
-
-
 NEW_SIDE_DEG = 20.0  # the predictor's novelty rule: a face within 20° of one viewed tells nothing new
 
 
@@ -113,7 +113,7 @@ def evaluate(library: dict, pool: dict, rng: np.random.Generator, *, threshold: 
             n += 1
             if f0 is not None:
                 for method in ("aos", "hu", "fd"):  # the single-view rates: the silhouette alone
-                    r = match(_features(f0), index, threshold, method=method, **match_kw)
+                    r = match(split_query(f0)[0], index, threshold, method=method, **match_kw)
                     ok[f"{method}_single_view"] += int(r.best is not None and r.best[0] == name)
             m, q, f, tried = obj.marker(mid), q0, f0, [mid]
             while f is None and len(tried) < max_views:
@@ -126,7 +126,8 @@ def evaluate(library: dict, pool: dict, rng: np.random.Generator, *, threshold: 
                 failures += 1
                 continue
             recovered += int(len(tried) > 1)
-            first = match(_features(f), index, threshold, **_height(f), **match_kw)
+            first_f, first_h = split_query(f)
+            first = match(first_f, index, threshold, **first_h, **match_kw)
 
             def acquire(h: str, j: int, _m=m, _first=first, _obj=obj, _name=name, _q=q):
                 # the robot heads for where marker j would be if the object were h, then takes
@@ -141,7 +142,7 @@ def evaluate(library: dict, pool: dict, rng: np.random.Generator, *, threshold: 
                 # another render of that marker, drawn as the run would meet it: it may be unusable
                 others = [g for k, g in enumerate(pool[(_name, mk.id)]) if not (mk.id == _m.id and k == _q)]
                 g = others[int(rng.integers(len(others)))] if others else None
-                return UNUSABLE_VIEW if g is None else g
+                return UnusableView() if g is None else g
 
             res = identify(f, index, acquire, threshold=threshold, max_views=max_views - len(tried) + 1,
                            **match_kw)

@@ -300,9 +300,12 @@ def evidence_leader(totals: Mapping[str, float], n_views: int, margin: float = M
     return None
 
 
-UNUSABLE_VIEW = "unusable view"
-"""What ``acquire`` returns when the camera reached a marker whose standard view shows no usable
-silhouette (cropped by the image edge): the view is spent, and no hypothesis is refuted."""
+@dataclass(frozen=True)
+class UnusableView:
+    """What ``acquire`` returns when the camera reached a marker whose standard view shows no usable
+    silhouette (e.g. cropped by the image edge): the view is spent, and no hypothesis is refuted."""
+
+    reason: str = "no usable silhouette"
 
 
 @dataclass(frozen=True)
@@ -314,15 +317,16 @@ class StandardViewQuery:
     height_mm: float | None = None
 
 
-def _query(q) -> tuple[ShapeFeatures, dict]:
-    """(features, the height gate's keyword) of a ShapeFeatures or a StandardViewQuery."""
+def split_query(q: ShapeFeatures | StandardViewQuery) -> tuple[ShapeFeatures, dict]:
+    """(features, the height gate's keywords for :func:`view_scores` / :func:`match`) of a
+    ShapeFeatures or a StandardViewQuery; no keywords when the marker height is unknown."""
     if isinstance(q, StandardViewQuery):
         return q.features, ({} if q.height_mm is None else {"height_mm": q.height_mm})
     return q, {}
 
 
 def identify(first: ShapeFeatures | StandardViewQuery, index: LibraryIndex,
-             acquire: Callable[[str, int], ShapeFeatures | StandardViewQuery | str | None], *,
+             acquire: Callable[[str, int], ShapeFeatures | StandardViewQuery | UnusableView | None], *,
              threshold: float = DEFAULT_THRESHOLD, max_views: int = 3, method: str = "aos",
              margin: float = MARGIN, **weights) -> Identification:
     """Recognise with extra standard views where ambiguous (paper §3.4, §2 stage 2).
@@ -330,12 +334,12 @@ def identify(first: ShapeFeatures | StandardViewQuery, index: LibraryIndex,
     ``acquire(name, marker_id)`` moves the camera towards the standard view of marker
     ``marker_id`` *assuming* the object is ``name`` and returns the features of the standard view
     it then takes of the marker actually there (None if no marker is found there, which refutes
-    hypothesis ``name``; :data:`UNUSABLE_VIEW` if the view has no usable silhouette). Hypothesis ``name`` stays
+    hypothesis ``name``; an :class:`UnusableView` if the view has no usable silhouette). Hypothesis ``name`` stays
     a candidate if the view matches its view ``marker_id`` within ``threshold``; any other
     candidate if the view matches one of its views. Scores accumulate over the views; the
     surviving candidate with the lowest total is the answer.
     """
-    first_f, first_h = _query(first)
+    first_f, first_h = split_query(first)
     r = match(first_f, index, threshold, method=method, margin=margin, **first_h, **weights)
     steps, requested = [r], []
     if r.best is None:
@@ -359,9 +363,9 @@ def identify(first: ShapeFeatures | StandardViewQuery, index: LibraryIndex,
             # the marker hypothesis h predicts is not there: h is refuted (the others stay)
             remaining = [c for c in remaining if c != h] or remaining
             continue
-        if isinstance(f, str) and f == UNUSABLE_VIEW:
+        if isinstance(f, UnusableView):
             continue
-        f, fh = _query(f)
+        f, fh = split_query(f)
         s = view_scores(f, index, method=method, **fh, **weights)
         step_score = {c: float(s[index.view_index(h, j)]) if c == h else float(np.min(s[names == c]))
                       for c in remaining}
