@@ -215,12 +215,38 @@ def _aos_distance(q_aos: np.ndarray, index: LibraryIndex, rows: np.ndarray) -> t
 
 def match(features: ShapeFeatures, index: LibraryIndex, threshold: float = DEFAULT_THRESHOLD, *,
           method: str = "aos", restrict: Sequence[str] | None = None, margin: float = MARGIN,
-          **gates) -> MatchResult:
-    """Minimum-distance identification of one standard view with the ambiguity rule (paper §3.4)."""
+          height_mm: float | None = None, height_tol_mm: float = HEIGHT_TOL_MM, **gates) -> MatchResult:
+    """Minimum-distance identification of one standard view with the ambiguity rule (paper §3.4).
+
+    With the viewed marker's height (``height_mm`` ± ``height_tol_mm``), the height only narrows the
+    shape's candidates: an object stays a candidate if one of its views both matches the silhouette
+    (score ≤ ``threshold`` or within ``margin`` of the best score over all views) and lets its marker
+    rest at that height (:func:`height_gate`). A height no shape candidate fits is ignored, so a
+    height error can never promote a far match to the answer (it can only leave the view ambiguous).
+    """
     s, shift = view_scores(features, index, method=method, with_shift=True, **gates)
     uniq, ids = index.name_ids()
     if restrict is not None:
         s = np.where(np.isin(uniq, list(restrict))[ids], s, np.inf)
+    result = _rank(s, shift, index, threshold, margin, None)
+    if result.best is None or height_mm is None:
+        return result
+    g = height_gate(index, height_mm, height_tol_mm)
+    if g.all():
+        return result
+    limit = max(threshold, result.scores[result.candidates[0]] + margin)
+    gated = _rank(np.where(g, s, np.inf), shift, index, threshold, margin, limit)
+    kept = [c for c in gated.candidates if c in result.candidates]
+    if not kept:  # the height fits no shape candidate: trust the silhouette alone
+        return result
+    return MatchResult(gated.best, kept, gated.scores, gated.views, len(kept) > 1, gated.shift)
+
+
+def _rank(s: np.ndarray, shift: np.ndarray, index: LibraryIndex, threshold: float, margin: float,
+          limit: float | None) -> MatchResult:
+    """Each object's best view of the view scores ``s`` (inf: gated out) and the candidates: objects
+    scoring ≤ ``threshold`` or within ``margin`` of the best, or (``limit`` given) ≤ ``limit``."""
+    uniq, ids = index.name_ids()
     order = np.argsort(s, kind="stable")
     _, first = np.unique(ids[order], return_index=True)  # each object's best view
     firsts = order[np.sort(first)]  # objects in order of their best score
@@ -230,7 +256,8 @@ def match(features: ShapeFeatures, index: LibraryIndex, threshold: float = DEFAU
     if not np.isfinite(s[i_best]):
         return MatchResult(None, [], scores, views, False)
     best = float(s[i_best])
-    cands = [n for n, v in scores.items() if v <= threshold or v <= best + margin]
+    bound = max(threshold, best + margin) if limit is None else limit
+    cands = [n for n, v in scores.items() if v <= bound]
     return MatchResult((str(index.names[i_best]), int(index.marker_ids[i_best])), cands, scores, views,
                        len(cands) > 1, int(shift[i_best]))
 
@@ -315,13 +342,17 @@ class StandardViewQuery:
 
     features: ShapeFeatures
     height_mm: float | None = None
+    height_tol_mm: float | None = None  # None: the matcher's default tolerance
 
 
 def split_query(q: ShapeFeatures | StandardViewQuery) -> tuple[ShapeFeatures, dict]:
     """(features, the height gate's keywords for :func:`view_scores` / :func:`match`) of a
     ShapeFeatures or a StandardViewQuery; no keywords when the marker height is unknown."""
     if isinstance(q, StandardViewQuery):
-        return q.features, ({} if q.height_mm is None else {"height_mm": q.height_mm})
+        if q.height_mm is None:
+            return q.features, {}
+        tol = {} if q.height_tol_mm is None else {"height_tol_mm": q.height_tol_mm}
+        return q.features, {"height_mm": q.height_mm, **tol}
     return q, {}
 
 
@@ -340,7 +371,7 @@ def identify(first: ShapeFeatures | StandardViewQuery, index: LibraryIndex,
     surviving candidate with the lowest total is the answer.
     """
     first_f, first_h = split_query(first)
-    r = match(first_f, index, threshold, method=method, margin=margin, **first_h, **weights)
+    r = match(first_f, index, threshold, method=method, margin=margin, **{**weights, **first_h})
     steps, requested = [r], []
     if r.best is None:
         return Identification(None, False, [], 1, steps, requested)
@@ -366,20 +397,32 @@ def identify(first: ShapeFeatures | StandardViewQuery, index: LibraryIndex,
         if isinstance(f, UnusableView):
             continue
         f, fh = split_query(f)
-        s = view_scores(f, index, method=method, **fh, **weights)
-        step_score = {c: float(s[index.view_index(h, j)]) if c == h else float(np.min(s[names == c]))
-                      for c in remaining}
-        steps.append(match(f, index, threshold, method=method, restrict=remaining, margin=margin, **fh, **weights))
-        for c in remaining:
-            total[c] += step_score[c]
+        fh = {**weights, **fh}  # the query's own height tolerance, if it has one, wins
+        s = view_scores(f, index, method=method, **{k: v for k, v in fh.items() if not k.startswith("height")})
+        step_score = _step_scores(s, remaining, h, index.view_index(h, j), names)
         best_step = min(step_score.values())
         keep = [c for c in remaining if step_score[c] <= threshold or step_score[c] <= best_step + margin]
+        if fh.get("height_mm") is not None:  # the height narrows the shape's candidates, never widens them
+            g = np.where(height_gate(index, fh["height_mm"], fh.get("height_tol_mm", HEIGHT_TOL_MM)), s, np.inf)
+            gated = _step_scores(g, remaining, h, index.view_index(h, j), names)
+            kept = [c for c in keep if gated[c] <= max(threshold, best_step + margin)]
+            if kept:
+                keep, step_score = kept, gated
+        steps.append(match(f, index, threshold, method=method, restrict=remaining, margin=margin, **fh))
+        for c in keep:
+            total[c] += step_score[c]
         remaining = keep or [min(remaining, key=lambda c: step_score[c])]
         leader = evidence_leader({c: total[c] for c in remaining}, views_used, margin)
         if leader is not None:
             remaining = [leader]
     name = min(remaining, key=lambda c: total[c])
     return Identification(name, len(remaining) == 1, remaining, views_used, steps, requested)
+
+
+def _step_scores(s: np.ndarray, remaining: Sequence[str], h: str, i_hj: int, names: np.ndarray) -> dict[str, float]:
+    """Each remaining candidate's score for an extra view: hypothesis ``h`` by its planned view ``i_hj``
+    (the marker the camera was sent to), any other candidate by its best view."""
+    return {c: float(s[i_hj]) if c == h else float(np.min(s[names == c])) for c in remaining}
 
 
 def ambiguity_groups(index: LibraryIndex, threshold: float = DEFAULT_THRESHOLD) -> list[list[int]]:

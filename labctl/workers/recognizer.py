@@ -21,6 +21,7 @@ import numpy as np
 
 from ..drivers.interfaces import Frame
 from ..geometry import make_T, rotvec_to_matrix
+from ..library.marker_height import measure_marker_height
 from ..library.matching import DEFAULT_THRESHOLD, evidence_leader, match
 from ..library.views import mm_per_px
 from ..vision import CirclePose, CirclePoseError, EllipseFitError, detect_markers, marker_poses
@@ -234,13 +235,29 @@ class Recognizer:
         return None
 
     def _marker_height(self, msg: m.CaptureRequest) -> float:
-        """Height (mm) above the table of the marker this standard view looks at: the view is planned
+        """Height (mm) above the table of the marker this standard view was planned for (logged beside
+        the measured one; the gate uses the measurement, this is only as good as the initial pose): the view is planned
         ``viewing.standoff_mm`` out along the marker's normal from its estimated centre, and the table
         moves only in x and y, so the centre's z is the camera's plus the stand-off along the optical
         axis (``planning.targets.standard_view_pose``)."""
         R = rotvec_to_matrix(msg.rotvec)
         z = float(msg.position[2]) + self.ctx.lab.config.viewing.standoff_mm * float(R[2, 2])
         return z - self.z_table
+
+    def _measured_height(self, msg: m.CaptureRequest, frame: Frame):
+        """(the viewed marker's height measured in this standard view, :class:`MarkerHeight` or None;
+        the gate's tolerance in mm, 0: no gate) — ``labctl.library.marker_height``, camera pose from the
+        robot's reported flange, policy from ``run.height_gate_*``."""
+        run = self.ctx.lab.config.run
+        if run.height_gate_mm <= 0:
+            return None, 0.0
+        T_w_c2 = make_T(rotvec_to_matrix(msg.rotvec), msg.position)
+        h = measure_marker_height(frame.image, self.ctx.mobile_camera, T_w_c2,
+                                  getattr(self.ctx, "marker_radii_mm", ()) or (self.radius,), z_table_mm=self.z_table,
+                                  standoff_mm=self.ctx.lab.config.viewing.standoff_mm, **self.detect_kw)
+        if h is None:
+            return None, 0.0
+        return h, h.tolerance_mm(run.height_gate_mm, run.height_gate_sigmas, run.height_gate_depth_frac)
 
     def _standard(self, msg: m.CaptureRequest, frame: Frame) -> m.Message:
         self.n_standard += 1
@@ -258,12 +275,16 @@ class Recognizer:
             self.log("no_silhouette", t=frame.t, view_id=msg.view_id, error=str(exc))
             return m.Failure(code=m.FailureCode.NO_MATCH, text=f"no silhouette in standard view {k}")
         self.save_image(f"silhouette_{k}", (mask.astype(np.uint8) * 255))
-        height = self._marker_height(msg)
-        res = match(features, self.ctx.index, self.threshold, restrict=self.remaining, height_mm=height,
-                    height_tol_mm=self.ctx.lab.config.run.height_gate_mm)
+        height, tol = self._measured_height(msg, frame)
+        res = match(features, self.ctx.index, self.threshold, restrict=self.remaining,
+                    height_mm=None if height is None else height.height_mm, height_tol_mm=tol)
         scores = {n: (s if np.isfinite(s) else None) for n, s in res.scores.items()}
+        measured = {} if height is None else {"marker_height_mm": round(height.height_mm, 2),
+                                              "marker_height_sigma_mm": round(height.sigma_mm, 3),
+                                              "height_tol_mm": round(tol, 2)}
         self.log("match", t=frame.t, view_id=msg.view_id, view=k, scores=scores, candidates=res.candidates,
-                 best=res.best[0] if res.best else None, marker_height_mm=round(height, 2))
+                 best=res.best[0] if res.best else None, planned_marker_height_mm=round(self._marker_height(msg), 2),
+                 **measured)
         ids = {n: i for i, n in enumerate(self.ctx.names)}
         if res.best is None:
             return m.Failure(code=m.FailureCode.NO_MATCH, text=f"standard view {k} matches no library view")
