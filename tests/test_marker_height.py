@@ -139,3 +139,80 @@ def test_a_height_only_narrows_the_silhouettes_candidates(k, noise, height, tol,
         assert gated.best[0] in plain.candidates
         assert gated.scores[gated.best[0]] <= plain.scores[plain.best[0]] + 0.08 + 1e-9 \
             or gated.scores[gated.best[0]] <= 0.15
+
+
+def _boxed(extents, faces):
+    """A box resting on z = 0 with a marker at the centre of each face in ``faces`` (±x, ±y, ±z)."""
+    mesh = trimesh.creation.box(extents=extents)
+    mesh.apply_transform(make_T(np.eye(3), [0, 0, extents[2] / 2]))
+    axes = {"+x": (0, 1), "-x": (0, -1), "+y": (1, 1), "-y": (1, -1), "+z": (2, 1), "-z": (2, -1)}
+    markers = []
+    for k, f in enumerate(faces):
+        a, sgn = axes[f]
+        n = np.zeros(3)
+        n[a] = sgn
+        c = n * np.asarray(extents) / 2 + np.array([0, 0, extents[2] / 2])
+        markers.append(Marker(k, c, n, 8.0))
+    return mesh, markers
+
+
+def test_a_look_alike_that_needs_a_marker_facing_up_is_told_from_a_plate_on_its_edge():
+    """part041_plate stood on its edge against part089_holed (issue 15 trials): the same 80×42 mm
+    rectangle, its marker 21 mm up; only the block, resting so, shows a marker facing up."""
+    from labctl.library.matching import needs_top_marker, view_scores
+
+    rng = np.random.default_rng(2)
+    face = _features(rng, ecc=0.84, size=58.0)
+    p_mesh, p_markers = _boxed((80.0, 42.0, 7.5), ("+z", "-z"))
+    b_mesh, b_markers = _boxed((80.0, 51.0, 42.0), ("+z", "-z", "+y", "-y"))
+    feats = {0: face, 1: face, 2: face, 3: face}
+
+    def obj(mesh, markers):
+        by_id = {m.id: m for m in markers}
+        return SimpleNamespace(markers=markers, stable_poses=stable_poses(mesh), marker=lambda mid: by_id[mid],
+                               views={m.id: SimpleNamespace(features=feats[m.id]) for m in markers})
+
+    index = LibraryIndex.from_library({"plate": obj(p_mesh, p_markers), "block": obj(b_mesh, b_markers)})
+    s = view_scores(face, index)
+    side = dict(height_mm=21.0, tol_mm=1.5, normal_z=0.0)
+    assert needs_top_marker(index, "block", s, 0.15, **side)  # its side face is vertical only lying flat
+    assert not needs_top_marker(index, "plate", s, 0.15, **side)  # on its edge no marker faces up
+    # a height no resting pose gives, or views the silhouette rules out, refute nothing
+    assert not needs_top_marker(index, "block", s, 0.15, height_mm=60.0, tol_mm=1.5, normal_z=0.0)
+    assert not needs_top_marker(index, "block", np.full(len(index), np.inf), 0.15, **side)
+    assert not needs_top_marker(index, "block", s, 0.15, height_mm=21.0, tol_mm=0.0, normal_z=0.0)
+
+
+def test_the_recogniser_sees_a_marker_facing_up_from_the_initial_viewpoint():
+    """An initial image (1 m, 63° elevation) of a box with a marker on top shows a marker facing up;
+    a plate on its edge, markers on its two faces only, shows none (whatever the azimuth)."""
+    from labctl.config import load_lab
+    from labctl.geometry import look_at
+    from labctl.sim.truth import camera_model
+    from labctl.vision import detect_markers
+    from labctl.workers.recognizer import Recognizer
+    from labctl.workspace import sample_lab_path
+
+    lab = load_lab(sample_lab_path())
+    cam = camera_model(lab.mobile_camera)
+    rec = Recognizer(SimpleNamespace(lab=lab, mobile_camera=cam), grab=None, log=lambda *a, **k: None)
+    rng = np.random.default_rng(5)
+    box_mesh, box_markers = _boxed((60.0, 50.0, 30.0), ("+z", "+x", "-y"))
+    plate_mesh, plate_markers = _boxed((70.0, 40.0, 8.0), ("+z", "-z"))
+    R_edge = make_T(trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0])[:3, :3], [0, 4.0, 20.0])
+    plate_markers_seen = 0
+    for az in (0.0, 1.2, 2.5):
+        eye = np.array([np.cos(az) * np.cos(np.radians(63)), np.sin(az) * np.cos(np.radians(63)),
+                        np.sin(np.radians(63))]) * 1000.0
+        T_w_c = look_at(eye, np.array([0.0, 0.0, 20.0]))
+        for (mesh, markers, T_w_o), up in (((box_mesh, box_markers, np.eye(4)), True),
+                                            ((plate_mesh, plate_markers, R_edge), False)):
+            V = np.asarray(mesh.vertices) @ T_w_o[:3, :3].T + T_w_o[:3, 3]
+            discs = [MarkerDisc(T_w_o[:3, :3] @ q.center + T_w_o[:3, 3], T_w_o[:3, :3] @ q.normal, q.radius)
+                     for q in markers]
+            image = render(cam, T_w_c, [Mesh(V, np.asarray(mesh.faces), markers=discs)], table=TableSurface(),
+                           noise_sigma=2.0, rng=rng).image
+            assert rec._sees_top_marker(SimpleNamespace(image=image), T_w_c) is up, (az, up)
+            if not up:
+                plate_markers_seen += bool(detect_markers(image, include_suspect=True))
+    assert plate_markers_seen >= 1  # the plate's face markers were in view: the answer is not for want of blobs

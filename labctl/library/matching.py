@@ -58,6 +58,10 @@ class LibraryIndex:
     # (V, P) height (mm) of each view's marker centre above the table in each stable pose of its
     # object (NaN-padded); None: unknown, the height gate passes every view
     heights: np.ndarray | None = None
+    # (V, P) z of the view's marker normal in W in each stable pose, and whether the object then shows
+    # a marker facing up (normal within ~25° of vertical); None with ``heights``
+    normal_z: np.ndarray | None = None
+    top_marker: np.ndarray | None = None
     _pair: np.ndarray | None = field(default=None, repr=False)
     _cache: dict = field(default_factory=dict, repr=False)
 
@@ -99,9 +103,13 @@ class LibraryIndex:
         rows = [marker_heights(library[name], mid) for name, mid, _ in items]
         if any(r.size for r in rows):
             H = np.full((len(rows), max(r.size for r in rows)), np.nan)
-            for i, r in enumerate(rows):
+            NZ = np.full(H.shape, np.nan)
+            UP = np.zeros(H.shape, bool)
+            for i, (r, (name, mid, _)) in enumerate(zip(rows, items, strict=True)):
                 H[i, :r.size] = r
-            index.heights = H
+                nz, up = _pose_normals(library[name], mid)
+                NZ[i, :nz.size], UP[i, :up.size] = nz, up
+            index.heights, index.normal_z, index.top_marker = H, NZ, UP
         return index
 
     def __len__(self) -> int:
@@ -158,6 +166,42 @@ def marker_heights(obj, marker_id: int) -> np.ndarray:
     except (AttributeError, KeyError, StopIteration):
         return np.zeros(0)
     return np.array([float(np.asarray(T, float)[2, :3] @ c + np.asarray(T, float)[2, 3]) for T, _ in poses])
+
+
+UP_NZ = 0.9  # a marker whose normal's z exceeds this faces up (within 25.8° of vertical)
+
+
+def _pose_normals(obj, marker_id: int) -> tuple[np.ndarray, np.ndarray]:
+    """(z of marker ``marker_id``'s normal in each stable pose of ``obj``, whether any marker of ``obj``
+    faces up in that pose); empty arrays if unknown."""
+    poses = getattr(obj, "stable_poses", None) or []
+    try:
+        n = np.asarray(obj.marker(marker_id).normal, float)
+        normals = np.array([np.asarray(mk.normal, float) for mk in obj.markers])
+    except (AttributeError, KeyError, StopIteration, TypeError):
+        return np.zeros(0), np.zeros(0, bool)
+    R = [np.asarray(T, float)[:3, :3] for T, _ in poses]
+    return (np.array([float(r[2] @ n) for r in R]),
+            np.array([bool(np.any(normals @ r[2] > UP_NZ)) for r in R]))
+
+
+def needs_top_marker(index: LibraryIndex, name: str, scores: np.ndarray, bound: float, height_mm: float,
+                     tol_mm: float, normal_z: float, normal_tol: float = 0.35) -> bool:
+    """True when object ``name`` could show this standard view only resting in stable poses in which
+    one of its markers faces up: every (view, pose) of ``name`` whose silhouette score is ≤ ``bound``,
+    whose marker rests ``height_mm`` ± ``tol_mm`` above the table and whose normal's z is within
+    ``normal_tol`` of the measured ``normal_z`` has a marker facing up (:data:`UP_NZ`). False when
+    unknown or when no (view, pose) fits (the height gate handles that).
+
+    Paper §3.4: a hypothesis that predicts a marker where the camera saw none is refuted; here the
+    initial images, taken from above at the library's viewing angle, saw no marker facing up.
+    """
+    if index.heights is None or index.top_marker is None or tol_mm <= 0:
+        return False
+    rows = np.flatnonzero((np.array(index.names) == name) & (np.asarray(scores) <= bound))
+    fits = ((np.abs(index.heights[rows] - height_mm) <= tol_mm)
+            & (np.abs(index.normal_z[rows] - normal_z) <= normal_tol))
+    return bool(fits.any() and np.all(index.top_marker[rows][fits]))
 
 
 def height_gate(index: LibraryIndex, height_mm: float | None, tol_mm: float = HEIGHT_TOL_MM) -> np.ndarray:
