@@ -120,7 +120,7 @@ def evaluate(library: dict, pool: dict, rng: np.random.Generator, *, threshold: 
         pool = {k: [q if q is None else StandardViewQuery(split_query(q)[0]) for q in v] for k, v in pool.items()}
     n = 0
     ok = {"aos_with_extra_views": 0, "aos_single_view": 0, "hu_single_view": 0, "fd_single_view": 0}
-    ambiguous = extra_views = failures = unresolved = recovered = 0
+    ambiguous = extra_views = failures = unresolved = recovered = wrong_ids = 0
     wrong: list[str] = []
     for (name, mid), feats in sorted(pool.items()):
         obj = library[name]
@@ -166,13 +166,15 @@ def evaluate(library: dict, pool: dict, rng: np.random.Generator, *, threshold: 
             unresolved += int(not res.resolved)
             if res.resolved and res.name == name:  # a run answers only when resolved
                 ok["aos_with_extra_views"] += 1
-            elif len(wrong) < 10:
-                wrong.append(f"{name}#{mid}->{res.name or 'unresolved'}")
+                continue
+            wrong_ids += int(res.resolved)
+            if len(wrong) < 10:  # "unresolved" or the wrong identity a run would answer
+                wrong.append(f"{name}#{mid}->{res.name if res.resolved else 'unresolved'}")
     rates = {k: v / max(n, 1) for k, v in ok.items()}
     return {"objects": len(library), "views": len(index), "trials": n, "rates": rates,
             "ambiguous_first_views": ambiguous, "extra_views": extra_views,
             "unresolved_after_max_views": unresolved, "silhouette_failures": failures,
-            "recovered_by_another_marker": recovered, "errors": wrong}
+            "recovered_by_another_marker": recovered, "wrong_identities": wrong_ids, "errors": wrong}
 
 
 def _evaluate(library: dict, camera, standoff: float, trials: int, rng: np.random.Generator, *,
