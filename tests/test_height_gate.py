@@ -41,7 +41,8 @@ def test_plates_of_one_footprint_are_told_apart_by_the_marker_height():
         r = match(f, index, height_mm=h)
         assert not r.ambiguous and r.best[0] == name
     assert match(f, index, height_mm=8.5, height_tol_mm=4.0).ambiguous  # within both tolerances
-    assert match(f, index, height_mm=30.0).best is None  # no plate rests with its marker 30 mm up
+    # no plate rests with its marker 30 mm up: a height no shape candidate fits is ignored, never trusted
+    assert match(f, index, height_mm=30.0).ambiguous
     assert match(f, index, height_mm=30.0, height_tol_mm=0.0).ambiguous  # 0 turns the gate off
 
 
@@ -95,3 +96,23 @@ def test_a_look_alike_within_the_threshold_is_outvoted_by_repeated_views():
     assert res.resolved and res.name == "plate" and res.views_used >= 2
     one = identify(f, index, lambda h, j: f, max_views=1)
     assert not one.resolved  # a single view stays ambiguous
+
+
+def test_an_unusable_view_spends_a_view_and_refutes_no_hypothesis():
+    """``acquire`` returning :class:`UnusableView` (a cropped standard view) costs a view but strikes no
+    candidate out, unlike None (no marker where the hypothesis predicts one)."""
+    from labctl.library.matching import UnusableView, identify, split_query
+
+    f = _features()
+    lib = {"a": SimpleNamespace(views={0: SimpleNamespace(features=f)}),
+           "b": SimpleNamespace(views={0: SimpleNamespace(features=f)})}
+    index = LibraryIndex.from_library(lib)
+    res = identify(f, index, lambda h, j: UnusableView(), max_views=3)
+    assert not res.resolved and sorted(res.candidates) == ["a", "b"] and res.views_used == 3
+    refuted = identify(f, index, lambda h, j: None, max_views=3)
+    assert len(refuted.candidates) == 1
+    assert split_query(f) == (f, {})
+    from labctl.library.matching import StandardViewQuery
+
+    assert split_query(StandardViewQuery(f, 12.5)) == (f, {"height_mm": 12.5})
+    assert split_query(StandardViewQuery(f, None)) == (f, {})

@@ -20,7 +20,15 @@ from __future__ import annotations
 import numpy as np
 
 from ..geometry import invert, make_T, rot_z
-from ..library.matching import DEFAULT_THRESHOLD, UNUSABLE_VIEW, LibraryIndex, StandardViewQuery, identify, match
+from ..library.matching import (
+    DEFAULT_THRESHOLD,
+    LibraryIndex,
+    StandardViewQuery,
+    UnusableView,
+    identify,
+    match,
+    split_query,
+)
 from ..library.views import marker_frame, mm_per_px, perturbed_view_pose, standard_view_pose
 from ..vision.shape import ShapeError, features_from_image, silhouette_mask
 from ._timing import median_time, row
@@ -35,18 +43,27 @@ def _setup():
     return lab, camera_model(lab.mobile_camera)
 
 
-def render_pool(library: dict, camera, standoff: float, per_view: int, rng: np.random.Generator) -> dict:
+def render_pool(library: dict, camera, standoff: float, per_view: int, rng: np.random.Generator, *,
+                gate: tuple[float, float, float] | None = None) -> dict:
     """Perturbed standard views, rendered once: ``{(name, marker_id): [StandardViewQuery | None, ...]}``.
 
     Each view is rendered ``per_view`` times by the simulated lab's renderer (object resting on
     the table, :func:`labctl.sim.rigs.standard_view_renderer`) with a random in-plane rotation,
     ±3 % stand-off, ≤ 2° axis tilt and σ = 2 sensor noise; None where no silhouette was found.
-    Each query carries its marker's true height above the table in the pose rendered (a run
-    measures it to ~0.1 mm, far inside the 4 mm gate). All matchers (and the extra views of
-    :func:`evaluate`) draw on the same pool.
+    Each query carries its marker's height above the table as a run measures it
+    (:func:`labctl.library.marker_height.measure_marker_height` on the rendered image, the camera
+    pose known) and the gate's tolerance from ``gate`` = (``run.height_gate_mm``,
+    ``height_gate_sigmas``, ``height_gate_depth_frac``; default: RunConfig's). All matchers (and
+    the extra views of :func:`evaluate`) draw on the same pool.
     """
+    from ..config.lab import RunConfig
+    from ..library.marker_height import measure_marker_height
     from ..sim.rigs import standard_view_renderer
 
+    if gate is None:
+        d = RunConfig()
+        gate = (d.height_gate_mm, d.height_gate_sigmas, d.height_gate_depth_frac)
+    radii = sorted({float(m.radius) for o in library.values() for m in o.markers}, reverse=True)
     scale = mm_per_px(camera, standoff)
     factory = standard_view_renderer(camera, noise_sigma=2.0, rng=rng)
     pool: dict = {}
@@ -57,21 +74,17 @@ def render_pool(library: dict, camera, standoff: float, per_view: int, rng: np.r
             for _ in range(per_view):
                 T_o_c = perturbed_view_pose(standard_view_pose(m, standoff), m.center, rng)
                 image, T_w_o = render_view(T_o_c, with_pose=True)
-                height = float(T_w_o[2, :3] @ m.center + T_w_o[2, 3])
                 try:
-                    feats.append(StandardViewQuery(features_from_image(image, scale), height))
+                    f = features_from_image(image, scale)
                 except ShapeError:
                     feats.append(None)
+                    continue
+                h = measure_marker_height(image, camera, T_w_o @ T_o_c, radii, standoff_mm=standoff) \
+                    if gate[0] > 0 else None
+                feats.append(StandardViewQuery(f) if h is None else
+                             StandardViewQuery(f, h.height_mm, h.tolerance_mm(*gate)))
             pool[(name, m.id)] = feats
     return pool
-
-
-def _features(q):
-    return q.features if isinstance(q, StandardViewQuery) else q
-
-
-def _height(q) -> dict:
-    return {"height_mm": q.height_mm} if isinstance(q, StandardViewQuery) and q.height_mm is not None else {}
 
 
 NEW_SIDE_DEG = 20.0  # the predictor's novelty rule: a face within 20° of one viewed tells nothing new
@@ -93,19 +106,21 @@ def _other_marker_view(obj, pool: dict, name: str, tried: list[int], rng: np.ran
 
 
 def evaluate(library: dict, pool: dict, rng: np.random.Generator, *, threshold: float = DEFAULT_THRESHOLD,
-             max_views: int = 3, first_per_view: int | None = None, height_tol_mm: float = 0.0, **match_kw) -> dict:
+             max_views: int = 3, first_per_view: int | None = None, height_gate: bool = True, **match_kw) -> dict:
     """Identification rates over the pool: every pooled view is a first view (or the first
     ``first_per_view`` of each); extra views are other pooled renders of the marker reached.
 
     A first view with no usable silhouette is followed, as in a run, by the view of another marker
     (:func:`_other_marker_view`); every view taken counts towards ``max_views``. The single-view
     rates count such a first view as wrong.
-    ``height_tol_mm`` > 0 gates views by the queries' marker heights, as ``run.height_gate_mm`` does in a run."""
+    Queries that carry a measured marker height (:func:`render_pool`) narrow their candidates by it as a
+    run does (``run.height_gate_*``); ``height_gate`` False ignores the heights (same pool, for comparison)."""
     index = LibraryIndex.from_library(library)
-    match_kw = {**match_kw, "height_tol_mm": height_tol_mm}
+    if not height_gate:
+        pool = {k: [q if q is None else StandardViewQuery(split_query(q)[0]) for q in v] for k, v in pool.items()}
     n = 0
     ok = {"aos_with_extra_views": 0, "aos_single_view": 0, "hu_single_view": 0, "fd_single_view": 0}
-    ambiguous = extra_views = failures = unresolved = recovered = 0
+    ambiguous = extra_views = failures = unresolved = recovered = wrong_ids = 0
     wrong: list[str] = []
     for (name, mid), feats in sorted(pool.items()):
         obj = library[name]
@@ -113,7 +128,7 @@ def evaluate(library: dict, pool: dict, rng: np.random.Generator, *, threshold: 
             n += 1
             if f0 is not None:
                 for method in ("aos", "hu", "fd"):  # the single-view rates: the silhouette alone
-                    r = match(_features(f0), index, threshold, method=method, **match_kw)
+                    r = match(split_query(f0)[0], index, threshold, method=method, **match_kw)
                     ok[f"{method}_single_view"] += int(r.best is not None and r.best[0] == name)
             m, q, f, tried = obj.marker(mid), q0, f0, [mid]
             while f is None and len(tried) < max_views:
@@ -126,7 +141,8 @@ def evaluate(library: dict, pool: dict, rng: np.random.Generator, *, threshold: 
                 failures += 1
                 continue
             recovered += int(len(tried) > 1)
-            first = match(_features(f), index, threshold, **_height(f), **match_kw)
+            first_f, first_h = split_query(f)
+            first = match(first_f, index, threshold, **first_h, **match_kw)
 
             def acquire(h: str, j: int, _m=m, _first=first, _obj=obj, _name=name, _q=q):
                 # the robot heads for where marker j would be if the object were h, then takes
@@ -141,7 +157,7 @@ def evaluate(library: dict, pool: dict, rng: np.random.Generator, *, threshold: 
                 # another render of that marker, drawn as the run would meet it: it may be unusable
                 others = [g for k, g in enumerate(pool[(_name, mk.id)]) if not (mk.id == _m.id and k == _q)]
                 g = others[int(rng.integers(len(others)))] if others else None
-                return UNUSABLE_VIEW if g is None else g
+                return UnusableView() if g is None else g
 
             res = identify(f, index, acquire, threshold=threshold, max_views=max_views - len(tried) + 1,
                            **match_kw)
@@ -150,21 +166,24 @@ def evaluate(library: dict, pool: dict, rng: np.random.Generator, *, threshold: 
             unresolved += int(not res.resolved)
             if res.resolved and res.name == name:  # a run answers only when resolved
                 ok["aos_with_extra_views"] += 1
-            elif len(wrong) < 10:
-                wrong.append(f"{name}#{mid}->{res.name or 'unresolved'}")
+                continue
+            wrong_ids += int(res.resolved)
+            if len(wrong) < 10:  # "unresolved" or the wrong identity a run would answer
+                wrong.append(f"{name}#{mid}->{res.name if res.resolved else 'unresolved'}")
     rates = {k: v / max(n, 1) for k, v in ok.items()}
     return {"objects": len(library), "views": len(index), "trials": n, "rates": rates,
             "ambiguous_first_views": ambiguous, "extra_views": extra_views,
             "unresolved_after_max_views": unresolved, "silhouette_failures": failures,
-            "recovered_by_another_marker": recovered, "errors": wrong}
+            "recovered_by_another_marker": recovered, "wrong_identities": wrong_ids, "errors": wrong}
 
 
 def _evaluate(library: dict, camera, standoff: float, trials: int, rng: np.random.Generator, *,
-              threshold: float = DEFAULT_THRESHOLD, max_views: int = 3, height_tol_mm: float = 0.0) -> dict:
-    """Render a pool with ``trials + 1`` renders per view; ``trials`` of them are first views."""
-    pool = render_pool(library, camera, standoff, trials + 1, rng)
-    return evaluate(library, pool, rng, threshold=threshold, max_views=max_views, first_per_view=trials,
-                    height_tol_mm=height_tol_mm)
+              threshold: float = DEFAULT_THRESHOLD, max_views: int = 3,
+              gate: tuple[float, float, float] | None = None) -> dict:
+    """Render a pool with ``trials + 1`` renders per view; ``trials`` of them are first views; ``gate``
+    the marker-height gate's settings (:func:`render_pool`)."""
+    pool = render_pool(library, camera, standoff, trials + 1, rng, gate=gate)
+    return evaluate(library, pool, rng, threshold=threshold, max_views=max_views, first_per_view=trials)
 
 
 def generated_library(n_objects: int, camera, lab, rng: np.random.Generator) -> dict:
@@ -290,7 +309,9 @@ def run(quick: bool = False) -> dict:
     standoff = lab.config.viewing.standoff_mm
     sample = load_library(lab.library_dir)
     run_cfg = {"threshold": lab.config.run.ambiguity_threshold or DEFAULT_THRESHOLD,
-               "max_views": lab.config.run.max_views, "height_tol_mm": lab.config.run.height_gate_mm}
+               "max_views": lab.config.run.max_views,
+               "gate": (lab.config.run.height_gate_mm, lab.config.run.height_gate_sigmas,
+                        lab.config.run.height_gate_depth_frac)}
     res_sample = _evaluate(sample, camera, standoff, trials=2 if quick else 4, rng=rng, **run_cfg)
     gen = generated_library(30, camera, lab, rng)
     res_gen = _evaluate(gen, camera, standoff, trials=1 if quick else 2, rng=rng, **run_cfg)

@@ -85,11 +85,15 @@ class RunConfig:
     timeout_s: Positive = 90.0
     ambiguity_threshold: float | None = None  # None: the library's own default
     max_views: PositiveInt = 3
-    # library views whose marker cannot rest within this of the measured marker height are not matched
-    # (mm; 0: off). Opt-in: set it only well above the lab's measured marker-height error (the clean
-    # simulated lab: < 0.3 mm; the realistic-camera preset: up to ~6 mm, where 4 mm gated out the true
-    # object in 34 of 480 trials; docs/notes/library.md)
-    height_gate_mm: NonNegative = 0.0
+    # marker-height gate (issue 15, labctl.library.marker_height): the standard view measures its marker's
+    # height above the table; a shape candidate none of whose views can rest its marker within
+    # height_gate_mm + height_gate_sigmas·σ + height_gate_depth_frac·(vertical distance to the marker) of it
+    # is dropped (the height only narrows the shape's candidates). height_gate_mm: the library's own error
+    # (hand-placed markers), 0 turns the gate off; depth_frac: the apparent-size bias (realistic-camera
+    # preset: ≤ 0.65 % of the distance measured; docs/notes/library.md)
+    height_gate_mm: NonNegative = 1.5
+    height_gate_sigmas: NonNegative = 4.0
+    height_gate_depth_frac: NonNegative = 0.008
     second_image_azimuth_deg: float = 25.0  # camera moves this far round the marker between the two images
     fps: Positive = 30.0
     # the predictor's policy (paper §5.2–5.3)

@@ -58,6 +58,10 @@ class LibraryIndex:
     # (V, P) height (mm) of each view's marker centre above the table in each stable pose of its
     # object (NaN-padded); None: unknown, the height gate passes every view
     heights: np.ndarray | None = None
+    # (V, P) z of the view's marker normal in W in each stable pose, and whether the object then shows
+    # a marker facing up (normal within ~25° of vertical); None with ``heights``
+    normal_z: np.ndarray | None = None
+    top_marker: np.ndarray | None = None
     _pair: np.ndarray | None = field(default=None, repr=False)
     _cache: dict = field(default_factory=dict, repr=False)
 
@@ -99,9 +103,13 @@ class LibraryIndex:
         rows = [marker_heights(library[name], mid) for name, mid, _ in items]
         if any(r.size for r in rows):
             H = np.full((len(rows), max(r.size for r in rows)), np.nan)
-            for i, r in enumerate(rows):
+            NZ = np.full(H.shape, np.nan)
+            UP = np.zeros(H.shape, bool)
+            for i, (r, (name, mid, _)) in enumerate(zip(rows, items, strict=True)):
                 H[i, :r.size] = r
-            index.heights = H
+                nz, up = _pose_normals(library[name], mid)
+                NZ[i, :nz.size], UP[i, :up.size] = nz, up
+            index.heights, index.normal_z, index.top_marker = H, NZ, UP
         return index
 
     def __len__(self) -> int:
@@ -160,6 +168,42 @@ def marker_heights(obj, marker_id: int) -> np.ndarray:
     return np.array([float(np.asarray(T, float)[2, :3] @ c + np.asarray(T, float)[2, 3]) for T, _ in poses])
 
 
+UP_NZ = 0.9  # a marker whose normal's z exceeds this faces up (within 25.8° of vertical)
+
+
+def _pose_normals(obj, marker_id: int) -> tuple[np.ndarray, np.ndarray]:
+    """(z of marker ``marker_id``'s normal in each stable pose of ``obj``, whether any marker of ``obj``
+    faces up in that pose); empty arrays if unknown."""
+    poses = getattr(obj, "stable_poses", None) or []
+    try:
+        n = np.asarray(obj.marker(marker_id).normal, float)
+        normals = np.array([np.asarray(mk.normal, float) for mk in obj.markers])
+    except (AttributeError, KeyError, StopIteration, TypeError):
+        return np.zeros(0), np.zeros(0, bool)
+    R = [np.asarray(T, float)[:3, :3] for T, _ in poses]
+    return (np.array([float(r[2] @ n) for r in R]),
+            np.array([bool(np.any(normals @ r[2] > UP_NZ)) for r in R]))
+
+
+def needs_top_marker(index: LibraryIndex, name: str, scores: np.ndarray, bound: float, height_mm: float,
+                     tol_mm: float, normal_z: float, normal_tol: float = 0.35) -> bool:
+    """True when object ``name`` could show this standard view only resting in stable poses in which
+    one of its markers faces up: every (view, pose) of ``name`` whose silhouette score is ≤ ``bound``,
+    whose marker rests ``height_mm`` ± ``tol_mm`` above the table and whose normal's z is within
+    ``normal_tol`` of the measured ``normal_z`` has a marker facing up (:data:`UP_NZ`). False when
+    unknown or when no (view, pose) fits (the height gate handles that).
+
+    Paper §3.4: a hypothesis that predicts a marker where the camera saw none is refuted; here the
+    initial images, taken from above at the library's viewing angle, saw no marker facing up.
+    """
+    if index.heights is None or index.top_marker is None or tol_mm <= 0:
+        return False
+    rows = np.flatnonzero((np.array(index.names) == name) & (np.asarray(scores) <= bound))
+    fits = ((np.abs(index.heights[rows] - height_mm) <= tol_mm)
+            & (np.abs(index.normal_z[rows] - normal_z) <= normal_tol))
+    return bool(fits.any() and np.all(index.top_marker[rows][fits]))
+
+
 def height_gate(index: LibraryIndex, height_mm: float | None, tol_mm: float = HEIGHT_TOL_MM) -> np.ndarray:
     """(V,) True where a view's marker can rest ``height_mm`` ± ``tol_mm`` above the table in some
     stable pose of its object (and where that is unknown). Standard views of plates of one footprint
@@ -215,12 +259,38 @@ def _aos_distance(q_aos: np.ndarray, index: LibraryIndex, rows: np.ndarray) -> t
 
 def match(features: ShapeFeatures, index: LibraryIndex, threshold: float = DEFAULT_THRESHOLD, *,
           method: str = "aos", restrict: Sequence[str] | None = None, margin: float = MARGIN,
-          **gates) -> MatchResult:
-    """Minimum-distance identification of one standard view with the ambiguity rule (paper §3.4)."""
+          height_mm: float | None = None, height_tol_mm: float = HEIGHT_TOL_MM, **gates) -> MatchResult:
+    """Minimum-distance identification of one standard view with the ambiguity rule (paper §3.4).
+
+    With the viewed marker's height (``height_mm`` ± ``height_tol_mm``), the height only narrows the
+    shape's candidates: an object stays a candidate if one of its views both matches the silhouette
+    (score ≤ ``threshold`` or within ``margin`` of the best score over all views) and lets its marker
+    rest at that height (:func:`height_gate`). A height no shape candidate fits is ignored, so a
+    height error can never promote a far match to the answer (it can only leave the view ambiguous).
+    """
     s, shift = view_scores(features, index, method=method, with_shift=True, **gates)
     uniq, ids = index.name_ids()
     if restrict is not None:
         s = np.where(np.isin(uniq, list(restrict))[ids], s, np.inf)
+    result = _rank(s, shift, index, threshold, margin, None)
+    if result.best is None or height_mm is None:
+        return result
+    g = height_gate(index, height_mm, height_tol_mm)
+    if g.all():
+        return result
+    limit = max(threshold, result.scores[result.candidates[0]] + margin)
+    gated = _rank(np.where(g, s, np.inf), shift, index, threshold, margin, limit)
+    kept = [c for c in gated.candidates if c in result.candidates]
+    if not kept:  # the height fits no shape candidate: trust the silhouette alone
+        return result
+    return MatchResult(gated.best, kept, gated.scores, gated.views, len(kept) > 1, gated.shift)
+
+
+def _rank(s: np.ndarray, shift: np.ndarray, index: LibraryIndex, threshold: float, margin: float,
+          limit: float | None) -> MatchResult:
+    """Each object's best view of the view scores ``s`` (inf: gated out) and the candidates: objects
+    scoring ≤ ``threshold`` or within ``margin`` of the best, or (``limit`` given) ≤ ``limit``."""
+    uniq, ids = index.name_ids()
     order = np.argsort(s, kind="stable")
     _, first = np.unique(ids[order], return_index=True)  # each object's best view
     firsts = order[np.sort(first)]  # objects in order of their best score
@@ -230,7 +300,8 @@ def match(features: ShapeFeatures, index: LibraryIndex, threshold: float = DEFAU
     if not np.isfinite(s[i_best]):
         return MatchResult(None, [], scores, views, False)
     best = float(s[i_best])
-    cands = [n for n, v in scores.items() if v <= threshold or v <= best + margin]
+    bound = max(threshold, best + margin) if limit is None else limit
+    cands = [n for n, v in scores.items() if v <= bound]
     return MatchResult((str(index.names[i_best]), int(index.marker_ids[i_best])), cands, scores, views,
                        len(cands) > 1, int(shift[i_best]))
 
@@ -300,9 +371,12 @@ def evidence_leader(totals: Mapping[str, float], n_views: int, margin: float = M
     return None
 
 
-UNUSABLE_VIEW = "unusable view"
-"""What ``acquire`` returns when the camera reached a marker whose standard view shows no usable
-silhouette (cropped by the image edge): the view is spent, and no hypothesis is refuted."""
+@dataclass(frozen=True)
+class UnusableView:
+    """What ``acquire`` returns when the camera reached a marker whose standard view shows no usable
+    silhouette (e.g. cropped by the image edge): the view is spent, and no hypothesis is refuted."""
+
+    reason: str = "no usable silhouette"
 
 
 @dataclass(frozen=True)
@@ -312,17 +386,22 @@ class StandardViewQuery:
 
     features: ShapeFeatures
     height_mm: float | None = None
+    height_tol_mm: float | None = None  # None: the matcher's default tolerance
 
 
-def _query(q) -> tuple[ShapeFeatures, dict]:
-    """(features, the height gate's keyword) of a ShapeFeatures or a StandardViewQuery."""
+def split_query(q: ShapeFeatures | StandardViewQuery) -> tuple[ShapeFeatures, dict]:
+    """(features, the height gate's keywords for :func:`view_scores` / :func:`match`) of a
+    ShapeFeatures or a StandardViewQuery; no keywords when the marker height is unknown."""
     if isinstance(q, StandardViewQuery):
-        return q.features, ({} if q.height_mm is None else {"height_mm": q.height_mm})
+        if q.height_mm is None:
+            return q.features, {}
+        tol = {} if q.height_tol_mm is None else {"height_tol_mm": q.height_tol_mm}
+        return q.features, {"height_mm": q.height_mm, **tol}
     return q, {}
 
 
 def identify(first: ShapeFeatures | StandardViewQuery, index: LibraryIndex,
-             acquire: Callable[[str, int], ShapeFeatures | StandardViewQuery | str | None], *,
+             acquire: Callable[[str, int], ShapeFeatures | StandardViewQuery | UnusableView | None], *,
              threshold: float = DEFAULT_THRESHOLD, max_views: int = 3, method: str = "aos",
              margin: float = MARGIN, **weights) -> Identification:
     """Recognise with extra standard views where ambiguous (paper §3.4, §2 stage 2).
@@ -330,13 +409,13 @@ def identify(first: ShapeFeatures | StandardViewQuery, index: LibraryIndex,
     ``acquire(name, marker_id)`` moves the camera towards the standard view of marker
     ``marker_id`` *assuming* the object is ``name`` and returns the features of the standard view
     it then takes of the marker actually there (None if no marker is found there, which refutes
-    hypothesis ``name``; :data:`UNUSABLE_VIEW` if the view has no usable silhouette). Hypothesis ``name`` stays
+    hypothesis ``name``; an :class:`UnusableView` if the view has no usable silhouette). Hypothesis ``name`` stays
     a candidate if the view matches its view ``marker_id`` within ``threshold``; any other
     candidate if the view matches one of its views. Scores accumulate over the views; the
     surviving candidate with the lowest total is the answer.
     """
-    first_f, first_h = _query(first)
-    r = match(first_f, index, threshold, method=method, margin=margin, **first_h, **weights)
+    first_f, first_h = split_query(first)
+    r = match(first_f, index, threshold, method=method, margin=margin, **{**weights, **first_h})
     steps, requested = [r], []
     if r.best is None:
         return Identification(None, False, [], 1, steps, requested)
@@ -359,23 +438,35 @@ def identify(first: ShapeFeatures | StandardViewQuery, index: LibraryIndex,
             # the marker hypothesis h predicts is not there: h is refuted (the others stay)
             remaining = [c for c in remaining if c != h] or remaining
             continue
-        if isinstance(f, str) and f == UNUSABLE_VIEW:
+        if isinstance(f, UnusableView):
             continue
-        f, fh = _query(f)
-        s = view_scores(f, index, method=method, **fh, **weights)
-        step_score = {c: float(s[index.view_index(h, j)]) if c == h else float(np.min(s[names == c]))
-                      for c in remaining}
-        steps.append(match(f, index, threshold, method=method, restrict=remaining, margin=margin, **fh, **weights))
-        for c in remaining:
-            total[c] += step_score[c]
+        f, fh = split_query(f)
+        fh = {**weights, **fh}  # the query's own height tolerance, if it has one, wins
+        s = view_scores(f, index, method=method, **{k: v for k, v in fh.items() if not k.startswith("height")})
+        step_score = _step_scores(s, remaining, h, index.view_index(h, j), names)
         best_step = min(step_score.values())
         keep = [c for c in remaining if step_score[c] <= threshold or step_score[c] <= best_step + margin]
+        if fh.get("height_mm") is not None:  # the height narrows the shape's candidates, never widens them
+            g = np.where(height_gate(index, fh["height_mm"], fh.get("height_tol_mm", HEIGHT_TOL_MM)), s, np.inf)
+            gated = _step_scores(g, remaining, h, index.view_index(h, j), names)
+            kept = [c for c in keep if gated[c] <= max(threshold, best_step + margin)]
+            if kept:
+                keep, step_score = kept, gated
+        steps.append(match(f, index, threshold, method=method, restrict=remaining, margin=margin, **fh))
+        for c in keep:
+            total[c] += step_score[c]
         remaining = keep or [min(remaining, key=lambda c: step_score[c])]
         leader = evidence_leader({c: total[c] for c in remaining}, views_used, margin)
         if leader is not None:
             remaining = [leader]
     name = min(remaining, key=lambda c: total[c])
     return Identification(name, len(remaining) == 1, remaining, views_used, steps, requested)
+
+
+def _step_scores(s: np.ndarray, remaining: Sequence[str], h: str, i_hj: int, names: np.ndarray) -> dict[str, float]:
+    """Each remaining candidate's score for an extra view: hypothesis ``h`` by its planned view ``i_hj``
+    (the marker the camera was sent to), any other candidate by its best view."""
+    return {c: float(s[i_hj]) if c == h else float(np.min(s[names == c])) for c in remaining}
 
 
 def ambiguity_groups(index: LibraryIndex, threshold: float = DEFAULT_THRESHOLD) -> list[list[int]]:

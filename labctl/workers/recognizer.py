@@ -21,7 +21,16 @@ import numpy as np
 
 from ..drivers.interfaces import Frame
 from ..geometry import make_T, rotvec_to_matrix
-from ..library.matching import DEFAULT_THRESHOLD, evidence_leader, match
+from ..library.marker_height import measure_marker_height
+from ..library.matching import (
+    DEFAULT_THRESHOLD,
+    MARGIN,
+    UP_NZ,
+    evidence_leader,
+    match,
+    needs_top_marker,
+    view_scores,
+)
 from ..library.views import mm_per_px
 from ..vision import CirclePose, CirclePoseError, EllipseFitError, MarkerPoses, detect_markers, marker_poses
 from ..vision.duality import DEFAULT_K_SIGMA, DEFAULT_MIN_MARGIN_RAD, pose_pair_consistency, resolve_duality_detailed
@@ -116,6 +125,8 @@ class Recognizer:
         self.totals: dict[str, float] = {}  # each candidate's score summed over the matched standard views
         self.n_matched = 0
         self.n_standard = 0
+        self.n_initial_seen = 0  # initial images in which the object's markers were seen
+        self.saw_top_marker = False  # did any initial image show a marker facing up?
         cam_cfg = ctx.lab.mobile_camera
         # frames are linearised by the camera's declared response before any sub-pixel work (issue 14)
         self.detect_kw = dict(hue_range_deg=cam_cfg.marker_hue_deg, min_saturation=cam_cfg.marker_min_saturation,
@@ -182,8 +193,25 @@ class Recognizer:
         return pose_pair_consistency(poses1.camera_poses, poses2.camera_poses,
                                      R_first_second=poses1.R_w_c.T @ poses2.R_w_c)
 
+    def _sees_top_marker(self, frame: Frame, T_w_c2: np.ndarray) -> bool:
+        """True if any red blob of this initial image (suspects and blobs cut by the border included) may
+        be a marker facing up: one of its two pose candidates has a normal within ~25° of vertical. Seen
+        from above at the library's viewing angle, a marker facing up is the one hardest to miss."""
+        every = detect_markers(frame.image, include_suspect=True, keep_border=True, **self.detect_kw)
+        for mk in every:
+            try:
+                poses = marker_poses(mk, self.ctx.mobile_camera, self.radius).candidates
+            except (CirclePoseError, EllipseFitError, ValueError):
+                return True  # a blob with no pose could be anything: never count it as absent
+            if any(float(T_w_c2[2, :3] @ p.normal) > UP_NZ for p in poses):
+                return True
+        return False
+
     def _initial(self, msg: m.CaptureRequest, frame: Frame, T_w_c2: np.ndarray) -> list[m.Message]:
         found = self._candidates(frame, T_w_c2)
+        if found:
+            self.n_initial_seen += 1
+            self.saw_top_marker = self.saw_top_marker or self._sees_top_marker(frame, T_w_c2)
         if not found:
             self.log("no_marker", t=frame.t, view_id=msg.view_id, kind=msg.kind)
             return [m.Failure(code=m.FailureCode.NO_MARKER_FOUND, text=f"no marker in mobile image {msg.view_id}")]
@@ -256,13 +284,50 @@ class Recognizer:
         return None
 
     def _marker_height(self, msg: m.CaptureRequest) -> float:
-        """Height (mm) above the table of the marker this standard view looks at: the view is planned
+        """Height (mm) above the table of the marker this standard view was planned for (logged beside
+        the measured one; the gate uses the measurement, this is only as good as the initial pose): the view is planned
         ``viewing.standoff_mm`` out along the marker's normal from its estimated centre, and the table
         moves only in x and y, so the centre's z is the camera's plus the stand-off along the optical
         axis (``planning.targets.standard_view_pose``)."""
         R = rotvec_to_matrix(msg.rotvec)
         z = float(msg.position[2]) + self.ctx.lab.config.viewing.standoff_mm * float(R[2, 2])
         return z - self.z_table
+
+    def _measured_height(self, msg: m.CaptureRequest, frame: Frame):
+        """(the viewed marker's height measured in this standard view, :class:`MarkerHeight` or None;
+        the gate's tolerance in mm, 0: no gate) — ``labctl.library.marker_height``, camera pose from the
+        robot's reported flange, policy from ``run.height_gate_*``."""
+        run = self.ctx.lab.config.run
+        if run.height_gate_mm <= 0:
+            return None, 0.0
+        T_w_c2 = make_T(rotvec_to_matrix(msg.rotvec), msg.position)
+        h = measure_marker_height(frame.image, self.ctx.mobile_camera, T_w_c2,
+                                  getattr(self.ctx, "marker_radii_mm", ()) or (self.radius,), z_table_mm=self.z_table,
+                                  standoff_mm=self.ctx.lab.config.viewing.standoff_mm, **self.detect_kw)
+        if h is None:
+            return None, 0.0
+        return h, h.tolerance_mm(run.height_gate_mm, run.height_gate_sigmas, run.height_gate_depth_frac)
+
+    def _refute_top_marker_hypotheses(self, res, features, msg: m.CaptureRequest, height, tol: float, t: float,
+                                      k: int):
+        """Drop the candidates that could show this view only in a resting pose with a marker facing up,
+        when no initial image showed one (paper §3.4: a hypothesis predicting a marker where none was
+        seen is refuted). Only between ≥ 2 candidates, with a measured marker height, a viewed marker
+        that is not itself facing up, and never every candidate."""
+        if len(res.candidates) < 2 or self.saw_top_marker or self.n_initial_seen == 0 or height is None:
+            return res
+        nz = -float(rotvec_to_matrix(msg.rotvec)[2, 2])  # the camera looks along the marker's normal
+        if nz > 0.5:
+            return res
+        s = view_scores(features, self.ctx.index)
+        bound = max(self.threshold, res.scores[res.candidates[0]] + MARGIN)
+        refuted = [c for c in res.candidates
+                   if needs_top_marker(self.ctx.index, c, s, bound, height.height_mm, tol, nz)]
+        kept = [c for c in res.candidates if c not in refuted]
+        if not refuted or not kept:
+            return res
+        self.log("refuted", t=t, view=k, candidates=refuted, reason="no marker facing up in the initial images")
+        return replace(res, best=(kept[0], res.views[kept[0]]), candidates=kept, ambiguous=len(kept) > 1)
 
     def _standard(self, msg: m.CaptureRequest, frame: Frame) -> m.Message:
         self.n_standard += 1
@@ -280,15 +345,20 @@ class Recognizer:
             self.log("no_silhouette", t=frame.t, view_id=msg.view_id, error=str(exc))
             return m.Failure(code=m.FailureCode.NO_MATCH, text=f"no silhouette in standard view {k}")
         self.save_image(f"silhouette_{k}", (mask.astype(np.uint8) * 255))
-        height = self._marker_height(msg)
-        res = match(features, self.ctx.index, self.threshold, restrict=self.remaining, height_mm=height,
-                    height_tol_mm=self.ctx.lab.config.run.height_gate_mm)
+        height, tol = self._measured_height(msg, frame)
+        res = match(features, self.ctx.index, self.threshold, restrict=self.remaining,
+                    height_mm=None if height is None else height.height_mm, height_tol_mm=tol)
         scores = {n: (s if np.isfinite(s) else None) for n, s in res.scores.items()}
+        measured = {} if height is None else {"marker_height_mm": round(height.height_mm, 2),
+                                              "marker_height_sigma_mm": round(height.sigma_mm, 3),
+                                              "height_tol_mm": round(tol, 2)}
         self.log("match", t=frame.t, view_id=msg.view_id, view=k, scores=scores, candidates=res.candidates,
-                 best=res.best[0] if res.best else None, marker_height_mm=round(height, 2))
+                 best=res.best[0] if res.best else None, planned_marker_height_mm=round(self._marker_height(msg), 2),
+                 **measured)
         ids = {n: i for i, n in enumerate(self.ctx.names)}
         if res.best is None:
             return m.Failure(code=m.FailureCode.NO_MATCH, text=f"standard view {k} matches no library view")
+        res = self._refute_top_marker_hypotheses(res, features, msg, height, tol, frame.t, k)
         self.n_matched += 1
         self.totals = {c: self.totals.get(c, 0.0) + res.scores[c] for c in res.scores if np.isfinite(res.scores[c])
                        and (self.n_matched == 1 or c in self.totals)}
