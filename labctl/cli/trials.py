@@ -14,7 +14,8 @@ from .run import TRAJECTORIES, _speed
 
 @click.command("trials")
 @click.option("--n", "n", type=int, default=20, show_default=True, help="Number of simulated runs per speed.")
-@click.option("--trajectory", default=None, help="line, arc, circle or zigzag (default: lab.yaml).")
+@click.option("--trajectory", default=None,
+              help="line, arc, circle or zigzag, or a comma-separated list to sweep (default: lab.yaml).")
 @click.option("--speed", default=None, help="Table speed mm/s, or a comma-separated list to sweep.")
 @click.option("--objects", default=None, help="Comma-separated objects to cycle through (default: all).")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the first trial.")
@@ -47,8 +48,10 @@ def trials_cmd(n, trajectory, speed, objects, seed, record, jobs, scheduler, res
         _speed(s, lab)
     names = [o.strip() for o in objects.split(",") if o.strip()] if objects else None
     traj = trajectory or lab.config.run.trajectory
-    if traj not in TRAJECTORIES:
-        raise UserInputError(f"--trajectory must be one of {', '.join(TRAJECTORIES)}, got {traj!r}")
+    for one in traj.split(","):
+        if one not in TRAJECTORIES:
+            raise UserInputError(f"--trajectory must be one of {', '.join(TRAJECTORIES)} (or a comma-separated "
+                                 f"list), got {one!r}")
     if resume is not None and not resume.is_dir():
         raise UserInputError(f"--resume: no sweep folder at {resume}")
 
@@ -112,7 +115,7 @@ def _num(value, unit: str = "") -> str:
 def _print_trials(console, s: dict) -> None:
     from rich.table import Table
 
-    t = Table("speed mm/s", "n", "success", "time to identity (median)", "×lower bound", "×quintic bound",
+    t = Table("speed mm/s", "n", "success", "time to identity (median)", "× honest bound", "×quintic bound",
               "views (mean)", title="trials")
     for row in s["by_speed"]:
         t.add_row(f"{row['speed_mm_s']:g}", str(row["n"]), f"{100 * row['success_rate']:.1f} %",
@@ -123,6 +126,11 @@ def _print_trials(console, s: dict) -> None:
     for k, v in s["stage_medians_s"].items():
         st.add_row(k, f"{v:.2f}")
     console.print(st)
+    o = s.get("overall") or {}
+    if o.get("time_to_identity_s_median") is not None:
+        console.print(f"all speeds: time to identity median {_num(o['time_to_identity_s_median'], ' s')} "
+                      f"({_num(o.get('time_from_first_sight_s_median'), ' s')} from first sight), "
+                      f"{_num(o.get('ratio_to_lower_bound_median'))}× the honest bound")
     head = f"success rate {100 * s['success_rate']:.1f} % of {s['n']} trials"
     if s.get("interrupted"):
         head += f" (interrupted: {s['n']} of {s.get('planned')} done; --resume {s['sweep']} continues)"

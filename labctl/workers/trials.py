@@ -74,9 +74,10 @@ def run_one(lab_root: str, index: int, spec: dict, records_dir: str | None) -> d
 
 
 def plan_specs(n: int, trajectory: str, speeds: Sequence[float], objects: Sequence[str], seed: int) -> list[dict]:
-    """``n`` trials per speed with seeds ``seed, seed+1, …``; objects cycle through ``objects``."""
-    return [asdict(TrialSpec(trajectory, float(v), objects[i % len(objects)], seed + i))
-            for v in speeds for i in range(n)]
+    """``n`` trials per speed (and per trajectory of a comma-separated ``trajectory``) with seeds
+    ``seed, seed+1, …``; objects cycle through ``objects``."""
+    return [asdict(TrialSpec(traj, float(v), objects[i % len(objects)], seed + i))
+            for traj in trajectory.split(",") for v in speeds for i in range(n)]
 
 
 # ---- executors: each yields results as they finish -------------------------------------------------
@@ -288,16 +289,32 @@ def summarize(results: list[dict]) -> dict:
             "lower_bound_s_median": _median([r.get("lower_bound_s") for r in ok]),
             "ratio_to_lower_bound_median": _median(ratios),
             "ratio_to_quintic_bound_median": _median(ratios_q),
+            "time_from_first_sight_s_median": _median([r.get("time_from_first_sight_s") for r in ok]),
             "views_mean": statistics.fmean([r["views"] for r in rs]) if rs else 0.0,
         })
     seen = {k for r in results for k in r.get("stages", {})}
     stages = [k for k in STAGE_ORDER if k in seen] + sorted(seen - set(STAGE_ORDER))
     stage_medians = {k: _median([r["stages"].get(k) for r in results if r["correct"]]) for k in stages}
     link_util = [r["link"]["utilisation"] for r in results if "link" in r]
+    ok_all = [r for r in results if r["correct"]]
+    overall = {
+        "time_to_identity_s_median": _median([r["time_to_identity_s"] for r in ok_all]),
+        "time_from_first_sight_s_median": _median([r.get("time_from_first_sight_s") for r in ok_all]),
+        "lower_bound_s_median": _median([r.get("lower_bound_s") for r in ok_all]),
+        "ratio_to_lower_bound_median": _median([r["time_to_identity_s"] / r["lower_bound_s"] for r in ok_all
+                                                if r.get("lower_bound_s")]),
+    }
+    by_traj = {t: {"n": len(rs), "success_rate": sum(r["correct"] for r in rs) / len(rs),
+                   "time_to_identity_s_median": _median([r["time_to_identity_s"] for r in rs if r["correct"]]),
+                   "wait_s_median": _median([r["stages"].get("wait") for r in rs if r["correct"]])}
+               for t in sorted({r.get("trajectory") for r in results} - {None})
+               for rs in [[r for r in results if r.get("trajectory") == t]]}
     return {
         "n": len(results),
         "success_rate": sum(r["correct"] for r in results) / len(results) if results else 0.0,
         "by_speed": by_speed,
+        "overall": overall,
+        "by_trajectory": by_traj,
         "stage_medians_s": {k: v for k, v in stage_medians.items() if v is not None},
         "link_utilisation_median": _median(link_util),
         "failed": [{k: r.get(k) for k in ("index", "seed", "true_identity", "identity", "speed_mm_s", "failure",
