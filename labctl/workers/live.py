@@ -425,7 +425,12 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
         # the sim lab's ports when it serves them, else the driver files' (None keeps the file's port);
         # no table to drive when the parts move by something else (--trajectory external)
         external = args.spec["trajectory"] == "external" or lab.table is None
-        table = None if external else GrblTable.from_config(lab.table, port=args.table_port)
+        tcfg = lab.table
+        if tcfg is not None and tcfg.kind == "sim":
+            # the simulated board sits on a pty: opening it toggles no DTR, so nothing resets it and
+            # there is no boot to wait out before the first status query (0.3 s saved, issue 16)
+            tcfg = dataclasses.replace(tcfg, reset_on_open=False)
+        table = None if external else GrblTable.from_config(tcfg, port=args.table_port)
         robot = SerialRobot.from_config(lab.robot, port=args.robot_port)
         camera = _fixed_camera(args, lab)
 
