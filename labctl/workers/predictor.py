@@ -35,6 +35,9 @@ from . import messages as m
 from .context import RunContext
 from .tti_bound import Leg, identity_bound
 
+#: a robot at rest farther than this (mm) from the end of its segment did not run it to the end
+ARRIVAL_TOL_MM = 1.0
+
 STAGES = ("wait", "track", "intercept", "initial", "standard", "match", "done", "failed")
 
 
@@ -334,9 +337,18 @@ class PredictorPlanner:
                 self.rest_T = np.asarray(self.T_end, dtype=float).copy()
                 return self.rest_T
         st = self.robot.status()
+        latched = getattr(self.robot, "latched", None)
+        if latched:  # its watchdog or a STOP cut the move: an image from where it stood would be a wrong view
+            self.fail(now, f"the robot controller stopped the robot ({latched}) before it reached the view")
+            return None
         if st.moving and now < self.plan.t_hit + self.plan_shift + 1.0:
             return None
-        self.rest_T = np.asarray(st.T_base_flange, dtype=float).copy()
+        T = np.asarray(st.T_base_flange, dtype=float)
+        if self.T_end is not None and np.linalg.norm(T[:3, 3] - self.T_end[:3, 3]) > ARRIVAL_TOL_MM:
+            self.fail(now, f"the robot stands {np.linalg.norm(T[:3, 3] - self.T_end[:3, 3]):.1f} mm from its "
+                           "commanded view")
+            return None
+        self.rest_T = T.copy()
         return self.rest_T
 
     def _end_leg(self, T_flange: np.ndarray) -> None:
