@@ -92,6 +92,9 @@ class RunConfig:
     # object in 34 of 480 trials; docs/notes/library.md)
     height_gate_mm: NonNegative = 0.0
     second_image_azimuth_deg: float = 25.0  # camera moves this far round the marker between the two images
+    # ... sideways round it (the paper's) or up towards the top, where an upward marker's standard view is (issue 16)
+    second_image_move: Literal["azimuth", "elevation"] = "azimuth"
+    second_image_elevation_deg: Positive = 5.0  # the step up (on the 1 m sphere: twice the path of a step round)
     fps: Positive = 30.0
     # the predictor's policy (paper §5.2–5.3)
     max_viewpoints: PositiveInt = 4  # viewpoints tried for a usable marker pose before the run fails
