@@ -39,8 +39,10 @@ from . import messages as m
 # which :func:`warm_up` starts while the command is still loading the lab: the sim lab and both
 # workers then fork in milliseconds instead of importing for seconds each (issue 16, start-up).
 CTX = mp.get_context("forkserver")
-_PRELOAD = ["labctl.workers.live", "labctl.workers.predictor", "labctl.workers.recognizer",
-            "labctl.workers.simlab", "labctl.workers.context"]
+# Not the predictor: its tracking imports filterpy → scipy.stats (~0.5 s CPU), which only the predictor
+# needs; it imports them after its fork, beside the simulated lab's set-up, instead of holding up the
+# lab's fork (issue 16, start-up)
+_PRELOAD = ["labctl.workers.live", "labctl.workers.recognizer", "labctl.workers.simlab", "labctl.workers.context"]
 
 
 def warm_up() -> None:
