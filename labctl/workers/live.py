@@ -388,8 +388,6 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
     way out it stops the robot and the table and records each outcome (``devices_stopped``)."""
     from ..drivers.grbl import GrblTable
     from ..drivers.robot import SerialRobot
-    from .context import RunContext
-    from .predictor import PredictorPlanner, ProgramProgress
     from .simlab import trajectory_program
     from .transport import open_link
 
@@ -417,9 +415,20 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
         ctl.beat(now, {"stage": "reconnecting"})
 
     marks = {"predictor_started": time.time()}  # start-up phases, wall clock (issue 16: command → first tracked frame)
-    try:
-        ctx = RunContext.load(lab)
+
+    def load_context():
+        # CPU: the planner's imports (tracking → filterpy → scipy.stats, ~0.5 s) and the calibration and
+        # library; in a thread, while the main thread waits for the ports and opens the devices (I/O)
+        from .context import RunContext
+        from .predictor import PredictorPlanner  # noqa: F401 — imported here, off the critical path
+
+        out = RunContext.load(lab)
         marks["predictor_context_loaded"] = time.time()
+        return out
+
+    starting = ThreadPoolExecutor(2, thread_name_prefix="labctl-predictor-start")
+    try:
+        ctx_job = starting.submit(load_context)
         link = open_link(hl, "predictor", local_end=link_end, authkey=_authkey(args, lab),
                          on_refused=lambda line: log("link_refused", line=line))
         args = _endpoints(args, ctl)
@@ -449,16 +458,19 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
         # The table's connection (board reset, banner, sync, $I, unlock: ~1 s of 9600-bps round trips)
         # runs beside the robot's and the camera's, not before them (issue 16, live start-up). No
         # keep-alive while opening: nothing moves yet, and the two threads must not share a port.
-        with ThreadPoolExecutor(1, thread_name_prefix="labctl-table-open") as pool:
-            table_job = pool.submit(table_ready) if table is not None else None
-            try:
-                for dev in (robot, camera):
-                    dev.open()
-                robot.ensure_ready()
-                marks["robot_and_camera_ready"] = time.time()
-            finally:
-                if table_job is not None:
-                    table_job.result()  # the table's own error, if it had one, comes out here
+        table_job = starting.submit(table_ready) if table is not None else None
+        try:
+            for dev in (robot, camera):
+                dev.open()
+            robot.ensure_ready()
+            marks["robot_and_camera_ready"] = time.time()
+        finally:
+            if table_job is not None:
+                table_job.result()  # the table's own error, if it had one, comes out here
+        ctx = ctx_job.result()
+        starting.shutdown()
+        from .predictor import PredictorPlanner, ProgramProgress
+
         if table is not None:
             table.while_reconnecting = keep_alive
         robot.while_reconnecting = lambda: keep_alive(robot_too=False)
@@ -528,6 +540,7 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
             with contextlib.suppress(Exception):
                 log("worker_error", role="predictor", error=reason, traceback=traceback.format_exc())
     finally:
+        starting.shutdown(wait=False, cancel_futures=True)
         outcomes = _release(log, "predictor", reason, stop={"robot": robot, "table": table},
                             close=(camera, robot, table), link=link, tell_peer=code != 0, t=_now(args.origin),
                             clear_robot=code == 0 and planner is not None and planner.finished)
@@ -715,8 +728,11 @@ def sim_server_main(lab_root: str, spec: dict, conn, run_dir: str | None = None)
 
     ppid = os.getppid()
     try:
-        with LiveSimLab(load_lab(lab_root), spec) as sim:
+        served = LiveSimLab(load_lab(lab_root), spec)
+        served.warm_on_enter = False  # the first renders overlap the workers' device connections
+        with served as sim:
             conn.send(("ready", sim.endpoints()))
+            sim.warm_up()
             truth = _TruthLog(sim, log)
             orphaned = None
             while True:
