@@ -44,6 +44,12 @@ def test_live_run_identifies_with_two_worker_processes(lab):
     lines = (Path(res["record"]) / "events.jsonl").read_text().splitlines()
     first_two = [json.loads(line)["event"] for line in lines[:2]]
     assert first_two == ["worker_started", "worker_started"]
+    # start-up, phase by phase (s after the command): the workers start beside the simulated lab and
+    # open no device before its ports came; the first tracked frame ends it (issue 16)
+    st = res["startup_s"]
+    assert st["workers_forked"] < st["sim_lab_ready"] <= st["endpoints"] <= st["robot_and_camera_ready"]
+    assert st["endpoints"] <= st["table_connected"] <= st["table_ready"] <= st["first_tracked_frame"]
+    assert 0 < st["sim_lab_starting"] < st["workers_forked"]
 
 
 def _wait_for(path_glob, predicate, timeout_s):

@@ -43,6 +43,9 @@ def _print_result(console, result: dict, run_dir: Path | None) -> None:
                       + ", ".join(f"{k} {v:.2f} s" for k, v in result.get("stages", {}).items()))
     else:
         console.print(f"[bold red]no identity[/]: {result.get('failure')}")
+    first = (result.get("startup_s") or {}).get("first_tracked_frame")
+    if first is not None:
+        console.print(f"first tracked frame {first:.2f} s after the command")
     if run_dir is not None:
         console.print(f"record: {run_dir}")
 
@@ -107,6 +110,10 @@ def run_cmd(trajectory, speed, object_name, seed, virtual) -> None:
         with contextlib.suppress(Exception):  # a report that cannot be drawn must not hide the error
             write_report(record.path)
         raise LabctlError(f"{exc} (record: {record.path})") from None
+    if not virtual:  # command → first tracked frame, phase by phase (issue 16, live start-up)
+        from ..workers.live import process_start_wall, startup_seconds
+
+        result["startup_s"] = startup_seconds(result.pop("startup_wall", None) or {}, process_start_wall())
     result["record"] = str(record.path)
     record.finish(result)
     with contextlib.suppress(Exception):  # nor the run's own result

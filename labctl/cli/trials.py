@@ -53,7 +53,8 @@ def trials_cmd(n, trajectory, profile, speed, objects, seed, record, jobs, sched
     trajs = [t.strip() for t in (trajectory or lab.config.run.trajectory).split(",") if t.strip()]
     for traj in trajs or [""]:
         if traj not in TRAJECTORIES:
-            raise UserInputError(f"--trajectory must be one of {', '.join(TRAJECTORIES)}, got {traj!r}")
+            raise UserInputError(f"--trajectory must be one of {', '.join(TRAJECTORIES)} (or a comma-separated "
+                                  f"list), got {traj!r}")
     profiles = [p.strip().lower() for p in profile.split(",") if p.strip()] if profile else [None]
     for prof in profiles or [""]:
         if prof not in (None, "quintic", "ruckig"):
@@ -122,7 +123,7 @@ def _num(value, unit: str = "") -> str:
 def _print_trials(console, s: dict) -> None:
     from rich.table import Table
 
-    t = Table("speed mm/s", "n", "success", "time to identity (median)", "×lower bound", "×quintic bound",
+    t = Table("speed mm/s", "n", "success", "time to identity (median)", "× honest bound", "×quintic bound",
               "views (mean)", title="trials")
     for row in s["by_speed"]:
         t.add_row(f"{row['speed_mm_s']:g}", str(row["n"]), f"{100 * row['success_rate']:.1f} %",
@@ -141,6 +142,11 @@ def _print_trials(console, s: dict) -> None:
                        _num(row["time_to_identity_s_median"], " s"),
                        *[_num(row["stage_medians_s"].get(k), "") for k in stages])
         console.print(pt)
+    o = s.get("overall") or {}
+    if o.get("time_to_identity_s_median") is not None:
+        console.print(f"all speeds: time to identity median {_num(o['time_to_identity_s_median'], ' s')} "
+                      f"({_num(o.get('time_from_first_sight_s_median'), ' s')} from first sight), "
+                      f"{_num(o.get('ratio_to_lower_bound_median'))}× the honest bound")
     head = f"success rate {100 * s['success_rate']:.1f} % of {s['n']} trials"
     if s.get("interrupted"):
         head += f" (interrupted: {s['n']} of {s.get('planned')} done; --resume {s['sweep']} continues)"

@@ -72,7 +72,11 @@ class TrackingConfig:
     window_px: PositiveInt = 48
     plane_height_mm: NonNegative = 30.0  # height of the plane the fixed camera's centroids are mapped onto
     min_track_s: Positive = 1.0  # plan the interception after tracking this long at the latest
-    commit_margin_mm: Positive = 10.0  # ... or sooner, once the 3-sigma error at commit_horizon_s is this small
+    commit_min_updates: PositiveInt = 3  # ... and never from fewer filter updates than this (issue 16)
+    # ... or sooner, once the 3-sigma error at commit_horizon_s is this small: 40 mm still fits the central half
+    # of the mobile camera's view at the initial distance (viewing_distance_with_margin), and the plan is
+    # re-planned as the filter converges (issue 16: 10 mm waited ~0.25 s longer for nothing measurable)
+    commit_margin_mm: Positive = 40.0
     commit_horizon_s: Positive = 1.5  # about the interception's duration
 
 
@@ -95,6 +99,9 @@ class RunConfig:
     height_gate_sigmas: NonNegative = 4.0
     height_gate_depth_frac: NonNegative = 0.008
     second_image_azimuth_deg: float = 25.0  # camera moves this far round the marker between the two images
+    # ... sideways round it (the paper's) or up towards the top, where an upward marker's standard view is (issue 16)
+    second_image_move: Literal["azimuth", "elevation"] = "azimuth"
+    second_image_elevation_deg: Positive = 5.0  # the step up (on the 1 m sphere: twice the path of a step round)
     fps: Positive = 30.0
     # the predictor's policy (paper §5.2–5.3)
     max_viewpoints: PositiveInt = 4  # viewpoints tried for a usable marker pose before the run fails
@@ -105,6 +112,8 @@ class RunConfig:
     replan_until_s: NonNegative = 0.4  # ... and not in the last this-many seconds before arrival
     marker_lost_s: Positive = 2.0  # no fixed-camera sighting for this long: the marker is lost
     spare_novelty_deg: NonNegative = 20.0  # a spare marker facing within this of a viewed face is not worth a view
+    # which spare marker to view next: the one whose standard view is nearest, or the most novel face (issue 16)
+    spare_order: Literal["nearest", "novel"] = "nearest"
     # the robot must be able to brake to rest within this many seconds from any point of a planned move
     # (issue 13: at rest within 0.5 s of a stop command): caps the planned speed at a_stop·budget (null: no cap)
     robot_stop_budget_s: Positive | None = None

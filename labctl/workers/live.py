@@ -26,6 +26,7 @@ import sys
 import threading
 import time
 import traceback
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -38,8 +39,10 @@ from . import messages as m
 # which :func:`warm_up` starts while the command is still loading the lab: the sim lab and both
 # workers then fork in milliseconds instead of importing for seconds each (issue 16, start-up).
 CTX = mp.get_context("forkserver")
-_PRELOAD = ["labctl.workers.live", "labctl.workers.predictor", "labctl.workers.recognizer",
-            "labctl.workers.simlab", "labctl.workers.context"]
+# Not the predictor: its tracking imports filterpy → scipy.stats (~0.5 s CPU), which only the predictor
+# needs; it imports them after its fork, beside the simulated lab's set-up, instead of holding up the
+# lab's fork (issue 16, start-up)
+_PRELOAD = ["labctl.workers.live", "labctl.workers.recognizer", "labctl.workers.simlab", "labctl.workers.context"]
 
 
 def warm_up() -> None:
@@ -48,6 +51,25 @@ def warm_up() -> None:
 
     CTX.set_forkserver_preload(_PRELOAD)
     forkserver.ensure_running()
+
+
+def process_start_wall() -> float | None:
+    """Unix time (s, ±10 ms) this process started — the command's start, for start-up timing — from
+    /proc (Linux); None elsewhere."""
+    try:
+        stat = Path("/proc/self/stat").read_text()
+        start_ticks = int(stat.rsplit(")", 1)[1].split()[19])
+        uptime = float(Path("/proc/uptime").read_text().split()[0])
+        return time.time() - (uptime - start_ticks / os.sysconf("SC_CLK_TCK"))
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def startup_seconds(marks: dict, t_command: float | None) -> dict:
+    """The start-up phases (wall times) as seconds after the command started, in order."""
+    if not marks or t_command is None:
+        return {}
+    return {k: round(v - t_command, 3) for k, v in sorted(marks.items(), key=lambda kv: kv[1])}
 
 
 @dataclass
@@ -63,6 +85,34 @@ class WorkerArgs:
     robot_port: str | None = None
     frame_server: tuple | None = None  # (address, authkey)
     extra: dict = field(default_factory=dict)
+    # forked before the simulated lab is ready: its ports and the run clock's origin come by the control pipe
+    await_endpoints: bool = False
+
+
+def _endpoints(args: WorkerArgs, ctl, timeout_s: float = 60.0) -> WorkerArgs:
+    """``args`` with the simulated lab's ports, frame server and clock origin filled in, once the
+    supervisor sends them (``("endpoints", dict)`` on the control pipe); unchanged if they came with
+    ``args``. A worker forked early loads its lab, calibration and library while the simulated lab
+    starts (issue 16, live start-up), and opens no device before this returns."""
+    if not args.await_endpoints:
+        return args
+    deadline = time.monotonic() + timeout_s
+    conn = ctl.conn
+    while time.monotonic() < deadline:
+        if os.getppid() != ctl.ppid:
+            raise PeerLost("the supervisor is gone (parent process exited)")
+        try:
+            if not conn.poll(0.05):
+                continue
+            msg = conn.recv()
+        except (EOFError, OSError):
+            raise PeerLost("the supervisor is gone (control pipe closed)") from None
+        if msg and msg[0] == "endpoints":
+            ep = msg[1]
+            return dataclasses.replace(args, table_port=ep.get("table"), robot_port=ep.get("robot"),
+                                       frame_server=ep.get("frame_server"), origin=ep["origin"],
+                                       await_endpoints=False)
+    raise PeerLost(f"the simulated lab's ports did not come within {timeout_s:g} s")
 
 
 def _now(origin: float) -> float:
@@ -338,8 +388,6 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
     way out it stops the robot and the table and records each outcome (``devices_stopped``)."""
     from ..drivers.grbl import GrblTable
     from ..drivers.robot import SerialRobot
-    from .context import RunContext
-    from .predictor import PredictorPlanner, ProgramProgress
     from .simlab import trajectory_program
     from .transport import open_link
 
@@ -366,27 +414,66 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
             alive["t_link"] = now
         ctl.beat(now, {"stage": "reconnecting"})
 
+    marks = {"predictor_started": time.time()}  # start-up phases, wall clock (issue 16: command → first tracked frame)
+
+    def load_context():
+        # CPU: the planner's imports (tracking → filterpy → scipy.stats, ~0.5 s) and the calibration and
+        # library; in a thread, while the main thread waits for the ports and opens the devices (I/O)
+        from .context import RunContext
+        from .predictor import PredictorPlanner  # noqa: F401 — imported here, off the critical path
+
+        out = RunContext.load(lab)
+        marks["predictor_context_loaded"] = time.time()
+        return out
+
+    starting = ThreadPoolExecutor(2, thread_name_prefix="labctl-predictor-start")
     try:
-        ctx = RunContext.load(lab)
+        ctx_job = starting.submit(load_context)
         link = open_link(hl, "predictor", local_end=link_end, authkey=_authkey(args, lab),
                          on_refused=lambda line: log("link_refused", line=line))
+        args = _endpoints(args, ctl)
+        marks["endpoints"] = time.time()
         # the sim lab's ports when it serves them, else the driver files' (None keeps the file's port);
         # no table to drive when the parts move by something else (--trajectory external)
         external = args.spec["trajectory"] == "external" or lab.table is None
-        table = None if external else GrblTable.from_config(lab.table, port=args.table_port)
-        if table is not None:
-            table.while_reconnecting = keep_alive
-            table.open()
+        tcfg = lab.table
+        if tcfg is not None and tcfg.kind == "sim":
+            # the simulated board sits on a pty: opening it toggles no DTR, so nothing resets it and
+            # there is no boot to wait out before the first status query (0.3 s saved, issue 16)
+            tcfg = dataclasses.replace(tcfg, reset_on_open=False)
+        table = None if external else GrblTable.from_config(tcfg, port=args.table_port)
+        robot = SerialRobot.from_config(lab.robot, port=args.robot_port)
+        camera = _fixed_camera(args, lab)
+
+        def table_ready() -> None:
             # a simulated table's power-up lock may be released (the simulator knows where it is); a real
             # table in Alarm must be homed or unlocked by the operator first (its position may be lost)
-            table.ensure_ready(unlock=lab.table.kind == "sim")
-            _to_start(table, args.spec["trajectory"], log, lambda: _now(args.origin))
-        robot = SerialRobot.from_config(lab.robot, port=args.robot_port)
+            table.open()
+            marks["table_connected"] = time.time()
+            st = table.ensure_ready(unlock=lab.table.kind == "sim")
+            marks["table_unlocked"] = time.time()
+            _to_start(table, args.spec["trajectory"], log, lambda: _now(args.origin), status=st)
+            marks["table_ready"] = time.time()
+
+        # The table's connection (board reset, banner, sync, $I, unlock: ~1 s of 9600-bps round trips)
+        # runs beside the robot's and the camera's, not before them (issue 16, live start-up). No
+        # keep-alive while opening: nothing moves yet, and the two threads must not share a port.
+        table_job = starting.submit(table_ready) if table is not None else None
+        try:
+            for dev in (robot, camera):
+                dev.open()
+            robot.ensure_ready()
+            marks["robot_and_camera_ready"] = time.time()
+        finally:
+            if table_job is not None:
+                table_job.result()  # the table's own error, if it had one, comes out here
+        ctx = ctx_job.result()
+        starting.shutdown()
+        from .predictor import PredictorPlanner, ProgramProgress
+
+        if table is not None:
+            table.while_reconnecting = keep_alive
         robot.while_reconnecting = lambda: keep_alive(robot_too=False)
-        camera = _fixed_camera(args, lab)
-        for dev in (robot, camera):
-            dev.open()
-        robot.ensure_ready()
         now = _now(args.origin)
         planner = PredictorPlanner(ctx, robot, link.send, log, t_start=now, clock=lambda: _now(args.origin))
         progress = None
@@ -406,6 +493,9 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
                 progress.pump(_now(args.origin))
             frame = camera.grab()
             planner.on_frame(frame)
+            if "first_tracked_frame" not in marks and planner.t_first_seen is not None:
+                marks["first_tracked_frame"] = time.time()
+                log("startup", marks=marks)
             while True:
                 msg = link.recv(timeout=0)
                 if msg is None:
@@ -435,6 +525,7 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
                            "link": {"sent": link.bytes_sent, "received": link.bytes_received},
                            "robot": planner.robot_path[-1][1] if planner.robot_path else None})
         result = planner.result(_now(args.origin))
+        result["startup_wall"] = marks
         link.send(m.Stop(reason="run finished"))
         result["link"] = {**link.stats(), "baud": hl.baud, "duration_s": _now(args.origin) - planner.t_start}
         result["link"]["max_peer_gap_s"] = round(peer.max_gap_s, 3)
@@ -449,6 +540,7 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
             with contextlib.suppress(Exception):
                 log("worker_error", role="predictor", error=reason, traceback=traceback.format_exc())
     finally:
+        starting.shutdown(wait=False, cancel_futures=True)
         outcomes = _release(log, "predictor", reason, stop={"robot": robot, "table": table},
                             close=(camera, robot, table), link=link, tell_peer=code != 0, t=_now(args.origin),
                             clear_robot=code == 0 and planner is not None and planner.finished)
@@ -463,17 +555,18 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
     return code
 
 
-def _to_start(table, trajectory: str, log, now) -> None:
+def _to_start(table, trajectory: str, log, now, status=None) -> None:
     """Bring the table to a named trajectory's start and wait there, before tracking begins: a table
     left elsewhere (after ``labctl calibrate``, say) would otherwise carry the object into view on
     the program's rapid move, which the tracker cannot tell from the object's own motion. A G-code
-    file starts where its own first move goes."""
+    file starts where its own first move goes. ``status``: the table's status just read (Idle), to spare
+    another 9600-bps round trip."""
     from .simlab import TRAJECTORY_STARTS
 
     if trajectory not in TRAJECTORY_STARTS:
         return
     x, y = TRAJECTORY_STARTS[trajectory]
-    p = table.status().position
+    p = (status or table.status()).position
     if abs(p[0] - x) < 0.5 and abs(p[1] - y) < 0.5:
         return
     log("table_to_start", t=now(), start=[x, y], was=list(p[:2]))
@@ -501,6 +594,7 @@ def recognizer_main(args: WorkerArgs, link_end, control) -> int:
         ctx = RunContext.load(lab)
         link = open_link(hl, "recognizer", local_end=link_end, authkey=_authkey(args, lab),
                          on_refused=lambda line: log("link_refused", line=line))
+        args = _endpoints(args, ctl)
         camera = _mobile_camera(args, lab)
         camera.open()
         recognizer = Recognizer(ctx, camera.grab, log, save)
@@ -624,8 +718,11 @@ def sim_server_main(lab_root: str, spec: dict, conn, run_dir: str | None = None)
 
     ppid = os.getppid()
     try:
-        with LiveSimLab(load_lab(lab_root), spec) as sim:
+        served = LiveSimLab(load_lab(lab_root), spec)
+        served.warm_on_enter = False  # the first renders overlap the workers' device connections
+        with served as sim:
             conn.send(("ready", sim.endpoints()))
+            sim.warm_up()
             truth = _TruthLog(sim, log)
             orphaned = None
             while True:
@@ -750,26 +847,17 @@ class LiveRun:
         sim_conn = sim_proc = None
         endpoints = {}
         origin = time.monotonic()
+        marks = self._marks
         try:
             if lab.is_simulated:
                 self._say("starting the simulated lab")
+                marks["sim_lab_starting"] = time.time()
                 sim_conn, child = CTX.Pipe()
                 sim_proc = CTX.Process(target=sim_server_main, name="labctl-sim", daemon=True,
                                        args=(str(lab.root), self.spec, child,
                                              str(self.run_dir) if self.run_dir else None))
                 _start_quietly(sim_proc)
                 child.close()
-                if not sim_conn.poll(60):
-                    raise WorkerDied("the simulated lab did not start within 60 s")
-                kind, payload = sim_conn.recv()
-                if kind != "ready":
-                    raise WorkerDied(str(payload))
-                endpoints = payload
-                origin = endpoints["origin"]
-            from .stopping import open_stop_lines
-
-            self._stop_fds = open_stop_lines(lab, endpoints)
-            stack.callback(self._close_stop_lines)
             a_end, b_end = local_pair() if lab.host_link.transport == "local" else (None, None)
             extra = {"predictor": {}, "recognizer": {}}
             if lab.host_link.transport == "tcp":  # both workers on this PC: a fresh key for this run alone
@@ -786,23 +874,42 @@ class LiveRun:
                 for role, port in (("predictor", modem.port_a), ("recognizer", modem.port_b)):
                     extra[role]["host_link"] = dataclasses.asdict(dataclasses.replace(lab.host_link, port=port))
             self._say("starting the workers")
+            # the workers start at once, beside the simulated lab: they load the lab, calibration and
+            # library meanwhile and wait for its ports before opening any device (issue 16, start-up)
             base = dict(lab_root=str(lab.root), run_dir=str(self.run_dir) if self.run_dir else None,
-                        spec=self.spec, origin=origin, table_port=endpoints.get("table"),
-                        robot_port=endpoints.get("robot"), frame_server=endpoints.get("frame_server"))
+                        spec=self.spec, origin=origin, await_endpoints=sim_conn is not None)
+            for role, end in (("predictor", a_end), ("recognizer", b_end)):
+                parent, child = CTX.Pipe()
+                p = CTX.Process(target=_worker_process, name=f"labctl-{role}", daemon=True,
+                                args=(role, WorkerArgs(role=role, extra=extra[role], **base), end, child))
+                _start_quietly(p)
+                child.close()
+                procs[role], controls[role] = p, parent
+            for end in (a_end, b_end):
+                if end is not None:
+                    with contextlib.suppress(Exception):
+                        end.close()
+            marks["workers_forked"] = time.time()
+            if sim_conn is not None:
+                if not sim_conn.poll(60):
+                    raise WorkerDied("the simulated lab did not start within 60 s")
+                kind, payload = sim_conn.recv()
+                if kind != "ready":
+                    raise WorkerDied(str(payload))
+                endpoints = payload
+                origin = endpoints["origin"]
+                marks["sim_lab_ready"] = time.time()
+            from .stopping import open_stop_lines
+
+            self._stop_fds = open_stop_lines(lab, endpoints)
+            stack.callback(self._close_stop_lines)
             try:
-                for role, end in (("predictor", a_end), ("recognizer", b_end)):
-                    parent, child = CTX.Pipe()
-                    p = CTX.Process(target=_worker_process, name=f"labctl-{role}", daemon=True,
-                                    args=(role, WorkerArgs(role=role, extra=extra[role], **base), end, child))
-                    _start_quietly(p)
-                    child.close()
-                    procs[role], controls[role] = p, parent
-                for end in (a_end, b_end):
-                    if end is not None:
-                        with contextlib.suppress(Exception):
-                            end.close()
+                if sim_conn is not None:
+                    for conn in controls.values():
+                        conn.send(("endpoints", endpoints))
                 self._say("workers loading calibration and library, opening the devices")
                 result = self._supervise(lab, procs, controls, sim_conn)
+                result["startup_wall"] = {**marks, **(result.get("startup_wall") or {})}
                 result["devices_stopped"] = self._await_stopped(lab, procs, controls)
             except (WorkerDied, KeyboardInterrupt, Terminated) as exc:
                 _shield()
@@ -834,6 +941,7 @@ class LiveRun:
                     sim_proc.join(timeout=2)
 
     _stop_fds: dict = field(default_factory=dict)
+    _marks: dict = field(default_factory=dict)  # start-up phases, wall clock
 
     def _close_stop_lines(self) -> None:
         for fd in self._stop_fds.values():

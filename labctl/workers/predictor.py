@@ -35,6 +35,10 @@ from ..tracking.tracker import MarkerTracker
 from ..vision import detect_markers, detect_markers_windowed, red_blob_centroid
 from . import messages as m
 from .context import RunContext
+from .tti_bound import Leg, identity_bound
+
+#: a robot at rest farther than this (mm) from the end of its segment did not run it to the end
+ARRIVAL_TOL_MM = 1.0
 
 STAGES = ("wait", "track", "intercept", "initial", "standard", "match", "done", "failed")
 
@@ -108,6 +112,7 @@ class PredictorPlanner:
         self.views_used = 0
         self.markers_tried = 0
         self.azimuth_deg: float | None = None
+        self.elevation_step_deg = 0.0  # the second image's step up from the initial viewing angle
         self.marker_pose: m.MarkerPose | None = None
         self.R_w_c_ref = np.eye(3)
         self.t_requested: dict[int, float] = {}
@@ -123,8 +128,15 @@ class PredictorPlanner:
         self.latency_s = 100 * 10.0 / ctx.lab.robot.baud
         self.plan_shift = 0.0  # controller time − plan time of the segment being executed
         self.t_robot_log = -math.inf
-        self.min_motion_s = 0.0  # sum over legs of the robot-limited rest-to-rest time (lower bound)
-        self.min_quintic_s = 0.0  # the same with the paper's quintic profile
+        self.min_quintic_s = 0.0  # sum over legs of the paper's quintic rest-to-rest time (the old bound)
+        # the legs flown, for the honest bound (tti_bound): the one under way (start state, kind) and those done
+        self.legs: list[Leg] = []
+        self.leg_start: tuple | None = None
+        self.n_images = 0
+        # where the robot stands still (4×4 W ← flange), known without asking once it has been read or reached
+        self.rest_T: np.ndarray | None = None
+        self.T_end: np.ndarray | None = None  # the commanded end pose of the segment under way
+        self._asked_rest = False
         # the segment profile (run.profile): ruckig only if the controller lists it (dialect 1.2)
         choose = getattr(robot, "choose_profile", None)
         self.profile = choose(profile or cfg.run.profile) if choose is not None else "quintic"
@@ -169,9 +181,15 @@ class PredictorPlanner:
                 v, a = np.zeros(3), np.zeros(3)
             if R is not None:
                 return (p, v, a), R
-        st = self.robot.status()
-        T = st.T_base_flange
+        T = self._rest_pose()
         return (T[:3, 3].copy(), np.zeros(3), np.zeros(3)), T[:3, :3].copy()
+
+    def _rest_pose(self) -> np.ndarray:
+        """The flange pose (4×4, W) of the robot at rest: the pose it reached (@DONE of the last commanded
+        segment), else one STATUS (a ~0.1 s round trip at 9600 bps, so it is asked once, while waiting)."""
+        if self.rest_T is None:
+            self.rest_T = np.asarray(self.robot.status().T_base_flange, dtype=float).copy()
+        return self.rest_T
 
     def _marker_path(self):
         return self.tracker.predicted_path()
@@ -183,6 +201,8 @@ class PredictorPlanner:
         T_end = make_T(end.orientation(end.t1) if end.rot_coeffs is not None else plan.target.rotation,
                        end.state(end.t1)[0])
         self.segment_id += 1
+        self.T_end = T_end
+        self.rest_T = None  # moving: at rest again only when the segment is done
         now = self._now(now)
         kw = {}
         if getattr(end, "profile", "quintic") == "ruckig":  # the controller re-runs ruckig from its own state
@@ -204,7 +224,8 @@ class PredictorPlanner:
         distance = viewing_distance_with_margin(self.cfg.viewing.initial_distance_mm, self._commit_margin_mm(),
                                                 float(np.arctan2(0.5 * cam.height, cam.K[1, 1])))
         G = camera_placement_trajectory(self._marker_path(), distance,
-                                        self.ctx.initial_angle_deg or self.cfg.viewing.initial_angle_deg, azimuth_deg,
+                                        (self.ctx.initial_angle_deg or self.cfg.viewing.initial_angle_deg)
+                                        + self.elevation_step_deg, azimuth_deg,
                                         marker_z_mm=self.ctx.plane_height_mm, T_f_c=self.ctx.T_f_c2)
         return _RestAt(G)
 
@@ -226,11 +247,13 @@ class PredictorPlanner:
         return plan_interception(state, t0, target, self.ctx.limits, horizon_s=horizon, R0=R)
 
     def _start_move(self, now: float, kind: str, plan: Interception) -> None:
-        state, _ = self._flange_state(now)
+        seg0 = plan.trajectory.segments[0]
+        p0, v0, a0 = plan.trajectory.state(seg0.t0)  # the state the plan starts from: where the leg begins
+        R0 = plan.trajectory.orientation(seg0.t0)
+        self.leg_start = (kind, p0, v0, a0, R0)
         self.plan, self.plan_kind, self.t_last_plan = plan, kind, now
-        bound, quintic = rest_to_rest_times(state[0], plan.trajectory.state(plan.t_hit)[0],
-                                            self.ctx.lab.robot.v_max_mm_s, self.ctx.lab.robot.a_max_mm_s2)
-        self.min_motion_s += bound
+        _, quintic = rest_to_rest_times(p0, plan.trajectory.state(plan.t_hit)[0],
+                                        self.ctx.lab.robot.v_max_mm_s, self.ctx.lab.robot.a_max_mm_s2)
         self.min_quintic_s += quintic
         self._send_segment(now, plan)
         self.log("plan", t=now, kind=kind, t_hit=plan.t_hit)
@@ -291,14 +314,26 @@ class PredictorPlanner:
                 self.plan, self.plan_shift = old, old_shift
                 self.log("replan_refused", t=now, error=str(exc))
 
-    def _standard_target(self):
+    def _standard_target(self, mp: m.MarkerPose | None = None, t_ref: float | None = None):
         """G(t) of the standard view (paper §4.3): the marker, carried by the table's predicted
-        motion from where it was measured, seen along its normal from the stand-off; at rest."""
-        mp = self.marker_pose
+        motion from where it was measured, seen along its normal from the stand-off; at rest.
+        Default: the marker being viewed (``marker_pose`` measured at ``t_marker_pose``)."""
+        mp = self.marker_pose if mp is None else mp
+        t_ref = self.t_marker_pose if t_ref is None else t_ref
         scale = self.ctx.displacement_scale(mp.center_w[2])
-        return _RestAt(standard_view_path(_Scaled(self._marker_path(), scale), self.t_marker_pose,
+        return _RestAt(standard_view_path(_Scaled(self._marker_path(), scale), t_ref,
                                           mp.center_w, mp.normal_w, self.cfg.viewing.standoff_mm, self.R_w_c_ref,
                                           T_f_c=self.ctx.T_f_c2))
+
+    def _travel_s(self, pose: m.MarkerPose, now: float) -> float:
+        """Rough time (s) from where the robot stands to ``pose``'s standard view (rest-to-rest at the
+        planner's limits, the view where the marker is now): to rank spare markers."""
+        _, R = self._flange_state(now)
+        self.R_w_c_ref = R @ self.ctx.T_f_c2[:3, :3]
+        G = self._standard_target(pose, self.t_requested.get(pose.view_id, now))
+        p1 = G(np.array([now]))[0][0]
+        p0 = self._flange_state(now)[0][0]
+        return rest_to_rest_times(p0, p1, self.ctx.limits.v_max, self.ctx.limits.a_max)[0]
 
     def _plan_standard(self, now: float) -> bool:
         _, R = self._flange_state(now)
@@ -310,11 +345,48 @@ class PredictorPlanner:
         self._start_move(now, "standard", plan)
         return True
 
+    def _arrived(self, now: float) -> np.ndarray | None:
+        """The flange pose (4×4, W) once the robot stands at the end of its segment, else None.
+
+        The controller's ``@DONE <id>`` of the segment under way says it stands at the commanded end
+        pose: read without waiting, no round trip. A controller that sends no ``@DONE`` (or one lost on
+        the line) is asked with STATUS, from the planned arrival on (still moving: wait, up to 1 s)."""
+        done = getattr(self.robot, "done_ids", None)
+        if done is not None and hasattr(self.robot, "poll") and self.T_end is not None:
+            self.robot.poll()
+            if self.segment_id in done:
+                self.rest_T = np.asarray(self.T_end, dtype=float).copy()
+                return self.rest_T
+        st = self.robot.status()
+        latched = getattr(self.robot, "latched", None)
+        if latched:  # its watchdog or a STOP cut the move: an image from where it stood would be a wrong view
+            self.fail(now, f"the robot controller stopped the robot ({latched}) before it reached the view")
+            return None
+        if st.moving and now < self.plan.t_hit + self.plan_shift + 1.0:
+            return None
+        T = np.asarray(st.T_base_flange, dtype=float)
+        if self.T_end is not None and np.linalg.norm(T[:3, 3] - self.T_end[:3, 3]) > ARRIVAL_TOL_MM:
+            self.fail(now, f"the robot stands {np.linalg.norm(T[:3, 3] - self.T_end[:3, 3]):.1f} mm from its "
+                           "commanded view")
+            return None
+        self.rest_T = T.copy()
+        return self.rest_T
+
+    def _end_leg(self, T_flange: np.ndarray) -> None:
+        """Close the leg under way at the rest pose ``T_flange`` where its image is taken (for the bound)."""
+        if self.leg_start is None:
+            return
+        kind, p0, v0, a0, R0 = self.leg_start
+        self.legs.append(Leg(kind, tuple(map(float, p0)), tuple(map(float, T_flange[:3, 3])), tuple(map(float, v0)),
+                             tuple(map(float, a0)), R0=R0, R1=T_flange[:3, :3].copy()))
+        self.leg_start = None
+
     # -- capture ---------------------------------------------------------------------------------
     def _request_capture(self, now: float, kind: str, T_w_f: np.ndarray) -> None:
         """Ask the recognizer for an image now; the camera pose comes from the robot's reported flange."""
         T_w_c2 = T_w_f @ self.ctx.T_f_c2
         self.view_id += 1
+        self.n_images += 1
         self.pending = self.view_id
         self.t_requested[self.view_id] = now
         self.send(m.CaptureRequest(view_id=self.view_id, kind=kind, t_capture=now,
@@ -335,14 +407,34 @@ class PredictorPlanner:
             n = np.asarray(pose.normal_w, dtype=float)
             return min((float(np.arccos(np.clip(n @ u, -1.0, 1.0))) for u in self.used_normals), default=np.pi)
 
-        while self.spare_poses:
+        floor = np.radians(self.cfg.run.spare_novelty_deg)
+        # only faces turned from every viewed one tell something new; of those, the nearest view is
+        # the quickest (run.spare_order "nearest"), or the most novel face ("novel", the old order)
+        self.spare_poses = [p for p in self.spare_poses if novelty(p) >= floor]
+        if self.cfg.run.spare_order == "nearest":
+            self.spare_poses.sort(key=lambda p: self._travel_s(p, now))
+        else:
             self.spare_poses.sort(key=novelty, reverse=True)
+        while self.spare_poses:
             pose = self.spare_poses.pop(0)
-            if novelty(pose) < np.radians(self.cfg.run.spare_novelty_deg):
-                return False  # only faces parallel to viewed ones are left: their views would tell nothing new
             if self._use_pose(pose, now):
                 return True
         return False
+
+    def _step_for_second_image(self) -> None:
+        """Move the viewpoint for the next marker image: ``run.second_image_elevation_deg`` up towards the top
+        (``run.second_image_move: elevation``, while the view stays ≤ 85° high), else
+        ``run.second_image_azimuth_deg`` sideways round the marker (``azimuth``, the paper's). A marker facing
+        up — the recogniser prefers one — has its two pose candidates in the vertical plane through the line
+        of sight, so a step in that plane separates them most (duality margin 0.35 rad for 10° up against
+        0.14 for 10° round, one trial), and it is the way to its standard view straight above (issue 16)."""
+        run = self.cfg.run
+        base = self.ctx.initial_angle_deg or self.cfg.viewing.initial_angle_deg
+        up = run.second_image_elevation_deg
+        if run.second_image_move == "elevation" and base + self.elevation_step_deg + up <= 85.0:
+            self.elevation_step_deg += up
+        else:
+            self.azimuth_deg += run.second_image_azimuth_deg
 
     def _next_marker(self, now: float) -> None:
         """Look at the object from another side to pick up another marker (ambiguity or no pose)."""
@@ -351,6 +443,7 @@ class PredictorPlanner:
             self.fail(now, f"no marker gave a usable pose from {self.markers_tried} viewpoints")
             return
         self.azimuth_deg += self.cfg.run.next_viewpoint_deg
+        self.elevation_step_deg = 0.0
         self.marker_pose = None
         self._enter("intercept", now)
         self._plan_initial(now, "initial1")
@@ -418,7 +511,7 @@ class PredictorPlanner:
             self.t_requested[msg.view_id] = msg.t  # the image's own time
         if isinstance(msg, m.FrameTaken) and msg.view_id == self.pending and self.plan_kind == "initial1":
             self.pending = None
-            self.azimuth_deg += self.cfg.run.second_image_azimuth_deg
+            self._step_for_second_image()
             self._plan_initial(now, "initial2")
         elif isinstance(msg, m.MarkerPose) and msg.view_id == self.pending:
             self.pending = None
@@ -426,7 +519,7 @@ class PredictorPlanner:
                      margin=msg.margin)
             if msg.ambiguous:
                 # the two views did not separate the candidates: one more image, further round
-                self.azimuth_deg += self.cfg.run.second_image_azimuth_deg
+                self._step_for_second_image()
                 self._plan_initial(now, "initial2")
                 return
             self.spare_poses = []
@@ -465,8 +558,14 @@ class PredictorPlanner:
         if now > self.deadline:
             self.fail(now, f"no identity within the run's {self.cfg.run.timeout_s:.0f} s")
             return
+        if self.stage == "wait" and self.rest_T is None and not self._asked_rest:
+            # learn where the robot stands while nothing else is to be done: the first leg needs no STATUS
+            self._asked_rest = True
+            st = self.robot.status()
+            if not st.moving:
+                self.rest_T = np.asarray(st.T_base_flange, dtype=float).copy()
         if self.stage == "track":
-            if self.n_updates >= 10 and self._ready_to_commit(now):
+            if self.n_updates >= self.cfg.tracking.commit_min_updates and self._ready_to_commit(now):
                 self.azimuth_deg = self._choose_azimuth()
                 self._enter("intercept", now)
                 self._plan_initial(now, "initial1")
@@ -478,20 +577,21 @@ class PredictorPlanner:
             if now < self.plan.t_hit + self.plan_shift:
                 self._replan(now)
                 return
-            st = self.robot.status()
-            if st.moving and now < self.plan.t_hit + self.plan_shift + 1.0:
+            T_flange = self._arrived(now)
+            if T_flange is None:
                 return
-            p = st.T_base_flange[:3, 3]
+            p = T_flange[:3, 3]
             self.robot_path.append((now, p.tolist()))
             self.log("robot", t=now, p=p)
             kind = self.plan_kind
+            self._end_leg(T_flange)
             self.plan = None
             if kind == "standard":
                 self.views_used += 1
                 self._enter("match", now)
             else:
                 self._enter("initial", now)
-            self._request_capture(now, kind, st.T_base_flange)  # robot base = world
+            self._request_capture(now, kind, T_flange)  # robot base = world
         wait_s = self.cfg.run.recognizer_timeout_s
         if self.pending is not None and now - self.stage_times.started[self.stage] > wait_s:
             self.fail(now, f"the recognizer did not answer within {wait_s:g} s (stage {self.stage})")
@@ -503,11 +603,12 @@ class PredictorPlanner:
             self.stage_times.enter(self.stage_times.current, now)
         ident = self.identity
         t_id = (self.stage_times.started.get("done") - self.t_start) if ident is not None else None
-        lower = lower_q = None
+        lower = lower_q = parts = None
         if t_id is not None and self.t_first_seen is not None:
-            track_s = self.stage_times.durations.get("track", self.cfg.tracking.min_track_s)  # commit may be sooner
-            fixed = (self.t_first_seen - self.t_start) + track_s
-            lower, lower_q = fixed + self.min_motion_s, fixed + self.min_quintic_s
+            parts = self.bound()
+            lower = parts["bound_s"]
+            # the paper's quintic over the same legs, from first sight, with the same frames: the profile's own cost
+            lower_q = parts["first_sight_s"] + self.min_quintic_s + parts["frames_s"]
         return {
             "identity": self.ctx.names[ident.object_id] if ident is not None else None,
             "score": ident.score if ident is not None else None,
@@ -515,10 +616,28 @@ class PredictorPlanner:
             "time_to_identity_s": t_id,
             "lower_bound_s": lower,
             "lower_bound_quintic_s": lower_q,
+            "ratio_to_bound": (t_id / lower) if lower else None,
+            "bound": parts,
+            "time_from_first_sight_s": (t_id - (self.t_first_seen - self.t_start)) if parts else None,
             "views": self.views_used,
             "stages": {k: round(v, 4) for k, v in self.stage_times.durations.items()},
             "failure": self.failure,
         }
+
+
+    def bound(self) -> dict:
+        """The honest lower bound of this run's time to identity (:mod:`.tti_bound`): first sight, the legs
+        flown at the controller's own limits (not the planner's margins or stop-budget cap), the mobile
+        camera's frame time per image."""
+        rc = self.ctx.lab.robot
+        first = (self.t_first_seen - self.t_start) if self.t_first_seen is not None else 0.0
+        fps = float(getattr(self.ctx.lab.mobile_camera, "fps", 0.0) or 0.0)
+        j = getattr(rc, "j_max_mm_s3", None)
+        out = identity_bound(first, self.legs, self.n_images, 1.0 / fps if fps > 0 else 0.0,
+                             v_max=float(rc.v_max_mm_s), a_max=float(rc.a_max_mm_s2),
+                             w_max=math.radians(float(rc.w_max_deg_s)), j_max=float(j) if j else None)
+        out["legs"] = [leg.kind for leg in self.legs]
+        return out
 
 
 class ProgramProgress:

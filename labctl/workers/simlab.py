@@ -164,9 +164,15 @@ def _locked(lock, fn):
 class LiveSimLab:
     """The simulated lab in real time: emulators on ptys, cameras behind a frame server."""
 
+    #: render each camera's first frame (seconds: it builds the scene) before serving; a live run's
+    #: server sets this False and calls :meth:`warm_up` once it has said ready, so the first renders
+    #: overlap the workers' device connections instead of delaying them (issue 16, start-up)
+    warm_on_enter = True
+
     def __init__(self, lab: Lab, spec: dict):
         self.lab, self.spec = lab, spec
         self._stack = contextlib.ExitStack()
+        self._cams: dict = {}
 
     def __enter__(self) -> LiveSimLab:
         from ..sim.camera import FrameServer
@@ -217,7 +223,9 @@ class LiveSimLab:
                 for role in ("fixed", "mobile")}
         for cam in cams.values():
             cam.open()
-            cam.render_frame(0)  # the first render builds the scene (seconds): not in a client's wait
+        self._cams = dict(cams)
+        if self.warm_on_enter:
+            self.warm_up()
         self.clock = clock
         self.conveyor = None
         if self.spec.get("trajectory") == "external" or self.spec.get("conveyor"):
@@ -229,6 +237,13 @@ class LiveSimLab:
             self.conveyor = Conveyor(self.grbl, self.table_pty.lock, lines, delay)
             cams["fixed"] = self.conveyor.watch(cams["fixed"])
         return cams
+
+    def warm_up(self) -> None:
+        """Render each camera's first frame: it builds the scene (the table texture, ~0.5 s), which
+        should not fall in a client's wait. Under each camera's lock, so a grab meanwhile waits for it."""
+        for cam in self._cams.values():
+            with cam._lock:
+                cam.render_frame(0)
 
     def _make_world(self, obj, placement, *, table_position, flange_pose_at):
         from ..sim.world import SimWorld

@@ -77,7 +77,7 @@ def plan_specs(n: int, trajectory: str | Sequence[str], speeds: Sequence[float],
                profiles: Sequence[str | None] = (None,)) -> list[dict]:
     """``n`` trials per speed (per trajectory, per robot profile) with seeds ``seed, seed+1, …``; objects
     cycle through ``objects``. Every profile runs the same seeds (paired comparison)."""
-    trajectories = [trajectory] if isinstance(trajectory, str) else list(trajectory)
+    trajectories = trajectory.split(",") if isinstance(trajectory, str) else list(trajectory)
     return [asdict(TrialSpec(traj, float(v), objects[i % len(objects)], seed + i, prof))
             for prof in profiles for traj in trajectories for v in speeds for i in range(n)]
 
@@ -292,6 +292,7 @@ def summarize(results: list[dict]) -> dict:
             "lower_bound_s_median": _median([r.get("lower_bound_s") for r in ok]),
             "ratio_to_lower_bound_median": _median(ratios),
             "ratio_to_quintic_bound_median": _median(ratios_q),
+            "time_from_first_sight_s_median": _median([r.get("time_from_first_sight_s") for r in ok]),
             "views_mean": statistics.fmean([r["views"] for r in rs]) if rs else 0.0,
         })
     seen = {k for r in results for k in r.get("stages", {})}
@@ -306,10 +307,25 @@ def summarize(results: list[dict]) -> dict:
                            "time_to_identity_s_median": _median([r["time_to_identity_s"] for r in ok]),
                            "stage_medians_s": {k: v for k in stages
                                                if (v := _median([r["stages"].get(k) for r in ok])) is not None}})
+    ok_all = [r for r in results if r["correct"]]
+    overall = {
+        "time_to_identity_s_median": _median([r["time_to_identity_s"] for r in ok_all]),
+        "time_from_first_sight_s_median": _median([r.get("time_from_first_sight_s") for r in ok_all]),
+        "lower_bound_s_median": _median([r.get("lower_bound_s") for r in ok_all]),
+        "ratio_to_lower_bound_median": _median([r["time_to_identity_s"] / r["lower_bound_s"] for r in ok_all
+                                                if r.get("lower_bound_s")]),
+    }
+    by_traj = {t: {"n": len(rs), "success_rate": sum(r["correct"] for r in rs) / len(rs),
+                   "time_to_identity_s_median": _median([r["time_to_identity_s"] for r in rs if r["correct"]]),
+                   "wait_s_median": _median([r["stages"].get("wait") for r in rs if r["correct"]])}
+               for t in sorted({r.get("trajectory") for r in results} - {None})
+               for rs in [[r for r in results if r.get("trajectory") == t]]}
     return {
         "n": len(results),
         "success_rate": sum(r["correct"] for r in results) / len(results) if results else 0.0,
         "by_speed": by_speed,
+        "overall": overall,
+        "by_trajectory": by_traj,
         "stage_medians_s": {k: v for k, v in stage_medians.items() if v is not None},
         "by_profile": by_profile,
         "link_utilisation_median": _median(link_util),

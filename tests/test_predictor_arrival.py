@@ -1,0 +1,76 @@
+"""Arrival at a view (issue 16): on the controller's @DONE without a round trip, and never an image from
+a robot its controller stopped short of the view (a live run under heavy load once tripped the watchdog
+mid-move and matched a view taken from where the robot stood)."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from labctl.config import load_lab
+from labctl.drivers.interfaces import RobotStatus
+from labctl.geometry import make_T
+from labctl.workers.context import RunContext
+from labctl.workers.predictor import PredictorPlanner
+from labctl.workspace import sample_lab_path
+
+
+@pytest.fixture(scope="module")
+def ctx():
+    return RunContext.load(load_lab(sample_lab_path()))
+
+
+class StubRobot:
+    """A controller that reports ``pose`` standing still, with ``latched`` fault and ``done`` segment ids."""
+
+    def __init__(self, pose, latched=None, done=()):
+        self.pose, self.latched, self.done_ids = pose, latched, list(done)
+        self.status_calls = self.stops = 0
+
+    def status(self):
+        self.status_calls += 1
+        return RobotStatus(T_base_flange=self.pose, moving=False, segment_id=1, t=0.0)
+
+    def poll(self):
+        pass
+
+    def stop(self):
+        self.stops += 1
+
+
+def _planner(ctx, robot):
+    p = PredictorPlanner(ctx, robot, lambda msg: None, lambda *a, **k: None)
+    p.stage, p.segment_id = "standard", 7
+    p.plan = SimpleNamespace(t_hit=5.0)
+    p.T_end = make_T(np.eye(3), [100.0, 200.0, 900.0])
+    return p
+
+
+def test_done_means_at_the_commanded_pose_without_asking(ctx):
+    robot = StubRobot(make_T(np.eye(3), [0.0, 0.0, 0.0]), done=[7])
+    p = _planner(ctx, robot)
+    T = p._arrived(5.1)
+    assert np.allclose(T, p.T_end) and robot.status_calls == 0 and not p.finished
+
+
+def test_a_watchdog_stop_fails_the_run_instead_of_taking_the_view(ctx):
+    robot = StubRobot(make_T(np.eye(3), [40.0, 150.0, 700.0]), latched="watchdog")
+    p = _planner(ctx, robot)
+    assert p._arrived(5.1) is None
+    assert p.stage == "failed" and "watchdog" in p.failure and robot.stops == 1
+
+
+def test_standing_short_of_the_view_fails_the_run(ctx):
+    robot = StubRobot(make_T(np.eye(3), [100.0, 230.0, 900.0]))
+    p = _planner(ctx, robot)
+    assert p._arrived(5.1) is None
+    assert p.stage == "failed" and "30.0 mm" in p.failure
+
+
+def test_at_the_view_without_done_is_read_from_status(ctx):
+    robot = StubRobot(make_T(np.eye(3), [100.0, 200.0, 900.2]))
+    p = _planner(ctx, robot)
+    T = p._arrived(5.1)
+    assert T is not None and robot.status_calls == 1 and np.allclose(T[:3, 3], [100.0, 200.0, 900.2])
