@@ -292,6 +292,24 @@ class Suite:
                 return st
             self.client._pump(min(0.05, self.limits.watchdog_s / 4))
 
+    def _arrival(self, sid: int, p1, took_s: float, expect_s: float, mid_err: float, expected: str,
+                 path: str) -> tuple[bool, float, list[str]]:
+        """After a timed segment ``sid`` to ``p1`` (mm): wait for its @DONE and for rest, and list what is
+        wrong: the controller's duration ``took_s`` against ``expect_s`` (s), no @DONE, resting off the
+        target (> 0.01 mm), or ``mid_err`` (mm) off ``path`` on the way (> 0.05 mm)."""
+        done = self.wait_done(sid, expect_s + 2.0)
+        end_err = float(np.linalg.norm(self.wait_rest()["p"] - p1))
+        problems = []
+        if abs(took_s - expect_s) > 2e-4:
+            problems.append(f"t1 − t0 = {took_s:.4f} s, {expected}")
+        if not done:
+            problems.append(f"no @DONE {sid}")
+        if end_err > 0.01:
+            problems.append(f"rests {end_err:.4f} mm from the target")
+        if mid_err > 0.05:
+            problems.append(f"{mid_err:.3f} mm off {path} on the way")
+        return done, end_err, problems
+
     def wait_done(self, seg_id: int, timeout_s: float) -> bool:
         """True once ``@DONE seg_id`` arrives within ``timeout_s`` (s); feeds the watchdog meanwhile."""
         end = time.monotonic() + timeout_s
@@ -610,18 +628,7 @@ class Suite:
                 want = (tau ** np.arange(6)) @ c
                 speed = float(np.linalg.norm((np.arange(6) * tau ** np.maximum(np.arange(6) - 1, 0)) @ c))
                 mid_err = max(mid_err, float(np.linalg.norm(st["p"] - want)) - speed * 5e-5)
-        done = self.wait_done(sid, T + 2.0)
-        st = self.wait_rest()
-        end_err = float(np.linalg.norm(st["p"] - p1))
-        problems = []
-        if abs((t1 - t0) - T) > 2e-4:
-            problems.append(f"t1 − t0 = {t1 - t0:.4f} s, asked {T:.4f} s")
-        if not done:
-            problems.append(f"no @DONE {sid}")
-        if end_err > 0.01:
-            problems.append(f"rests {end_err:.4f} mm from the target")
-        if mid_err > 0.05:
-            problems.append(f"{mid_err:.3f} mm off the quintic on the way")
+        done, end_err, problems = self._arrival(sid, p1, t1 - t0, T, mid_err, f"asked {T:.4f} s", "the quintic")
         self.record("done.sent", done, f"@DONE {sid} {'at' if done else 'missing after'} the segment's end")
         self.record("timing.arrival", not problems, "; ".join(problems)
                     or f"{D:.0f} mm in {T:.3f} s: on the quintic to {max(mid_err, 0):.4f} mm, target to "
@@ -931,18 +938,9 @@ class Suite:
                 want = p0.copy()
                 want[ax] += sgn * pos[0]
                 mid_err = max(mid_err, float(np.linalg.norm(st["p"] - want)) - abs(vel[0]) * 5e-5)
-        done = self.wait_done(sid, ref.duration + 2.0)
-        st = self.wait_rest()
-        end_err = float(np.linalg.norm(st["p"] - p1))
-        problems = []
-        if abs((t1 - t0) - ref.duration) > 2e-4:
-            problems.append(f"t1 − t0 = {t1 - t0:.4f} s, ruckig's time-optimal move takes {ref.duration:.4f} s")
-        if not done:
-            problems.append(f"no @DONE {sid}")
-        if end_err > 0.01:
-            problems.append(f"rests {end_err:.4f} mm from the target")
-        if mid_err > 0.05:
-            problems.append(f"{mid_err:.3f} mm off ruckig's trajectory on the way")
+        done, end_err, problems = self._arrival(sid, p1, t1 - t0, ref.duration, mid_err,
+                                                f"ruckig's time-optimal move takes {ref.duration:.4f} s",
+                                                "ruckig's trajectory")
         self.record("ruckig.arrival", not problems, "; ".join(problems)
                     or f"{D:.0f} mm in {t1 - t0:.4f} s (ruckig: {ref.duration:.4f} s), on the way to "
                        f"{max(mid_err, 0):.4f} mm, target to {end_err:.4f} mm, @DONE")

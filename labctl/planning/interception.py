@@ -75,6 +75,19 @@ def _as_state(state0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         raise PlanningError("start state has non-finite values")
     return p0, v0, a0
 
+def _checked_start(state0, t0: float, horizon_s: float, t_min: float, limits: Limits, G):
+    """The start state ``(p0, v0, a0)`` of an interception search, or an unreachable
+    :class:`Interception` if the robot starts outside the workspace box; PlanningError on a bad
+    state or horizon. Shared by the quintic and the ruckig planners."""
+    p0, v0, a0 = _as_state(state0)
+    if not (np.isfinite(t0) and np.isfinite(horizon_s) and horizon_s > t_min > 0):
+        raise PlanningError(f"need finite t0 and horizon_s > t_min > 0, got t0={t0!r}, horizon_s={horizon_s!r}")
+    if not limits.contains(p0):
+        return Interception(None, None, f"the robot is outside the workspace box at {np.round(p0, 1).tolist()} mm",
+                            "start_outside_box", G)
+    return p0, v0, a0
+
+
 
 def _score(p0, v0, a0, gp, gv, ga, Ts, limits: Limits, rot=None) -> tuple[np.ndarray, np.ndarray]:
     """Sampled constraint score of the quintics to each (gp, gv, ga)[k] taking Ts[k]; feasible where ≤ 0.
@@ -161,12 +174,10 @@ def plan_interception(state0, t0: float, G: TargetFn, limits: Limits, horizon_s:
     ride along G after the hit. Returns an :class:`Interception`; unreachable targets come back
     with ``t_hit=None`` and a reason, never as an exception.
     """
-    p0, v0, a0 = _as_state(state0)
-    if not (np.isfinite(t0) and np.isfinite(horizon_s) and horizon_s > t_min > 0):
-        raise PlanningError(f"need finite t0 and horizon_s > t_min > 0, got t0={t0!r}, horizon_s={horizon_s!r}")
-    if not limits.contains(p0):
-        return Interception(None, None, f"the robot is outside the workspace box at {np.round(p0, 1).tolist()} mm",
-                            "start_outside_box", G)
+    start = _checked_start(state0, t0, horizon_s, t_min, limits, G)
+    if isinstance(start, Interception):
+        return start
+    p0, v0, a0 = start
     rot = None
     rot_args = (None, None, None, None)
     R1 = getattr(G, "rotation", None)

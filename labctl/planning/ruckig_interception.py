@@ -18,8 +18,8 @@ from dataclasses import replace
 
 import numpy as np
 
-from .interception import Interception, TargetFn, _as_state, _unreachable_reason
-from .limits import Limits, PlanningError
+from .interception import Interception, TargetFn, _checked_start, _unreachable_reason
+from .limits import Limits
 from .ruckig_profile import JerkLimits, RuckigPlan, check_ruckig, controller_limits, plan_ruckig
 
 
@@ -98,12 +98,10 @@ def plan_interception_ruckig(state0, t0: float, G: TargetFn, limits: Limits, hor
     :class:`~labctl.planning.interception.Interception` whose trajectory is a :class:`RuckigTrajectory`;
     unreachable targets come back with ``t_hit=None`` and a reason, never as an exception.
     """
-    p0, v0, a0 = _as_state(state0)
-    if not (np.isfinite(t0) and np.isfinite(horizon_s) and horizon_s > t_min > 0):
-        raise PlanningError(f"need finite t0 and horizon_s > t_min > 0, got t0={t0!r}, horizon_s={horizon_s!r}")
-    if not limits.contains(p0):
-        return Interception(None, None, f"the robot is outside the workspace box at {np.round(p0, 1).tolist()} mm",
-                            "start_outside_box", G)
+    start = _checked_start(state0, t0, horizon_s, t_min, limits, G)
+    if isinstance(start, Interception):
+        return start
+    p0, v0, a0 = start
     R0 = np.eye(3) if R0 is None else np.asarray(R0, float)
     w0 = np.zeros(3) if w0 is None else np.asarray(w0, float).reshape(3)
     R1 = getattr(G, "rotation", None)
