@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from labctl.planning import Limits, shortest_quintic
@@ -75,3 +75,20 @@ def test_a_virtual_run_reports_an_honest_bound():
     assert b["bound_s"] <= res["time_to_identity_s"]
     assert res["ratio_to_bound"] == pytest.approx(res["time_to_identity_s"] / res["lower_bound_s"])
     assert res["time_from_first_sight_s"] == pytest.approx(res["time_to_identity_s"] - b["first_sight_s"])
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.tuples(finite, finite, finite), st.tuples(finite, finite, finite),
+       st.tuples(*[st.floats(-200.0, 200.0)] * 3))
+def test_no_controller_ruckig_segment_beats_the_jerk_limited_bound(p0, p1, v0):
+    """A leg flown with ruckig segments is bound with the controller's jmax: the controller's own
+    time-optimal segment (3-D, per-axis shares of the norm limits) never beats that 1-D bound."""
+    from labctl.planning.ruckig_profile import JerkLimits, plan_ruckig
+
+    lim = JerkLimits.from_limits(LIMITS)
+    plan = plan_ruckig((p0, v0, np.zeros(3), np.eye(3), np.zeros(3)), p1, np.eye(3), np.zeros(3), np.zeros(3),
+                       np.zeros(3), 0.0, lim, full=False)
+    assume(plan.code == 0)  # a start beyond an axis's share is refused (E17), not flown
+    leg = Leg("x", p0, p1, v0=v0, j_max=lim.j_max)
+    assert leg_min_time(leg, V, A) <= plan.duration + 1e-9
+    assert leg_min_time(leg, V, A) >= leg_min_time(Leg("x", p0, p1, v0=v0), V, A) - 1e-12  # jerk only lengthens

@@ -132,6 +132,7 @@ class PredictorPlanner:
         # the legs flown, for the honest bound (tti_bound): the one under way (start state, kind) and those done
         self.legs: list[Leg] = []
         self.leg_start: tuple | None = None
+        self.leg_jerk_limited = False
         self.n_images = 0
         # where the robot stands still (4×4 W ← flange), known without asking once it has been read or reached
         self.rest_T: np.ndarray | None = None
@@ -207,6 +208,8 @@ class PredictorPlanner:
         kw = {}
         if getattr(end, "profile", "quintic") == "ruckig":  # the controller re-runs ruckig from its own state
             kw = {"profile": "ruckig", "limits": end.limits.wire(end.base)}
+        else:
+            self.leg_jerk_limited = False  # a quintic segment: no jerk limit binds this leg
         t0c, t1c = self.robot.segment(T_end, end.t1 - end.t0, self.segment_id, replace=True, **kw)
         # The controller reports when it started the segment; on the same clock (the simulated lab)
         # that measures the command latency, and the plan is re-timed to what the robot really does.
@@ -251,6 +254,7 @@ class PredictorPlanner:
         p0, v0, a0 = plan.trajectory.state(seg0.t0)  # the state the plan starts from: where the leg begins
         R0 = plan.trajectory.orientation(seg0.t0)
         self.leg_start = (kind, p0, v0, a0, R0)
+        self.leg_jerk_limited = True  # until a segment of the leg is sent without the controller's jerk limit
         self.plan, self.plan_kind, self.t_last_plan = plan, kind, now
         _, quintic = rest_to_rest_times(p0, plan.trajectory.state(plan.t_hit)[0],
                                         self.ctx.lab.robot.v_max_mm_s, self.ctx.lab.robot.a_max_mm_s2)
@@ -378,7 +382,8 @@ class PredictorPlanner:
             return
         kind, p0, v0, a0, R0 = self.leg_start
         self.legs.append(Leg(kind, tuple(map(float, p0)), tuple(map(float, T_flange[:3, 3])), tuple(map(float, v0)),
-                             tuple(map(float, a0)), R0=R0, R1=T_flange[:3, :3].copy()))
+                             tuple(map(float, a0)), R0=R0, R1=T_flange[:3, :3].copy(),
+                             j_max=self.jerk_ctrl.j_max if self.leg_jerk_limited else None))
         self.leg_start = None
 
     # -- capture ---------------------------------------------------------------------------------

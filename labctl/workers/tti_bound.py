@@ -18,8 +18,11 @@ the image in. Its minimum time is the larger of
   angle's rate).
 
 No tracking allowance: planning may start on the first sighting, so the time spent tracking
-before the robot moves counts against the run, not in the bound. No jerk limit configured
-(``j_max`` None): the bound is the bang-bang / trapezoidal time. Units: mm, s, rad; world frame.
+before the robot moves counts against the run, not in the bound. Jerk: a leg flown wholly with
+ruckig segments is bound by the controller's ``jmax`` (``Leg.j_max``); a leg with any quintic
+segment has no jerk limit (the reference controller checks quintics against v and a only), and
+neither has a leg when ``j_max`` is None: then the bound is the bang-bang / trapezoidal time.
+Units: mm, s, rad; world frame.
 Functional core: numbers in, numbers out.
 """
 
@@ -33,8 +36,9 @@ import numpy as np
 
 @dataclass(frozen=True)
 class Leg:
-    """One move the robot flew before an image: start and end state (mm, mm/s, mm/s²) and orientation
-    (3×3 world ← flange; None: not known)."""
+    """One move the robot flew before an image: start and end state (mm, mm/s, mm/s²), orientation
+    (3×3 world ← flange; None: not known) and the jerk limit it was flown under (mm/s³: a ruckig leg
+    under the controller's ``jmax``; None: no jerk limit binds it, as for the paper's quintics)."""
 
     kind: str
     p0: tuple[float, float, float]
@@ -45,6 +49,7 @@ class Leg:
     a1: tuple[float, float, float] = (0.0, 0.0, 0.0)
     R0: np.ndarray | None = None
     R1: np.ndarray | None = None
+    j_max: float | None = None
 
 
 def min_line_time(d_mm: float, v0: float, a0: float, v1: float, a1: float, v_max: float, a_max: float,
@@ -80,7 +85,7 @@ def leg_min_time(leg: Leg, v_max: float, a_max: float, w_max: float | None = Non
         u = (p1 - p0) / d
         t = min_line_time(d, float(u @ np.asarray(leg.v0, float)), float(u @ np.asarray(leg.a0, float)),
                           float(u @ np.asarray(leg.v1, float)), float(u @ np.asarray(leg.a1, float)),
-                          v_max, a_max, j_max)
+                          v_max, a_max, leg.j_max if leg.j_max is not None else j_max)
     else:
         t = 0.0
     if w_max is not None and leg.R0 is not None and leg.R1 is not None:
