@@ -176,6 +176,8 @@ class _LogIMM(IMMEstimator):
     when a fast corner makes all innovations large; then the probabilities go flat.
     """
 
+    omega: np.ndarray  # filterpy's mixing weights ω[i, j] (set in its _compute_mixing_probabilities)
+
     def update(self, z):
         logl = np.empty(self.N)
         for i, f in enumerate(self.filters):
