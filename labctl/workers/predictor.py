@@ -138,6 +138,7 @@ class PredictorPlanner:
         self.rest_T: np.ndarray | None = None
         self.T_end: np.ndarray | None = None  # the commanded end pose of the segment under way
         self._asked_rest = False
+        self.t1c: float | None = None  # the controller's arrival time of the segment under way (its clock)
         # the segment profile (run.profile): ruckig only if the controller lists it (dialect 1.2)
         choose = getattr(robot, "choose_profile", None)
         self.profile = choose(profile or cfg.run.profile) if choose is not None else "quintic"
@@ -213,6 +214,7 @@ class PredictorPlanner:
         t0c, t1c = self.robot.segment(T_end, end.t1 - end.t0, self.segment_id, replace=True, **kw)
         # The controller reports when it started the segment; on the same clock (the simulated lab)
         # that measures the command latency, and the plan is re-timed to what the robot really does.
+        self.t1c = t1c if math.isfinite(t1c) else None
         if math.isfinite(t0c) and 0.0 <= t0c - now < 1.0:
             self.latency_s = 0.5 * self.latency_s + 0.5 * (t0c - now)
             self.plan_shift = t0c - end.t0
@@ -361,6 +363,10 @@ class PredictorPlanner:
             if self.segment_id in done:
                 self.rest_T = np.asarray(self.T_end, dtype=float).copy()
                 return self.rest_T
+            # @DONE leaves the controller at the arrival and is ~10 bytes on the line: wait for it a few
+            # frames rather than ask STATUS (a ~0.1 s round trip at 9600 bps that holds up the image)
+            if now < self.plan.t_hit + self.plan_shift + self._done_grace_s:
+                return None
         st = self.robot.status()
         latched = getattr(self.robot, "latched", None)
         if latched:  # its watchdog or a STOP cut the move: an image from where it stood would be a wrong view
@@ -375,6 +381,21 @@ class PredictorPlanner:
             return None
         self.rest_T = T.copy()
         return self.rest_T
+
+    def wake_at(self) -> float | None:
+        """When (s, the runtime's clock, if it is the controller's as in the simulated lab) the ``@DONE`` of
+        the segment under way reaches the host: the controller's arrival time plus the line's bytes (~12; 16 allowed).
+        A runtime that ticks the planner then, not only at the next fixed-camera frame, takes the image
+        as soon as the robot stands still. None when no arrival is awaited."""
+        if self.finished or self.plan is None or self.pending is not None or self.t1c is None:
+            return None
+        return self.t1c + 16 * 10.0 / self.ctx.lab.robot.baud
+
+    @property
+    def _done_grace_s(self) -> float:
+        """How long (s) after the planned arrival an ``@DONE`` may still be on its way: its ~16 bytes on
+        the robot's line plus three fixed-camera frame periods (the ticks that read it)."""
+        return 16 * 10.0 / self.ctx.lab.robot.baud + 3.0 / self.cfg.run.fps
 
     def _end_leg(self, T_flange: np.ndarray) -> None:
         """Close the leg under way at the rest pose ``T_flange`` where its image is taken (for the bound)."""

@@ -118,9 +118,25 @@ def simulate_run(lab: Lab, ctx: RunContext, spec: TrialSpec, record=None, *, hea
     dt = 1.0 / ctx.lab.config.run.fps
     n = 0
     next_beat = 0.0
+    def deliver() -> None:
+        while outbox:
+            for reply in recognizer.handle(meter.carry(outbox.pop(0))):
+                predictor.on_message(meter.carry(reply), clock.now())
+
     while not predictor.finished:
         n += 1
-        t = clock.advance(dt)
+        t_frame = clock.now() + dt
+        wake = predictor.wake_at()
+        if wake is not None and clock.now() < wake < t_frame:
+            # the robot's @DONE arrives between two frames: act on it then (the image is taken as soon
+            # as the robot stands still), not at the next frame
+            clock.sleep_until(wake)
+            bench.advance(wake)
+            progress.pump(wake)
+            predictor.tick(wake)
+            deliver()
+        clock.sleep_until(t_frame)
+        t = clock.now()
         bench.advance(t)
         progress.pump(t)
         if t >= next_beat:  # both workers' heartbeats, carried like the real ones
@@ -133,9 +149,7 @@ def simulate_run(lab: Lab, ctx: RunContext, spec: TrialSpec, record=None, *, hea
         else:  # the tracker reads only the red markers, all on the object: render its footprint only
             image = world.render("fixed", t, rng, window="object", supersample=1).image
         predictor.on_frame(Frame(image, t, n))
-        while outbox:
-            for reply in recognizer.handle(meter.carry(outbox.pop(0))):
-                predictor.on_message(meter.carry(reply), clock.now())
+        deliver()
         if t - t0 > ctx.lab.config.run.timeout_s + 5:
             predictor.fail(t, "virtual run exceeded its time-out")
     t_end = clock.now()
