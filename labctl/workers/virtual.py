@@ -87,6 +87,7 @@ def simulate_run(lab: Lab, ctx: RunContext, spec: TrialSpec, record=None, *, hea
     clock = VirtualClock()
     bench = SimBench(lab, clock, start_xy)  # opening the drivers takes virtual time (banner, queries)
     world = bench.world(sim_obj, placement)
+    rest = bench.robot.ensure_ready()  # as the live run does when it opens the robot, before its start
     t0 = clock.now()
 
     log = record.event if record is not None else (lambda *a, **k: None)
@@ -94,7 +95,7 @@ def simulate_run(lab: Lab, ctx: RunContext, spec: TrialSpec, record=None, *, hea
     meter = LinkMeter()
     outbox: list[m.Message] = []
     predictor = PredictorPlanner(ctx, bench.robot, outbox.append, log, t_start=t0, clock=clock.now,
-                                 profile=spec.profile)
+                                 profile=spec.profile, rest=rest)
     seq = {"mobile": 0}
 
     mobile_period = 1.0 / float(getattr(lab.mobile_camera, "fps", 0.0) or 30.0)
