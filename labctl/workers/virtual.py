@@ -130,7 +130,12 @@ def simulate_run(lab: Lab, ctx: RunContext, spec: TrialSpec, record=None, *, hea
         wake = predictor.wake_at()
         if wake is not None and clock.now() < wake < t_frame:
             # the robot's @DONE arrives between two frames: act on it then (the image is taken as soon
-            # as the robot stands still), not at the next frame
+            # as the robot stands still), not at the next frame. The emulator sends it when it is
+            # advanced past the arrival, so it is advanced to the arrival first (+0.1 ms: the reply
+            # gives the arrival to 1 µs, rounded either way).
+            clock.sleep_until(predictor.t1c + 1e-4)
+            bench.advance(clock.now())
+            bench.robot.poll()
             clock.sleep_until(wake)
             bench.advance(wake)
             progress.pump(wake)
