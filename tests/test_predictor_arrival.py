@@ -48,6 +48,21 @@ def _planner(ctx, robot):
     return p
 
 
+def _after_grace(p):
+    """A time past the planned arrival (5 s) and the wait for its @DONE."""
+    return 5.0 + p._done_grace_s + 0.01
+
+
+def test_no_status_round_trip_while_done_may_still_come(ctx):
+    robot = StubRobot(make_T(np.eye(3), [100.0, 200.0, 900.0]))
+    p = _planner(ctx, robot)
+    assert 0.0 < p._done_grace_s < 0.25
+    assert p._arrived(5.0) is None and p._arrived(5.0 + 0.9 * p._done_grace_s) is None
+    assert robot.status_calls == 0 and not p.finished
+    robot.done_ids.append(7)  # the @DONE arrives: at the view, still without a round trip
+    assert np.allclose(p._arrived(5.0 + 0.95 * p._done_grace_s), p.T_end) and robot.status_calls == 0
+
+
 def test_done_means_at_the_commanded_pose_without_asking(ctx):
     robot = StubRobot(make_T(np.eye(3), [0.0, 0.0, 0.0]), done=[7])
     p = _planner(ctx, robot)
@@ -58,19 +73,20 @@ def test_done_means_at_the_commanded_pose_without_asking(ctx):
 def test_a_watchdog_stop_fails_the_run_instead_of_taking_the_view(ctx):
     robot = StubRobot(make_T(np.eye(3), [40.0, 150.0, 700.0]), latched="watchdog")
     p = _planner(ctx, robot)
-    assert p._arrived(5.1) is None
+    assert p._arrived(_after_grace(p)) is None
     assert p.stage == "failed" and "watchdog" in p.failure and robot.stops == 1
 
 
 def test_standing_short_of_the_view_fails_the_run(ctx):
     robot = StubRobot(make_T(np.eye(3), [100.0, 230.0, 900.0]))
     p = _planner(ctx, robot)
-    assert p._arrived(5.1) is None
+    assert p._arrived(_after_grace(p)) is None
     assert p.stage == "failed" and "30.0 mm" in p.failure
 
 
 def test_at_the_view_without_done_is_read_from_status(ctx):
     robot = StubRobot(make_T(np.eye(3), [100.0, 200.0, 900.2]))
     p = _planner(ctx, robot)
-    T = p._arrived(5.1)
+    assert p._arrived(5.0 + 0.5 * p._done_grace_s) is None and robot.status_calls == 0  # @DONE may be on its way
+    T = p._arrived(_after_grace(p))
     assert T is not None and robot.status_calls == 1 and np.allclose(T[:3, 3], [100.0, 200.0, 900.2])

@@ -92,3 +92,44 @@ def test_fresh_workspace_runs(tmp_path):
     res = simulate_run(lab, RunContext.load(lab), TrialSpec("line", 8.0, None, 4))
     assert res["correct"]
     assert np.isfinite(res["time_to_identity_s"])
+
+
+def test_images_follow_the_robots_arrival_without_a_status_round_trip(lab, ctx, monkeypatch):
+    """Issue 16: each image is requested as soon as the controller's @DONE reaches the host (the
+    arrival + ~16 bytes at 9600 bps), and no STATUS round trip (0.1 s) sits between the run's start
+    and its identity: the rest pose comes from the robot's opening, arrivals from @DONE."""
+    from labctl.drivers.robot import SerialRobot
+
+    events, status_at = [], []
+
+    class Rec:
+        def event(self, name, **fields):
+            events.append((name, fields))
+
+        def save_image(self, name, image):
+            pass
+
+    real_status = SerialRobot.status
+
+    def status(self):
+        status_at.append(self.clock())
+        return real_status(self)
+
+    monkeypatch.setattr(SerialRobot, "status", status)
+    res = simulate_run(lab, ctx, TrialSpec("line", 8.0, None, 1, profile="ruckig"), Rec())
+    assert res["correct"], res
+    t0 = next(f["t"] for n, f in events if n == "truth")
+    t_done = next(f["t"] for n, f in events if n == "identity")
+    assert not [t for t in status_at if t0 <= t <= t_done]
+    arrivals, t1c = [], None  # exposure time (the recogniser's events carry the frame's time) − arrival
+    for name, f in events:
+        if name == "segment":
+            t1c = f["t1c"]
+        elif name in ("marker_candidates", "match") or (name == "marker_pose" and t1c is not None):
+            arrivals.append(f["t"] - t1c)
+            t1c = None
+    assert len(arrivals) >= 3
+    byte_s = 10.0 / lab.robot.baud
+    # the @DONE line (8–16 bytes), plus at most one robot HB round trip (~25 ms) the loop sends every 0.2 s
+    assert all(8 * byte_s <= d <= 16 * byte_s + 0.03 for d in arrivals), arrivals
+    assert res["stages"]["match"] <= 1.0 / lab.mobile_camera.fps + 0.03

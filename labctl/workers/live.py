@@ -462,7 +462,7 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
         try:
             for dev in (robot, camera):
                 dev.open()
-            robot.ensure_ready()
+            robot_rest = robot.ensure_ready()
             marks["robot_and_camera_ready"] = time.time()
         finally:
             if table_job is not None:
@@ -475,7 +475,8 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
             table.while_reconnecting = keep_alive
         robot.while_reconnecting = lambda: keep_alive(robot_too=False)
         now = _now(args.origin)
-        planner = PredictorPlanner(ctx, robot, link.send, log, t_start=now, clock=lambda: _now(args.origin))
+        planner = PredictorPlanner(ctx, robot, link.send, log, t_start=now, clock=lambda: _now(args.origin),
+                                   rest=robot_rest)
         progress = None
         if table is not None:
             # streamed from the loop: a long G2/G3 is acknowledged only when it leaves GRBL's planner

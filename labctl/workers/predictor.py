@@ -24,9 +24,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..drivers.interfaces import Frame, Robot
+from ..drivers.interfaces import Frame, Robot, RobotStatus
 from ..errors import DeviceError
-from ..geometry import make_T, matrix_to_rotvec
+from ..geometry import make_T, matrix_to_rotvec, rotvec_to_matrix
 from ..planning import Interception, camera_placement_trajectory, plan_interception, rest_to_rest_times
 from ..planning.ruckig_interception import plan_interception_ruckig, ruckig_limits
 from ..planning.ruckig_profile import controller_limits
@@ -59,6 +59,14 @@ class StageTimes:
         self.started[stage] = now
 
 
+def _wire_pose(R: np.ndarray, p) -> np.ndarray:
+    """The 4×4 pose (W ← flange) as a segment command carries it: position rounded to 0.01 mm, rotation
+    vector to 1e-4 rad (0.006°, 0.02 mm at a 200-mm stand-off). The controller prints six decimals;
+    these ~20 bytes fewer a segment line are ~20 ms less before each leg starts at 9600 bps (issue 16)."""
+    rv = np.round(matrix_to_rotvec(np.asarray(R, dtype=float)), 4)
+    return make_T(rotvec_to_matrix(rv), np.round(np.asarray(p, dtype=float), 2))
+
+
 class _RestAt:
     """G(t) for arriving at rest: the positions of ``G`` with zero velocity and acceleration."""
 
@@ -83,11 +91,15 @@ class _Scaled:
 
 
 class PredictorPlanner:
-    """Host 1's logic. ``send(msg)`` goes to the recognizer; ``log(event, **fields)`` to the record."""
+    """Host 1's logic. ``send(msg)`` goes to the recognizer; ``log(event, **fields)`` to the record.
+
+    ``rest``: the robot's status read when it was opened (``Robot.ensure_ready``), if any; a robot
+    standing still there is where the first leg starts, so that leg needs no STATUS round trip
+    (~0.1 s at 9600 bps) on the way from first sight to the first command (issue 16)."""
 
     def __init__(self, ctx: RunContext, robot: Robot, send: Callable[[m.Message], None],
                  log: Callable[..., None], *, t_start: float = 0.0, clock: Callable[[], float] | None = None,
-                 profile: str | None = None):
+                 profile: str | None = None, rest: RobotStatus | None = None):
         self.ctx, self.robot, self.send, self.log = ctx, robot, send, log
         # the runtime's clock: device round trips take time, so a command leaves later than the frame's time
         self.clock_fn = clock
@@ -138,6 +150,9 @@ class PredictorPlanner:
         self.rest_T: np.ndarray | None = None
         self.T_end: np.ndarray | None = None  # the commanded end pose of the segment under way
         self._asked_rest = False
+        if rest is not None and not rest.moving:  # the status read when the robot was opened: no STATUS later
+            self.rest_T = np.asarray(rest.T_base_flange, dtype=float).copy()
+        self.t1c: float | None = None  # the controller's arrival time of the segment under way (its clock)
         # the segment profile (run.profile): ruckig only if the controller lists it (dialect 1.2)
         choose = getattr(robot, "choose_profile", None)
         self.profile = choose(profile or cfg.run.profile) if choose is not None else "quintic"
@@ -199,8 +214,8 @@ class PredictorPlanner:
         """Command the plan's first segment; the controller splices it in from its own state on receipt,
         which is the plan's start time (now + the command's transmission time)."""
         end = plan.trajectory.segments[0]
-        T_end = make_T(end.orientation(end.t1) if end.rot_coeffs is not None else plan.target.rotation,
-                       end.state(end.t1)[0])
+        T_end = _wire_pose(end.orientation(end.t1) if end.rot_coeffs is not None else plan.target.rotation,
+                           end.state(end.t1)[0])
         self.segment_id += 1
         self.T_end = T_end
         self.rest_T = None  # moving: at rest again only when the segment is done
@@ -210,9 +225,11 @@ class PredictorPlanner:
             kw = {"profile": "ruckig", "limits": end.limits.wire(end.base)}
         else:
             self.leg_jerk_limited = False  # a quintic segment: no jerk limit binds this leg
-        t0c, t1c = self.robot.segment(T_end, end.t1 - end.t0, self.segment_id, replace=True, **kw)
+        duration = math.ceil((end.t1 - end.t0) * 1000.0 - 1e-6) / 1000.0  # whole ms, never shorter than planned
+        t0c, t1c = self.robot.segment(T_end, duration, self.segment_id, replace=True, **kw)
         # The controller reports when it started the segment; on the same clock (the simulated lab)
         # that measures the command latency, and the plan is re-timed to what the robot really does.
+        self.t1c = t1c if math.isfinite(t1c) else None
         if math.isfinite(t0c) and 0.0 <= t0c - now < 1.0:
             self.latency_s = 0.5 * self.latency_s + 0.5 * (t0c - now)
             self.plan_shift = t0c - end.t0
@@ -361,6 +378,10 @@ class PredictorPlanner:
             if self.segment_id in done:
                 self.rest_T = np.asarray(self.T_end, dtype=float).copy()
                 return self.rest_T
+            # @DONE leaves the controller at the arrival and is ~10 bytes on the line: wait for it a few
+            # frames rather than ask STATUS (a ~0.1 s round trip at 9600 bps that holds up the image)
+            if now < self.plan.t_hit + self.plan_shift + self._done_grace_s:
+                return None
         st = self.robot.status()
         latched = getattr(self.robot, "latched", None)
         if latched:  # its watchdog or a STOP cut the move: an image from where it stood would be a wrong view
@@ -375,6 +396,21 @@ class PredictorPlanner:
             return None
         self.rest_T = T.copy()
         return self.rest_T
+
+    def wake_at(self) -> float | None:
+        """When (s, the runtime's clock, if it is the controller's as in the simulated lab) the ``@DONE`` of
+        the segment under way reaches the host: the controller's arrival time plus the line's bytes (~12; 16 allowed).
+        A runtime that ticks the planner then, not only at the next fixed-camera frame, takes the image
+        as soon as the robot stands still. None when no arrival is awaited."""
+        if self.finished or self.plan is None or self.pending is not None or self.t1c is None:
+            return None
+        return self.t1c + 16 * 10.0 / self.ctx.lab.robot.baud
+
+    @property
+    def _done_grace_s(self) -> float:
+        """How long (s) after the planned arrival an ``@DONE`` may still be on its way: its ~16 bytes on
+        the robot's line plus three fixed-camera frame periods (the ticks that read it)."""
+        return 16 * 10.0 / self.ctx.lab.robot.baud + 3.0 / self.cfg.run.fps
 
     def _end_leg(self, T_flange: np.ndarray) -> None:
         """Close the leg under way at the rest pose ``T_flange`` where its image is taken (for the bound)."""

@@ -87,6 +87,7 @@ def simulate_run(lab: Lab, ctx: RunContext, spec: TrialSpec, record=None, *, hea
     clock = VirtualClock()
     bench = SimBench(lab, clock, start_xy)  # opening the drivers takes virtual time (banner, queries)
     world = bench.world(sim_obj, placement)
+    rest = bench.robot.ensure_ready()  # as the live run does when it opens the robot, before its start
     t0 = clock.now()
 
     log = record.event if record is not None else (lambda *a, **k: None)
@@ -94,7 +95,7 @@ def simulate_run(lab: Lab, ctx: RunContext, spec: TrialSpec, record=None, *, hea
     meter = LinkMeter()
     outbox: list[m.Message] = []
     predictor = PredictorPlanner(ctx, bench.robot, outbox.append, log, t_start=t0, clock=clock.now,
-                                 profile=spec.profile)
+                                 profile=spec.profile, rest=rest)
     seq = {"mobile": 0}
 
     mobile_period = 1.0 / float(getattr(lab.mobile_camera, "fps", 0.0) or 30.0)
@@ -118,9 +119,30 @@ def simulate_run(lab: Lab, ctx: RunContext, spec: TrialSpec, record=None, *, hea
     dt = 1.0 / ctx.lab.config.run.fps
     n = 0
     next_beat = 0.0
+    def deliver() -> None:
+        while outbox:
+            for reply in recognizer.handle(meter.carry(outbox.pop(0))):
+                predictor.on_message(meter.carry(reply), clock.now())
+
     while not predictor.finished:
         n += 1
-        t = clock.advance(dt)
+        t_frame = clock.now() + dt
+        wake = predictor.wake_at()
+        if wake is not None and clock.now() < wake < t_frame:
+            # the robot's @DONE arrives between two frames: act on it then (the image is taken as soon
+            # as the robot stands still), not at the next frame. The emulator sends it when it is
+            # advanced past the arrival, so it is advanced to the arrival first (+0.1 ms: the reply
+            # gives the arrival to 1 µs, rounded either way).
+            clock.sleep_until(predictor.t1c + 1e-4)
+            bench.advance(clock.now())
+            bench.robot.poll()
+            clock.sleep_until(wake)
+            bench.advance(wake)
+            progress.pump(wake)
+            predictor.tick(wake)
+            deliver()
+        clock.sleep_until(t_frame)
+        t = clock.now()
         bench.advance(t)
         progress.pump(t)
         if t >= next_beat:  # both workers' heartbeats, carried like the real ones
@@ -133,9 +155,7 @@ def simulate_run(lab: Lab, ctx: RunContext, spec: TrialSpec, record=None, *, hea
         else:  # the tracker reads only the red markers, all on the object: render its footprint only
             image = world.render("fixed", t, rng, window="object", supersample=1).image
         predictor.on_frame(Frame(image, t, n))
-        while outbox:
-            for reply in recognizer.handle(meter.carry(outbox.pop(0))):
-                predictor.on_message(meter.carry(reply), clock.now())
+        deliver()
         if t - t0 > ctx.lab.config.run.timeout_s + 5:
             predictor.fail(t, "virtual run exceeded its time-out")
     t_end = clock.now()
