@@ -136,15 +136,21 @@ def _pct(v, q):
     return float(np.percentile(v, q)) if len(v) else None
 
 
-def run_case(cond: oracle.Conditions, cam_over: dict, opts: dict, n_pairs: int, seed: int) -> dict:
-    """Both methods on ``n_pairs`` image pairs of one condition; the statistics of the module doc."""
+def run_case(cond: oracle.Conditions, cam_over: dict, opts: dict, n_pairs: int, seed: int,
+             per_image: bool = False) -> dict:
+    """Both methods on ``n_pairs`` image pairs of one condition; the statistics of the module doc.
+
+    With ``per_image``, ``out["per_image"][method]`` also holds the normal error (°) and centre
+    error (% of range) of every image in render order (image 2i and 2i + 1 are pair i; NaN where
+    the method found no marker or no pose), for paired comparisons of the two methods on the same
+    images (:func:`labctl.bench._vision_paired.paired_p95`)."""
     from ..vision import pose_pair_consistency, resolve_duality_detailed, resolve_duality_noise_aware
 
     rng = np.random.default_rng(seed)
     methods = {"labctl": _ours, "opencv": _baseline}
     acc = {m: {"n": 0, "found": 0, "normal": [], "centre": [], "gross": 0, "cw_img": 0,
                "dual": [0, 0, 0], "cw_pair": 0, "n_pairs": 0,
-               "inconsistent": 0} for m in methods}
+               "inconsistent": 0, "img_normal": [], "img_centre": []} for m in methods}
     for _ in range(n_pairs):
         cam = oracle.Cam(f=float(rng.uniform(1200, 2500)), **cam_over)
         d1 = oracle.random_pose(rng, cam)
@@ -175,8 +181,12 @@ def run_case(cond: oracle.Conditions, cam_over: dict, opts: dict, n_pairs: int, 
                 a["found"] += found
                 if cands is None:
                     results[name].append(None)
+                    a["img_normal"].append(math.nan)
+                    a["img_centre"].append(math.nan)
                     continue
                 ne, ce, j = _errors(cands, disc)
+                a["img_normal"].append(ne)
+                a["img_centre"].append(ce)
                 a["normal"].append(ne)
                 a["centre"].append(ce)
                 gross = ne > GROSS_NORMAL_DEG or ce > GROSS_CENTRE_PCT
@@ -224,6 +234,9 @@ def run_case(cond: oracle.Conditions, cam_over: dict, opts: dict, n_pairs: int, 
             "duality_right_ambiguous_wrong": list(a["dual"]),
             "inconsistent_pairs": a["inconsistent"],
         }
+    if per_image:
+        out["per_image"] = {name: {"normal_deg": a["img_normal"], "centre_pct": a["img_centre"]}
+                            for name, a in acc.items()}
     return out
 
 
