@@ -49,3 +49,26 @@ def test_run_case_per_image_matches_its_own_percentiles():
         v = np.asarray(res["per_image"][m]["normal_deg"])
         assert len(v) == 6
         assert np.isclose(np.percentile(v[~np.isnan(v)], 95), res[m]["normal_deg_p95"])
+
+
+def test_nothing_detected_gives_none_not_nan():
+    r = paired_p95([np.nan] * 4, [1.0, 2.0, 3.0, 4.0], n_boot=20)
+    assert r["ours"] is None and r["diff"] is None and r["lo"] is None and r["base"] == np.percentile([1, 2, 3, 4], 95)
+
+
+def _row(o, b, lo, hi):
+    stats = {"confident_wrong": 0.0, "detected": 1.0, "normal_deg_median": 0.1, "centre_pct_median": 0.1}
+    return {"condition": "gaussian noise", "strength": "σ 16", "visible": 1.0,
+            "labctl": {**stats, "normal_deg_p95": o}, "opencv": {**stats, "normal_deg_p95": b},
+            "paired": {"normal_deg_p95": {"diff": o - b, "lo": lo, "hi": hi}}}
+
+
+def test_acceptance_fails_a_worse_p95_only_when_the_paired_interval_excludes_zero():
+    from labctl.bench._vision_suite import acceptance
+
+    noise = acceptance([_row(3.79, 3.38, -0.2, 1.1)])
+    assert noise["ok"] and len(noise["inconclusive"]) == 1 and "σ 16" in noise["inconclusive"][0]
+    worse = acceptance([_row(3.79, 3.38, 0.1, 0.9)])
+    assert not worse["ok"] and "normal_deg_p95" in worse["failures"][0]
+    better = acceptance([_row(2.0, 3.38, -2.0, -0.5)])
+    assert better["ok"] and not better["inconclusive"]

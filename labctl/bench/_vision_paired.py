@@ -15,7 +15,8 @@ import numpy as np
 def paired_p95(ours, base, n_boot: int = 2000, seed: int = 0, q: float = 95.0, block: int = 2) -> dict:
     """p95 of ``ours`` and ``base`` (per-image errors in render order, NaN = not detected), their
     difference ours − base, and a percentile bootstrap 95 % interval of that difference resampling
-    blocks of ``block`` consecutive images (one pose pair). Units are those of the inputs."""
+    blocks of ``block`` consecutive images (one pose pair). Units are those of the inputs; a
+    statistic that cannot be taken (a method detected nothing) is None."""
     a, b = np.asarray(ours, float), np.asarray(base, float)
     if a.shape != b.shape or a.size % block:
         raise ValueError("ours and base must be per-image arrays of the same whole number of blocks")
@@ -25,9 +26,7 @@ def paired_p95(ours, base, n_boot: int = 2000, seed: int = 0, q: float = 95.0, b
     def stat(ia):
         x, y = a[ia].ravel(), b[ia].ravel()
         x, y = x[~np.isnan(x)], y[~np.isnan(y)]
-        if not len(x) or not len(y):
-            return np.nan, np.nan
-        return float(np.percentile(x, q)), float(np.percentile(y, q))
+        return (float(np.percentile(x, q)) if len(x) else np.nan), (float(np.percentile(y, q)) if len(y) else np.nan)
 
     p_o, p_b = stat(np.arange(n))
     rng = np.random.default_rng(seed)
@@ -37,5 +36,9 @@ def paired_p95(ours, base, n_boot: int = 2000, seed: int = 0, q: float = 95.0, b
         diffs[k] = so - sb
     diffs = diffs[~np.isnan(diffs)]
     lo, hi = (np.percentile(diffs, [2.5, 97.5]) if len(diffs) else (np.nan, np.nan))
-    return {"ours": p_o, "base": p_b, "diff": p_o - p_b, "lo": float(lo), "hi": float(hi),
+
+    def num(v):  # JSON has no NaN
+        return None if np.isnan(v) else float(v)
+
+    return {"ours": num(p_o), "base": num(p_b), "diff": num(p_o - p_b), "lo": num(lo), "hi": num(hi),
             "n_images": int(a.size)}
