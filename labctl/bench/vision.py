@@ -4,7 +4,9 @@ the degradation suite of issue 14 (:mod:`._vision_suite`: ours vs the plain Open
 images of the independent renderer :mod:`._vision_oracle`), with its acceptance checks.
 
 The suite's size is ``LABCTL_BENCH_VISION_PAIRS`` image pairs per case (default 25; 3 with
-``--quick``); ``LABCTL_BENCH_VISION_ONLY`` restricts it to conditions containing that text."""
+``--quick``); ``LABCTL_BENCH_VISION_ONLY`` restricts it to conditions containing that text.
+``suite_acceptance`` lists as ``inconclusive`` a normal p95 or centre median above the baseline's
+whose paired bootstrap interval contains 0 (too few pairs to tell), as ``failures`` one above it."""
 
 from __future__ import annotations
 
