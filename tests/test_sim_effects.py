@@ -234,5 +234,7 @@ def test_realistic_run_falls_back_to_a_suspect_marker_when_the_trusted_one_is_am
     lab = load_lab(root)
     res = simulate_run(lab, RunContext.load(lab), TrialSpec("line", 8.0, "angle_short", 1008))
     assert res["failure"] is None, res
-    assert res["correct"] is True and res["views"] == 2
+    # (2 standard views when found; 3 since the start-sooner flow picks another first view, still inside
+    # run.max_views: without the fallback this placement ended "still ambiguous after 3 standard views")
+    assert res["correct"] is True and res["views"] <= lab.config.run.max_views
     assert res["marker_pose_error"]["normal_deg"] < 3.0

@@ -217,16 +217,16 @@ class PredictorPlanner:
         T_end = _wire_pose(end.orientation(end.t1) if end.rot_coeffs is not None else plan.target.rotation,
                            end.state(end.t1)[0])
         self.segment_id += 1
-        self.T_end = T_end
-        self.rest_T = None  # moving: at rest again only when the segment is done
         now = self._now(now)
-        kw = {}
-        if getattr(end, "profile", "quintic") == "ruckig":  # the controller re-runs ruckig from its own state
-            kw = {"profile": "ruckig", "limits": end.limits.wire(end.base)}
-        else:
-            self.leg_jerk_limited = False  # a quintic segment: no jerk limit binds this leg
+        ruckig = getattr(end, "profile", "quintic") == "ruckig"
+        kw = {"profile": "ruckig", "limits": end.limits.wire(end.base)} if ruckig else {}  # the controller re-runs
         duration = math.ceil((end.t1 - end.t0) * 1000.0 - 1e-6) / 1000.0  # whole ms, never shorter than planned
         t0c, t1c = self.robot.segment(T_end, duration, self.segment_id, replace=True, **kw)
+        # accepted (a refused splice raises, and the motion under way, its end and its leg stay as they were)
+        self.T_end = T_end
+        self.rest_T = None  # moving: at rest again only when the segment is done
+        if not ruckig:
+            self.leg_jerk_limited = False  # a quintic segment: no jerk limit binds this leg
         # The controller reports when it started the segment; on the same clock (the simulated lab)
         # that measures the command latency, and the plan is re-timed to what the robot really does.
         self.t1c = t1c if math.isfinite(t1c) else None
