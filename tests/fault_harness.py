@@ -105,7 +105,8 @@ def inject(lab: Path, fault: str, target: str, stage: str, seed: int = 3) -> dic
     try:
         run_dir, events = _wait_for_stage(lab, before, stage, p, 150)
         started = {e["role"]: e for e in events if e["event"] == "worker_started"}
-        origin = started["predictor"]["origin"]
+        # the run clock's origin on CLOCK_MONOTONIC, as the predictor logged it once the simulated lab had set it
+        origin = next(e["origin"] for e in events if e["event"] == "run_clock" and e["role"] == "predictor")
         if stage == "cruise":  # (the segment event's t_end is on the plan's clock, not a reliable end)
             seg = next(e for e in events if STAGES[stage](e))
             time.sleep(max(0.0, origin + seg["t"] + CRUISE_DELAY_S - time.monotonic()))

@@ -396,7 +396,7 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
     hl = lab.host_link
     record = _open_record(args)
     log = record.event if record is not None else (lambda *a, **k: None)
-    log("worker_started", role="predictor", pid=os.getpid(), origin=args.origin)
+    log("worker_started", role="predictor", pid=os.getpid())
     _log_to_record(record, "predictor")
     table = robot = camera = link = planner = None
     code, reason, report_code = 0, "run finished", None
@@ -432,6 +432,7 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
         link = open_link(hl, "predictor", local_end=link_end, authkey=_authkey(args, lab),
                          on_refused=lambda line: log("link_refused", line=line))
         args = _endpoints(args, ctl)
+        log("run_clock", role="predictor", origin=args.origin)  # the origin every ``t`` of the record is on
         marks["endpoints"] = time.time()
         # the sim lab's ports when it serves them, else the driver files' (None keeps the file's port);
         # no table to drive when the parts move by something else (--trajectory external)
@@ -587,7 +588,7 @@ def recognizer_main(args: WorkerArgs, link_end, control) -> int:
     record = _open_record(args)
     log = record.event if record is not None else (lambda *a, **k: None)
     save = record.save_image if record is not None else None
-    log("worker_started", role="recognizer", pid=os.getpid(), origin=args.origin)
+    log("worker_started", role="recognizer", pid=os.getpid())
     _log_to_record(record, "recognizer")
     camera = link = None
     code, reason, report_code = 0, "run finished", None
@@ -596,6 +597,7 @@ def recognizer_main(args: WorkerArgs, link_end, control) -> int:
         link = open_link(hl, "recognizer", local_end=link_end, authkey=_authkey(args, lab),
                          on_refused=lambda line: log("link_refused", line=line))
         args = _endpoints(args, ctl)
+        log("run_clock", role="recognizer", origin=args.origin)
         camera = _mobile_camera(args, lab)
         camera.open()
         recognizer = Recognizer(ctx, camera.grab, log, save)
