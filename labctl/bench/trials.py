@@ -35,9 +35,9 @@ def run(quick: bool = False) -> dict:
     from ..workspace import sample_lab_path
 
     jobs = max(2, os.cpu_count() or 1)
-    # per speed: 4 or 48 trials a sweep. A pool pays a fixed start (its processes, each loading the
+    # per speed: 4 or 96 trials a sweep. A pool pays a fixed start (its processes, each loading the
     # lab and library once, ~2 s here), so the speed-up of a short sweep understates a long one's.
-    n = 2 if quick else 24
+    n = 2 if quick else 48  # (96: trials got shorter, 0.5 s each, and 48 no longer amortised the start)
     repeat = 1
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp) / "lab"
