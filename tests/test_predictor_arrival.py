@@ -12,6 +12,7 @@ import pytest
 from labctl.config import load_lab
 from labctl.drivers.interfaces import RobotStatus
 from labctl.geometry import make_T
+from labctl.sim.world import home_flange_pose
 from labctl.workers.context import RunContext
 from labctl.workers.predictor import PredictorPlanner
 from labctl.workspace import sample_lab_path
@@ -90,3 +91,44 @@ def test_at_the_view_without_done_is_read_from_status(ctx):
     assert p._arrived(5.0 + 0.5 * p._done_grace_s) is None and robot.status_calls == 0  # @DONE may be on its way
     T = p._arrived(_after_grace(p))
     assert T is not None and robot.status_calls == 1 and np.allclose(T[:3, 3], [100.0, 200.0, 900.2])
+
+
+class OffsetClockRobot(StubRobot):
+    """A controller on its own clock, ``offset_s`` ahead of the run's (another process's origin, or real
+    hardware's): each segment starts on receipt and arrives at its commanded duration."""
+
+    def __init__(self, pose, clock, offset_s):
+        super().__init__(pose)
+        self.clock, self.offset_s, self.segments = clock, offset_s, 0
+
+    def choose_profile(self, profile):
+        return profile
+
+    def segment(self, T, duration_s, segment_id, **kw):
+        self.segments += 1
+        t0c = self.clock() + 0.1 + self.offset_s  # ~100 bytes at 9600 bps, then its own clock
+        return t0c, t0c + duration_s
+
+
+@pytest.mark.parametrize("shared", [False, True])
+@pytest.mark.parametrize("profile", ["quintic", "ruckig"])
+def test_a_controller_on_its_own_clock_still_arrives(ctx, shared, profile):
+    """A served lab or real controller whose clock is 0.7 s off the run's: its times are not the run's, so
+    they are never taken for the command latency. (They were, when the offset fell in [0, 1) s: every
+    re-plan then started ~1 s ahead, its arrival receded as fast as time passed, and the run timed out.)
+    On the run's own clock (the simulated lab) the reply times the plan."""
+    now = {"t": 0.0}
+    robot = OffsetClockRobot(home_flange_pose(ctx.lab), lambda: now["t"], 0.0 if shared else 0.7)
+    p = PredictorPlanner(ctx, robot, lambda msg: None, lambda *a, **k: None, clock=lambda: now["t"],
+                         shared_clock=shared, profile=profile)
+    for k in range(6):  # a marker on a line at 8 mm/s, seen at 15 Hz
+        p.tracker.update(k / 15.0, np.array([150.0 + 8.0 * k / 15.0, 200.0]))
+    now["t"] = 5 / 15.0
+    p.azimuth_deg = p._choose_azimuth()
+    assert p._plan_initial(now["t"], "initial1")
+    t_hit0 = p.plan.t_hit
+    while now["t"] < t_hit0 + 2.0 and now["t"] < p.plan.t_hit + p.plan_shift:
+        now["t"] += 1 / 15.0
+        p._replan(now["t"])
+    assert p.plan.t_hit < t_hit0 + 0.5, (t_hit0, p.plan.t_hit, p.latency_s)
+    assert (p.t1c is not None) == shared and (p.plan_shift != 0.0) == shared

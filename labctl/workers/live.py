@@ -87,6 +87,8 @@ class WorkerArgs:
     extra: dict = field(default_factory=dict)
     # forked before the simulated lab is ready: its ports and the run clock's origin come by the control pipe
     await_endpoints: bool = False
+    # the devices' replies give times on the run's clock: only the simulated lab's, whose origin it sent
+    shared_clock: bool = False
 
 
 def _endpoints(args: WorkerArgs, ctl, timeout_s: float = 60.0) -> WorkerArgs:
@@ -111,7 +113,7 @@ def _endpoints(args: WorkerArgs, ctl, timeout_s: float = 60.0) -> WorkerArgs:
             ep = msg[1]
             return dataclasses.replace(args, table_port=ep.get("table"), robot_port=ep.get("robot"),
                                        frame_server=ep.get("frame_server"), origin=ep["origin"],
-                                       await_endpoints=False)
+                                       await_endpoints=False, shared_clock=True)
     raise PeerLost(f"the simulated lab's ports did not come within {timeout_s:g} s")
 
 
@@ -477,7 +479,7 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
         robot.while_reconnecting = lambda: keep_alive(robot_too=False)
         now = _now(args.origin)
         planner = PredictorPlanner(ctx, robot, link.send, log, t_start=now, clock=lambda: _now(args.origin),
-                                   rest=robot_rest)
+                                   rest=robot_rest, shared_clock=args.shared_clock)
         progress = None
         if table is not None:
             # streamed from the loop: a long G2/G3 is acknowledged only when it leaves GRBL's planner

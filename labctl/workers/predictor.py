@@ -99,10 +99,12 @@ class PredictorPlanner:
 
     def __init__(self, ctx: RunContext, robot: Robot, send: Callable[[m.Message], None],
                  log: Callable[..., None], *, t_start: float = 0.0, clock: Callable[[], float] | None = None,
-                 profile: str | None = None, rest: RobotStatus | None = None):
+                 profile: str | None = None, rest: RobotStatus | None = None, shared_clock: bool = False):
         self.ctx, self.robot, self.send, self.log = ctx, robot, send, log
         # the runtime's clock: device round trips take time, so a command leaves later than the frame's time
         self.clock_fn = clock
+        # the controller's replies give times on its own clock; they are the run's only in the simulated lab
+        self.shared_clock = shared_clock
         cfg = ctx.lab.config
         self.cfg = cfg
         self.tracker = MarkerTracker.from_config(cfg.tracking)
@@ -227,10 +229,13 @@ class PredictorPlanner:
         self.rest_T = None  # moving: at rest again only when the segment is done
         if not ruckig:
             self.leg_jerk_limited = False  # a quintic segment: no jerk limit binds this leg
-        # The controller reports when it started the segment; on the same clock (the simulated lab)
-        # that measures the command latency, and the plan is re-timed to what the robot really does.
-        self.t1c = t1c if math.isfinite(t1c) else None
-        if math.isfinite(t0c) and 0.0 <= t0c - now < 1.0:
+        # The controller reports when it started the segment. On the run's own clock (the simulated lab)
+        # that measures the command latency, and the plan is re-timed to what the robot really does. A
+        # controller on its own clock (real hardware, a served lab) can be off by any amount: a guessed
+        # offset taken for latency would start every re-plan that much later, and the run never arrives.
+        shared = self.shared_clock and math.isfinite(t0c)
+        self.t1c = t1c if shared and math.isfinite(t1c) else None
+        if shared and 0.0 <= t0c - now < 1.0:
             self.latency_s = 0.5 * self.latency_s + 0.5 * (t0c - now)
             self.plan_shift = t0c - end.t0
         else:
