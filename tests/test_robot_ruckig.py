@@ -229,12 +229,11 @@ def test_driver_runs_ruckig_segments_and_falls_back_to_quintic():
 def test_run_ruckig_legs_brake_within_the_stop_budget():
     """The sample lab's ruckig legs (``ruckig_limits`` with ``run.robot_stop_budget_s``) come to rest within the
     budget by the controller's stop ramp from every instant, as the quintic legs do (test_robot_stop_budget.py)."""
+    from interception_cases import stop_time, view_targets
+
     from labctl.config import load_lab
-    from labctl.planning import camera_placement_trajectory
     from labctl.planning.ruckig_interception import ruckig_limits
     from labctl.planning.ruckig_profile import controller_limits
-    from labctl.sim.emulators.robot import StopRamp
-    from labctl.tracking import PredictedPath
     from labctl.workers.context import planning_limits
     from labctl.workspace import sample_lab_path
 
@@ -244,11 +243,8 @@ def test_run_ruckig_legs_brake_within_the_stop_budget():
     jerk, base = ruckig_limits(lab.robot, budget), controller_limits(lab.robot)
     emu = RobotEmulator(lambda: 0.0, lab.robot)
     home = np.asarray(lab.robot.home_mm, float)
-    rng = np.random.default_rng(13)
     worst, planned = 0.0, 0
-    for _ in range(15):
-        path = PredictedPath(0.0, rng.uniform([100, 100], [500, 300]), rng.uniform(-20, 20, 2), np.zeros(2))
-        G = camera_placement_trajectory(path, 1000.0, 63.0, azimuth_deg=rng.uniform(-180, 180), marker_z_mm=40.0)
+    for G in view_targets(15):
         res = plan_interception_ruckig((home, np.zeros(3), np.zeros(3)), 0.0, G, lim, 15.0, R0=rot_x(math.pi),
                                        jerk=jerk, base=base)
         if not res.reachable:
@@ -257,8 +253,7 @@ def test_run_ruckig_legs_brake_within_the_stop_budget():
         traj = res.trajectory
         for t in np.linspace(traj.t0, traj.t1, 101):
             p, v, _ = traj.state(t)
-            ramp = StopRamp(0.0, p, v, np.eye(3), traj.angular_velocity(t), emu.a_stop, emu.alpha_stop)
-            worst = max(worst, ramp.t1)
+            worst = max(worst, stop_time(emu, p, v, traj.angular_velocity(t)))
     assert planned >= 10
     assert worst <= budget * (1 + 1e-6), worst
     assert worst > 0.8 * budget
