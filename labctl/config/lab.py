@@ -6,6 +6,7 @@ A workspace is a folder holding ``lab.yaml``, ``drivers/``, ``calibration/``,
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Literal
@@ -59,6 +60,25 @@ class ViewingConfig:
 
 
 @dataclass(frozen=True)
+class FamilyPrior:
+    """The IMM's prior probability of a curve (its CT mode) per trajectory family labctl drives the table along.
+
+    Paper §5.1: the object's motions are "induced via programmed movement of the NC table" along
+    predictable paths, so when labctl itself runs a named program (``--trajectory line|arc|circle|
+    zigzag``) the tracker is told the program's *family* (not its geometry): lines and zigzags
+    (straight legs) strongly favour the CV mode, arcs and circles the CT mode; the other mode stays
+    in the IMM. Motion labctl does not drive (``--trajectory external``, a G-code file, no table)
+    keeps the family-blind ``tracking.curve_prior``. Values by measurement (`labctl bench planning`,
+    docs/notes/planning.md "Prediction at the estimation bound", third round).
+    """
+
+    line: Annotated[float, Range(gt=0, lt=1)] = 0.001
+    arc: Annotated[float, Range(gt=0, lt=1)] = 0.99
+    circle: Annotated[float, Range(gt=0, lt=1)] = 0.99
+    zigzag: Annotated[float, Range(gt=0, lt=1)] = 0.001
+
+
+@dataclass(frozen=True)
 class TrackingConfig:
     """Fixed-camera tracking (paper §5.2): motion model, noise (mm), gate (σ), search window (px), commit policy."""
 
@@ -67,6 +87,8 @@ class TrackingConfig:
     # imm: prior probability of a curve (CT mode) against a line; minimax over the confusable line/circle
     # cells of `labctl bench planning` (docs/notes/planning.md, "Prediction at the estimation bound")
     curve_prior: Annotated[float, Range(gt=0, lt=1)] = 0.05
+    # ... and when labctl drives the table along a named program, the prior of that program's family instead
+    family_prior: FamilyPrior = field(default_factory=FamilyPrior)
     measurement_noise_mm: Positive = 0.7
     gate_sigma: Positive = 4.0
     window_px: PositiveInt = 48
@@ -78,6 +100,16 @@ class TrackingConfig:
     # re-planned as the filter converges (issue 16: 10 mm waited ~0.25 s longer for nothing measurable)
     commit_margin_mm: Positive = 40.0
     commit_horizon_s: Positive = 1.5  # about the interception's duration
+
+    def curve_prior_for(self, family: str | None) -> float:
+        """The IMM's curve prior for motion of ``family`` (a trajectory labctl drives the table along).
+
+        ``family_prior``'s value for a named program family; ``curve_prior`` (family-blind) for None,
+        ``external`` or anything else (a G-code file: its shape is not known to be one family).
+        """
+        if family is not None and family in {f.name for f in dataclasses.fields(FamilyPrior)}:
+            return float(getattr(self.family_prior, family))
+        return float(self.curve_prior)
 
 
 @dataclass(frozen=True)

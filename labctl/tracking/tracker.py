@@ -306,9 +306,20 @@ class MarkerTracker:
         self._curve_prior = float(curve_prior)
         self.reset()
 
+    @property
+    def curve_prior(self) -> float:
+        """The IMM's prior probability of a curve (its CT mode) against a line, as built."""
+        return self._curve_prior
+
     @classmethod
-    def from_config(cls, cfg, **overrides) -> MarkerTracker:
-        """Build from a :class:`labctl.config.lab.TrackingConfig` (model, noises, gate)."""
+    def from_config(cls, cfg, family: str | None = None, **overrides) -> MarkerTracker:
+        """Build from a :class:`labctl.config.lab.TrackingConfig` (model, noises, gate, curve prior).
+
+        ``family``: the trajectory family of the program labctl drives the table along (``line``,
+        ``arc``, ``circle``, ``zigzag``; paper §5.1), which sets the IMM's curve prior from
+        ``tracking.family_prior``; None, ``external`` or an unknown name (motion labctl does not
+        drive, a G-code file) keeps the family-blind ``tracking.curve_prior``.
+        """
         kw = dict(
             model=cfg.model,
             process_noise=cfg.process_noise,
@@ -318,6 +329,8 @@ class MarkerTracker:
         for name in ("curvature_noise", "maneuver_noise", "imm_switch_prob", "curve_prior", "refit_window_s"):
             if hasattr(cfg, name):
                 kw[name] = getattr(cfg, name)
+        if hasattr(cfg, "curve_prior_for"):
+            kw["curve_prior"] = cfg.curve_prior_for(family)
         kw.update(overrides)
         return cls(**kw)
 

@@ -479,7 +479,8 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
         robot.while_reconnecting = lambda: keep_alive(robot_too=False)
         now = _now(args.origin)
         planner = PredictorPlanner(ctx, robot, link.send, log, t_start=now, clock=lambda: _now(args.origin),
-                                   rest=robot_rest, shared_clock=args.shared_clock)
+                                   rest=robot_rest, shared_clock=args.shared_clock,
+                                   family=None if table is None else args.spec["trajectory"])
         progress = None
         if table is not None:
             # streamed from the loop: a long G2/G3 is acknowledged only when it leaves GRBL's planner

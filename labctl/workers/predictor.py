@@ -95,11 +95,15 @@ class PredictorPlanner:
 
     ``rest``: the robot's status read when it was opened (``Robot.ensure_ready``), if any; a robot
     standing still there is where the first leg starts, so that leg needs no STATUS round trip
-    (~0.1 s at 9600 bps) on the way from first sight to the first command (issue 16)."""
+    (~0.1 s at 9600 bps) on the way from first sight to the first command (issue 16). ``family``: the
+    trajectory family of the table program this run drives (``line``/``arc``/``circle``/``zigzag``), which
+    sets the tracker's curve prior (``tracking.family_prior``, issue 18); None when labctl does not drive
+    the motion (``external``, no table) or the program is a G-code file."""
 
     def __init__(self, ctx: RunContext, robot: Robot, send: Callable[[m.Message], None],
                  log: Callable[..., None], *, t_start: float = 0.0, clock: Callable[[], float] | None = None,
-                 profile: str | None = None, rest: RobotStatus | None = None, shared_clock: bool = False):
+                 profile: str | None = None, rest: RobotStatus | None = None, shared_clock: bool = False,
+                 family: str | None = None):
         self.ctx, self.robot, self.send, self.log = ctx, robot, send, log
         # the runtime's clock: device round trips take time, so a command leaves later than the frame's time
         self.clock_fn = clock
@@ -107,7 +111,10 @@ class PredictorPlanner:
         self.shared_clock = shared_clock
         cfg = ctx.lab.config
         self.cfg = cfg
-        self.tracker = MarkerTracker.from_config(cfg.tracking)
+        # the family of the program labctl drives the table along, if it does (paper §5.1): the tracker's
+        # curve prior (tracking.family_prior); None (parts moved by something else): family-blind
+        self.tracker = MarkerTracker.from_config(cfg.tracking, family=family)
+        log("tracking_prior", t=t_start, family=family, curve_prior=self.tracker.curve_prior)
         self.stage = "wait"
         self.stage_times = StageTimes()
         self.stage_times.enter("wait", t_start)

@@ -95,7 +95,8 @@ def simulate_run(lab: Lab, ctx: RunContext, spec: TrialSpec, record=None, *, hea
     meter = LinkMeter()
     outbox: list[m.Message] = []
     predictor = PredictorPlanner(ctx, bench.robot, outbox.append, log, t_start=t0, clock=clock.now,
-                                 profile=spec.profile, rest=rest, shared_clock=True)
+                                 profile=spec.profile, rest=rest, shared_clock=True,
+                                 family=None if lab.table is None else spec.trajectory)
     seq = {"mobile": 0}
 
     mobile_period = 1.0 / float(getattr(lab.mobile_camera, "fps", 0.0) or 30.0)
