@@ -266,6 +266,7 @@ class MarkerTracker:
         init_accel_sigma: float = 50.0,
         max_misses: int = 10,
         corner_window_s: float = 0.6,
+        corner_refine_s: float = 2.0,
         refit_window_s: float = 10.0,
     ) -> None:
         if model not in MODELS:
@@ -292,6 +293,7 @@ class MarkerTracker:
         self.gate_sigma = float(gate_sigma)
         self.max_misses = int(max_misses)
         self._corner_window = float(corner_window_s)
+        self._corner_refine = float(corner_refine_s)
         self._refit_window = float(refit_window_s)
         self._q = float(process_noise) ** 2
         self._q_turn = float(curvature_noise) ** 2
@@ -368,8 +370,8 @@ class MarkerTracker:
         self._history: list = []  # IMM only: (t, z, quiet x, P, cumulative NIS, μ) per frame
         self._nis = 0.0
         self._in_corner = False
-        self._refits = 0
-        self._detect_at = 0.0
+        self._corner: dict | None = None  # a detected corner whose time is still being refined
+        self._zbuf: list[tuple[float, np.ndarray]] = []  # IMM only: (t, z) of the recent frames
         # CT refit (see _turn_refit): frames (t, z) since the quiet modes' start, an optional anchor
         # (t, position, whitening 2x2) and the curvature prior (mean, variance); cache keyed by _rev
         self._frames: list[tuple[float, np.ndarray]] = []
@@ -525,76 +527,127 @@ class MarkerTracker:
     # -- corners: the IMM's manoeuvre detection, then a restart of the quiet modes at the corner -----------
 
     def _after_imm_update(self, t: float, z: np.ndarray) -> None:
-        """Keep the recent history; when the manoeuvre mode takes over, restart the quiet modes at the corner.
+        """Keep the recent history; on a corner, restart the quiet modes there and keep refining its time.
 
         The IMM's mixing lets the manoeuvre mode's short-memory velocity leak into the quiet modes
         for as long as it holds probability, so after a corner they would learn the new leg slowly.
-        Instead, once ``P(man) > ½`` (a few frames after the corner), the corner frame is estimated
-        by maximum likelihood over the recent frames (the old track's innovations before it, a
-        straight new leg from the old track's position after it: a GLR test, Willsky & Jones 1976)
-        and the quiet modes are re-run from there with a diffuse velocity, so the new leg is the
-        least-squares fit of every frame since the corner, anchored at the corner.
+        Instead, once ``P(man) > ½`` (a few frames after the corner) or a GLR test on the last
+        ``corner_window_s`` of frames fires (Willsky & Jones 1976), the corner frame is estimated by
+        maximum likelihood (:meth:`_best_corner`: the old track's innovations before it, a straight
+        new leg from the old track's position after it) and the quiet modes are re-run from there
+        with a diffuse velocity, so the new leg is the least-squares fit of every frame since the
+        corner, anchored at the corner. For ``corner_refine_s`` after the detection the corner time
+        is re-estimated on every frame from the *frozen* old-track history and every frame since
+        (the new leg's frames sharpen it), and the quiet modes re-run whenever it moves. The
+        detection history restarts with the new leg: the old track's large post-corner innovations
+        must not look like a second corner.
         """
         imm = self._imm_filter()
         quiet = self._kfs[int(np.argmax(imm.mu[:2]))]  # the old track: the likelier of CV and CT
         Sinv = np.linalg.inv(quiet.S)
         self._nis += float(quiet.y[:, 0] @ Sinv @ quiet.y[:, 0]) + float(np.log(np.linalg.det(quiet.S)))
         self._history.append((t, z.copy(), quiet.x.copy(), quiet.P.copy(), self._nis, imm.mu.copy()))
-        while self._history and t - self._history[0][0] > self._corner_window:
+        while self._history and t - self._history[0][0] > 2 * self._corner_window:
             self._history.pop(0)
+        self._zbuf.append((t, z.copy()))
+        while t - self._zbuf[0][0] > 2 * self._corner_window + self._corner_refine + 0.5:
+            self._zbuf.pop(0)
         if t - self._t_start < 2 * self._corner_window:
             return  # the track's first frames: the quiet modes are still converging, not turning a corner
-        if self._refits > 0:  # refine the corner with the frames that came since it was detected
-            self._refits -= 1
-            self._restart_at_corner(self._detect_at)
-            return
-        if imm.mu[2] < 0.5 and not self._glr_detects():
+        if self._corner is not None:
+            if t - self._corner["t_detect"] > self._corner_refine:
+                self._corner = None  # the corner's time is settled
+            else:
+                self._refine_corner()
+        recent = [h for h in self._history if t - h[0] <= self._corner_window]
+        if imm.mu[2] < 0.5 and not self._glr_detects(recent):
             self._in_corner = False
             return
-        if self._in_corner or len(self._history) < 4:
+        if self._in_corner or len(recent) < 4:
             return
         self._in_corner = True
-        self._detect_at = t
-        self._refits = 6
-        self._restart_at_corner(t)
+        # the old track's history up to the detection, frozen: the corner lies in it
+        self._corner = {"t_detect": t, "entries": list(self._history), "j": None}
+        self._refine_corner()
 
-    def _glr_detects(self, threshold: float = 25.0) -> bool:
+    def _glr_detects(self, hist: list, threshold: float = 25.0) -> bool:
         """A slow corner the manoeuvre mode misses: the GLR statistic (no corner vs the best corner) > threshold."""
-        hist = self._history
         if len(hist) < 8 or hist[-1][4] - hist[-6][4] < 5 * (2.0 + np.log(self._R[0, 0] ** 2)):
             return False  # the old track still explains the last frames (expected NIS 2 per frame)
-        cost, _ = self._best_corner(hist[-1][0])
+        cost, _ = self._best_corner(hist, [(h[0], h[1]) for h in hist])
         return hist[-1][4] - cost > threshold
 
-    def _best_corner(self, t_detect: float) -> tuple[float, int]:
-        hist = self._history
+    def _best_corner(self, entries: list, frames: list) -> tuple[float, int]:
+        """ML corner: (cost, j) with the corner between ``entries[j-1]`` and ``entries[j]``.
+
+        ``entries``: the old track's (t, z, x, P, cumulative NIS, μ) per frame; ``frames``: (t, z)
+        of every frame from ``entries[1]`` on (later ones too). For each j the cost is −2 log of the
+        likelihood of all frames: the old track's cumulative NIS up to j−1, then a straight new leg
+        ``p0 + δp + v2·τ`` through the frames since j, with ``p0`` the old track's position at j−1
+        (τ from there), ``δp`` under its covariance and ``v2`` free (both by least squares).
+        Bar-Shalom et al. 2001 §11.3 (a manoeuvre's onset by ML); units of the old track's NIS.
+        """
         R = self._R[0, 0]
+        ft = np.array([f[0] for f in frames])
+        fz = np.array([f[1] for f in frames])
         best = (np.inf, 1)
-        for j in range(1, len(hist) - 1):  # corner between frames j-1 and j, up to the detection
-            if hist[j][0] > t_detect:
+        for j in range(1, len(entries)):
+            t0, _, x0, P0, nis0, _ = entries[j - 1]
+            keep = ft >= entries[j][0] - 1e-9
+            ts = ft[keep] - t0
+            if len(ts) < 2:
                 break
-            t0, _, x0, P0, nis0, _ = hist[j - 1]
-            p0 = x0[[0, 2], 0]
-            ts = np.array([h[0] for h in hist[j:]]) - t0
-            zs = np.array([h[1] for h in hist[j:]])
-            # new leg p0 + v2·τ (p0 from the old track): v2 by least squares; cost in the NIS units of the old track
-            v2 = (ts @ (zs - p0)) / (ts @ ts)
-            cost = nis0 + float(np.sum((zs - p0 - np.outer(ts, v2)) ** 2)) / R + len(ts) * np.log(R * R)
+            zs = fz[keep] - x0[self._pos, 0]
+            # normal equations of (δp, v2) with the prior δp ~ N(0, P0_pos): per axis blocks share the same τ sums
+            Pinv = np.linalg.inv(P0[np.ix_(self._pos, self._pos)])
+            n, st, stt = len(ts), ts.sum(), ts @ ts
+            A = np.zeros((4, 4))
+            A[:2, :2] = Pinv + np.eye(2) * n / R
+            A[:2, 2:] = A[2:, :2] = np.eye(2) * st / R
+            A[2:, 2:] = np.eye(2) * stt / R
+            b = np.r_[zs.sum(axis=0) / R, ts @ zs / R]
+            sol = np.linalg.solve(A, b)
+            dp, v2 = sol[:2], sol[2:]
+            r = zs - dp - np.outer(ts, v2)
+            cost = nis0 + float(np.sum(r**2)) / R + float(dp @ Pinv @ dp) + n * np.log(R * R)
             if cost < best[0]:
                 best = (cost, j)
         return best
 
-    def _restart_at_corner(self, t_detect: float) -> None:
-        hist = self._history
-        j = self._best_corner(t_detect)[1]
-        t0, _, x0, P0, _, mu0 = hist[j - 1]
-        if self._refits < 6 and self.corners:  # a refinement of the same corner
-            self.corners[-1] = float(t0)
-        else:
+    def _refine_corner(self) -> None:
+        """Re-estimate the detected corner on the frames so far; re-run the quiet modes from it if it moved."""
+        c = self._corner
+        entries = c["entries"]
+        frames = [f for f in self._zbuf if f[0] >= entries[1][0] - 1e-9] if len(entries) > 1 else []
+        if len(entries) < 2 or len(frames) < 2:
+            return
+        j = self._best_corner(entries, frames)[1]
+        if j == c["j"]:
+            return
+        first = c["j"] is None
+        c["j"] = j
+        t0, _, x0, P0, _, mu0 = entries[j - 1]
+        if first:
             self.corners.append(float(t0))
+        else:
+            self.corners[-1] = float(t0)
+        new_leg = [f for f in frames if f[0] >= entries[j][0] - 1e-9]
+        self._restart_at(t0, x0, P0, new_leg)
+        imm = self._imm_filter()
+        if first:  # the quiet modes take over again, in the old track's proportions
+            quiet = mu0[0] + mu0[1]
+            imm.mu = np.array([mu0[0] / quiet * 0.98, mu0[1] / quiet * 0.98, 0.02])
+        imm._compute_mixing_probabilities()
+        imm._compute_state_estimate()
+        # the detection history starts again with the new leg (its filters were just re-run)
+        self._history = []
+        self._in_corner = True
+
+    def _restart_at(self, t0: float, x0: np.ndarray, P0: np.ndarray, new_leg: list) -> None:
+        """Re-run every mode as a quiet mode from the old track's (x0, P0) at ``t0`` over ``new_leg`` (t, z)."""
         speed_sigma = self._init_sigmas[0]
         # the CT refit: the new leg's frames, anchored at the old track's corner position, with its curvature
-        self._frames = [(th, zh.copy()) for th, zh, *_ in hist[j:]]
+        self._frames = [(th, zh.copy()) for th, zh in new_leg]
         Pp = P0[np.ix_(self._pos, self._pos)]
         self._anchor = (float(t0), x0[self._pos, 0].copy(), np.linalg.cholesky(np.linalg.inv(Pp)).T)
         self._curv_prior = (float(x0[4, 0]), float(P0[4, 4]))
@@ -610,7 +663,7 @@ class MarkerTracker:
             kf.x, kf.P = x, P  # the curvature is kept: the new leg is likely shaped like the old
             tp = t0
             quiet = _Mode("cv", self._q, self._q_turn) if mode.kind == "man" else mode
-            for th, zh, *_ in hist[j:]:
+            for th, zh in new_leg:
                 F, Q = self._matrices(quiet, th - tp)
                 if F is None:
                     kf.dt, kf.Q = th - tp, Q
@@ -619,11 +672,6 @@ class MarkerTracker:
                     kf.predict(F=F, Q=Q)
                 kf.update(zh.reshape(2, 1))
                 tp = th
-        quiet = mu0[0] + mu0[1]
-        imm = self._imm_filter()
-        imm.mu = np.array([mu0[0] / quiet * 0.98, mu0[1] / quiet * 0.98, 0.02])
-        imm._compute_mixing_probabilities()
-        imm._compute_state_estimate()
 
     # -- estimates and predictions -------------------------------------------------------------
 
