@@ -567,7 +567,7 @@ class MarkerTracker:
             return
         self._in_corner = True
         # the old track's history up to the detection, frozen: the corner lies in it
-        self._corner = {"t_detect": t, "entries": list(self._history), "j": None, "var_tc": np.inf}
+        self._corner = {"t_detect": t, "entries": list(self._history), "j": None, "inflate": np.inf}
         self._refine_corner()
 
     def _glr_detects(self, hist: list, threshold: float = 25.0) -> bool:
@@ -599,31 +599,41 @@ class MarkerTracker:
         """
         R = self._R[0, 0]
         ft = np.array([f[0] for f in frames])
-        fz = np.array([f[1] for f in frames])
-        js, costs, v2s = [], [], []
-        for j in range(1, len(entries)):
-            t0, _, x0, P0, nis0, _ = entries[j - 1]
-            keep = ft >= entries[j][0] - 1e-9
-            ts = ft[keep] - t0
-            if len(ts) < 2:
-                break
-            zs = fz[keep] - x0[self._pos, 0]
-            # normal equations of (δp, v2) with the prior δp ~ N(0, P0_pos): per axis blocks share the same τ sums
-            Pinv = np.linalg.inv(P0[np.ix_(self._pos, self._pos)])
-            n, st, stt = len(ts), ts.sum(), ts @ ts
-            A = np.zeros((4, 4))
-            A[:2, :2] = Pinv + np.eye(2) * n / R
-            A[:2, 2:] = A[2:, :2] = np.eye(2) * st / R
-            A[2:, 2:] = np.eye(2) * stt / R
-            b = np.r_[zs.sum(axis=0) / R, ts @ zs / R]
-            sol = np.linalg.solve(A, b)
-            dp, v2 = sol[:2], sol[2:]
-            r = zs - dp - np.outer(ts, v2)
-            cost = nis0 + float(np.sum(r**2)) / R + float(dp @ Pinv @ dp) + n * np.log(R * R)
-            js.append(j)
-            costs.append(cost)
-            v2s.append(v2)
-        return np.array(js, dtype=int), np.array(costs), np.array(v2s).reshape(-1, 2)
+        fz = np.array([f[1] for f in frames]).reshape(-1, 2)
+        # candidates whose new leg has ≥ 2 frames; for each, suffix sums over the frames since entries[j]
+        te = np.array([e[0] for e in entries])
+        start = np.searchsorted(ft, te[1:] - 1e-9)
+        js = np.flatnonzero(len(ft) - start >= 2) + 1
+        if not len(js):
+            return js, np.zeros(0), np.zeros((0, 2))
+        start = start[js - 1]
+
+        def suffix(a):
+            return np.concatenate([np.cumsum(a[::-1], axis=0)[::-1], np.zeros((1,) + a.shape[1:])])[start]
+
+        n = (len(ft) - start).astype(float)
+        S1, S2 = suffix(ft), suffix(ft * ft)
+        Sz, Stz, Szz = suffix(fz), suffix(ft[:, None] * fz), suffix(np.sum(fz * fz, axis=1))
+        t0 = te[js - 1]
+        p0 = np.array([entries[j - 1][2][self._pos, 0] for j in js])
+        P0 = np.array([entries[j - 1][3][np.ix_(self._pos, self._pos)] for j in js])
+        nis0 = np.array([entries[j - 1][4] for j in js])
+        # τ = t − t0 and z' = z − p0, from the suffix sums
+        st = S1 - n * t0
+        stt = S2 - 2 * t0 * S1 + n * t0 * t0
+        sz = Sz - n[:, None] * p0
+        stz = Stz - t0[:, None] * Sz - st[:, None] * p0
+        szz = Szz - 2 * np.sum(p0 * Sz, axis=1) + n * np.sum(p0 * p0, axis=1)
+        # normal equations of (δp, v2) with the prior δp ~ N(0, P0_pos); the minimum of the quadratic is c − bᵀA⁻¹b
+        eye = np.eye(2)
+        A = np.zeros((len(js), 4, 4))
+        A[:, :2, :2] = np.linalg.inv(P0) + eye * (n / R)[:, None, None]
+        A[:, :2, 2:] = A[:, 2:, :2] = eye * (st / R)[:, None, None]
+        A[:, 2:, 2:] = eye * (stt / R)[:, None, None]
+        bvec = np.concatenate([sz, stz], axis=1) / R
+        sol = np.linalg.solve(A, bvec[:, :, None])[:, :, 0]
+        costs = nis0 + szz / R - np.sum(bvec * sol, axis=1) + n * np.log(R * R)
+        return js, costs, sol[:, 2:]
 
     def _refine_corner(self) -> None:
         """Re-estimate the detected corner on the frames so far; re-run the quiet modes from it if it moved."""
@@ -643,12 +653,14 @@ class MarkerTracker:
         w /= w.sum()
         tc = np.array([entries[i - 1][0] for i in js])
         var_tc = float(w @ (tc - w @ tc) ** 2)
-        if j == c["j"] and var_tc >= 0.5 * c["var_tc"]:
-            return
-        first = c["j"] is None
-        c["j"], c["var_tc"] = j, var_tc
         t0, _, x0, P0, _, mu0 = entries[j - 1]
         dv = v2s[k] - x0[self._vel, 0]
+        inflate = var_tc * float(dv @ dv)  # mm²
+        settled = max(0.5 * c["inflate"], np.trace(P0[np.ix_(self._pos, self._pos)]))
+        if j == c["j"] and abs(inflate - c["inflate"]) <= settled:
+            return  # the same corner, and the anchor's variance still about right: no re-run
+        first = c["j"] is None
+        c["j"], c["inflate"] = j, inflate
         P0 = P0.copy()
         P0[np.ix_(self._pos, self._pos)] += var_tc * np.outer(dv, dv)
         if first:
