@@ -239,8 +239,9 @@ class MarkerTracker:
     to each other mode); the manoeuvre mode is left with ``maneuver_exit_prob``, to CT with the
     prior probability ``curve_prior`` (also the initial probability of a curve; the lab's value is
     chosen by measurement, docs/notes/planning.md). ``init_curvature_sigma`` is the
-    curvature prior (the table's tightest radius). ``corner_window_s``: frames kept for the
-    corner restart (see :meth:`_after_imm_update`); ``refit_window_s``: frames the CT mode's
+    curvature prior (the table's tightest radius). ``corner_window_s``: the frames the corner
+    detection tests (see :meth:`_after_imm_update`); ``corner_refine_s``: how long after a detection
+    the corner's time is still re-estimated; ``refit_window_s``: frames the CT mode's
     re-linearised fit uses (see :meth:`_turn_refit`).
     ``measurement_noise_mm`` is the centroid's standard deviation per axis on the table plane.
     A measurement whose Mahalanobis distance from the prediction exceeds ``gate_sigma`` is
