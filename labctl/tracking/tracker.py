@@ -283,6 +283,8 @@ class MarkerTracker:
             ("init_curvature_sigma", init_curvature_sigma),
             ("init_accel_sigma", init_accel_sigma),
             ("refit_window_s", refit_window_s),
+            ("corner_window_s", corner_window_s),
+            ("corner_refine_s", corner_refine_s),
         ):
             if not np.isfinite(value) or value <= 0:
                 raise TrackingError(f"{name} must be a positive number, got {value!r}")
