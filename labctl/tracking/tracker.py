@@ -651,9 +651,9 @@ class MarkerTracker:
         k = int(np.argmin(costs))
         j = int(js[k])
         # the corner time's posterior over the candidates (flat prior, exp(−cost/2)) and each candidate's new leg
-        # now, [x, vx, y, vy]: their spread about the ML leg is the error a wrong corner time makes, added to the
-        # re-run quiet modes (moment matching over the corner hypotheses); without it runs whose corner was a
-        # frame or two off had NEES 3-5 and the rest 1.6-1.9 (12 mm/s, 64 runs)
+        # now, [x, vx, y, vy]: their spread (moment matching over the corner hypotheses) is the error a wrong corner
+        # time makes, added to the re-run quiet modes. With only the anchor's corner-time variance, runs whose corner
+        # was a frame or two off had mean NEES 2.7-5.3 and the rest 1.6-1.8 (12 mm/s, 64 runs): v2 errs too
         w = np.exp(-0.5 * (costs - costs[k]))
         w /= w.sum()
         t0s = np.array([entries[i - 1][0] for i in js])
