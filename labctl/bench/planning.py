@@ -39,10 +39,12 @@ MODELS = {
     "ca": dict(model="ca", jerk_noise=0.1),
     "cv (before: process_noise 0.5)": dict(model="cv", process_noise=0.5),
 }
-AFTER_CORNER_S = (0.1, 0.2, 0.3, 0.5, 1.0)
+AFTER_CORNER_S = (0.1, 0.2, 0.3, 0.5, 0.75, 1.0, 1.5, 2.0)
 RUNS = 64  # Monte-Carlo runs per cell: at 16 the RMS ratio's run-to-run sd was ~12 %, heavy-tailed on lines
-# issue 18's acceptance: the 5-s prediction RMS over the bound after 2 s / 4 s of tracking, and 0.5 s after a corner
-ACCEPTANCE = {2.0: 1.2, 4.0: 1.3, 0.5: 1.5}
+# issue 18's acceptance: the 5-s prediction RMS over the bound after 2 s / 4 s of tracking, and from 0.5 s after a
+# zigzag corner on ("settles back under 1.5x within 0.5 s": it must stay there, so every listed instant to 2 s)
+ACCEPTANCE = {2.0: 1.2, 4.0: 1.3}
+CORNER_ACCEPTANCE = {0.5: 1.5, 0.75: 1.5, 1.0: 1.5, 1.5: 1.5, 2.0: 1.5}
 
 
 def _make_tracker(kw: dict, family: str | None = None) -> MarkerTracker:
@@ -99,7 +101,7 @@ def _bound_table(quick: bool, models=None) -> list[dict]:
                     ref = min(r["crb_mm"], ml[t])
                     at = round(t - 2.0, 3) if zig and t > 2.0 else t
                     after_corner = bool(zig and t > 2.0)
-                    limit = ACCEPTANCE.get(at) if (after_corner or not zig) else None
+                    limit = CORNER_ACCEPTANCE.get(at) if after_corner else None if zig else ACCEPTANCE.get(at)
                     lo, hi = r["nees_bounds"]
                     rows.append({"family": family, "speed_mm_s": speed, "model": name, "at_s": at,
                                  "after_corner": after_corner,

@@ -239,8 +239,9 @@ class MarkerTracker:
     to each other mode); the manoeuvre mode is left with ``maneuver_exit_prob``, to CT with the
     prior probability ``curve_prior`` (also the initial probability of a curve; the lab's value is
     chosen by measurement, docs/notes/planning.md). ``init_curvature_sigma`` is the
-    curvature prior (the table's tightest radius). ``corner_window_s``: frames kept for the
-    corner restart (see :meth:`_after_imm_update`); ``refit_window_s``: frames the CT mode's
+    curvature prior (the table's tightest radius). ``corner_window_s``: the frames the corner
+    detection tests (see :meth:`_after_imm_update`); ``corner_refine_s``: how long after a detection
+    the corner's time is still re-estimated; ``refit_window_s``: frames the CT mode's
     re-linearised fit uses (see :meth:`_turn_refit`).
     ``measurement_noise_mm`` is the centroid's standard deviation per axis on the table plane.
     A measurement whose Mahalanobis distance from the prediction exceeds ``gate_sigma`` is
@@ -266,6 +267,7 @@ class MarkerTracker:
         init_accel_sigma: float = 50.0,
         max_misses: int = 10,
         corner_window_s: float = 0.6,
+        corner_refine_s: float = 2.0,
         refit_window_s: float = 10.0,
     ) -> None:
         if model not in MODELS:
@@ -281,6 +283,8 @@ class MarkerTracker:
             ("init_curvature_sigma", init_curvature_sigma),
             ("init_accel_sigma", init_accel_sigma),
             ("refit_window_s", refit_window_s),
+            ("corner_window_s", corner_window_s),
+            ("corner_refine_s", corner_refine_s),
         ):
             if not np.isfinite(value) or value <= 0:
                 raise TrackingError(f"{name} must be a positive number, got {value!r}")
@@ -292,6 +296,7 @@ class MarkerTracker:
         self.gate_sigma = float(gate_sigma)
         self.max_misses = int(max_misses)
         self._corner_window = float(corner_window_s)
+        self._corner_refine = float(corner_refine_s)
         self._refit_window = float(refit_window_s)
         self._q = float(process_noise) ** 2
         self._q_turn = float(curvature_noise) ** 2
@@ -368,8 +373,8 @@ class MarkerTracker:
         self._history: list = []  # IMM only: (t, z, quiet x, P, cumulative NIS, μ) per frame
         self._nis = 0.0
         self._in_corner = False
-        self._refits = 0
-        self._detect_at = 0.0
+        self._corner: dict | None = None  # a detected corner whose time is still being refined
+        self._zbuf: list[tuple[float, np.ndarray]] = []  # IMM only: (t, z) of the recent frames
         # CT refit (see _turn_refit): frames (t, z) since the quiet modes' start, an optional anchor
         # (t, position, whitening 2x2) and the curvature prior (mean, variance); cache keyed by _rev
         self._frames: list[tuple[float, np.ndarray]] = []
@@ -525,76 +530,170 @@ class MarkerTracker:
     # -- corners: the IMM's manoeuvre detection, then a restart of the quiet modes at the corner -----------
 
     def _after_imm_update(self, t: float, z: np.ndarray) -> None:
-        """Keep the recent history; when the manoeuvre mode takes over, restart the quiet modes at the corner.
+        """Keep the recent history; on a corner, restart the quiet modes there and keep refining its time.
 
         The IMM's mixing lets the manoeuvre mode's short-memory velocity leak into the quiet modes
         for as long as it holds probability, so after a corner they would learn the new leg slowly.
-        Instead, once ``P(man) > ½`` (a few frames after the corner), the corner frame is estimated
-        by maximum likelihood over the recent frames (the old track's innovations before it, a
-        straight new leg from the old track's position after it: a GLR test, Willsky & Jones 1976)
-        and the quiet modes are re-run from there with a diffuse velocity, so the new leg is the
-        least-squares fit of every frame since the corner, anchored at the corner.
+        Instead, once ``P(man) > ½`` (a few frames after the corner) or a GLR test on the last
+        ``corner_window_s`` of frames fires (Willsky & Jones 1976), the corner frame is estimated by
+        maximum likelihood (:meth:`_best_corner`: the old track's innovations before it, a straight
+        new leg from the old track's position after it) and the quiet modes are re-run from there
+        with a diffuse velocity, so the new leg is the least-squares fit of every frame since the
+        corner, anchored at the corner. For ``corner_refine_s`` after the detection the corner time
+        is re-estimated on every frame from the *frozen* old-track history and every frame since
+        (the new leg's frames sharpen it), and the quiet modes re-run whenever it moves. The
+        detection history restarts with the new leg: the old track's large post-corner innovations
+        must not look like a second corner.
         """
         imm = self._imm_filter()
         quiet = self._kfs[int(np.argmax(imm.mu[:2]))]  # the old track: the likelier of CV and CT
         Sinv = np.linalg.inv(quiet.S)
         self._nis += float(quiet.y[:, 0] @ Sinv @ quiet.y[:, 0]) + float(np.log(np.linalg.det(quiet.S)))
         self._history.append((t, z.copy(), quiet.x.copy(), quiet.P.copy(), self._nis, imm.mu.copy()))
-        while self._history and t - self._history[0][0] > self._corner_window:
+        while self._history and t - self._history[0][0] > 2 * self._corner_window:
             self._history.pop(0)
+        self._zbuf.append((t, z.copy()))
+        while t - self._zbuf[0][0] > 2 * self._corner_window + self._corner_refine + 0.5:
+            self._zbuf.pop(0)
         if t - self._t_start < 2 * self._corner_window:
             return  # the track's first frames: the quiet modes are still converging, not turning a corner
-        if self._refits > 0:  # refine the corner with the frames that came since it was detected
-            self._refits -= 1
-            self._restart_at_corner(self._detect_at)
-            return
-        if imm.mu[2] < 0.5 and not self._glr_detects():
+        if self._corner is not None:
+            if t - self._corner["t_detect"] > self._corner_refine:
+                self._corner = None  # the corner's time is settled
+            else:
+                self._refine_corner()
+        recent = [h for h in self._history if t - h[0] <= self._corner_window]
+        if imm.mu[2] < 0.5 and not self._glr_detects(recent):
             self._in_corner = False
             return
-        if self._in_corner or len(self._history) < 4:
+        if self._in_corner or len(recent) < 4:
             return
         self._in_corner = True
-        self._detect_at = t
-        self._refits = 6
-        self._restart_at_corner(t)
+        # the old track's history up to the detection, frozen: the corner lies in it
+        self._corner = {"t_detect": t, "entries": list(self._history), "j": None, "spread": np.inf}
+        self._refine_corner()
 
-    def _glr_detects(self, threshold: float = 25.0) -> bool:
+    def _glr_detects(self, hist: list, threshold: float = 25.0) -> bool:
         """A slow corner the manoeuvre mode misses: the GLR statistic (no corner vs the best corner) > threshold."""
-        hist = self._history
         if len(hist) < 8 or hist[-1][4] - hist[-6][4] < 5 * (2.0 + np.log(self._R[0, 0] ** 2)):
             return False  # the old track still explains the last frames (expected NIS 2 per frame)
-        cost, _ = self._best_corner(hist[-1][0])
+        cost, _ = self._best_corner(hist, [(h[0], h[1]) for h in hist])
         return hist[-1][4] - cost > threshold
 
-    def _best_corner(self, t_detect: float) -> tuple[float, int]:
-        hist = self._history
-        R = self._R[0, 0]
-        best = (np.inf, 1)
-        for j in range(1, len(hist) - 1):  # corner between frames j-1 and j, up to the detection
-            if hist[j][0] > t_detect:
-                break
-            t0, _, x0, P0, nis0, _ = hist[j - 1]
-            p0 = x0[[0, 2], 0]
-            ts = np.array([h[0] for h in hist[j:]]) - t0
-            zs = np.array([h[1] for h in hist[j:]])
-            # new leg p0 + v2·τ (p0 from the old track): v2 by least squares; cost in the NIS units of the old track
-            v2 = (ts @ (zs - p0)) / (ts @ ts)
-            cost = nis0 + float(np.sum((zs - p0 - np.outer(ts, v2)) ** 2)) / R + len(ts) * np.log(R * R)
-            if cost < best[0]:
-                best = (cost, j)
-        return best
+    def _best_corner(self, entries: list, frames: list) -> tuple[float, int]:
+        """ML corner: (cost, j), the corner between ``entries[j-1]`` and ``entries[j]`` (:meth:`_corner_costs`)."""
+        js, costs, *_ = self._corner_costs(entries, frames)
+        if not len(js):
+            return np.inf, 1
+        k = int(np.argmin(costs))
+        return float(costs[k]), int(js[k])
 
-    def _restart_at_corner(self, t_detect: float) -> None:
-        hist = self._history
-        j = self._best_corner(t_detect)[1]
-        t0, _, x0, P0, _, mu0 = hist[j - 1]
-        if self._refits < 6 and self.corners:  # a refinement of the same corner
-            self.corners[-1] = float(t0)
-        else:
+    def _corner_costs(self, entries: list, frames: list) -> tuple[np.ndarray, ...]:
+        """Each candidate corner j's cost and new leg: (js, costs, v2s (n, 2), δps (n, 2)).
+
+        The corner lies between ``entries[j-1]`` and ``entries[j]``.
+
+        ``entries``: the old track's (t, z, x, P, cumulative NIS, μ) per frame; ``frames``: (t, z)
+        of every frame from ``entries[1]`` on (later ones too). For each j the cost is −2 log of the
+        likelihood of all frames: the old track's cumulative NIS up to j−1, then a straight new leg
+        ``p0 + δp + v2·τ`` through the frames since j, with ``p0`` the old track's position at j−1
+        (τ from there), ``δp`` under its covariance and ``v2`` free (both by least squares).
+        Bar-Shalom et al. 2001 §11.3 (a manoeuvre's onset by ML); units of the old track's NIS.
+        """
+        R = self._R[0, 0]
+        ft = np.array([f[0] for f in frames])
+        fz = np.array([f[1] for f in frames]).reshape(-1, 2)
+        # candidates whose new leg has ≥ 2 frames; for each, suffix sums over the frames since entries[j]
+        te = np.array([e[0] for e in entries])
+        start = np.searchsorted(ft, te[1:] - 1e-9)
+        js = np.flatnonzero(len(ft) - start >= 2) + 1
+        if not len(js):
+            return js, np.zeros(0), np.zeros((0, 2)), np.zeros((0, 2))
+        start = start[js - 1]
+
+        def suffix(a):
+            return np.concatenate([np.cumsum(a[::-1], axis=0)[::-1], np.zeros((1,) + a.shape[1:])])[start]
+
+        n = (len(ft) - start).astype(float)
+        S1, S2 = suffix(ft), suffix(ft * ft)
+        Sz, Stz, Szz = suffix(fz), suffix(ft[:, None] * fz), suffix(np.sum(fz * fz, axis=1))
+        t0 = te[js - 1]
+        p0 = np.array([entries[j - 1][2][self._pos, 0] for j in js])
+        P0 = np.array([entries[j - 1][3][np.ix_(self._pos, self._pos)] for j in js])
+        nis0 = np.array([entries[j - 1][4] for j in js])
+        # τ = t − t0 and z' = z − p0, from the suffix sums
+        st = S1 - n * t0
+        stt = S2 - 2 * t0 * S1 + n * t0 * t0
+        sz = Sz - n[:, None] * p0
+        stz = Stz - t0[:, None] * Sz - st[:, None] * p0
+        szz = Szz - 2 * np.sum(p0 * Sz, axis=1) + n * np.sum(p0 * p0, axis=1)
+        # normal equations of (δp, v2) with the prior δp ~ N(0, P0_pos); the minimum of the quadratic is c − bᵀA⁻¹b
+        eye = np.eye(2)
+        A = np.zeros((len(js), 4, 4))
+        A[:, :2, :2] = np.linalg.inv(P0) + eye * (n / R)[:, None, None]
+        A[:, :2, 2:] = A[:, 2:, :2] = eye * (st / R)[:, None, None]
+        A[:, 2:, 2:] = eye * (stt / R)[:, None, None]
+        bvec = np.concatenate([sz, stz], axis=1) / R
+        sol = np.linalg.solve(A, bvec[:, :, None])[:, :, 0]
+        costs = nis0 + szz / R - np.sum(bvec * sol, axis=1) + n * np.log(R * R)
+        return js, costs, sol[:, 2:], sol[:, :2]
+
+    def _refine_corner(self) -> None:
+        """Re-estimate the detected corner on the frames so far; re-run the quiet modes from it if it moved."""
+        c = self._corner
+        entries = c["entries"]
+        frames = [f for f in self._zbuf if f[0] >= entries[1][0] - 1e-9] if len(entries) > 1 else []
+        if len(entries) < 2 or len(frames) < 2:
+            return
+        js, costs, v2s, dps = self._corner_costs(entries, frames)
+        if not len(js):
+            return
+        k = int(np.argmin(costs))
+        j = int(js[k])
+        # the corner time's posterior over the candidates (flat prior, exp(−cost/2)) and each candidate's new leg
+        # now, [x, vx, y, vy]: their spread (moment matching over the corner hypotheses) is the error a wrong corner
+        # time makes, added to the re-run quiet modes. With only the anchor's corner-time variance, runs whose corner
+        # was a frame or two off had mean NEES 2.7-5.3 and the rest 1.6-1.8 (12 mm/s, 64 runs): v2 errs too
+        w = np.exp(-0.5 * (costs - costs[k]))
+        w /= w.sum()
+        t0s = np.array([entries[i - 1][0] for i in js])
+        p0s = np.array([entries[i - 1][2][self._pos, 0] for i in js])
+        t_now = frames[-1][0]
+        legs = np.empty((len(js), 4))
+        legs[:, [0, 2]] = p0s + dps + v2s * (t_now - t0s)[:, None]
+        legs[:, [1, 3]] = v2s
+        d = legs - w @ legs
+        spread = (w[:, None] * d).T @ d
+        size = float(spread[0, 0] + spread[2, 2])  # mm²
+        t0, _, x0, P0, _, mu0 = entries[j - 1]
+        settled = max(0.5 * c["spread"], np.trace(P0[np.ix_(self._pos, self._pos)]))
+        if j == c["j"] and abs(size - c["spread"]) <= settled:
+            return  # the same corner, and its spread still about right: no re-run
+        first = c["j"] is None
+        c["j"], c["spread"] = j, size
+        if first:
             self.corners.append(float(t0))
+        else:
+            self.corners[-1] = float(t0)
+        new_leg = [f for f in frames if f[0] >= entries[j][0] - 1e-9]
+        self._restart_at(t0, x0, P0, new_leg)
+        for kf in self._kfs:
+            kf.P[:4, :4] += spread
+        imm = self._imm_filter()
+        if first:  # the quiet modes take over again, in the old track's proportions
+            quiet = mu0[0] + mu0[1]
+            imm.mu = np.array([mu0[0] / quiet * 0.98, mu0[1] / quiet * 0.98, 0.02])
+        imm._compute_mixing_probabilities()
+        imm._compute_state_estimate()
+        # the detection history starts again with the new leg (its filters were just re-run)
+        self._history = []
+        self._in_corner = True
+
+    def _restart_at(self, t0: float, x0: np.ndarray, P0: np.ndarray, new_leg: list) -> None:
+        """Re-run every mode as a quiet mode from the old track's (x0, P0) at ``t0`` over ``new_leg`` (t, z)."""
         speed_sigma = self._init_sigmas[0]
         # the CT refit: the new leg's frames, anchored at the old track's corner position, with its curvature
-        self._frames = [(th, zh.copy()) for th, zh, *_ in hist[j:]]
+        self._frames = [(th, zh.copy()) for th, zh in new_leg]
         Pp = P0[np.ix_(self._pos, self._pos)]
         self._anchor = (float(t0), x0[self._pos, 0].copy(), np.linalg.cholesky(np.linalg.inv(Pp)).T)
         self._curv_prior = (float(x0[4, 0]), float(P0[4, 4]))
@@ -610,7 +709,7 @@ class MarkerTracker:
             kf.x, kf.P = x, P  # the curvature is kept: the new leg is likely shaped like the old
             tp = t0
             quiet = _Mode("cv", self._q, self._q_turn) if mode.kind == "man" else mode
-            for th, zh, *_ in hist[j:]:
+            for th, zh in new_leg:
                 F, Q = self._matrices(quiet, th - tp)
                 if F is None:
                     kf.dt, kf.Q = th - tp, Q
@@ -619,11 +718,6 @@ class MarkerTracker:
                     kf.predict(F=F, Q=Q)
                 kf.update(zh.reshape(2, 1))
                 tp = th
-        quiet = mu0[0] + mu0[1]
-        imm = self._imm_filter()
-        imm.mu = np.array([mu0[0] / quiet * 0.98, mu0[1] / quiet * 0.98, 0.02])
-        imm._compute_mixing_probabilities()
-        imm._compute_state_estimate()
 
     # -- estimates and predictions -------------------------------------------------------------
 
