@@ -235,11 +235,7 @@ def test_stream_300_lines_then_an_error_names_the_file_line_and_stops(fw, tmp_pa
     assert "<Idle" in s1 and s1.split("|")[1] == s2.split("|")[1]  # stopped, not Run with lines still queued
 
 
-@pytest.mark.parametrize("sig,cmd", [
-    pytest.param(signal.SIGINT, "stream", marks=pytest.mark.xfail(
-        strict=False, reason="failing since 2026-11-30 in two clean-clone CI runs, not yet diagnosed: the stop after "
-                             "Ctrl-C times out waiting for the firmware's banner after the soft reset")),
-    (signal.SIGTERM, "move")])
+@pytest.mark.parametrize("sig,cmd", [(signal.SIGINT, "stream"), (signal.SIGTERM, "move")])
 def test_interrupt_stops_the_table(fw, tmp_path, sig, cmd):
     """Ctrl-C / SIGTERM during `table stream|move`: hold, reset, status read back; exit 130, one line."""
     fw.fresh()
@@ -257,7 +253,9 @@ def test_interrupt_stops_the_table(fw, tmp_path, sig, cmd):
                          env={**os.environ, "PYTHONPATH": str(REPO)})
     time.sleep(6.0)  # python start-up and connect (slow on a loaded machine), then some motion
     p.send_signal(sig)
-    out, err = p.communicate(timeout=30)
+    # the hold (a few s) and the reset, whose confirmation a stop awaits up to stop_confirm_s (30 s): on a
+    # loaded machine the simulator's pty relay has been seen silent for 20 s (docs/notes/devices.md)
+    out, err = p.communicate(timeout=90)
     assert p.returncode == 130, err
     # Idle when the hold completed before the reset (the usual case); Alarm (ALARM:3) if a starved
     # simulator was still decelerating after 30 s — stopped either way, never Run
@@ -268,6 +266,65 @@ def test_interrupt_stops_the_table(fw, tmp_path, sig, cmd):
     assert ("<Idle" in s1 or "<Alarm" in s1) and s1.split("|")[1] == s2.split("|")[1], (s1, err)
     x = float(s1.split("|")[1].split(":")[1].split(",")[0])
     assert 0 < x < 100  # it was moving, and stopped part-way
+
+
+class LossyPort:
+    """The firmware's port as a noisy line would deliver it: ``garble_banner`` damages one byte of every
+    ``Grbl 1.1h`` banner line on the way in; ``drop_resets`` loses that many 0x18 bytes on the way out."""
+
+    def __init__(self, path: str, garble_banner: bool = False, drop_resets: int = 0):
+        self._port = serial.Serial(path, 115200, timeout=0)
+        self.garble_banner, self.drop_resets = garble_banner, drop_resets
+        self.garbled = self.dropped = 0
+        self._held = b""  # a partial line, released once complete (a banner may come in pieces)
+
+    def __getattr__(self, name):
+        return getattr(self._port, name)
+
+    @property
+    def in_waiting(self) -> int:
+        return self._port.in_waiting + len(self._held)
+
+    def read(self, n: int = 1) -> bytes:
+        data = self._held + self._port.read(max(n, 4096))
+        cut = data.rfind(b"\n") + 1
+        out, self._held = data[:cut], data[cut:]
+        if self.garble_banner and b"Grbl 1.1h" in out:
+            self.garbled += out.count(b"Grbl 1.1h")
+            out = out.replace(b"Grbl 1.1h", b"Gr\xffl 1.1h")
+        return out
+
+    def write(self, data: bytes) -> int:
+        if self.drop_resets and b"\x18" in data:
+            self.drop_resets -= 1
+            self.dropped += 1
+            data = data.replace(b"\x18", b"", 1)
+        return self._port.write(data)
+
+
+@pytest.mark.parametrize("lossy", [{"garble_banner": True}, {"drop_resets": 1}], ids=["banner-garbled", "reset-lost"])
+def test_a_stop_is_confirmed_when_the_banner_or_the_reset_is_lost(fw, lossy):
+    """The stop's soft reset on a line that garbles the banner GRBL prints after it (the driver never sees
+    one) or that loses the 0x18 itself: GRBL's own status reports confirm the reset, and a report that
+    still shows the hold makes the driver send the reset again. Either way the table is stopped part-way
+    and says so; before, the stop gave up after the reply time-out ("no banner after a soft reset")."""
+    fw.fresh()
+    port = LossyPort(fw.path, **lossy)
+    with GrblTable(fw.path, 115200, serial_port=port, reset_on_open=False, timeout_s=SLOW, status_hz=10,
+                   auto_unlock=False) as t:
+        t.stream(["G21G90", "G53G1X60F1200"])
+        _until_running(t)
+        st = t.stop()
+        assert st.state == "Idle" and 0 < st.position[0] < 60
+        if "garble_banner" in lossy:
+            assert port.garbled >= 1 and t.reset_confirmed_by == "status"
+        else:
+            assert port.dropped == 1 and t.reset_confirmed_by == "banner"  # the second 0x18 got through
+    s1 = fw.status()
+    time.sleep(0.5)
+    s2 = fw.status()
+    assert "<Idle" in s1 and s1.split("|")[1] == s2.split("|")[1]
+    assert s1.split("|")[1].startswith(f"MPos:{st.position[0]:.3f},")  # where the driver said it stopped
 
 
 def test_critical_alarm_status_never_resets_and_homing_times_out(fw, labctl):
