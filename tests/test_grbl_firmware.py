@@ -327,6 +327,37 @@ def test_a_stop_is_confirmed_when_the_banner_or_the_reset_is_lost(fw, lossy):
     assert s1.split("|")[1].startswith(f"MPos:{st.position[0]:.3f},")  # where the driver said it stopped
 
 
+def test_a_stop_waits_out_a_silent_link_and_confirms(fw):
+    """The firmware's pty relay frozen for 8 s (SIGSTOP; in CI a CPU-starved kernel tty worker froze it for
+    up to 20 s, docs/notes/devices.md) just as the stop begins, with a 3 s reply time-out: nothing reaches
+    GRBL or comes back. The stop waits for the reset's confirmation up to ``stop_confirm_s`` rather than
+    give up after the time-out (it did: "no banner after a soft reset"), and the table stays where it was held."""
+    fw.fresh()
+    with GrblTable(fw.path, 115200, reset_on_open=False, timeout_s=3.0, status_hz=10, auto_unlock=False) as t:
+        t.stream(["G21G90", "G53G1X60F1200"])
+        _until_running(t)
+        t.feed_hold()
+        deadline = time.monotonic() + SLOW
+        while (st := t.status()).state != "Hold:0":
+            assert time.monotonic() < deadline, st.state
+        os.kill(fw.proc.pid, signal.SIGSTOP)
+        thaw = threading.Timer(8.0, os.kill, (fw.proc.pid, signal.SIGCONT))
+        thaw.start()
+        try:
+            t0 = time.monotonic()
+            stopped = t.stop()
+            waited = time.monotonic() - t0
+        finally:
+            thaw.cancel()
+            os.kill(fw.proc.pid, signal.SIGCONT)
+        assert waited > 6.0  # past two reply time-outs (the hold's and the reset's): where the old stop gave up
+        assert stopped.state == "Idle" and stopped.position[0] == pytest.approx(st.position[0], abs=1e-3)
+    s1 = fw.status()
+    time.sleep(0.5)
+    assert "<Idle" in s1 and s1.split("|")[1] == fw.status().split("|")[1]
+    assert s1.split("|")[1].startswith(f"MPos:{st.position[0]:.3f},")
+
+
 def test_critical_alarm_status_never_resets_and_homing_times_out(fw, labctl):
     """ALARM:2 (soft limit) locks GRBL: it ignores '?'. `table status` says so and does not reset it;
     `table reset` does; `table home` is bounded by --timeout and ends in the firmware's homing alarm."""
