@@ -172,7 +172,7 @@ def test_hold_check_and_stop_keep_the_position(fw, labctl):
         while "Run" not in seen and time.monotonic() < deadline:
             seen.add(t.status().state)
         t.feed_hold()
-        # its own deadline: grbl-sim freezes its steppers for ~2.2 s now and then (docs/notes/devices.md)
+        # its own deadline: a starved simulator can report Run/Hold:1 unchanged for seconds (docs/notes/devices.md)
         deadline = time.monotonic() + SLOW
         while "Hold:0" not in seen and time.monotonic() < deadline:
             seen.add(t.status().state)
