@@ -85,6 +85,15 @@ class Firmware:
         self.command("G92.1")
         assert "Idle" in self.status(), out
 
+    def to_machine_zero(self) -> None:
+        """G53 G0 to X0 Y0 and wait for Idle: each motion test then starts from the same place, not from
+        wherever the previous test stopped (a 30 mm move begun at X29.975 ends at once)."""
+        self.command("G53G0X0Y0")
+        deadline = time.monotonic() + 60
+        while "<Idle" not in self.status():
+            assert time.monotonic() < deadline, "the table never came back to machine zero"
+            time.sleep(0.2)
+
     def stop(self) -> None:
         self.proc.terminate()
         try:
@@ -241,11 +250,7 @@ def test_stream_300_lines_then_an_error_names_the_file_line_and_stops(fw, tmp_pa
 def test_interrupt_stops_the_table(fw, tmp_path, sig, cmd):
     """Ctrl-C / SIGTERM during `table stream|move`: hold, reset, status read back; exit 130, one line."""
     fw.fresh()
-    fw.command("G53G0X0Y0")  # from machine zero, so that the move below is long whatever ran before
-    deadline = time.monotonic() + 60
-    while "<Idle" not in fw.status():
-        assert time.monotonic() < deadline, "the table never came back to machine zero"
-        time.sleep(0.2)
+    fw.to_machine_zero()  # so that the move below is long whatever ran before
     prog = tmp_path / "long.nc"
     prog.write_text("G21 G90\nG1 F1200\n" + "".join(f"G1 X{i * 2}\n" for i in range(1, 60)))
     args = ["stream", str(prog)] if cmd == "stream" else ["move", "100", "0", "--feed", "1200"]
@@ -311,6 +316,7 @@ def test_a_stop_is_confirmed_when_the_banner_or_the_reset_is_lost(fw, lossy):
     still shows the hold makes the driver send the reset again. Either way the table is stopped part-way
     and says so; before, the stop gave up after the reply time-out ("no banner after a soft reset")."""
     fw.fresh()
+    fw.to_machine_zero()
     port = LossyPort(fw.path, **lossy)
     with GrblTable(fw.path, 115200, serial_port=port, reset_on_open=False, timeout_s=SLOW, status_hz=10,
                    auto_unlock=False) as t:
@@ -335,6 +341,7 @@ def test_a_stop_waits_out_a_silent_link_and_confirms(fw):
     GRBL or comes back. The stop waits for the reset's confirmation up to ``stop_confirm_s`` rather than
     give up after the time-out (it did: "no banner after a soft reset"), and the table stays where it was held."""
     fw.fresh()
+    fw.to_machine_zero()
     with GrblTable(fw.path, 115200, reset_on_open=False, timeout_s=3.0, status_hz=10, auto_unlock=False) as t:
         t.stream(["G21G90", "G53G1X60F1200"])
         _until_running(t)
@@ -401,6 +408,7 @@ def _until_running(t: GrblTable) -> None:
 
 def test_a_brief_drop_mid_move_recovers_and_the_firmware_finished_the_move(fw):
     fw.fresh()
+    fw.to_machine_zero()
     with TcpSerialBridge(fw.path) as bridge, _reconnecting_table(bridge.url) as t:
         t.stream(["G21G90", "G53G1X30F1200"])  # accepted at once; ~1.5 s of motion, ~6 s on the wall clock
         _until_running(t)
@@ -428,6 +436,7 @@ def test_a_reset_in_motion_while_away_is_alarm3_and_nothing_moves(fw):
     firmware answers nothing for ~2 s after a reset): the driver waits for it within ``reconnect_s``,
     and even with ``auto_unlock`` (which releases a power-up lock it saw) never clears this one."""
     fw.fresh()
+    fw.to_machine_zero()
     with TcpSerialBridge(fw.path) as bridge, _reconnecting_table(bridge.url, auto_unlock=True) as t:
         t.stream(["G21G90", "G53G1X40F1200"])
         _until_running(t)
