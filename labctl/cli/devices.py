@@ -82,17 +82,16 @@ def stops_table(table):
     back (:meth:`GrblTable.stop`), while further signals are ignored; then one line, with exit
     130 for an interrupt and the error's own code otherwise."""
     from ..errors import LabctlError
+    from .signals import interrupt_once
 
-    def on_term(signum, frame):
-        raise KeyboardInterrupt
-
-    old_term = signal.signal(signal.SIGTERM, on_term)
+    old_term = signal.signal(signal.SIGTERM, interrupt_once)
+    old_int = signal.signal(signal.SIGINT, interrupt_once)
     try:
         yield
     except BaseException as exc:
         if isinstance(exc, SystemExit | GeneratorExit):
             raise
-        old_int = signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
         try:
             st = table.stop()
@@ -100,8 +99,6 @@ def stops_table(table):
             stopped = f"table stopped (feed hold, reset) and confirmed {st.state} at X{p[0]:.3f} Y{p[1]:.3f}"
         except Exception as stop_exc:  # noqa: BLE001 — said in the one line, never hidden
             stopped = f"stopping the table FAILED ({type(stop_exc).__name__}: {stop_exc}); cut its power"
-        finally:
-            signal.signal(signal.SIGINT, old_int)
         if isinstance(exc, KeyboardInterrupt):
             err = LabctlError(f"interrupted; {stopped}")
             err.exit_code = 130
@@ -113,6 +110,7 @@ def stops_table(table):
         raise err from None
     finally:
         signal.signal(signal.SIGTERM, old_term)
+        signal.signal(signal.SIGINT, old_int)
 
 
 def _status_dict(table, st) -> dict:
