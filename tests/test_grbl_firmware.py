@@ -85,6 +85,15 @@ class Firmware:
         self.command("G92.1")
         assert "Idle" in self.status(), out
 
+    def to_machine_zero(self) -> None:
+        """G53 G0 to X0 Y0 and wait for Idle: each motion test then starts from the same place, not from
+        wherever the previous test stopped (a 30 mm move begun at X29.975 ends at once)."""
+        self.command("G53G0X0Y0")
+        deadline = time.monotonic() + 60
+        while "<Idle" not in self.status():
+            assert time.monotonic() < deadline, "the table never came back to machine zero"
+            time.sleep(0.2)
+
     def stop(self) -> None:
         self.proc.terminate()
         try:
@@ -172,6 +181,8 @@ def test_hold_check_and_stop_keep_the_position(fw, labctl):
         while "Run" not in seen and time.monotonic() < deadline:
             seen.add(t.status().state)
         t.feed_hold()
+        # its own deadline: a starved simulator can report Run/Hold:1 unchanged for seconds (docs/notes/devices.md)
+        deadline = time.monotonic() + SLOW
         while "Hold:0" not in seen and time.monotonic() < deadline:
             seen.add(t.status().state)
         assert {"Run", "Hold:0"} <= seen
@@ -235,19 +246,11 @@ def test_stream_300_lines_then_an_error_names_the_file_line_and_stops(fw, tmp_pa
     assert "<Idle" in s1 and s1.split("|")[1] == s2.split("|")[1]  # stopped, not Run with lines still queued
 
 
-@pytest.mark.parametrize("sig,cmd", [
-    pytest.param(signal.SIGINT, "stream", marks=pytest.mark.xfail(
-        strict=False, reason="failing since 2026-11-30 in two clean-clone CI runs, not yet diagnosed: the stop after "
-                             "Ctrl-C times out waiting for the firmware's banner after the soft reset")),
-    (signal.SIGTERM, "move")])
+@pytest.mark.parametrize("sig,cmd", [(signal.SIGINT, "stream"), (signal.SIGTERM, "move")])
 def test_interrupt_stops_the_table(fw, tmp_path, sig, cmd):
-    """Ctrl-C / SIGTERM during `table stream|move`: hold, reset, status read back; exit 130, one line."""
+    """Ctrl-C / SIGTERM (twice) during `table stream|move`: hold, reset, status read back; exit 130, one line."""
     fw.fresh()
-    fw.command("G53G0X0Y0")  # from machine zero, so that the move below is long whatever ran before
-    deadline = time.monotonic() + 60
-    while "<Idle" not in fw.status():
-        assert time.monotonic() < deadline, "the table never came back to machine zero"
-        time.sleep(0.2)
+    fw.to_machine_zero()  # so that the move below is long whatever ran before
     prog = tmp_path / "long.nc"
     prog.write_text("G21 G90\nG1 F1200\n" + "".join(f"G1 X{i * 2}\n" for i in range(1, 60)))
     args = ["stream", str(prog)] if cmd == "stream" else ["move", "100", "0", "--feed", "1200"]
@@ -257,7 +260,11 @@ def test_interrupt_stops_the_table(fw, tmp_path, sig, cmd):
                          env={**os.environ, "PYTHONPATH": str(REPO)})
     time.sleep(6.0)  # python start-up and connect (slow on a loaded machine), then some motion
     p.send_signal(sig)
-    out, err = p.communicate(timeout=30)
+    time.sleep(0.01)
+    p.send_signal(sig)  # pressed twice, as users do: the second must not cut the stop short
+    # the hold (a few s) and the reset, whose confirmation a stop awaits up to stop_confirm_s (30 s): on a
+    # loaded machine the simulator's pty relay has been seen silent for 20 s (docs/notes/devices.md)
+    out, err = p.communicate(timeout=90)
     assert p.returncode == 130, err
     # Idle when the hold completed before the reset (the usual case); Alarm (ALARM:3) if a starved
     # simulator was still decelerating after 30 s — stopped either way, never Run
@@ -268,6 +275,98 @@ def test_interrupt_stops_the_table(fw, tmp_path, sig, cmd):
     assert ("<Idle" in s1 or "<Alarm" in s1) and s1.split("|")[1] == s2.split("|")[1], (s1, err)
     x = float(s1.split("|")[1].split(":")[1].split(",")[0])
     assert 0 < x < 100  # it was moving, and stopped part-way
+
+
+class LossyPort:
+    """The firmware's port as a noisy line would deliver it: ``garble_banner`` damages one byte of every
+    ``Grbl 1.1h`` banner line on the way in; ``drop_resets`` loses that many 0x18 bytes on the way out."""
+
+    def __init__(self, path: str, garble_banner: bool = False, drop_resets: int = 0):
+        self._port = serial.Serial(path, 115200, timeout=0)
+        self.garble_banner, self.drop_resets = garble_banner, drop_resets
+        self.garbled = self.dropped = 0
+        self._held = b""  # a partial line, released once complete (a banner may come in pieces)
+
+    def __getattr__(self, name):
+        return getattr(self._port, name)
+
+    @property
+    def in_waiting(self) -> int:
+        return self._port.in_waiting + len(self._held)
+
+    def read(self, n: int = 1) -> bytes:
+        data = self._held + self._port.read(max(n, 4096))
+        cut = data.rfind(b"\n") + 1
+        out, self._held = data[:cut], data[cut:]
+        if self.garble_banner and b"Grbl 1.1h" in out:
+            self.garbled += out.count(b"Grbl 1.1h")
+            out = out.replace(b"Grbl 1.1h", b"Gr\xffl 1.1h")
+        return out
+
+    def write(self, data: bytes) -> int:
+        if self.drop_resets and b"\x18" in data:
+            self.drop_resets -= 1
+            self.dropped += 1
+            data = data.replace(b"\x18", b"", 1)
+        return self._port.write(data)
+
+
+@pytest.mark.parametrize("lossy", [{"garble_banner": True}, {"drop_resets": 1}], ids=["banner-garbled", "reset-lost"])
+def test_a_stop_is_confirmed_when_the_banner_or_the_reset_is_lost(fw, lossy):
+    """The stop's soft reset on a line that garbles the banner GRBL prints after it (the driver never sees
+    one) or that loses the 0x18 itself: GRBL's own status reports confirm the reset, and a report that
+    still shows the hold makes the driver send the reset again. Either way the table is stopped part-way
+    and says so; before, the stop gave up after the reply time-out ("no banner after a soft reset")."""
+    fw.fresh()
+    fw.to_machine_zero()
+    port = LossyPort(fw.path, **lossy)
+    with GrblTable(fw.path, 115200, serial_port=port, reset_on_open=False, timeout_s=SLOW, status_hz=10,
+                   auto_unlock=False) as t:
+        t.stream(["G21G90", "G53G1X60F1200"])
+        _until_running(t)
+        st = t.stop()
+        assert st.state == "Idle" and 0 < st.position[0] < 60
+        if "garble_banner" in lossy:
+            assert port.garbled >= 1 and t.reset_confirmed_by == "status"
+        else:
+            assert port.dropped == 1 and t.reset_confirmed_by == "banner"  # the second 0x18 got through
+    s1 = fw.status()
+    time.sleep(0.5)
+    s2 = fw.status()
+    assert "<Idle" in s1 and s1.split("|")[1] == s2.split("|")[1]
+    assert s1.split("|")[1].startswith(f"MPos:{st.position[0]:.3f},")  # where the driver said it stopped
+
+
+def test_a_stop_waits_out_a_silent_link_and_confirms(fw):
+    """The firmware's pty relay frozen for 8 s (SIGSTOP; in CI a CPU-starved kernel tty worker froze it for
+    up to 20 s, docs/notes/devices.md) just as the stop begins, with a 3 s reply time-out: nothing reaches
+    GRBL or comes back. The stop waits for the reset's confirmation up to ``stop_confirm_s`` rather than
+    give up after the time-out (it did: "no banner after a soft reset"), and the table stays where it was held."""
+    fw.fresh()
+    fw.to_machine_zero()
+    with GrblTable(fw.path, 115200, reset_on_open=False, timeout_s=3.0, status_hz=10, auto_unlock=False) as t:
+        t.stream(["G21G90", "G53G1X60F1200"])
+        _until_running(t)
+        t.feed_hold()
+        deadline = time.monotonic() + SLOW
+        while (st := t.status()).state != "Hold:0":
+            assert time.monotonic() < deadline, st.state
+        os.kill(fw.proc.pid, signal.SIGSTOP)
+        thaw = threading.Timer(8.0, os.kill, (fw.proc.pid, signal.SIGCONT))
+        thaw.start()
+        try:
+            t0 = time.monotonic()
+            stopped = t.stop()
+            waited = time.monotonic() - t0
+        finally:
+            thaw.cancel()
+            os.kill(fw.proc.pid, signal.SIGCONT)
+        assert waited > 6.0  # past two reply time-outs (the hold's and the reset's): where the old stop gave up
+        assert stopped.state == "Idle" and stopped.position[0] == pytest.approx(st.position[0], abs=1e-3)
+    s1 = fw.status()
+    time.sleep(0.5)
+    assert "<Idle" in s1 and s1.split("|")[1] == fw.status().split("|")[1]
+    assert s1.split("|")[1].startswith(f"MPos:{st.position[0]:.3f},")
 
 
 def test_critical_alarm_status_never_resets_and_homing_times_out(fw, labctl):
@@ -311,6 +410,7 @@ def _until_running(t: GrblTable) -> None:
 
 def test_a_brief_drop_mid_move_recovers_and_the_firmware_finished_the_move(fw):
     fw.fresh()
+    fw.to_machine_zero()
     with TcpSerialBridge(fw.path) as bridge, _reconnecting_table(bridge.url) as t:
         t.stream(["G21G90", "G53G1X30F1200"])  # accepted at once; ~1.5 s of motion, ~6 s on the wall clock
         _until_running(t)
@@ -338,6 +438,7 @@ def test_a_reset_in_motion_while_away_is_alarm3_and_nothing_moves(fw):
     firmware answers nothing for ~2 s after a reset): the driver waits for it within ``reconnect_s``,
     and even with ``auto_unlock`` (which releases a power-up lock it saw) never clears this one."""
     fw.fresh()
+    fw.to_machine_zero()
     with TcpSerialBridge(fw.path) as bridge, _reconnecting_table(bridge.url, auto_unlock=True) as t:
         t.stream(["G21G90", "G53G1X40F1200"])
         _until_running(t)

@@ -12,6 +12,7 @@ import click
 import numpy as np
 
 from ._common import emit, get_ctx, json_option
+from .signals import interrupt_once
 
 
 def _human_report(rep: dict):
@@ -126,10 +127,6 @@ def _confirm_stopped(devs, settle_s: float = 2.0) -> str:
     return ", ".join(parts) or "nothing was moving"
 
 
-def _raise_interrupt(_signum, _frame):
-    raise KeyboardInterrupt
-
-
 def _open_devices(lab, cameras: str, seed: int, target, prompt_command: str | None = None, console=None):
     """(Devices, prompt, truth or None, closer) for ``lab``: the coupled in-process simulator when
     every device is simulated, else the real drivers (mixing the two cannot work: a simulated
@@ -233,8 +230,8 @@ def calibrate_group(ctx: click.Context, camera: str, dry_run: bool, ros: bool, f
     if plan.problems:
         raise UserInputError(f"the calibration plan does not fit the lab: {plan.problems[0]}")
     # Ctrl-C and SIGTERM both end in the stop below, even if the parent started us ignoring SIGINT
-    old_term = signal.signal(signal.SIGTERM, _raise_interrupt)
-    old_int = signal.signal(signal.SIGINT, signal.default_int_handler)
+    old_term = signal.signal(signal.SIGTERM, interrupt_once)
+    old_int = signal.signal(signal.SIGINT, interrupt_once)
     devs = None
     close = None
     try:

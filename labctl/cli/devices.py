@@ -68,7 +68,8 @@ def _open_table(port: str | None, baud: int | None, timeout_s: float | None, *, 
     if not port:
         raise UserInputError("no table port: pass --port PORT (the lab's table is simulated; "
                              "`labctl sim serve` prints a port to use)")
-    kw = {name: getattr(cfg, name) for name in ("stall_reports", "homing_timeout_s") if hasattr(cfg, name)}
+    kw = {name: getattr(cfg, name) for name in ("stall_reports", "homing_timeout_s", "stop_confirm_s")
+          if hasattr(cfg, name)}
     return GrblTable(port, baud or cfg.baud, reset_on_open=cfg.reset_on_open, status_hz=cfg.status_hz,
                      timeout_s=timeout_s or cfg.timeout_s, auto_unlock=False, reset_if_silent=reset_if_silent, **kw)
 
@@ -81,17 +82,16 @@ def stops_table(table):
     back (:meth:`GrblTable.stop`), while further signals are ignored; then one line, with exit
     130 for an interrupt and the error's own code otherwise."""
     from ..errors import LabctlError
+    from .signals import interrupt_once
 
-    def on_term(signum, frame):
-        raise KeyboardInterrupt
-
-    old_term = signal.signal(signal.SIGTERM, on_term)
+    old_term = signal.signal(signal.SIGTERM, interrupt_once)
+    old_int = signal.signal(signal.SIGINT, interrupt_once)
     try:
         yield
     except BaseException as exc:
         if isinstance(exc, SystemExit | GeneratorExit):
             raise
-        old_int = signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
         try:
             st = table.stop()
@@ -99,8 +99,6 @@ def stops_table(table):
             stopped = f"table stopped (feed hold, reset) and confirmed {st.state} at X{p[0]:.3f} Y{p[1]:.3f}"
         except Exception as stop_exc:  # noqa: BLE001 — said in the one line, never hidden
             stopped = f"stopping the table FAILED ({type(stop_exc).__name__}: {stop_exc}); cut its power"
-        finally:
-            signal.signal(signal.SIGINT, old_int)
         if isinstance(exc, KeyboardInterrupt):
             err = LabctlError(f"interrupted; {stopped}")
             err.exit_code = 130
@@ -112,6 +110,7 @@ def stops_table(table):
         raise err from None
     finally:
         signal.signal(signal.SIGTERM, old_term)
+        signal.signal(signal.SIGINT, old_int)
 
 
 def _status_dict(table, st) -> dict:

@@ -30,6 +30,7 @@ class TableConfig:
     stall_reports: int = 25  # Run reports in a row without motion before the table counts as stalled (0: off)
     homing_timeout_s: Positive = 120.0  # GRBL sends nothing while homing: give up after this long
     reconnect_s: NonNegative = 0.0  # after the port drops, retry opening it (with backoff) for this long
+    stop_confirm_s: Positive = 30.0  # a stop waits this long (at least timeout_s) for GRBL to confirm its reset
     # sim: T_w_table of the table's machine zero (the table plane is z = 0 in W)
     origin_w_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
 

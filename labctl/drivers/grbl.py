@@ -241,7 +241,8 @@ class GrblTable(OpenClose):
                  serial_port=None, clock: Callable[[], float] = time.monotonic,
                  sleep: Callable[[float], None] = time.sleep, rx_buffer: int = RX_BUFFER_SIZE,
                  auto_unlock: bool = True, reset_if_silent: bool = False, stall_reports: int = 25,
-                 homing_timeout_s: float = 120.0, reconnect_s: float = 0.0, max_messages: int = 200):
+                 homing_timeout_s: float = 120.0, reconnect_s: float = 0.0, max_messages: int = 200,
+                 stop_confirm_s: float = 30.0, banner_wait_s: float = 3.0):
         self.link = SerialLink(port, baud, timeout_s, port=serial_port, clock=clock, sleep=sleep,
                                name=f"grbl@{port or getattr(serial_port, 'port', 'port')}")
         self.timeout_s = timeout_s
@@ -268,6 +269,9 @@ class GrblTable(OpenClose):
         self.stall_reports = stall_reports
         self.homing_timeout_s = homing_timeout_s
         self.reconnect_s = reconnect_s
+        self.stop_confirm_s = stop_confirm_s  # how long stop() waits for the reset to be confirmed
+        self.banner_wait_s = banner_wait_s  # after a reset, how long the banner alone is waited for
+        self.reset_confirmed_by = ""  # "banner" or "status": how the last soft reset was confirmed
         self.locked = False  # GRBL ignores lines until a reset (critical alarm)
         self.session_alarm: int | None = None  # the last ALARM:N seen since open
         self.program: ProgramStream | None = None
@@ -284,10 +288,11 @@ class GrblTable(OpenClose):
     @classmethod
     def from_config(cls, cfg, **kw) -> GrblTable:
         """From a :class:`labctl.config.TableConfig` (port, baud, timeout, reset_on_open, status_hz,
-        stall_reports, homing_timeout_s, reconnect_s). A ``port=None`` keyword keeps the configured port."""
+        stall_reports, homing_timeout_s, reconnect_s, stop_confirm_s). A ``port=None`` keyword keeps the
+        configured port."""
         port = kw.pop("port", None) or cfg.port
         baud = kw.pop("baud", None) or cfg.baud
-        for name in ("stall_reports", "homing_timeout_s", "reconnect_s"):
+        for name in ("stall_reports", "homing_timeout_s", "reconnect_s", "stop_confirm_s"):
             if hasattr(cfg, name):
                 kw.setdefault(name, getattr(cfg, name))
         return cls(port, baud, timeout_s=cfg.timeout_s, reset_on_open=cfg.reset_on_open,
@@ -772,20 +777,59 @@ class GrblTable(OpenClose):
         """Cycle start (``~``): resume after a feed hold."""
         self._write(b"~")
 
-    def reset(self) -> None:
-        """Soft reset (0x18): stop at once, discard the plan; waits for the banner."""
+    def reset(self, timeout_s: float | None = None) -> None:
+        """Soft reset (0x18): stop at once, discard the plan; returns once the controller confirms it.
+
+        The confirmation is the ``Grbl 1.1h`` banner GRBL prints once it has re-initialised (~0.1 s;
+        ~2 s on grbl-sim at a quarter of real time when it comes back in Alarm). If none has come
+        after ``banner_wait_s`` — the line lost or garbled on the way, taken by another reader of
+        the port, or a controller starved of CPU that answers late — '?' is asked every 0.25 s and a
+        report of Idle, Alarm or Check confirms it too (a held or running GRBL with queued motion
+        reports neither until the reset took effect); a report that still shows motion pending
+        means the 0x18 was lost, so it is sent again. DeviceTimeout after ``timeout_s`` (default:
+        the reply time-out) with neither.
+        """
         if self.program is not None:
             self._program_ended(self.program)
         self._write(b"\x18")
-        deadline = self.clock() + self.timeout_s
+        t0 = self.clock()
+        deadline = t0 + (self.timeout_s if timeout_s is None else timeout_s)
+        next_query = t0 + self.banner_wait_s
+        asked = False
+        self.reset_confirmed_by = ""
         while self.clock() < deadline:
-            if any(m.kind == "banner" for m in self._read(0.05, raise_alarm=False)):
-                self._read(0.05, raise_alarm=False)
-                self._alarm = None
-                self.locked = False
-                self._orphans = 0
-                return
-        raise DeviceTimeout(f"{self.link.name}: no banner after a soft reset")
+            for msg in self._read(0.05, raise_alarm=False):
+                if msg.kind == "banner":
+                    self._read(0.05, raise_alarm=False)  # the rest of the banner burst ([MSG:…])
+                    self._after_reset("banner")
+                    return
+                if msg.kind == "status" and asked:
+                    state = base_state(msg.report.state)
+                    if state in ("Idle", "Alarm", "Check"):
+                        log.warning("%s: no banner %.1f s after a soft reset, but GRBL reports %s: taken as "
+                                    "reset", self.link.name, self.clock() - t0, msg.report.state)
+                        self._after_reset("status")
+                        return
+                    if state in BUSY:  # asked after the 0x18 and still holding/running: it never arrived
+                        log.warning("%s: GRBL still reports %s after a soft reset; sending it again",
+                                    self.link.name, msg.report.state)
+                        self._write(b"\x18")
+                        asked = False
+                        next_query = self.clock() + self.banner_wait_s
+            if self.clock() >= next_query:
+                self._query()
+                asked = True
+                next_query = self.clock() + 0.25
+        raise DeviceTimeout(f"{self.link.name}: no banner and no status report within "
+                            f"{deadline - t0:g} s after a soft reset")
+
+    def _after_reset(self, how: str) -> None:
+        """State after a confirmed soft reset: no alarm pending, not locked, no replies owed."""
+        self._alarm = None
+        self.locked = False
+        self._orphans = 0
+        self._wco = None  # asked for again: a reset may have changed the offsets (G92)
+        self.reset_confirmed_by = how
 
     def stop(self, max_hold_s: float = 30.0) -> TableStatus:
         """Feed hold, wait for the hold to complete, soft reset, and read the state back.
@@ -793,8 +837,10 @@ class GrblTable(OpenClose):
         A reset after ``Hold:0`` keeps the position (GRBL reports Idle); a reset while still moving
         raises ALARM:3. So the hold is awaited for as long as the table is still decelerating
         (its position changes between reports), up to ``max_hold_s``; if it stops changing for a
-        second without reaching ``Hold:0`` (or GRBL goes silent), it resets at once. Returns the
-        confirmed status (Idle, or Alarm); DeviceError if it still reports motion afterwards."""
+        second without reaching ``Hold:0`` (or GRBL goes silent), it resets at once. The reset is
+        awaited for ``stop_confirm_s`` (at least the reply time-out): stopping is the one thing not
+        to give up on early. Returns the confirmed status (Idle, or Alarm); DeviceError if it still
+        reports motion afterwards."""
         self.feed_hold()
         t0 = self.clock()
         try:
@@ -817,7 +863,7 @@ class GrblTable(OpenClose):
                 elif self.clock() - last_change > 1.0:
                     break
         finally:
-            self.reset()
+            self.reset(timeout_s=max(self.timeout_s, self.stop_confirm_s))
         final = self.status()
         if base_state(final.state) in ("Run", "Jog", "Home"):
             raise DeviceError(f"{self.link.name}: the table still reports {final.state} after a feed hold and a reset")
