@@ -641,6 +641,8 @@ class MarkerTracker:
     def _refine_corner(self) -> None:
         """Re-estimate the detected corner on the frames so far; re-run the quiet modes from it if it moved."""
         c = self._corner
+        if c is None:
+            return
         entries = c["entries"]
         frames = [f for f in self._zbuf if f[0] >= entries[1][0] - 1e-9] if len(entries) > 1 else []
         if len(entries) < 2 or len(frames) < 2:
