@@ -59,3 +59,30 @@ def test_profile_nodes_match_a_dense_quadrature(monkeypatch):
     trk._refit_cache = None  # recompute the CT posterior with the dense nodes
     _, cov61 = trk.predict(t_last + 5.0)
     np.testing.assert_allclose(cov9, cov61, rtol=0.03)
+
+
+class _Scaled:
+    """The lab tracker with its prediction covariance scaled by ``k`` (an over- or under-confident filter)."""
+
+    def __init__(self, k):
+        self.k, self.trk = k, MarkerTracker.from_config(TrackingConfig(), family="line")
+
+    def update(self, t, z):
+        return self.trk.update(t, z)
+
+    def predict(self, t):
+        mean, cov = self.trk.predict(t)
+        return mean, self.k * cov
+
+
+def test_nees_fraction_flags_an_over_confident_filter():
+    """The tail-robust NEES check: share of runs with NEES ≤ 5.99; its binomial lower bound catches a filter
+    whose covariance is 100× too small, and passes the lab tracker on a line (where its mean NEES is inside)."""
+    from labctl.tracking.synthetic import compare_with_bound
+
+    kw = dict(runs=16, rate_hz=FPS, sigma_mm=SIGMA, with_ml=False, track_s=(2.0,), seed=3)
+    good = compare_with_bound(lambda: _Scaled(1.0), "line", 50.0, **kw)[2.0]
+    bad = compare_with_bound(lambda: _Scaled(0.01), "line", 50.0, **kw)[2.0]
+    lo, hi = good["nees_frac_bounds"]
+    assert lo <= good["nees_frac_95"] <= hi, good
+    assert bad["nees_frac_95"] < lo, bad
