@@ -22,9 +22,10 @@ Models (Bar-Shalom, Li & Kirubarajan 2001, ch. 6 and §11.7):
 The CV, CT and manoeuvre modes share the state ``[x, vx, y, vy, κ]`` so the IMM can mix them.
 Long-horizon predictions propagate the CT mode's mean through the turn and its covariance by
 the cubature rule (2n points, Arasaratnam & Haykin 2009), which keeps the banana-shaped
-uncertainty of a poorly known turn rate honest; the manoeuvre mode extrapolates with the quiet
-CV noise (a corner is a transient, not a motion that continues). The CT mode's estimate behind
-those predictions is re-linearised by a Gauss-Newton fit of the turn to its recent frames (see
+uncertainty of a poorly known turn rate honest (where the curvature is within ``PROFILE_SIGMAS`` σ of
+zero, by the exact curvature profile, ``MarkerTracker._curvature_profile``); the manoeuvre mode
+extrapolates with the quiet CV noise (a corner is a transient, not a motion that continues). The CT
+mode's estimate behind those predictions is re-linearised by a Gauss-Newton fit of the turn to its recent frames (see
 ``MarkerTracker._turn_refit``): the EKF alone kept its first frames' linearisation errors. Mode
 weights below :data:`MIX_FLOOR` are left out of the IMM's mixing and predictions.
 
