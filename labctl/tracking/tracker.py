@@ -867,8 +867,8 @@ class MarkerTracker:
             Pn[:4, :4] = np.linalg.inv(A)
             nodes.append((x, 0.5 * (Pn + Pn.T)))
             logw.append(-0.5 * (float(r @ r) - cost_map) - 0.5 * logdet + 0.5 * g * g + np.log(w_gh))
-        logw = np.array(logw)
-        w = np.exp(logw - logw.max())
+        lw = np.array(logw)
+        w = np.exp(lw - lw.max())
         w /= w.sum()
         return [(float(wi), xn, Pn) for wi, (xn, Pn) in zip(w, nodes)]
 
