@@ -72,7 +72,9 @@ class Firmware:
         return self.raw(line + "\n", until="ok\r\n" if not line.startswith("$C") else "ok", timeout_s=10)
 
     def status(self) -> str:
-        return self.raw("?", until=">", timeout_s=5)
+        # as long as a stop waits (stop_confirm_s): under load the simulator's pty relay stalls for
+        # seconds, right after a reset too (docs/notes/devices.md); a healthy firmware answers in ms
+        return self.raw("?", until=">", timeout_s=30)
 
     def fresh(self) -> None:
         """Soft reset to Idle with fast settings, no work offset, $10=1."""
