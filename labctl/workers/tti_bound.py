@@ -21,7 +21,7 @@ No tracking allowance: planning may start on the first sighting, so the time spe
 before the robot moves counts against the run, not in the bound. Jerk: a leg flown wholly with
 ruckig segments is bound by the controller's ``jmax`` (``Leg.j_max``); a leg with any quintic
 segment has no jerk limit (the reference controller checks quintics against v and a only), and
-neither has a leg when ``j_max`` is None: then the bound is the bang-bang / trapezoidal time.
+then the bound is the bang-bang / trapezoidal time.
 Units: mm, s, rad; world frame.
 Functional core: numbers in, numbers out.
 """
@@ -76,8 +76,7 @@ def rotation_angle(R0: np.ndarray, R1: np.ndarray) -> float:
     return float(np.arccos(min(1.0, max(-1.0, c))))
 
 
-def leg_min_time(leg: Leg, v_max: float, a_max: float, w_max: float | None = None,
-                 j_max: float | None = None) -> float:
+def leg_min_time(leg: Leg, v_max: float, a_max: float, w_max: float | None = None) -> float:
     """Lower bound (s) of the time any profile within the limits needs for ``leg`` (module docstring)."""
     p0, p1 = np.asarray(leg.p0, float), np.asarray(leg.p1, float)
     d = float(np.linalg.norm(p1 - p0))
@@ -85,7 +84,7 @@ def leg_min_time(leg: Leg, v_max: float, a_max: float, w_max: float | None = Non
         u = (p1 - p0) / d
         t = min_line_time(d, float(u @ np.asarray(leg.v0, float)), float(u @ np.asarray(leg.a0, float)),
                           float(u @ np.asarray(leg.v1, float)), float(u @ np.asarray(leg.a1, float)),
-                          v_max, a_max, leg.j_max if leg.j_max is not None else j_max)
+                          v_max, a_max, leg.j_max)
     else:
         t = 0.0
     if w_max is not None and leg.R0 is not None and leg.R1 is not None:
@@ -94,10 +93,10 @@ def leg_min_time(leg: Leg, v_max: float, a_max: float, w_max: float | None = Non
 
 
 def identity_bound(first_sight_s: float, legs: list[Leg], n_images: int, frame_period_s: float, *,
-                   v_max: float, a_max: float, w_max: float | None = None, j_max: float | None = None) -> dict:
+                   v_max: float, a_max: float, w_max: float | None = None) -> dict:
     """The lower bound (s) and its parts: ``first_sight_s`` (s after the run's start), the legs' minimum
     times, ``n_images`` mobile frames of ``frame_period_s`` each."""
-    legs_s = [leg_min_time(leg, v_max, a_max, w_max, j_max) for leg in legs]
+    legs_s = [leg_min_time(leg, v_max, a_max, w_max) for leg in legs]
     frames_s = n_images * frame_period_s
     return {"bound_s": first_sight_s + sum(legs_s) + frames_s, "first_sight_s": first_sight_s,
             "legs_s": legs_s, "frames_s": frames_s}
