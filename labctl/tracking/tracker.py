@@ -61,6 +61,12 @@ MIX_FLOOR = 1e-3  # mode weights below this are dropped from the IMM's mixing an
 MODELS = ("cv", "ct", "ca", "imm")
 # the CT prediction integrates the curvature exactly (MarkerTracker._curvature_profile) where |κ| < this many σ of it
 PROFILE_SIGMAS = 4.0
+# the GLR corner test: −2 log of the prior odds against a corner in the recent window (MarkerTracker._glr_detects);
+# the same odds weigh a suspected, not yet detected corner into the predictions (MarkerTracker._corner_suspicion)
+GLR_THRESHOLD = 25.0
+# after a restart at a corner, the manoeuvre mode's share: at 0.02 its mixing leaked into the new leg's
+# quiet modes for ~1 s (5-s covariance up to 1.2x the CRB at 100 mm/s, docs/notes/planning.md, sixth round)
+RESTART_MANEUVER_PROB = 1e-3
 _GH_X, _GH_W = np.polynomial.hermite_e.hermegauss(9)  # probabilists' Gauss-Hermite nodes in σ, weights (sum √2π)
 
 
@@ -377,6 +383,7 @@ class MarkerTracker:
         self._history: list = []  # IMM only: (t, z, quiet x, P, cumulative NIS, μ) per frame
         self._nis = 0.0
         self._in_corner = False
+        self._suspect: dict | None = None  # corners not (yet) detected, weighed into the predictions
         self._corner: dict | None = None  # a detected corner whose time is still being refined
         self._zbuf: list[tuple[float, np.ndarray]] = []  # IMM only: (t, z) of the recent frames
         # CT refit (see _turn_refit): frames (t, z) since the quiet modes' start, an optional anchor
@@ -568,6 +575,7 @@ class MarkerTracker:
             else:
                 self._refine_corner()
         recent = [h for h in self._history if t - h[0] <= self._corner_window]
+        self._suspect = None if self._corner is not None else self._corner_suspicion(t)
         if imm.mu[2] < 0.5 and not self._glr_detects(recent):
             self._in_corner = False
             return
@@ -578,12 +586,57 @@ class MarkerTracker:
         self._corner = {"t_detect": t, "entries": list(self._history), "j": None, "spread": np.inf}
         self._refine_corner()
 
-    def _glr_detects(self, hist: list, threshold: float = 25.0) -> bool:
+    def _glr_detects(self, hist: list, threshold: float = GLR_THRESHOLD) -> bool:
         """A slow corner the manoeuvre mode misses: the GLR statistic (no corner vs the best corner) > threshold."""
         if len(hist) < 8 or hist[-1][4] - hist[-6][4] < 5 * (2.0 + np.log(self._R[0, 0] ** 2)):
             return False  # the old track still explains the last frames (expected NIS 2 per frame)
         cost, _ = self._best_corner(hist, [(h[0], h[1]) for h in hist])
         return hist[-1][4] - cost > threshold
+
+    def _corner_suspicion(self, t: float) -> dict | None:
+        """The corners the GLR has not (yet) detected, as hypotheses the predictions weigh in; None if none count.
+
+        The detection is a hard decision at ``GLR_THRESHOLD`` = −2 log of the prior odds against a corner:
+        a corner at candidate j has the posterior odds ``exp((G_j − GLR_THRESHOLD)/2)`` against none, with
+        ``G_j`` the GLR statistic of :meth:`_corner_costs` over the detection history (up to 2 ×
+        ``corner_window_s``). Each candidate whose new leg has at least ``corner_window_s``/2 of frames (a
+        shorter one predicts nothing yet: its velocity is the noise of a few frames) is kept with its new
+        leg's least-squares state and covariance; :meth:`_combined` adds their second moments about the
+        track's mean. At 4 mm/s a 97° corner is ~2 mm off the old line 0.5 s after it and in ~10 % of runs
+        not yet detected: those runs' 5-s NEES was ~200 (docs/notes/planning.md, sixth round).
+        """
+        hist = self._history
+        if len(hist) < 8:
+            return None
+        js, costs, v2s, dps, A = self._corner_costs(hist, [(h[0], h[1]) for h in hist])
+        te = np.array([h[0] for h in hist])
+        keep = t - te[js] >= 0.5 * self._corner_window
+        log_odds = 0.5 * (hist[-1][4] - costs[keep] - GLR_THRESHOLD)
+        if not len(log_odds) or log_odds.max() < -7.0:
+            return None  # every hypothesis below e⁻⁷ ≈ 1e-3 of the track: not worth a prediction's time
+        odds = np.exp(log_odds)
+        js = js[keep]
+        corner = np.array([hist[j - 1][2][self._pos, 0] for j in js]) + dps[keep]
+        return {"w": odds / (1.0 + odds.sum()), "t0": te[js - 1], "corner": corner, "v2": v2s[keep],
+                "cov": np.linalg.inv(A[keep])}
+
+    def _with_suspicion(self, x: np.ndarray, P: np.ndarray, t: float) -> np.ndarray:
+        """``P`` with the suspected corners' legs at ``t`` mixed in: the second moment about the track's mean ``x``."""
+        sus = self._suspect
+        if sus is None:
+            return P
+        idx = self._pos + self._vel  # [x, y, vx, vy]
+        w, tau = sus["w"], t - sus["t0"]
+        n = len(w)
+        J = np.zeros((n, 4, 4))  # (corner offset, v2) -> (position, velocity) at t
+        J[:, :2, :2] = J[:, 2:, 2:] = np.eye(2)
+        J[:, :2, 2:] = tau[:, None, None] * np.eye(2)
+        legs = np.concatenate([sus["corner"] + sus["v2"] * tau[:, None], sus["v2"]], axis=1)
+        d = legs - x[idx, 0]
+        legs_cov = np.einsum("n,nij->ij", w, J @ sus["cov"] @ J.transpose(0, 2, 1)) + (w[:, None] * d).T @ d
+        P = P.copy()
+        P[np.ix_(idx, idx)] = (1.0 - w.sum()) * P[np.ix_(idx, idx)] + legs_cov
+        return P
 
     def _best_corner(self, entries: list, frames: list) -> tuple[float, int]:
         """ML corner: (cost, j), the corner between ``entries[j-1]`` and ``entries[j]`` (:meth:`_corner_costs`)."""
@@ -594,7 +647,7 @@ class MarkerTracker:
         return float(costs[k]), int(js[k])
 
     def _corner_costs(self, entries: list, frames: list) -> tuple[np.ndarray, ...]:
-        """Each candidate corner j's cost and new leg: (js, costs, v2s (n, 2), δps (n, 2)).
+        """Each candidate corner j's cost and new leg: (js, costs, v2s (n, 2), δps (n, 2), normal matrices (n, 4, 4)).
 
         The corner lies between ``entries[j-1]`` and ``entries[j]``.
 
@@ -613,7 +666,7 @@ class MarkerTracker:
         start = np.searchsorted(ft, te[1:] - 1e-9)
         js = np.flatnonzero(len(ft) - start >= 2) + 1
         if not len(js):
-            return js, np.zeros(0), np.zeros((0, 2)), np.zeros((0, 2))
+            return js, np.zeros(0), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 4, 4))
         start = start[js - 1]
 
         def suffix(a):
@@ -641,7 +694,7 @@ class MarkerTracker:
         bvec = np.concatenate([sz, stz], axis=1) / R
         sol = np.linalg.solve(A, bvec[:, :, None])[:, :, 0]
         costs = nis0 + szz / R - np.sum(bvec * sol, axis=1) + n * np.log(R * R)
-        return js, costs, sol[:, 2:], sol[:, :2]
+        return js, costs, sol[:, 2:], sol[:, :2], A
 
     def _refine_corner(self) -> None:
         """Re-estimate the detected corner on the frames so far; re-run the quiet modes from it if it moved."""
@@ -652,7 +705,7 @@ class MarkerTracker:
         frames = [f for f in self._zbuf if f[0] >= entries[1][0] - 1e-9] if len(entries) > 1 else []
         if len(entries) < 2 or len(frames) < 2:
             return
-        js, costs, v2s, dps = self._corner_costs(entries, frames)
+        js, costs, v2s, dps, _ = self._corner_costs(entries, frames)
         if not len(js):
             return
         k = int(np.argmin(costs))
@@ -689,11 +742,13 @@ class MarkerTracker:
         imm = self._imm_filter()
         if first:  # the quiet modes take over again, in the old track's proportions
             quiet = mu0[0] + mu0[1]
-            imm.mu = np.array([mu0[0] / quiet * 0.98, mu0[1] / quiet * 0.98, 0.02])
+            keep = 1.0 - RESTART_MANEUVER_PROB
+            imm.mu = np.array([mu0[0] / quiet * keep, mu0[1] / quiet * keep, RESTART_MANEUVER_PROB])
         imm._compute_mixing_probabilities()
         imm._compute_state_estimate()
         # the detection history starts again with the new leg (its filters were just re-run)
         self._history = []
+        self._suspect = None
         self._in_corner = True
 
     def _restart_at(self, t0: float, x0: np.ndarray, P0: np.ndarray, new_leg: list) -> None:
@@ -926,7 +981,7 @@ class MarkerTracker:
         mu = self._weights()
         x = sum(m * xp for m, (xp, _) in zip(mu, preds))
         P = sum(m * (Pp + (xp - x) @ (xp - x).T) for m, (xp, Pp) in zip(mu, preds))
-        return x, P
+        return x, self._with_suspicion(x, P, self._require_track() + dt)
 
     def _check_future(self, t: float) -> float:
         t_last = self._require_track()
