@@ -383,7 +383,8 @@ class MarkerTracker:
         self._history: list = []  # IMM only: (t, z, quiet x, P, cumulative NIS, μ) per frame
         self._nis = 0.0
         self._in_corner = False
-        self._suspect: dict | None = None  # corners not (yet) detected, weighed into the predictions
+        # the corner hypotheses the predictions weigh in: a detected corner's times, or corners not (yet) detected
+        self._hypotheses: dict | None = None
         self._corner: dict | None = None  # a detected corner whose time is still being refined
         self._zbuf: list[tuple[float, np.ndarray]] = []  # IMM only: (t, z) of the recent frames
         # CT refit (see _turn_refit): frames (t, z) since the quiet modes' start, an optional anchor
@@ -575,7 +576,8 @@ class MarkerTracker:
             else:
                 self._refine_corner()
         recent = [h for h in self._history if t - h[0] <= self._corner_window]
-        self._suspect = None if self._corner is not None else self._corner_suspicion(t)
+        if self._corner is None:
+            self._hypotheses = self._corner_suspicion(t)
         if imm.mu[2] < 0.5 and not self._glr_detects(recent):
             self._in_corner = False
             return
@@ -583,7 +585,7 @@ class MarkerTracker:
             return
         self._in_corner = True
         # the old track's history up to the detection, frozen: the corner lies in it
-        self._corner = {"t_detect": t, "entries": list(self._history), "j": None, "spread": np.inf}
+        self._corner = {"t_detect": t, "entries": list(self._history), "j": None}
         self._refine_corner()
 
     def _glr_detects(self, hist: list, threshold: float = GLR_THRESHOLD) -> bool:
@@ -601,8 +603,8 @@ class MarkerTracker:
         ``G_j`` the GLR statistic of :meth:`_corner_costs` over the detection history (up to 2 ×
         ``corner_window_s``). Each candidate whose new leg has at least ``corner_window_s``/2 of frames (a
         shorter one predicts nothing yet: its velocity is the noise of a few frames) is kept with its new
-        leg's least-squares state and covariance; :meth:`_combined` adds their second moments about the
-        track's mean. At 4 mm/s a 97° corner is ~2 mm off the old line 0.5 s after it and in ~10 % of runs
+        leg's least-squares state and covariance; :meth:`_with_corner_hypotheses` adds their second moments
+        about the track's mean. At 4 mm/s a 97° corner is ~2 mm off the old line 0.5 s after it and in ~10 % of runs
         not yet detected: those runs' 5-s NEES was ~200 (docs/notes/planning.md, sixth round).
         """
         hist = self._history
@@ -620,21 +622,30 @@ class MarkerTracker:
         return {"w": odds / (1.0 + odds.sum()), "t0": te[js - 1], "corner": corner, "v2": v2s[keep],
                 "cov": np.linalg.inv(A[keep])}
 
-    def _with_suspicion(self, x: np.ndarray, P: np.ndarray, t: float) -> np.ndarray:
-        """``P`` with the suspected corners' legs at ``t`` mixed in: the second moment about the track's mean ``x``."""
-        sus = self._suspect
-        if sus is None:
+    def _with_corner_hypotheses(self, x: np.ndarray, P: np.ndarray, t: float) -> np.ndarray:
+        """``P`` with the corner hypotheses' new legs at ``t`` mixed in (second moments; the mean ``x`` is kept).
+
+        A detected corner (:meth:`_refine_corner`): the quiet modes are its ML hypothesis; every other
+        candidate time adds its weight × the outer product of its leg's offset from the ML leg. Corners
+        not yet detected (:meth:`_corner_suspicion`): a mixture of the track (weight 1 − Σw) and each
+        suspected leg with its own least-squares covariance, about the track's mean.
+        """
+        hyp = self._hypotheses
+        if hyp is None:
             return P
         idx = self._pos + self._vel  # [x, y, vx, vy]
-        w, tau = sus["w"], t - sus["t0"]
-        n = len(w)
-        J = np.zeros((n, 4, 4))  # (corner offset, v2) -> (position, velocity) at t
+        w, tau = hyp["w"], t - hyp["t0"]
+        legs = np.concatenate([hyp["corner"] + hyp["v2"] * tau[:, None], hyp["v2"]], axis=1)
+        P = P.copy()
+        if hyp["cov"] is None:
+            d = legs - legs[hyp["ml"]]
+            P[np.ix_(idx, idx)] += (w[:, None] * d).T @ d
+            return P
+        J = np.zeros((len(w), 4, 4))  # (corner offset, v2) -> (position, velocity) at t
         J[:, :2, :2] = J[:, 2:, 2:] = np.eye(2)
         J[:, :2, 2:] = tau[:, None, None] * np.eye(2)
-        legs = np.concatenate([sus["corner"] + sus["v2"] * tau[:, None], sus["v2"]], axis=1)
         d = legs - x[idx, 0]
-        legs_cov = np.einsum("n,nij->ij", w, J @ sus["cov"] @ J.transpose(0, 2, 1)) + (w[:, None] * d).T @ d
-        P = P.copy()
+        legs_cov = np.einsum("n,nij->ij", w, J @ hyp["cov"] @ J.transpose(0, 2, 1)) + (w[:, None] * d).T @ d
         P[np.ix_(idx, idx)] = (1.0 - w.sum()) * P[np.ix_(idx, idx)] + legs_cov
         return P
 
@@ -710,35 +721,27 @@ class MarkerTracker:
             return
         k = int(np.argmin(costs))
         j = int(js[k])
-        # the corner time's posterior over the candidates (flat prior, exp(−cost/2)) and each candidate's new leg
-        # now, [x, vx, y, vy]: their spread (moment matching over the corner hypotheses) is the error a wrong corner
-        # time makes, added to the re-run quiet modes. With only the anchor's corner-time variance, runs whose corner
-        # was a frame or two off had mean NEES 2.7-5.3 and the rest 1.6-1.8 (12 mm/s, 64 runs): v2 errs too
+        # the corner time's posterior over the candidates (flat prior, exp(−cost/2)) and each candidate's new leg:
+        # the predictions add their spread about the ML leg, extrapolated to the predicted instant
+        # (:meth:`_with_corner_hypotheses`). Added instead to the re-run filters' state, later frames shrank it as
+        # if it were a Gaussian prior: 12 mm/s, 0.5 s after the corner, 5-s NEES 3.06, the runs whose ML corner was
+        # a frame or two off 3.2-8.3 (docs/notes/planning.md, sixth round)
         w = np.exp(-0.5 * (costs - costs[k]))
         w /= w.sum()
         t0s = np.array([entries[i - 1][0] for i in js])
         p0s = np.array([entries[i - 1][2][self._pos, 0] for i in js])
-        t_now = frames[-1][0]
-        legs = np.empty((len(js), 4))
-        legs[:, [0, 2]] = p0s + dps + v2s * (t_now - t0s)[:, None]
-        legs[:, [1, 3]] = v2s
-        d = legs - w @ legs
-        spread = (w[:, None] * d).T @ d
-        size = float(spread[0, 0] + spread[2, 2])  # mm²
+        self._hypotheses = {"w": w, "t0": t0s, "corner": p0s + dps, "v2": v2s, "cov": None, "ml": k}
+        if j == c["j"]:
+            return  # the same corner: no re-run
         t0, _, x0, P0, _, mu0 = entries[j - 1]
-        settled = max(0.5 * c["spread"], np.trace(P0[np.ix_(self._pos, self._pos)]))
-        if j == c["j"] and abs(size - c["spread"]) <= settled:
-            return  # the same corner, and its spread still about right: no re-run
         first = c["j"] is None
-        c["j"], c["spread"] = j, size
+        c["j"] = j
         if first:
             self.corners.append(float(t0))
         else:
             self.corners[-1] = float(t0)
         new_leg = [f for f in frames if f[0] >= entries[j][0] - 1e-9]
         self._restart_at(t0, x0, P0, new_leg)
-        for kf in self._kfs:
-            kf.P[:4, :4] += spread
         imm = self._imm_filter()
         if first:  # the quiet modes take over again, in the old track's proportions
             quiet = mu0[0] + mu0[1]
@@ -748,7 +751,6 @@ class MarkerTracker:
         imm._compute_state_estimate()
         # the detection history starts again with the new leg (its filters were just re-run)
         self._history = []
-        self._suspect = None
         self._in_corner = True
 
     def _restart_at(self, t0: float, x0: np.ndarray, P0: np.ndarray, new_leg: list) -> None:
@@ -981,7 +983,7 @@ class MarkerTracker:
         mu = self._weights()
         x = sum(m * xp for m, (xp, _) in zip(mu, preds))
         P = sum(m * (Pp + (xp - x) @ (xp - x).T) for m, (xp, Pp) in zip(mu, preds))
-        return x, self._with_suspicion(x, P, self._require_track() + dt)
+        return x, self._with_corner_hypotheses(x, P, self._require_track() + dt)
 
     def _check_future(self, t: float) -> float:
         t_last = self._require_track()
