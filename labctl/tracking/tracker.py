@@ -124,18 +124,28 @@ class PredictedPath:
 
 @dataclass(frozen=True)
 class MixturePath:
-    """The IMM's mean path: ``Σ wᵢ pathᵢ(t)`` with the mode probabilities frozen at ``t_ref``."""
+    """The IMM's mean path: ``Σ wᵢ pathᵢ(t)`` with the mode probabilities frozen at ``t_ref``.
+
+    ``shift``: (δp, δv), mm and mm/s, added as ``δp + δv·(t − t_ref)`` to the positions and ``δv`` to
+    the velocities (a detected corner's other candidate times, :meth:`MarkerTracker._corner_shift`).
+    """
 
     t_ref: float
     weights: tuple[float, ...]
     paths: tuple[PredictedPath, ...]
+    shift: tuple[np.ndarray, np.ndarray] | None = None
 
     def __call__(self, times) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Mixture-weighted positions, velocities and accelerations, each (N, 2), at ``times`` (s)."""
-        out = [np.zeros((len(np.atleast_1d(times)), 2)) for _ in range(3)]
+        times = np.atleast_1d(np.asarray(times, dtype=float))
+        out = [np.zeros((len(times), 2)) for _ in range(3)]
         for w, path in zip(self.weights, self.paths):
             for acc, part in zip(out, path(times)):
                 acc += w * part
+        if self.shift is not None:
+            dp, dv = self.shift
+            out[0] += dp + np.outer(times - self.t_ref, dv)
+            out[1] += dv
         return out[0], out[1], out[2]
 
 
@@ -622,32 +632,52 @@ class MarkerTracker:
         return {"w": odds / (1.0 + odds.sum()), "t0": te[js - 1], "corner": corner, "v2": v2s[keep],
                 "cov": np.linalg.inv(A[keep])}
 
-    def _with_corner_hypotheses(self, x: np.ndarray, P: np.ndarray, t: float) -> np.ndarray:
-        """``P`` with the corner hypotheses' new legs at ``t`` mixed in (second moments; the mean ``x`` is kept).
+    def _hypothesis_legs(self, t: float) -> np.ndarray:
+        """Each corner hypothesis' new leg at ``t`` (s): (n, 4) ``[x, y, vx, vy]``, mm and mm/s."""
+        hyp = self._hypotheses
+        assert hyp is not None
+        tau = t - hyp["t0"]
+        return np.concatenate([hyp["corner"] + hyp["v2"] * tau[:, None], hyp["v2"]], axis=1)
 
-        A detected corner (:meth:`_refine_corner`): the quiet modes are its ML hypothesis; every other
-        candidate time adds its weight × the outer product of its leg's offset from the ML leg. Corners
-        not yet detected (:meth:`_corner_suspicion`): a mixture of the track (weight 1 − Σw) and each
-        suspected leg with its own least-squares covariance, about the track's mean.
+    def _corner_shift(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """A detected corner's posterior mean over its candidate times minus its ML leg, at the last update:
+        (δp (2,) mm, δv (2,) mm/s); None without one. Added to every prediction's mean (exactly linear in time)."""
+        hyp = self._hypotheses
+        if hyp is None or hyp["cov"] is not None:
+            return None
+        legs = self._hypothesis_legs(self._require_track())
+        shift = hyp["w"] @ (legs - legs[hyp["ml"]])
+        return shift[:2], shift[2:]
+
+    def _with_corner_hypotheses(self, x: np.ndarray, P: np.ndarray, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """``(x, P)`` with the corner hypotheses' new legs at ``t`` mixed in.
+
+        A detected corner (:meth:`_refine_corner`): the quiet modes are its ML hypothesis; the mean moves
+        to the posterior mean over the candidate times (each leg's offset from the ML leg, weighted) and
+        the covariance adds their spread about it. Corners not yet detected (:meth:`_corner_suspicion`):
+        a mixture of the track (weight 1 − Σw) and each suspected leg with its own least-squares
+        covariance, second moments about the track's mean, which is kept.
         """
         hyp = self._hypotheses
         if hyp is None:
-            return P
+            return x, P
         idx = self._pos + self._vel  # [x, y, vx, vy]
         w, tau = hyp["w"], t - hyp["t0"]
-        legs = np.concatenate([hyp["corner"] + hyp["v2"] * tau[:, None], hyp["v2"]], axis=1)
-        P = P.copy()
+        legs = self._hypothesis_legs(t)
+        x, P = x.copy(), P.copy()
         if hyp["cov"] is None:
             d = legs - legs[hyp["ml"]]
-            P[np.ix_(idx, idx)] += (w[:, None] * d).T @ d
-            return P
+            shift = w @ d
+            x[idx, 0] += shift
+            P[np.ix_(idx, idx)] += (w[:, None] * d).T @ d - np.outer(shift, shift)
+            return x, P
         J = np.zeros((len(w), 4, 4))  # (corner offset, v2) -> (position, velocity) at t
         J[:, :2, :2] = J[:, 2:, 2:] = np.eye(2)
         J[:, :2, 2:] = tau[:, None, None] * np.eye(2)
         d = legs - x[idx, 0]
         legs_cov = np.einsum("n,nij->ij", w, J @ hyp["cov"] @ J.transpose(0, 2, 1)) + (w[:, None] * d).T @ d
         P[np.ix_(idx, idx)] = (1.0 - w.sum()) * P[np.ix_(idx, idx)] + legs_cov
-        return P
+        return x, P
 
     def _best_corner(self, entries: list, frames: list) -> tuple[float, int]:
         """ML corner: (cost, j), the corner between ``entries[j-1]`` and ``entries[j]`` (:meth:`_corner_costs`)."""
@@ -983,7 +1013,7 @@ class MarkerTracker:
         mu = self._weights()
         x = sum(m * xp for m, (xp, _) in zip(mu, preds))
         P = sum(m * (Pp + (xp - x) @ (xp - x).T) for m, (xp, Pp) in zip(mu, preds))
-        return x, self._with_corner_hypotheses(x, P, self._require_track() + dt)
+        return self._with_corner_hypotheses(x, P, self._require_track() + dt)
 
     def _check_future(self, t: float) -> float:
         t_last = self._require_track()
@@ -1055,4 +1085,4 @@ class MarkerTracker:
         paths = [self._mode_path(x, mode) for (x, _), mode in zip(self._mode_states(), self._modes)]
         if self._imm is None:
             return paths[0]
-        return MixturePath(t_last, tuple(float(m) for m in self._weights()), tuple(paths))
+        return MixturePath(t_last, tuple(float(m) for m in self._weights()), tuple(paths), self._corner_shift())
