@@ -64,3 +64,26 @@ def test_a_corner_not_yet_detected_is_in_the_covariance(seed):
         e = mean - scn.current_motion(t, [t + 5.0])[0]
         nees.append(float(e @ np.linalg.solve(cov, e)))
     assert max(nees) < 300.0 and np.mean(nees) < 6.0, (max(nees), np.mean(nees))
+
+
+def test_the_path_is_the_predictions_mean_while_corners_are_weighed_in():
+    """``predicted_path()`` (what the planner steers by) equals ``predict``'s mean and velocity at every frame
+    around a 4 mm/s corner, suspected (not yet detected) and detected (its candidate times) alike."""
+    rng = np.random.default_rng(5)
+    kinds = set()
+    for _ in range(4):
+        scn = make_scenario("zigzag", 4.0, 3.5, rate_hz=FPS, sigma_mm=SIGMA, heading_rad=rng.uniform(-np.pi, np.pi))
+        trk = _tracker("zigzag")()
+        for t, z in zip(scn.times, scn.measure(rng)):
+            trk.update(t, z)
+            hyp = trk._hypotheses
+            if hyp is None:
+                continue
+            kinds.add("detected" if hyp["cov"] is None else "suspected")
+            future = t + np.array([0.0, 1.0, 5.0])
+            p, v, _ = trk.predicted_path()(future)
+            means, covs = trk.predict_path(future)
+            np.testing.assert_allclose(p, means, atol=1e-9)
+            np.testing.assert_allclose(v[0], trk.velocity(), atol=1e-9)
+            assert np.all(np.linalg.eigvalsh(covs) > 0)
+    assert kinds == {"detected", "suspected"}
