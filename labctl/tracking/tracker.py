@@ -608,8 +608,8 @@ class MarkerTracker:
         ``corner_window_s``). Each candidate whose new leg has at least ``corner_window_s``/2 of frames (a
         shorter one predicts nothing yet: its velocity is the noise of a few frames) is kept with its new
         leg's least-squares state and covariance; :meth:`_with_corner_hypotheses` adds their second moments
-        about the track's mean. At 4 mm/s a 97° corner is ~2 mm off the old line 0.5 s after it and in ~10 % of runs
-        not yet detected: those runs' 5-s NEES was ~200 (docs/notes/planning.md, sixth round).
+        about the track's mean. At 4 mm/s a 97° corner is ~2 mm off the old line 0.5 s after it and in 1-3 runs of
+        64 not yet detected: those runs' 5-s NEES was 1500-1700 (docs/notes/planning.md, sixth round).
         """
         hist = self._history
         if len(hist) < 8:
@@ -743,10 +743,10 @@ class MarkerTracker:
         k = int(np.argmin(costs))
         j = int(js[k])
         # the corner time's posterior over the candidates (flat prior, exp(−cost/2)) and each candidate's new leg:
-        # the predictions add their spread about the ML leg, extrapolated to the predicted instant
-        # (:meth:`_with_corner_hypotheses`). Added instead to the re-run filters' state, later frames shrank it as
-        # if it were a Gaussian prior: 12 mm/s, 0.5 s after the corner, 5-s NEES 3.06, the runs whose ML corner was
-        # a frame or two off 3.2-8.3 (docs/notes/planning.md, sixth round)
+        # every prediction takes their posterior mean and spread at the instant predicted
+        # (:meth:`_with_corner_hypotheses`). Added instead once to the re-run filters, the spread was shrunk by later
+        # frames as if it were a Gaussian prior: 12 mm/s, 0.5 s after the corner, 5-s NEES 3.06, the runs whose ML
+        # corner was a frame or two off 3.2-8.3 (docs/notes/planning.md, sixth round)
         w = np.exp(-0.5 * (costs - costs[k]))
         w /= w.sum()
         t0s = np.array([entries[i - 1][0] for i in js])
