@@ -560,7 +560,8 @@ class MarkerTracker:
         is re-estimated on every frame from the *frozen* old-track history and every frame since
         (the new leg's frames sharpen it), and the quiet modes re-run whenever it moves. The
         detection history restarts with the new leg: the old track's large post-corner innovations
-        must not look like a second corner.
+        must not look like a second corner. Every prediction weighs in the candidate corner times, and
+        between detections the corners not yet detected (:meth:`_with_corner_hypotheses`).
         """
         imm = self._imm_filter()
         quiet = self._kfs[int(np.argmax(imm.mu[:2]))]  # the old track: the likelier of CV and CT
