@@ -89,14 +89,11 @@ def test_the_path_is_the_predictions_mean_while_corners_are_weighed_in():
     assert kinds == {"detected", "suspected"}
 
 
-@pytest.mark.xfail(strict=True, reason="known gap (issue 18, docs/notes/planning.md sixth round): the new leg is "
-                   "anchored at the old track's position on the frame before the corner as if the corner were on it")
 def test_a_corner_between_frames_is_not_taken_for_one_on_a_frame():
-    """A real corner lies anywhere between two frames; the bench's corners lie exactly on one. Half a frame off the
-    grid, the 5-s prediction 1 s after a 100 mm/s corner is 9.7x the bound (NEES 5.3, 64 runs): the new leg is
-    anchored at the old track's position on the frame before the corner, as if the corner were on it. Giving the
-    anchor that frame interval's motion as uncertainty fixed this cell (1.14x) but broke the family-blind
-    50 mm/s corner test (2.6x), so it was not landed."""
+    """A real corner lies anywhere between two frames; the bench's corners lie exactly on one. The new leg is
+    anchored at the old track's position on the frame before the corner, so the anchor carries that frame
+    interval's motion as uncertainty (``_anchor_cov``). Before, half a frame off the grid, the 5-s prediction
+    1 s after a 100 mm/s corner was 9.7x the bound (NEES 5.3, 64 runs)."""
     res = compare_with_bound(_tracker("zigzag"), "zigzag", 100.0, runs=16, rate_hz=FPS, sigma_mm=SIGMA,
                              track_s=(), after_corner_s=(1.0,), seed=8200, corner_s=2.0 + 0.5 / FPS)
     (r,) = res.values()

@@ -679,7 +679,7 @@ class MarkerTracker:
         k = int(np.argmin(costs))
         return float(costs[k]), int(js[k])
 
-    def _corner_costs(self, entries: list, frames: list) -> tuple[np.ndarray, ...]:
+    def _corner_costs(self, entries: list, frames: list, between_frames: bool = False) -> tuple[np.ndarray, ...]:
         """Each candidate corner j's cost and new leg: (js, costs, v2s (n, 2), δps (n, 2), normal matrices (n, 4, 4)).
 
         The corner lies between ``entries[j-1]`` and ``entries[j]``.
@@ -710,7 +710,7 @@ class MarkerTracker:
         Sz, Stz, Szz = suffix(fz), suffix(ft[:, None] * fz), suffix(np.sum(fz * fz, axis=1))
         t0 = te[js - 1]
         p0 = np.array([entries[j - 1][2][self._pos, 0] for j in js])
-        P0 = np.array([entries[j - 1][3][np.ix_(self._pos, self._pos)] for j in js])
+        P0 = np.array([self._anchor_cov(entries, int(j), between_frames) for j in js])
         nis0 = np.array([entries[j - 1][4] for j in js])
         # τ = t − t0 and z' = z − p0, from the suffix sums
         st = S1 - n * t0
@@ -729,6 +729,24 @@ class MarkerTracker:
         costs = nis0 + szz / R - np.sum(bvec * sol, axis=1) + n * np.log(R * R)
         return js, costs, sol[:, 2:], sol[:, :2], A
 
+    def _anchor_cov(self, entries: list, j: int, between_frames: bool = True) -> np.ndarray:
+        """The covariance (2, 2) mm² of the new leg's anchor for a corner between ``entries[j-1]`` and ``entries[j]``.
+
+        The anchor is the old track's position at ``entries[j-1]``, but a corner lies anywhere in the frame
+        interval after it: the new leg extended back to ``t_{j-1}`` misses the anchor by ``(v1 − v2)·δ``, δ
+        uniform in [0, Δt]; with ``|v1 − v2| ≈ √2·|v1|`` (a right-angle turn) ``between_frames`` adds
+        ``|v1|² Δt² / 6`` per axis. The bench's corners, exactly on a frame, hid it: half a frame off, the 5-s
+        prediction 1 s after a 100 mm/s corner was 9.7x the bound (docs/notes/planning.md, sixth round). The
+        detection's GLR keeps the tight anchor: with the looser one it fired on straight legs (a 50 mm/s zigzag
+        restarted at 1.43 s, 0.57 s before its corner).
+        """
+        t0, _, x0, P0, *_ = entries[j - 1]
+        cov = P0[np.ix_(self._pos, self._pos)]
+        if not between_frames or j >= len(entries):
+            return cov
+        v1 = x0[self._vel, 0]
+        return cov + np.eye(2) * float(v1 @ v1) * (entries[j][0] - t0) ** 2 / 6.0
+
     def _refine_corner(self) -> None:
         """Re-estimate the detected corner on the frames so far; re-run the quiet modes from it if it moved."""
         c = self._corner
@@ -738,7 +756,7 @@ class MarkerTracker:
         frames = [f for f in self._zbuf if f[0] >= entries[1][0] - 1e-9] if len(entries) > 1 else []
         if len(entries) < 2 or len(frames) < 2:
             return
-        js, costs, v2s, dps, _ = self._corner_costs(entries, frames)
+        js, costs, v2s, dps, _ = self._corner_costs(entries, frames, between_frames=True)
         if not len(js):
             return
         k = int(np.argmin(costs))
@@ -756,6 +774,8 @@ class MarkerTracker:
         if j == c["j"]:
             return  # the same corner: no re-run
         t0, _, x0, P0, _, mu0 = entries[j - 1]
+        P0 = P0.copy()
+        P0[np.ix_(self._pos, self._pos)] = self._anchor_cov(entries, j)
         first = c["j"] is None
         c["j"] = j
         if first:
