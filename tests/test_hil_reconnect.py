@@ -227,7 +227,8 @@ def test_table_link_back_within_reconnect_s_recovers_then_the_robot_link_that_st
     assert run.code == 3, run.stderr
     err = run.stderr.strip().splitlines()
     assert len(err) == 1 and "LinkLost" in err[0] and "robot@" in err[0] and "record kept" in err[0], err
-    assert RECONNECT_S <= robot_typed < RECONNECT_S + 1.5, robot_typed
+    # the server stamps the drop after cutting the link; the worker may see it first (3.999 s seen once under load)
+    assert RECONNECT_S - 0.05 <= robot_typed < RECONNECT_S + 1.5, robot_typed
     assert RECONNECT_S <= robot_exit < RECONNECT_S + MARGIN_S, robot_exit
     aborted = run.first("run_aborted")
     assert aborted is not None and aborted["exit_code"] == 3 and "table" in aborted["devices_stopped"]

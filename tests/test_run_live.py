@@ -114,10 +114,17 @@ def test_live_run_over_a_9600_bps_serial_host_link(tmp_path):
     assert link["utilisation"] < 0.3  # heartbeats and every request and answer, with room to spare
 
 
+def _ignore_sigint():
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 @pytest.mark.timeout(180)
-def test_ctrl_c_stops_robot_and_table_and_keeps_the_record(lab):
+@pytest.mark.parametrize("parent_ignored_sigint", [False, True])
+def test_ctrl_c_stops_robot_and_table_and_keeps_the_record(lab, parent_ignored_sigint):
+    """Also when started ignoring SIGINT, as a non-interactive shell starts a background job (``labctl run &``):
+    before, that run went on to its end (exit 0) with the devices moving."""
     before = set((lab / "runs").glob("*"))
-    p = _labctl("--lab", str(lab), "run", "--seed", "3")
+    p = _labctl("--lab", str(lab), "run", "--seed", "3", preexec_fn=_ignore_sigint if parent_ignored_sigint else None)
     try:
         run_dir, _ = _wait_for(lambda: [d for d in (lab / "runs").glob("*") if d not in before],
                                lambda evs: any(e["event"] == "segment" for e in evs), 120)

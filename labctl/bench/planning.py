@@ -31,7 +31,7 @@ from ._timing import median_time, row
 # along that program (tracking.family_prior); without it the lab's family-blind curve prior (external motion)
 INFORMED = "imm informed (labctl drives the table)"
 BLIND = "imm blind (external motion)"
-MODELS = {
+MODELS: dict[str, dict] = {
     INFORMED: {"family": True},  # the lab's default (TrackingConfig: model, noises) with the family's curve prior
     BLIND: {},  # the lab's default with its family-blind curve prior
     "cv": dict(model="cv", process_noise=0.01),
@@ -40,6 +40,9 @@ MODELS = {
     "cv (before: process_noise 0.5)": dict(model="cv", process_noise=0.5),
 }
 AFTER_CORNER_S = (0.1, 0.2, 0.3, 0.5, 0.75, 1.0, 1.5, 2.0)
+# the consistency table: the informed tracker's NEES on 4x as many runs (the first 64 are the main table's): on 64
+# heavy-tailed runs the mean NEES swung by ±0.5-1.2 between seed sets against a ±0.5 band (docs/notes/planning.md)
+CONSISTENCY_RUNS = 256
 RUNS = 64  # Monte-Carlo runs per cell: at 16 the RMS ratio's run-to-run sd was ~12 %, heavy-tailed on lines
 # issue 18's acceptance: the 5-s prediction RMS over the bound after 2 s / 4 s of tracking, and from 0.5 s after a
 # zigzag corner on ("settles back under 1.5x within 0.5 s": it must stay there, so every listed instant to 2 s)
@@ -120,6 +123,39 @@ def _bound_table(quick: bool, models=None) -> list[dict]:
                                  "nees_frac_95": round(r["nees_frac_95"], 3),
                                  "nees_frac_holds": bool(r["nees_frac_bounds"][0] <= r["nees_frac_95"]
                                                          <= r["nees_frac_bounds"][1]), "runs": runs})
+    return rows
+
+
+def _consistency_table(quick: bool) -> list[dict]:
+    """The informed lab tracker's 5-s NEES on the acceptance cells over :data:`CONSISTENCY_RUNS` runs (issue 18).
+
+    Beside the mean NEES and its 95 % bounds for that many runs: ``nees_crb``, the same errors' NEES
+    against the Cramér-Rao covariance (a filter whose covariance *were* the bound), and ``cov_to_crb``,
+    the median trace(P) / trace(CRB). Where both NEES are low the errors fell below the bound (a prior,
+    a discrete corner, a nonlinear fit can beat it); a filter's covariance there cannot be consistent
+    without claiming better than the Cramér-Rao bound.
+    """
+    from ..config.lab import RunConfig
+    from ..tracking.bounds import FAMILIES, SPEEDS
+    from ..tracking.synthetic import compare_with_bound
+
+    sigma, fps = TrackingConfig().measurement_noise_mm, RunConfig().fps
+    runs = 16 if quick else CONSISTENCY_RUNS
+    rows = []
+    for family in FAMILIES:
+        zig = family == "zigzag"
+        for speed in (12.0, 100.0) if quick else SPEEDS:
+            res = compare_with_bound(lambda family=family: _make_tracker(MODELS[INFORMED], family), family, speed,
+                                     runs=runs, rate_hz=fps, sigma_mm=sigma, with_ml=False,
+                                     track_s=() if zig else tuple(ACCEPTANCE),
+                                     after_corner_s=tuple(CORNER_ACCEPTANCE) if zig else (), seed=int(speed))
+            for t, r in res.items():
+                lo, hi = r["nees_bounds"]
+                rows.append({"family": family, "speed_mm_s": speed, "model": INFORMED,
+                             "at_s": round(t - 2.0, 3) if zig else t, "after_corner": zig, "runs": runs,
+                             "nees": round(r["nees"], 2), "nees_95": [round(lo, 2), round(hi, 2)],
+                             "nees_holds": bool(lo <= r["nees"] <= hi), "nees_crb": round(r["nees_crb"], 2),
+                             "cov_to_crb": round(r["cov_to_crb"], 3)})
     return rows
 
 
@@ -275,11 +311,14 @@ def run(quick: bool = False) -> dict:
     irows, interception = _interception(quick)
     rrows, replanning = _replanning(quick)
     table = _bound_table(quick)
+    consistency = _consistency_table(quick)
     return {
         "rows": rows + irows + rrows,
         "interception": interception,
         "replanning": replanning,
         "prediction_vs_bound": table,
         "acceptance": acceptance_summary(table),
+        "consistency": consistency,
+        "consistency_holds": f"{sum(r['nees_holds'] for r in consistency)} / {len(consistency)}",
         "tracker_params": MODELS,
     }

@@ -83,7 +83,10 @@ class TrackingConfig:
     """Fixed-camera tracking (paper §5.2): motion model, noise (mm), gate (σ), search window (px), commit policy."""
 
     model: Literal["cv", "ct", "ca", "imm"] = "imm"  # chosen by measurement: docs/notes/planning.md
-    process_noise: NonNegative = 0.01  # sqrt of the white-acceleration spectral density (mm/s^1.5); near 0: exact paths
+    # sqrt of the white-acceleration spectral density (mm/s^1.5); near 0: the table's programs are exact paths. At
+    # 0.01 the 5-s covariance after 4 s on a line was 1.06x the CRB, on a 100 mm/s circle 1.4x across the track;
+    # at 1e-4 1.00x (docs/notes/planning.md, sixth round)
+    process_noise: NonNegative = 1e-4
     # imm: prior probability of a curve (CT mode) against a line; minimax over the confusable line/circle
     # cells of `labctl bench planning` (docs/notes/planning.md, "Prediction at the estimation bound")
     curve_prior: Annotated[float, Range(gt=0, lt=1)] = 0.05

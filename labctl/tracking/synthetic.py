@@ -169,11 +169,14 @@ def compare_with_bound(make_tracker, family: str, speed_mm_s: float, *, runs: in
     with its two-sided 95 % bounds for ``runs`` runs; and a tail-robust check of the same: the fraction of
     runs whose NEES is under chi-square(2)'s 95 % point (5.99), with its two-sided 95 % binomial bounds
     around 0.95 (the mean NEES of 64 heavy-tailed runs moved by ±0.5-1.2 between seed sets, see
-    docs/notes/planning.md, "Fifth round").
+    docs/notes/planning.md, "Fifth round"). ``nees_crb``: the mean NEES of the same errors against the
+    Cramér-Rao covariance of that run's prediction, i.e. what a filter whose covariance were exactly the
+    bound would score; ``cov_to_crb``: the median over runs of trace(P) / trace(CRB). A NEES below 2 with
+    ``nees_crb`` as low says the errors themselves fell below the bound, not that the filter's covariance is wide.
     """
     from scipy.stats import binom, chi2
 
-    from .bounds import crb_prediction_rms, make_scenario, ml_prediction
+    from .bounds import crb_prediction_cov, make_scenario, ml_prediction
 
     instants = sorted({float(t) for t in track_s} | {corner_s + float(t) for t in after_corner_s})
     duration = max(instants)
@@ -181,6 +184,8 @@ def compare_with_bound(make_tracker, family: str, speed_mm_s: float, *, runs: in
     errs: dict[float, list[np.ndarray]] = {t: [] for t in instants}
     ml_errs: dict[float, list[np.ndarray]] = {t: [] for t in instants}
     nees: dict[float, list[float]] = {t: [] for t in instants}
+    nees_crb: dict[float, list[float]] = {t: [] for t in instants}
+    cov_to_crb: dict[float, list[float]] = {t: [] for t in instants}
     crb: dict[float, float] = {}
     for _ in range(runs):
         scn = make_scenario(family, speed_mm_s, duration, rate_hz=rate_hz, sigma_mm=sigma_mm,
@@ -198,10 +203,12 @@ def compare_with_bound(make_tracker, family: str, speed_mm_s: float, *, runs: in
             e = mean - truth
             errs[ti].append(e)
             nees[ti].append(float(e @ np.linalg.solve(cov, e)))
+            bound = crb_prediction_cov(scn, k + 1, horizon_s)  # its size does not depend on the heading
+            crb.setdefault(ti, float(np.sqrt(np.trace(bound))))
+            nees_crb[ti].append(float(e @ np.linalg.solve(bound, e)))
+            cov_to_crb[ti].append(float(np.trace(cov) / np.trace(bound)))
             if with_ml:
                 ml_errs[ti].append(ml_prediction(scn, z, k + 1, horizon_s) - truth)
-            if ti not in crb:  # the bound does not depend on the heading
-                crb[ti] = crb_prediction_rms(scn, k + 1, horizon_s)
     lo, hi = chi2.ppf(0.025, 2 * runs) / runs, chi2.ppf(0.975, 2 * runs) / runs
     gate = chi2.ppf(0.95, 2)
     frac_bounds = (float(binom.ppf(0.025, runs, 0.95) / runs), float(binom.ppf(0.975, runs, 0.95) / runs))
@@ -210,7 +217,8 @@ def compare_with_bound(make_tracker, family: str, speed_mm_s: float, *, runs: in
         e = np.array(errs[t])
         row = {"rms_mm": float(np.sqrt(np.mean(np.sum(e**2, axis=1)))), "crb_mm": crb[t],
                "nees": float(np.mean(nees[t])), "nees_bounds": (float(lo), float(hi)),
-               "nees_frac_95": float(np.mean(np.array(nees[t]) <= gate)), "nees_frac_bounds": frac_bounds}
+               "nees_frac_95": float(np.mean(np.array(nees[t]) <= gate)), "nees_frac_bounds": frac_bounds,
+               "nees_crb": float(np.mean(nees_crb[t])), "cov_to_crb": float(np.median(cov_to_crb[t]))}
         if with_ml:
             m = np.array(ml_errs[t])
             row["ml_rms_mm"] = float(np.sqrt(np.mean(np.sum(m**2, axis=1))))

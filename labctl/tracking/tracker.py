@@ -61,6 +61,12 @@ MIX_FLOOR = 1e-3  # mode weights below this are dropped from the IMM's mixing an
 MODELS = ("cv", "ct", "ca", "imm")
 # the CT prediction integrates the curvature exactly (MarkerTracker._curvature_profile) where |κ| < this many σ of it
 PROFILE_SIGMAS = 4.0
+# the GLR corner test: −2 log of the prior odds against a corner in the recent window (MarkerTracker._glr_detects);
+# the same odds weigh a suspected, not yet detected corner into the predictions (MarkerTracker._corner_suspicion)
+GLR_THRESHOLD = 25.0
+# after a restart at a corner, the manoeuvre mode's share: at 0.02 its mixing leaked into the new leg's
+# quiet modes for ~1 s (5-s covariance up to 1.2x the CRB at 100 mm/s, docs/notes/planning.md, sixth round)
+RESTART_MANEUVER_PROB = 1e-3
 _GH_X, _GH_W = np.polynomial.hermite_e.hermegauss(9)  # probabilists' Gauss-Hermite nodes in σ, weights (sum √2π)
 
 
@@ -118,7 +124,11 @@ class PredictedPath:
 
 @dataclass(frozen=True)
 class MixturePath:
-    """The IMM's mean path: ``Σ wᵢ pathᵢ(t)`` with the mode probabilities frozen at ``t_ref``."""
+    """The IMM's mean path: ``Σ wᵢ pathᵢ(t)`` with the mode probabilities frozen at ``t_ref``.
+
+    A detected corner's candidate new legs join the modes' paths (:meth:`MarkerTracker._corner_legs`;
+    its ML leg with weight −1: the modes already follow it).
+    """
 
     t_ref: float
     weights: tuple[float, ...]
@@ -377,6 +387,8 @@ class MarkerTracker:
         self._history: list = []  # IMM only: (t, z, quiet x, P, cumulative NIS, μ) per frame
         self._nis = 0.0
         self._in_corner = False
+        # the corner hypotheses the predictions weigh in: a detected corner's times, or corners not (yet) detected
+        self._hypotheses: dict | None = None
         self._corner: dict | None = None  # a detected corner whose time is still being refined
         self._zbuf: list[tuple[float, np.ndarray]] = []  # IMM only: (t, z) of the recent frames
         # CT refit (see _turn_refit): frames (t, z) since the quiet modes' start, an optional anchor
@@ -548,7 +560,8 @@ class MarkerTracker:
         is re-estimated on every frame from the *frozen* old-track history and every frame since
         (the new leg's frames sharpen it), and the quiet modes re-run whenever it moves. The
         detection history restarts with the new leg: the old track's large post-corner innovations
-        must not look like a second corner.
+        must not look like a second corner. Every prediction weighs in the candidate corner times, and
+        between detections the corners not yet detected (:meth:`_with_corner_hypotheses`).
         """
         imm = self._imm_filter()
         quiet = self._kfs[int(np.argmax(imm.mu[:2]))]  # the old track: the likelier of CV and CT
@@ -568,6 +581,8 @@ class MarkerTracker:
             else:
                 self._refine_corner()
         recent = [h for h in self._history if t - h[0] <= self._corner_window]
+        if self._corner is None:
+            self._hypotheses = self._corner_suspicion(t)
         if imm.mu[2] < 0.5 and not self._glr_detects(recent):
             self._in_corner = False
             return
@@ -575,15 +590,86 @@ class MarkerTracker:
             return
         self._in_corner = True
         # the old track's history up to the detection, frozen: the corner lies in it
-        self._corner = {"t_detect": t, "entries": list(self._history), "j": None, "spread": np.inf}
+        self._corner = {"t_detect": t, "entries": list(self._history), "j": None}
         self._refine_corner()
 
-    def _glr_detects(self, hist: list, threshold: float = 25.0) -> bool:
+    def _glr_detects(self, hist: list, threshold: float = GLR_THRESHOLD) -> bool:
         """A slow corner the manoeuvre mode misses: the GLR statistic (no corner vs the best corner) > threshold."""
         if len(hist) < 8 or hist[-1][4] - hist[-6][4] < 5 * (2.0 + np.log(self._R[0, 0] ** 2)):
             return False  # the old track still explains the last frames (expected NIS 2 per frame)
         cost, _ = self._best_corner(hist, [(h[0], h[1]) for h in hist])
         return hist[-1][4] - cost > threshold
+
+    def _corner_suspicion(self, t: float) -> dict | None:
+        """The corners the GLR has not (yet) detected, as hypotheses the predictions weigh in; None if none count.
+
+        The detection is a hard decision at ``GLR_THRESHOLD`` = −2 log of the prior odds against a corner:
+        a corner at candidate j has the posterior odds ``exp((G_j − GLR_THRESHOLD)/2)`` against none, with
+        ``G_j`` the GLR statistic of :meth:`_corner_costs` over the detection history (up to 2 ×
+        ``corner_window_s``). Each candidate whose new leg has at least ``corner_window_s``/2 of frames (a
+        shorter one predicts nothing yet: its velocity is the noise of a few frames) is kept with its new
+        leg's least-squares state and covariance; :meth:`_with_corner_hypotheses` adds their second moments
+        about the track's mean. At 4 mm/s a 97° corner is ~2 mm off the old line 0.5 s after it and in 1-3 runs of
+        64 not yet detected: those runs' 5-s NEES was 1500-1700 (docs/notes/planning.md, sixth round).
+        """
+        hist = self._history
+        if len(hist) < 8:
+            return None
+        js, costs, v2s, dps, A = self._corner_costs(hist, [(h[0], h[1]) for h in hist])
+        te = np.array([h[0] for h in hist])
+        keep = t - te[js] >= 0.5 * self._corner_window
+        log_odds = 0.5 * (hist[-1][4] - costs[keep] - GLR_THRESHOLD)
+        if not len(log_odds) or log_odds.max() < -7.0:
+            return None  # every hypothesis below e⁻⁷ ≈ 1e-3 of the track: not worth a prediction's time
+        odds = np.exp(log_odds)
+        js = js[keep]
+        corner = np.array([hist[j - 1][2][self._pos, 0] for j in js]) + dps[keep]
+        return {"w": odds / (1.0 + odds.sum()), "t0": te[js - 1], "corner": corner, "v2": v2s[keep],
+                "cov": np.linalg.inv(A[keep])}
+
+    def _corner_legs(self) -> tuple[np.ndarray, list[PredictedPath]] | None:
+        """A detected corner's candidate times as paths to add to the track's: (weights, straight new legs).
+
+        The quiet modes follow its ML candidate time (:meth:`_refine_corner`), so the posterior mean over
+        the candidates is the track + Σ wⱼ legⱼ − leg_ML: the legs ``corner + v2·(t − t0)`` with their
+        weights and the ML leg with −1. None without a detected corner (a suspected one moves no mean:
+        with the GLR's odds as weights the zigzag's straight legs at 4 mm/s were 6 % worse, 64 runs).
+        """
+        hyp = self._hypotheses
+        if hyp is None or hyp["cov"] is not None:
+            return None
+        legs = [PredictedPath(float(t0), c, v) for t0, c, v in zip(hyp["t0"], hyp["corner"], hyp["v2"])]
+        return np.r_[hyp["w"], -1.0], legs + [legs[hyp["ml"]]]
+
+    def _with_corner_hypotheses(self, x: np.ndarray, P: np.ndarray, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """``(x, P)`` at ``t`` with the corner hypotheses' new legs mixed in.
+
+        A detected corner: the mean moves to the posterior mean over its candidate times
+        (:meth:`_corner_legs`) and the covariance adds their legs' spread about it (each one's own
+        uncertainty is the quiet modes'). Corners not yet detected: the track (its ``P``, weight 1 − Σw)
+        and each suspected leg with its own least-squares covariance, second moments about the track's
+        mean, which is kept.
+        """
+        hyp = self._hypotheses
+        if hyp is None:
+            return x, P
+        idx = self._pos + self._vel  # [x, y, vx, vy]
+        w, tau = hyp["w"], t - hyp["t0"]
+        legs = np.concatenate([hyp["corner"] + hyp["v2"] * tau[:, None], hyp["v2"]], axis=1)
+        x, P = x.copy(), P.copy()
+        if hyp["cov"] is None:
+            d = legs - legs[hyp["ml"]]
+            shift = w @ d
+            x[idx, 0] += shift
+            P[np.ix_(idx, idx)] += (w[:, None] * d).T @ d - np.outer(shift, shift)
+            return x, P
+        J = np.zeros((len(w), 4, 4))  # (corner offset, v2) -> (position, velocity) at t
+        J[:, :2, :2] = J[:, 2:, 2:] = np.eye(2)
+        J[:, :2, 2:] = tau[:, None, None] * np.eye(2)
+        d = legs - x[idx, 0]
+        legs_cov = np.einsum("n,nij->ij", w, J @ hyp["cov"] @ J.transpose(0, 2, 1)) + (w[:, None] * d).T @ d
+        P[np.ix_(idx, idx)] = (1.0 - w.sum()) * P[np.ix_(idx, idx)] + legs_cov
+        return x, P
 
     def _best_corner(self, entries: list, frames: list) -> tuple[float, int]:
         """ML corner: (cost, j), the corner between ``entries[j-1]`` and ``entries[j]`` (:meth:`_corner_costs`)."""
@@ -593,8 +679,8 @@ class MarkerTracker:
         k = int(np.argmin(costs))
         return float(costs[k]), int(js[k])
 
-    def _corner_costs(self, entries: list, frames: list) -> tuple[np.ndarray, ...]:
-        """Each candidate corner j's cost and new leg: (js, costs, v2s (n, 2), δps (n, 2)).
+    def _corner_costs(self, entries: list, frames: list, between_frames: bool = False) -> tuple[np.ndarray, ...]:
+        """Each candidate corner j's cost and new leg: (js, costs, v2s (n, 2), δps (n, 2), normal matrices (n, 4, 4)).
 
         The corner lies between ``entries[j-1]`` and ``entries[j]``.
 
@@ -613,7 +699,7 @@ class MarkerTracker:
         start = np.searchsorted(ft, te[1:] - 1e-9)
         js = np.flatnonzero(len(ft) - start >= 2) + 1
         if not len(js):
-            return js, np.zeros(0), np.zeros((0, 2)), np.zeros((0, 2))
+            return js, np.zeros(0), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 4, 4))
         start = start[js - 1]
 
         def suffix(a):
@@ -624,7 +710,7 @@ class MarkerTracker:
         Sz, Stz, Szz = suffix(fz), suffix(ft[:, None] * fz), suffix(np.sum(fz * fz, axis=1))
         t0 = te[js - 1]
         p0 = np.array([entries[j - 1][2][self._pos, 0] for j in js])
-        P0 = np.array([entries[j - 1][3][np.ix_(self._pos, self._pos)] for j in js])
+        P0 = np.array([self._anchor_cov(entries, int(j), between_frames) for j in js])
         nis0 = np.array([entries[j - 1][4] for j in js])
         # τ = t − t0 and z' = z − p0, from the suffix sums
         st = S1 - n * t0
@@ -641,7 +727,25 @@ class MarkerTracker:
         bvec = np.concatenate([sz, stz], axis=1) / R
         sol = np.linalg.solve(A, bvec[:, :, None])[:, :, 0]
         costs = nis0 + szz / R - np.sum(bvec * sol, axis=1) + n * np.log(R * R)
-        return js, costs, sol[:, 2:], sol[:, :2]
+        return js, costs, sol[:, 2:], sol[:, :2], A
+
+    def _anchor_cov(self, entries: list, j: int, between_frames: bool = True) -> np.ndarray:
+        """The covariance (2, 2) mm² of the new leg's anchor for a corner between ``entries[j-1]`` and ``entries[j]``.
+
+        The anchor is the old track's position at ``entries[j-1]``, but a corner lies anywhere in the frame
+        interval after it: the new leg extended back to ``t_{j-1}`` misses the anchor by ``(v1 − v2)·δ``, δ
+        uniform in [0, Δt]; with ``|v1 − v2| ≈ √2·|v1|`` (a right-angle turn) ``between_frames`` adds
+        ``|v1|² Δt² / 6`` per axis. The bench's corners, exactly on a frame, hid it: half a frame off, the 5-s
+        prediction 1 s after a 100 mm/s corner was 9.7x the bound (docs/notes/planning.md, sixth round). The
+        detection's GLR keeps the tight anchor: with the looser one it fired on straight legs (a 50 mm/s zigzag
+        restarted at 1.43 s, 0.57 s before its corner).
+        """
+        t0, _, x0, P0, *_ = entries[j - 1]
+        cov = P0[np.ix_(self._pos, self._pos)]
+        if not between_frames or j >= len(entries):
+            return cov
+        v1 = x0[self._vel, 0]
+        return cov + np.eye(2) * float(v1 @ v1) * (entries[j][0] - t0) ** 2 / 6.0
 
     def _refine_corner(self) -> None:
         """Re-estimate the detected corner on the frames so far; re-run the quiet modes from it if it moved."""
@@ -652,57 +756,56 @@ class MarkerTracker:
         frames = [f for f in self._zbuf if f[0] >= entries[1][0] - 1e-9] if len(entries) > 1 else []
         if len(entries) < 2 or len(frames) < 2:
             return
-        js, costs, v2s, dps = self._corner_costs(entries, frames)
+        js, costs, v2s, dps, _ = self._corner_costs(entries, frames, between_frames=True)
         if not len(js):
             return
         k = int(np.argmin(costs))
         j = int(js[k])
-        # the corner time's posterior over the candidates (flat prior, exp(−cost/2)) and each candidate's new leg
-        # now, [x, vx, y, vy]: their spread (moment matching over the corner hypotheses) is the error a wrong corner
-        # time makes, added to the re-run quiet modes. With only the anchor's corner-time variance, runs whose corner
-        # was a frame or two off had mean NEES 2.7-5.3 and the rest 1.6-1.8 (12 mm/s, 64 runs): v2 errs too
+        # the corner time's posterior over the candidates (flat prior, exp(−cost/2)) and each candidate's new leg:
+        # every prediction takes their posterior mean and spread at the instant predicted
+        # (:meth:`_with_corner_hypotheses`). Added instead once to the re-run filters, the spread was shrunk by later
+        # frames as if it were a Gaussian prior: 12 mm/s, 0.5 s after the corner, 5-s NEES 3.06, the runs whose ML
+        # corner was a frame or two off 3.2-8.3 (docs/notes/planning.md, sixth round)
         w = np.exp(-0.5 * (costs - costs[k]))
         w /= w.sum()
         t0s = np.array([entries[i - 1][0] for i in js])
         p0s = np.array([entries[i - 1][2][self._pos, 0] for i in js])
-        t_now = frames[-1][0]
-        legs = np.empty((len(js), 4))
-        legs[:, [0, 2]] = p0s + dps + v2s * (t_now - t0s)[:, None]
-        legs[:, [1, 3]] = v2s
-        d = legs - w @ legs
-        spread = (w[:, None] * d).T @ d
-        size = float(spread[0, 0] + spread[2, 2])  # mm²
+        self._hypotheses = {"w": w, "t0": t0s, "corner": p0s + dps, "v2": v2s, "cov": None, "ml": k}
+        if j == c["j"]:
+            return  # the same corner: no re-run
         t0, _, x0, P0, _, mu0 = entries[j - 1]
-        settled = max(0.5 * c["spread"], np.trace(P0[np.ix_(self._pos, self._pos)]))
-        if j == c["j"] and abs(size - c["spread"]) <= settled:
-            return  # the same corner, and its spread still about right: no re-run
+        ct_anchor = P0[np.ix_(self._pos, self._pos)]
+        P0 = P0.copy()
+        P0[np.ix_(self._pos, self._pos)] = self._anchor_cov(entries, j)
         first = c["j"] is None
-        c["j"], c["spread"] = j, size
+        c["j"] = j
         if first:
             self.corners.append(float(t0))
         else:
             self.corners[-1] = float(t0)
         new_leg = [f for f in frames if f[0] >= entries[j][0] - 1e-9]
-        self._restart_at(t0, x0, P0, new_leg)
-        for kf in self._kfs:
-            kf.P[:4, :4] += spread
+        self._restart_at(t0, x0, P0, new_leg, ct_anchor)
         imm = self._imm_filter()
         if first:  # the quiet modes take over again, in the old track's proportions
             quiet = mu0[0] + mu0[1]
-            imm.mu = np.array([mu0[0] / quiet * 0.98, mu0[1] / quiet * 0.98, 0.02])
+            keep = 1.0 - RESTART_MANEUVER_PROB
+            imm.mu = np.array([mu0[0] / quiet * keep, mu0[1] / quiet * keep, RESTART_MANEUVER_PROB])
         imm._compute_mixing_probabilities()
         imm._compute_state_estimate()
         # the detection history starts again with the new leg (its filters were just re-run)
         self._history = []
         self._in_corner = True
 
-    def _restart_at(self, t0: float, x0: np.ndarray, P0: np.ndarray, new_leg: list) -> None:
-        """Re-run every mode as a quiet mode from the old track's (x0, P0) at ``t0`` over ``new_leg`` (t, z)."""
+    def _restart_at(self, t0: float, x0: np.ndarray, P0: np.ndarray, new_leg: list, ct_anchor: np.ndarray) -> None:
+        """Re-run every mode as a quiet mode from the old track's (x0, P0) at ``t0`` over ``new_leg`` (t, z).
+
+        ``ct_anchor``: the covariance (2, 2) of the CT refit's anchor, the old track's own (without the frame
+        interval of :meth:`_anchor_cov`: with it a false restart on a 100 mm/s circle cost that cell 1.13 → 1.76x).
+        """
         speed_sigma = self._init_sigmas[0]
         # the CT refit: the new leg's frames, anchored at the old track's corner position, with its curvature
         self._frames = [(th, zh.copy()) for th, zh in new_leg]
-        Pp = P0[np.ix_(self._pos, self._pos)]
-        self._anchor = (float(t0), x0[self._pos, 0].copy(), np.linalg.cholesky(np.linalg.inv(Pp)).T)
+        self._anchor = (float(t0), x0[self._pos, 0].copy(), np.linalg.cholesky(np.linalg.inv(ct_anchor)).T)
         self._curv_prior = (float(x0[4, 0]), float(P0[4, 4]))
         self._rev += 1
         self._segment += 1
@@ -926,7 +1029,7 @@ class MarkerTracker:
         mu = self._weights()
         x = sum(m * xp for m, (xp, _) in zip(mu, preds))
         P = sum(m * (Pp + (xp - x) @ (xp - x).T) for m, (xp, Pp) in zip(mu, preds))
-        return x, P
+        return self._with_corner_hypotheses(x, P, self._require_track() + dt)
 
     def _check_future(self, t: float) -> float:
         t_last = self._require_track()
@@ -998,4 +1101,9 @@ class MarkerTracker:
         paths = [self._mode_path(x, mode) for (x, _), mode in zip(self._mode_states(), self._modes)]
         if self._imm is None:
             return paths[0]
-        return MixturePath(t_last, tuple(float(m) for m in self._weights()), tuple(paths))
+        weights = [float(m) for m in self._weights()]
+        corners = self._corner_legs()
+        if corners is not None:
+            weights += [float(v) for v in corners[0]]
+            paths += corners[1]
+        return MixturePath(t_last, tuple(weights), tuple(paths))

@@ -820,6 +820,8 @@ class LiveRun:
         old = signal.getsignal(signal.SIGTERM) if _in_main_thread() else None
         if _in_main_thread():
             signal.signal(signal.SIGTERM, _raise_terminated)
+            # Ctrl-C stops the run even if the parent started us ignoring SIGINT (`labctl run &` in a script)
+            signal.signal(signal.SIGINT, signal.default_int_handler)
         handler = _log_to_record(self._record(), "supervisor")
         try:
             return self._run(lab)
