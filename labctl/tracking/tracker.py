@@ -622,7 +622,7 @@ class MarkerTracker:
         hist = self._history
         if len(hist) < 8:
             return None
-        js, costs, v2s, dps, A, *_ = self._corner_costs(hist, [(h[0], h[1]) for h in hist])
+        js, costs, v2s, dps, A = self._corner_costs(hist, [(h[0], h[1]) for h in hist])
         te = np.array([h[0] for h in hist])
         keep = te[-1] - te[js] >= 0.5 * self._corner_window
         log_odds = 0.5 * (hist[-1][4] - costs[keep] - GLR_THRESHOLD)
@@ -687,29 +687,16 @@ class MarkerTracker:
         return float(costs[k]), int(js[k])
 
     def _corner_costs(self, entries: list, frames: list, between_frames: bool = False) -> tuple[np.ndarray, ...]:
-        """Each candidate corner j's cost, new leg and anchor covariance.
+        """Each candidate corner j's cost and new leg: (js, costs, v2s (n, 2), δps (n, 2), normal matrices (n, 4, 4)).
 
-        Returns (js, costs, v2s (n, 2), δps (n, 2), normal matrices (n, 4, 4), anchor covariances (n, 2, 2));
-        the corner lies between ``entries[j-1]`` and ``entries[j]``.
+        The corner lies between ``entries[j-1]`` and ``entries[j]``.
 
         ``entries``: the old track's (t, z, x, P, cumulative NIS, μ) per frame; ``frames``: (t, z)
         of every frame from ``entries[1]`` on (later ones too). For each j the cost is −2 log of the
         likelihood of all frames: the old track's cumulative NIS up to j−1, then a straight new leg
         ``p0 + δp + v2·τ`` through the frames since j, with ``p0`` the old track's position at j−1
-        (τ from there), ``δp`` under its anchor prior and ``v2`` free (both by least squares).
+        (τ from there), ``δp`` under its covariance and ``v2`` free (both by least squares).
         Bar-Shalom et al. 2001 §11.3 (a manoeuvre's onset by ML); units of the old track's NIS.
-
-        The anchor prior is ``δp ~ N(0, P0)``, P0 the old track's position covariance at j−1. With
-        ``between_frames`` it also carries the corner's time within the frame interval Δt: the new leg
-        extended back to ``t_{j-1}`` passes ``p0 + (v1 − v2)·δ``, δ in [0, Δt], so P0 gains that offset's
-        second moment ``(v1 − v2)(v1 − v2)ᵀ·Δt²/3``, along the turn only, with ``v2`` from the tight-anchor
-        fit (zero mean: a corner at the interval's end is the next candidate's at its start; with the uniform's
-        mean Δt/2 and variance Δt²/12 instead, corners on a frame were pulled off it, 50 mm/s 0.75 s after:
-        1.05 → 1.21x the bound). The bench's corners, exactly on a frame, hid the frame interval: half a frame
-        off, the 5-s prediction 1 s after a 100 mm/s corner was 9.7x the bound (docs/notes/planning.md, sixth
-        round); an isotropic ``|v1|²·Δt²/6`` per axis (seventh round's "before") fixed that but left the
-        covariance 1.2-1.4x the bound's for 2 s after a 50-100 mm/s corner. The detection's GLR keeps the
-        tight anchor: with a looser one it fired on straight legs.
         """
         R = self._R[0, 0]
         ft = np.array([f[0] for f in frames])
@@ -719,7 +706,7 @@ class MarkerTracker:
         start = np.searchsorted(ft, te[1:] - 1e-9)
         js = np.flatnonzero(len(ft) - start >= 2) + 1
         if not len(js):
-            return js, np.zeros(0), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 4, 4)), np.zeros((0, 2, 2))
+            return js, np.zeros(0), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 4, 4))
         start = start[js - 1]
 
         def suffix(a):
@@ -730,7 +717,7 @@ class MarkerTracker:
         Sz, Stz, Szz = suffix(fz), suffix(ft[:, None] * fz), suffix(np.sum(fz * fz, axis=1))
         t0 = te[js - 1]
         p0 = np.array([entries[j - 1][2][self._pos, 0] for j in js])
-        P0 = np.array([entries[j - 1][3][np.ix_(self._pos, self._pos)] for j in js])
+        P0 = np.array([self._anchor_cov(entries, int(j), between_frames) for j in js])
         nis0 = np.array([entries[j - 1][4] for j in js])
         # τ = t − t0 and z' = z − p0, from the suffix sums
         st = S1 - n * t0
@@ -738,25 +725,34 @@ class MarkerTracker:
         sz = Sz - n[:, None] * p0
         stz = Stz - t0[:, None] * Sz - st[:, None] * p0
         szz = Szz - 2 * np.sum(p0 * Sz, axis=1) + n * np.sum(p0 * p0, axis=1)
+        # normal equations of (δp, v2) with the prior δp ~ N(0, P0_pos); the minimum of the quadratic is c − bᵀA⁻¹b
         eye = np.eye(2)
         A = np.zeros((len(js), 4, 4))
+        A[:, :2, :2] = np.linalg.inv(P0) + eye * (n / R)[:, None, None]
         A[:, :2, 2:] = A[:, 2:, :2] = eye * (st / R)[:, None, None]
         A[:, 2:, 2:] = eye * (stt / R)[:, None, None]
-
         bvec = np.concatenate([sz, stz], axis=1) / R
+        sol = np.linalg.solve(A, bvec[:, :, None])[:, :, 0]
+        costs = nis0 + szz / R - np.sum(bvec * sol, axis=1) + n * np.log(R * R)
+        return js, costs, sol[:, 2:], sol[:, :2], A
 
-        def fit(cov):
-            """Normal equations of (δp, v2) with the prior δp ~ N(0, cov); the quadratic's minimum is c − bᵀA⁻¹b."""
-            A[:, :2, :2] = np.linalg.inv(cov) + eye * (n / R)[:, None, None]
-            sol = np.linalg.solve(A, bvec[:, :, None])[:, :, 0]
-            return sol, nis0 + szz / R - np.sum(bvec * sol, axis=1) + n * np.log(R * R)
+    def _anchor_cov(self, entries: list, j: int, between_frames: bool = True) -> np.ndarray:
+        """The covariance (2, 2) mm² of the new leg's anchor for a corner between ``entries[j-1]`` and ``entries[j]``.
 
-        sol, costs = fit(P0)
-        if between_frames:
-            dv = np.array([entries[j - 1][2][self._vel, 0] for j in js]) - sol[:, 2:]
-            P0 = P0 + np.einsum("ni,nj->nij", dv, dv) * ((te[js] - t0) ** 2 / 3.0)[:, None, None]
-            sol, costs = fit(P0)
-        return js, costs, sol[:, 2:], sol[:, :2], A, P0
+        The anchor is the old track's position at ``entries[j-1]``, but a corner lies anywhere in the frame
+        interval after it: the new leg extended back to ``t_{j-1}`` misses the anchor by ``(v1 − v2)·δ``, δ
+        uniform in [0, Δt]; with ``|v1 − v2| ≈ √2·|v1|`` (a right-angle turn) ``between_frames`` adds
+        ``|v1|² Δt² / 6`` per axis. The bench's corners, exactly on a frame, hid it: half a frame off, the 5-s
+        prediction 1 s after a 100 mm/s corner was 9.7x the bound (docs/notes/planning.md, sixth round). The
+        detection's GLR keeps the tight anchor: with the looser one it fired on straight legs (a 50 mm/s zigzag
+        restarted at 1.43 s, 0.57 s before its corner).
+        """
+        t0, _, x0, P0, *_ = entries[j - 1]
+        cov = P0[np.ix_(self._pos, self._pos)]
+        if not between_frames or j >= len(entries):
+            return cov
+        v1 = x0[self._vel, 0]
+        return cov + np.eye(2) * float(v1 @ v1) * (entries[j][0] - t0) ** 2 / 6.0
 
     def _refine_corner(self) -> None:
         """Re-estimate the detected corner on the frames so far; re-run the quiet modes from it if it moved."""
@@ -767,7 +763,7 @@ class MarkerTracker:
         frames = [f for f in self._zbuf if f[0] >= entries[1][0] - 1e-9] if len(entries) > 1 else []
         if len(entries) < 2 or len(frames) < 2:
             return
-        js, costs, v2s, dps, _, anchor_covs = self._corner_costs(entries, frames, between_frames=True)
+        js, costs, v2s, dps, _ = self._corner_costs(entries, frames, between_frames=True)
         if not len(js):
             return
         k = int(np.argmin(costs))
@@ -786,8 +782,9 @@ class MarkerTracker:
         if j == c["j"]:
             return  # the same corner: no re-run
         t0, _, x0, P0, _, mu0 = entries[j - 1]
+        ct_anchor = P0[np.ix_(self._pos, self._pos)]
         P0 = P0.copy()
-        P0[np.ix_(self._pos, self._pos)] = anchor_covs[k]
+        P0[np.ix_(self._pos, self._pos)] = self._anchor_cov(entries, j)
         first = c["j"] is None
         c["j"] = j
         if first:
@@ -795,7 +792,7 @@ class MarkerTracker:
         else:
             self.corners[-1] = float(t0)
         new_leg = [f for f in frames if f[0] >= entries[j][0] - 1e-9]
-        self._restart_at(t0, x0, P0, new_leg)
+        self._restart_at(t0, x0, P0, new_leg, ct_anchor)
         imm = self._imm_filter()
         if first:  # the quiet modes take over again, in the old track's proportions
             quiet = mu0[0] + mu0[1]
@@ -807,13 +804,16 @@ class MarkerTracker:
         self._history = []
         self._in_corner = True
 
-    def _restart_at(self, t0: float, x0: np.ndarray, P0: np.ndarray, new_leg: list) -> None:
-        """Re-run every mode as a quiet mode from the anchor (x0, P0) at ``t0`` over ``new_leg`` (t, z)."""
+    def _restart_at(self, t0: float, x0: np.ndarray, P0: np.ndarray, new_leg: list, ct_anchor: np.ndarray) -> None:
+        """Re-run every mode as a quiet mode from the old track's (x0, P0) at ``t0`` over ``new_leg`` (t, z).
+
+        ``ct_anchor``: the covariance (2, 2) of the CT refit's anchor, the old track's own (without the frame
+        interval of :meth:`_anchor_cov`: with it a false restart on a 100 mm/s circle cost that cell 1.13 → 1.76x).
+        """
         speed_sigma = self._init_sigmas[0]
         # the CT refit: the new leg's frames, anchored at the old track's corner position, with its curvature
         self._frames = [(th, zh.copy()) for th, zh in new_leg]
-        anchor_cov = P0[np.ix_(self._pos, self._pos)]
-        self._anchor = (float(t0), x0[self._pos, 0].copy(), np.linalg.cholesky(np.linalg.inv(anchor_cov)).T)
+        self._anchor = (float(t0), x0[self._pos, 0].copy(), np.linalg.cholesky(np.linalg.inv(ct_anchor)).T)
         self._curv_prior = (float(x0[4, 0]), float(P0[4, 4]))
         self._rev += 1
         self._segment += 1
