@@ -157,7 +157,8 @@ def prediction_errors(tracker, traj: TableTrajectory, horizons, warmup_s: float 
 
 def compare_with_bound(make_tracker, family: str, speed_mm_s: float, *, runs: int = 30, track_s=(2.0, 4.0),
                        horizon_s: float = 5.0, rate_hz: float = 30.0, sigma_mm: float = 0.7, with_ml: bool = True,
-                       seed: int = 0, after_corner_s=(), corner_s: float = 2.0) -> dict:
+                       seed: int = 0, after_corner_s=(), corner_s: float = 2.0,
+                       table_accel_mm_s2: float = 200.0) -> dict:
     """Monte-Carlo of a tracker's ``horizon_s`` prediction against the bound (:mod:`.bounds`) on one family.
 
     ``make_tracker()`` builds a fresh tracker; each run feeds it the frames of a
@@ -189,7 +190,8 @@ def compare_with_bound(make_tracker, family: str, speed_mm_s: float, *, runs: in
     crb: dict[float, float] = {}
     for _ in range(runs):
         scn = make_scenario(family, speed_mm_s, duration, rate_hz=rate_hz, sigma_mm=sigma_mm,
-                            heading_rad=rng.uniform(-np.pi, np.pi), corner_s=corner_s)
+                            heading_rad=rng.uniform(-np.pi, np.pi), corner_s=corner_s,
+                            table_accel_mm_s2=table_accel_mm_s2)
         z = scn.measure(rng)
         trk = make_tracker()
         marks = {int(round(t * rate_hz)): t for t in instants}
