@@ -5,7 +5,8 @@ families (line, arc, circle, zigzag at 4, 12, 50, 100 mm/s, the lab's frame rate
 noise) — the IMM both told the cell's family (what a run does when labctl drives the table along
 that program) and family-blind (external motion) — and reports each one's 5-s prediction RMS and
 NEES after 2 s and 4 s of tracking (and after a zigzag corner) against the estimation bound of
-:mod:`labctl.tracking.bounds`. Part 2 times
+:mod:`labctl.tracking.bounds`; the informed tracker also with the zigzag's corner half a frame
+off the grid, and on ``zigzag_stop``, the corner as the table drives it (a diagnostic). Part 2 times
 the quintic interception planner (the paper's method) against the ruckig jerk-limited baseline
 on the same random cases, checks it against a brute-force dense search over the arrival time,
 and times 30 Hz re-planning with the splice continuity it achieves.
