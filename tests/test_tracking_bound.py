@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from labctl.config.lab import RunConfig, TrackingConfig
 from labctl.planning import camera_placement_trajectory
@@ -168,3 +170,28 @@ def test_stopping_corner_is_how_the_grbl_planner_turns_the_lab_zigzag():
     miss = np.hypot(*(p[window] - model).T)
     # GRBL keeps ~2.2 mm/s through the junction, so its legs run 11 ms (0.55 mm) ahead of a full stop's
     assert np.max(miss) < 0.7 and np.min(miss) < 0.05, (np.max(miss), np.min(miss))
+
+
+@given(speed=st.floats(2.0, 120.0), accel=st.floats(20.0, 2000.0), h1=st.floats(-np.pi, np.pi),
+       turn=st.floats(0.3, 3.0))
+@settings(max_examples=60, deadline=None)
+def test_stopping_corner_stands_at_the_vertex_keeps_to_its_speed_and_ramps_at_a(speed, accel, h1, turn):
+    """``zigzag_stop`` in closed form: at rest on the vertex at t_c, never faster than the leg's speed, its
+    acceleration never above ``a``, and the instant corner's legs shifted by half a ramp once it is over."""
+    v1 = speed * np.array([np.cos(h1), np.sin(h1)])
+    v2 = speed * np.array([np.cos(h1 - turn), np.sin(h1 - turn)])
+    th = np.r_[10.0, -5.0, v1, v2, 2.0, accel]
+    ramp = speed / accel
+    dt = 1e-4
+    t = 2.0 + np.linspace(-ramp - 0.2, ramp + 0.2, 401)
+    p = positions("zigzag_stop", th, t)
+    v = (positions("zigzag_stop", th, t + dt) - positions("zigzag_stop", th, t - dt)) / (2 * dt)
+    acc = (positions("zigzag_stop", th, t + dt) - 2 * p + positions("zigzag_stop", th, t - dt)) / dt**2
+    np.testing.assert_allclose(positions("zigzag_stop", th, [2.0])[0], th[:2], atol=1e-12)
+    assert np.all(np.hypot(*v.T) <= speed * (1 + 1e-6))
+    kink = np.abs(np.abs(t - 2.0) - ramp) < 2 * dt  # the trapezoid's corners, and the vertex itself
+    kink |= np.abs(t - 2.0) < 2 * dt
+    assert np.all(np.hypot(*acc[~kink].T) <= accel * (1 + 1e-3) + 1e-6)
+    after = t > 2.0 + ramp
+    instant = positions("zigzag", th[:7], t[after] - ramp / 2)
+    np.testing.assert_allclose(p[after], instant, atol=1e-9 * max(1.0, speed))

@@ -98,8 +98,8 @@ def _bound_table(quick: bool, models=None, *, runs: int | None = None, acceptanc
     the Cramér-Rao bound. ``corner_frames``: the zigzag's corner that many frame intervals after 2 s
     (a real corner lies between two frames; at 2 s it lies on one).
     """
-    from ..config.lab import RunConfig
     from ..config.devices import TableConfig
+    from ..config.lab import RunConfig
     from ..tracking.bounds import FAMILIES, SPEEDS, ZIGZAGS
     from ..tracking.synthetic import compare_with_bound
 

@@ -78,7 +78,8 @@ def positions(family: str, theta, t) -> np.ndarray:
         return th[:2] + np.where(d < 0.0, d * th[2:4], d * th[4:6])
     if family == "zigzag_stop":
         d, a = t - th[6], th[7]
-        return th[:2] + _stop_leg(th[2:4], a, np.maximum(-d, 0.0), -1.0) + _stop_leg(th[4:6], a, np.maximum(d, 0.0), 1.0)
+        into, out_of = _stop_leg(th[2:4], a, np.maximum(-d, 0.0), -1.0), _stop_leg(th[4:6], a, np.maximum(d, 0.0), 1.0)
+        return th[:2] + into + out_of
     raise ValueError(f"unknown family {family!r} (have {', '.join(FAMILIES)})")
 
 
