@@ -111,7 +111,7 @@ class Scenario:
 
 def make_scenario(family: str, speed_mm_s: float, duration_s: float, *, rate_hz: float = 30.0,
                   sigma_mm: float = 0.7, heading_rad: float = 0.3, corner_s: float = 2.0,
-                  start=(0.0, 0.0), table_accel_mm_s2: float = 200.0) -> Scenario:
+                  start=(0.0, 0.0), table_accel_mm_s2: float | None = None) -> Scenario:
     """A :class:`Scenario` of ``family`` at constant path speed, frames every ``1/rate_hz`` s from 0 to ``duration_s``.
 
     Arcs and circles turn counter-clockwise at ``speed/RADII[family]``; the zigzag runs along
@@ -132,6 +132,8 @@ def make_scenario(family: str, speed_mm_s: float, duration_s: float, *, rate_hz:
         h2 = heading_rad - ZIGZAG_TURN_RAD
         theta = np.r_[p0 + corner_s * v, v, speed_mm_s * np.cos(h2), speed_mm_s * np.sin(h2), corner_s]
         if family == "zigzag_stop":
+            if table_accel_mm_s2 is None:
+                raise ValueError("zigzag_stop needs the table's acceleration (table_accel_mm_s2)")
             theta = np.r_[theta, table_accel_mm_s2]
     return Scenario(family, float(speed_mm_s), theta, times, float(sigma_mm))
 
