@@ -72,7 +72,10 @@ def _devs(table):
 
 
 def _start_long_move(t):
-    t.stream(["G53G1X-150Y-9F3000"])
+    # 10 mm/s: ~14 s of motion, ~55 s on the wall clock at grbl-sim's quarter speed. At 50 mm/s (~11 s on
+    # the wall) a CPU-starved pty relay (stalls of 5-20 s, docs/notes/devices.md) once let the whole move
+    # finish before the stop reached the firmware, and the table was at the end, not on the way (CI, stop 24).
+    t.stream(["G53G1X-150Y-9F600"])
     deadline = time.monotonic() + 20
     while t.status().state != "Run":
         assert time.monotonic() < deadline, "the move never started"

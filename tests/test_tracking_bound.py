@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from labctl.config.lab import RunConfig, TrackingConfig
 from labctl.planning import camera_placement_trajectory
@@ -140,3 +142,56 @@ def test_prediction_margin_and_viewing_distance():
     assert viewing_distance_with_margin(1000.0, 6.0, np.deg2rad(20.0)) == 1000.0  # a small margin changes nothing
     far = viewing_distance_with_margin(1000.0, 300.0, np.deg2rad(20.0), marker_radius_mm=10.0)
     assert far == pytest.approx(310.0 / (0.5 * np.tan(np.deg2rad(20.0))))
+
+
+def test_stopping_corner_is_how_the_grbl_planner_turns_the_lab_zigzag():
+    """``zigzag_stop`` (the bench's diagnostic of the table's corners) against the GRBL emulator's look-ahead
+    planner (junction deviation, trapezoids; checked against the firmware in test_grbl_firmware): the lab
+    program's 97° turn at 50 mm/s and 200 mm/s², sampled around the instant the carriage is nearest the
+    vertex. The bound's model stands still there; GRBL's junction speed is ~2 mm/s. The bound's corners in
+    :data:`FAMILIES` are instant instead: 0.25 s of this ramp at 50 mm/s is where the lab's tracker is furthest
+    from it (docs/notes/planning.md, seventh round)."""
+    from labctl.sim.clock import VirtualClock
+    from labctl.sim.emulators.grbl import GrblEmulator
+    from labctl.tracking.bounds import ZIGZAG_TURN_RAD
+
+    clk = VirtualClock()
+    g = GrblEmulator(clk, accel_mm_s2=200.0, homing=False, start_mm=(200.0, 250.0, 0.0))
+    u2 = np.array([np.cos(-ZIGZAG_TURN_RAD), np.sin(-ZIGZAG_TURN_RAD)])
+    vertex, end = np.array([300.0, 250.0]), np.array([300.0, 250.0]) + 100.0 * u2
+    g.receive(f"G1 X{vertex[0]:.3f} Y{vertex[1]:.3f} F3000\nG1 X{end[0]:.3f} Y{end[1]:.3f}\n".encode())
+    clk.sleep(6.0)
+    g.advance(clk.t)
+    ts = np.arange(0.5, 5.0, 0.001)
+    p = np.array([g.position_at(t)[:2] for t in ts])
+    t_c = ts[np.argmin(np.hypot(*(p - vertex).T))]
+    window = np.abs(ts - t_c) < 0.8  # both ramps (0.25 s) and cruise on either side
+    model = positions("zigzag_stop", np.r_[vertex, 50.0, 0.0, 50.0 * u2, t_c, 200.0], ts[window])
+    miss = np.hypot(*(p[window] - model).T)
+    # GRBL keeps ~2.2 mm/s through the junction, so its legs run 11 ms (0.55 mm) ahead of a full stop's
+    assert np.max(miss) < 0.7 and np.min(miss) < 0.05, (np.max(miss), np.min(miss))
+
+
+@given(speed=st.floats(2.0, 120.0), accel=st.floats(20.0, 2000.0), h1=st.floats(-np.pi, np.pi),
+       turn=st.floats(0.3, 3.0))
+@settings(max_examples=60, deadline=None)
+def test_stopping_corner_stands_at_the_vertex_keeps_to_its_speed_and_ramps_at_a(speed, accel, h1, turn):
+    """``zigzag_stop`` in closed form: at rest on the vertex at t_c, never faster than the leg's speed, its
+    acceleration never above ``a``, and the instant corner's legs shifted by half a ramp once it is over."""
+    v1 = speed * np.array([np.cos(h1), np.sin(h1)])
+    v2 = speed * np.array([np.cos(h1 - turn), np.sin(h1 - turn)])
+    th = np.r_[10.0, -5.0, v1, v2, 2.0, accel]
+    ramp = speed / accel
+    dt = 1e-4
+    t = 2.0 + np.linspace(-ramp - 0.2, ramp + 0.2, 401)
+    p = positions("zigzag_stop", th, t)
+    v = (positions("zigzag_stop", th, t + dt) - positions("zigzag_stop", th, t - dt)) / (2 * dt)
+    acc = (positions("zigzag_stop", th, t + dt) - 2 * p + positions("zigzag_stop", th, t - dt)) / dt**2
+    np.testing.assert_allclose(positions("zigzag_stop", th, [2.0])[0], th[:2], atol=1e-12)
+    assert np.all(np.hypot(*v.T) <= speed * (1 + 1e-6))
+    kink = np.abs(np.abs(t - 2.0) - ramp) < 2 * dt  # the trapezoid's corners, and the vertex itself
+    kink |= np.abs(t - 2.0) < 2 * dt
+    assert np.all(np.hypot(*acc[~kink].T) <= accel * (1 + 1e-3) + 1e-6)
+    after = t > 2.0 + ramp
+    instant = positions("zigzag", th[:7], t[after] - ramp / 2)
+    np.testing.assert_allclose(p[after], instant, atol=1e-9 * max(1.0, speed))

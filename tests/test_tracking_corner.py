@@ -76,7 +76,7 @@ def test_the_path_is_the_predictions_mean_while_corners_are_weighed_in():
         trk = _tracker("zigzag")()
         for t, z in zip(scn.times, scn.measure(rng)):
             trk.update(t, z)
-            hyp = trk._hypotheses
+            hyp = trk._corner_hypotheses()
             if hyp is None:
                 continue
             kinds.add("detected" if hyp["cov"] is None else "suspected")

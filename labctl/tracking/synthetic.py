@@ -157,13 +157,15 @@ def prediction_errors(tracker, traj: TableTrajectory, horizons, warmup_s: float 
 
 def compare_with_bound(make_tracker, family: str, speed_mm_s: float, *, runs: int = 30, track_s=(2.0, 4.0),
                        horizon_s: float = 5.0, rate_hz: float = 30.0, sigma_mm: float = 0.7, with_ml: bool = True,
-                       seed: int = 0, after_corner_s=(), corner_s: float = 2.0) -> dict:
+                       seed: int = 0, after_corner_s=(), corner_s: float = 2.0,
+                       table_accel_mm_s2: float | None = None) -> dict:
     """Monte-Carlo of a tracker's ``horizon_s`` prediction against the bound (:mod:`.bounds`) on one family.
 
     ``make_tracker()`` builds a fresh tracker; each run feeds it the frames of a
     :func:`~.bounds.make_scenario` path (random heading) and, after each of ``track_s`` seconds
     of tracking, predicts ``horizon_s`` ahead. For the zigzag, ``after_corner_s`` adds the
-    instants that long after the corner (at ``corner_s``). Returns, per instant (keyed by its
+    instants that long after the corner (at ``corner_s``); ``table_accel_mm_s2``: the table's
+    acceleration, for ``zigzag_stop`` (:func:`~.bounds.make_scenario`). Returns, per instant (keyed by its
     time in s): the tracker's RMS error (mm), the Cramér-Rao bound on it, the RMS of the ML fit on
     the same measurements (if ``with_ml``), and the tracker's mean NEES of that prediction (2 dof)
     with its two-sided 95 % bounds for ``runs`` runs; and a tail-robust check of the same: the fraction of
@@ -189,7 +191,8 @@ def compare_with_bound(make_tracker, family: str, speed_mm_s: float, *, runs: in
     crb: dict[float, float] = {}
     for _ in range(runs):
         scn = make_scenario(family, speed_mm_s, duration, rate_hz=rate_hz, sigma_mm=sigma_mm,
-                            heading_rad=rng.uniform(-np.pi, np.pi), corner_s=corner_s)
+                            heading_rad=rng.uniform(-np.pi, np.pi), corner_s=corner_s,
+                            table_accel_mm_s2=table_accel_mm_s2)
         z = scn.measure(rng)
         trk = make_tracker()
         marks = {int(round(t * rate_hz)): t for t in instants}

@@ -389,6 +389,7 @@ class MarkerTracker:
         self._in_corner = False
         # the corner hypotheses the predictions weigh in: a detected corner's times, or corners not (yet) detected
         self._hypotheses: dict | None = None
+        self._suspicion_pending = False  # the undetected corners are due: computed on the next prediction
         self._corner: dict | None = None  # a detected corner whose time is still being refined
         self._zbuf: list[tuple[float, np.ndarray]] = []  # IMM only: (t, z) of the recent frames
         # CT refit (see _turn_refit): frames (t, z) since the quiet modes' start, an optional anchor
@@ -581,8 +582,8 @@ class MarkerTracker:
             else:
                 self._refine_corner()
         recent = [h for h in self._history if t - h[0] <= self._corner_window]
-        if self._corner is None:
-            self._hypotheses = self._corner_suspicion(t)
+        if self._corner is None:  # the corners not (yet) detected: only a prediction needs them (~0.5 ms)
+            self._hypotheses, self._suspicion_pending = None, True
         if imm.mu[2] < 0.5 and not self._glr_detects(recent):
             self._in_corner = False
             return
@@ -600,7 +601,13 @@ class MarkerTracker:
         cost, _ = self._best_corner(hist, [(h[0], h[1]) for h in hist])
         return hist[-1][4] - cost > threshold
 
-    def _corner_suspicion(self, t: float) -> dict | None:
+    def _corner_hypotheses(self) -> dict | None:
+        """The hypotheses the predictions weigh in: a detected corner's times, else the undetected corners."""
+        if self._suspicion_pending:
+            self._hypotheses, self._suspicion_pending = self._corner_suspicion(), False
+        return self._hypotheses
+
+    def _corner_suspicion(self) -> dict | None:
         """The corners the GLR has not (yet) detected, as hypotheses the predictions weigh in; None if none count.
 
         The detection is a hard decision at ``GLR_THRESHOLD`` = −2 log of the prior odds against a corner:
@@ -617,7 +624,7 @@ class MarkerTracker:
             return None
         js, costs, v2s, dps, A = self._corner_costs(hist, [(h[0], h[1]) for h in hist])
         te = np.array([h[0] for h in hist])
-        keep = t - te[js] >= 0.5 * self._corner_window
+        keep = te[-1] - te[js] >= 0.5 * self._corner_window
         log_odds = 0.5 * (hist[-1][4] - costs[keep] - GLR_THRESHOLD)
         if not len(log_odds) or log_odds.max() < -7.0:
             return None  # every hypothesis below e⁻⁷ ≈ 1e-3 of the track: not worth a prediction's time
@@ -635,7 +642,7 @@ class MarkerTracker:
         weights and the ML leg with −1. None without a detected corner (a suspected one moves no mean:
         with the GLR's odds as weights the zigzag's straight legs at 4 mm/s were 6 % worse, 64 runs).
         """
-        hyp = self._hypotheses
+        hyp = self._corner_hypotheses()
         if hyp is None or hyp["cov"] is not None:
             return None
         legs = [PredictedPath(float(t0), c, v) for t0, c, v in zip(hyp["t0"], hyp["corner"], hyp["v2"])]
@@ -650,7 +657,7 @@ class MarkerTracker:
         and each suspected leg with its own least-squares covariance, second moments about the track's
         mean, which is kept.
         """
-        hyp = self._hypotheses
+        hyp = self._corner_hypotheses()
         if hyp is None:
             return x, P
         idx = self._pos + self._vel  # [x, y, vx, vy]
@@ -771,6 +778,7 @@ class MarkerTracker:
         t0s = np.array([entries[i - 1][0] for i in js])
         p0s = np.array([entries[i - 1][2][self._pos, 0] for i in js])
         self._hypotheses = {"w": w, "t0": t0s, "corner": p0s + dps, "v2": v2s, "cov": None, "ml": k}
+        self._suspicion_pending = False
         if j == c["j"]:
             return  # the same corner: no re-run
         t0, _, x0, P0, _, mu0 = entries[j - 1]
