@@ -16,7 +16,7 @@ from labctl.config.lab import RunConfig, TrackingConfig
 from labctl.planning import camera_placement_trajectory
 from labctl.planning.targets import prediction_margin_mm, viewing_distance_with_margin
 from labctl.tracking import MarkerTracker
-from labctl.tracking.bounds import crb_prediction_rms, make_scenario, ml_prediction, positions
+from labctl.tracking.bounds import crb_prediction_cov, crb_prediction_rms, make_scenario, ml_prediction, positions
 from labctl.tracking.synthetic import compare_with_bound
 
 SIGMA = TrackingConfig().measurement_noise_mm  # the noise the tracker is told about (lab.yaml: 0.7 mm)
@@ -195,3 +195,19 @@ def test_stopping_corner_stands_at_the_vertex_keeps_to_its_speed_and_ramps_at_a(
     after = t > 2.0 + ramp
     instant = positions("zigzag", th[:7], t[after] - ramp / 2)
     np.testing.assert_allclose(p[after], instant, atol=1e-9 * max(1.0, speed))
+
+
+def test_line_bound_with_dropped_frames_is_the_fit_over_the_frames_kept():
+    """A bound over a subset of frames (``keep``) is the textbook extrapolation variance over those times."""
+    scn = make_scenario("line", 50.0, 3.0, rate_hz=FPS, sigma_mm=SIGMA)
+    keep = np.random.default_rng(4).random(len(scn.times)) >= 0.3
+    keep[60] = True
+    t = scn.times[:61][keep[:61]]
+    tp = t[-1] + 5.0
+    var_axis = SIGMA**2 * (1 / len(t) + (tp - t.mean()) ** 2 / np.sum((t - t.mean()) ** 2))
+    assert crb_prediction_rms(scn, 61, 5.0) < np.sqrt(2 * var_axis)  # fewer frames, a wider bound
+    assert np.sqrt(np.trace(crb_prediction_cov(scn, 61, 5.0, keep=keep))) == pytest.approx(np.sqrt(2 * var_axis),
+                                                                                           rel=1e-6)
+    clean = scn.truth(scn.times)
+    np.testing.assert_allclose(ml_prediction(scn, clean, 61, 5.0, keep=keep), scn.truth([scn.times[60] + 5.0])[0],
+                               atol=1e-6)

@@ -156,13 +156,16 @@ def _scales(family: str, theta: np.ndarray) -> np.ndarray:
     return s
 
 
-def crb_prediction_cov(scn: Scenario, n_frames: int, horizon_s: float) -> np.ndarray:
+def crb_prediction_cov(scn: Scenario, n_frames: int, horizon_s: float, keep=None) -> np.ndarray:
     """Cramér-Rao bound (2, 2) mm² on the position ``horizon_s`` past frame ``n_frames - 1``, from frames 0..n-1.
+
+    ``keep``: a mask over :attr:`Scenario.times`, the frames measured (default all); frame ``n_frames - 1``
+    must be one of them.
 
     For the zigzag the corner must lie among the frames used (else t_c is not identifiable; the
     bound is then that of the line model on those frames).
     """
-    t = scn.times[:n_frames]
+    t = scn.times[:n_frames] if keep is None else scn.times[:n_frames][keep[:n_frames]]
     t_pred = np.array([t[-1] + horizon_s])
     fam, th = scn.family, scn.theta
     if fam in ZIGZAGS and t[-1] <= th[6]:
@@ -179,10 +182,12 @@ def crb_prediction_rms(scn: Scenario, n_frames: int, horizon_s: float) -> float:
     return float(np.sqrt(np.trace(crb_prediction_cov(scn, n_frames, horizon_s))))
 
 
-def ml_prediction(scn: Scenario, z: np.ndarray, n_frames: int, horizon_s: float) -> np.ndarray:
-    """ML fit of the true model to ``z[:n_frames]``; its position ``horizon_s`` past the last frame (2,)."""
-    t = scn.times[:n_frames]
-    zz = z[:n_frames]
+def ml_prediction(scn: Scenario, z: np.ndarray, n_frames: int, horizon_s: float, keep=None) -> np.ndarray:
+    """ML fit of the true model to ``z[:n_frames]`` (those ``keep`` marks); its position ``horizon_s`` past the last
+    frame (2,)."""
+    t, zz = scn.times[:n_frames], z[:n_frames]
+    if keep is not None:
+        t, zz = t[keep[:n_frames]], zz[keep[:n_frames]]
     fam, th0 = scn.family, scn.theta.astype(float)
     if fam in ZIGZAGS and t[-1] <= th0[6]:
         fam, th0 = "line", np.r_[th0[:2] - th0[6] * th0[2:4], th0[2:4]]

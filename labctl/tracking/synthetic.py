@@ -158,14 +158,16 @@ def prediction_errors(tracker, traj: TableTrajectory, horizons, warmup_s: float 
 def compare_with_bound(make_tracker, family: str, speed_mm_s: float, *, runs: int = 30, track_s=(2.0, 4.0),
                        horizon_s: float = 5.0, rate_hz: float = 30.0, sigma_mm: float = 0.7, with_ml: bool = True,
                        seed: int = 0, after_corner_s=(), corner_s: float = 2.0,
-                       table_accel_mm_s2: float | None = None) -> dict:
+                       table_accel_mm_s2: float | None = None, drop_frames: float = 0.0) -> dict:
     """Monte-Carlo of a tracker's ``horizon_s`` prediction against the bound (:mod:`.bounds`) on one family.
 
     ``make_tracker()`` builds a fresh tracker; each run feeds it the frames of a
     :func:`~.bounds.make_scenario` path (random heading) and, after each of ``track_s`` seconds
     of tracking, predicts ``horizon_s`` ahead. For the zigzag, ``after_corner_s`` adds the
     instants that long after the corner (at ``corner_s``); ``table_accel_mm_s2``: the table's
-    acceleration, for ``zigzag_stop`` (:func:`~.bounds.make_scenario`). Returns, per instant (keyed by its
+    acceleration, for ``zigzag_stop`` (:func:`~.bounds.make_scenario`); ``drop_frames``: the share of
+    frames the tracker never gets, each independently (never an instant's own frame), as a busy live
+    predictor skips some; the bound and the ML fit then use the same frames. Returns, per instant (keyed by its
     time in s): the tracker's RMS error (mm), the Cramér-Rao bound on it, the RMS of the ML fit on
     the same measurements (if ``with_ml``), and the tracker's mean NEES of that prediction (2 dof)
     with its two-sided 95 % bounds for ``runs`` runs; and a tail-robust check of the same: the fraction of
@@ -188,7 +190,8 @@ def compare_with_bound(make_tracker, family: str, speed_mm_s: float, *, runs: in
     nees: dict[float, list[float]] = {t: [] for t in instants}
     nees_crb: dict[float, list[float]] = {t: [] for t in instants}
     cov_to_crb: dict[float, list[float]] = {t: [] for t in instants}
-    crb: dict[float, float] = {}
+    crb: dict[float, list[float]] = {t: [] for t in instants}
+    drops = np.random.default_rng([seed, 1])  # its own stream: the runs' paths and noise do not change
     for _ in range(runs):
         scn = make_scenario(family, speed_mm_s, duration, rate_hz=rate_hz, sigma_mm=sigma_mm,
                             heading_rad=rng.uniform(-np.pi, np.pi), corner_s=corner_s,
@@ -196,8 +199,12 @@ def compare_with_bound(make_tracker, family: str, speed_mm_s: float, *, runs: in
         z = scn.measure(rng)
         trk = make_tracker()
         marks = {int(round(t * rate_hz)): t for t in instants}
+        keep = drops.random(len(z)) >= drop_frames
+        keep[0] = True
+        keep[list(marks)] = True
         for k, (t, zk) in enumerate(zip(scn.times, z)):
-            trk.update(t, zk)
+            if keep[k]:
+                trk.update(t, zk)
             if k not in marks:
                 continue
             ti = marks[k]
@@ -206,19 +213,19 @@ def compare_with_bound(make_tracker, family: str, speed_mm_s: float, *, runs: in
             e = mean - truth
             errs[ti].append(e)
             nees[ti].append(float(e @ np.linalg.solve(cov, e)))
-            bound = crb_prediction_cov(scn, k + 1, horizon_s)  # its size does not depend on the heading
-            crb.setdefault(ti, float(np.sqrt(np.trace(bound))))
+            bound = crb_prediction_cov(scn, k + 1, horizon_s, keep=keep)
+            crb[ti].append(float(np.trace(bound)))
             nees_crb[ti].append(float(e @ np.linalg.solve(bound, e)))
             cov_to_crb[ti].append(float(np.trace(cov) / np.trace(bound)))
             if with_ml:
-                ml_errs[ti].append(ml_prediction(scn, z, k + 1, horizon_s) - truth)
+                ml_errs[ti].append(ml_prediction(scn, z, k + 1, horizon_s, keep=keep) - truth)
     lo, hi = chi2.ppf(0.025, 2 * runs) / runs, chi2.ppf(0.975, 2 * runs) / runs
     gate = chi2.ppf(0.95, 2)
     frac_bounds = (float(binom.ppf(0.025, runs, 0.95) / runs), float(binom.ppf(0.975, runs, 0.95) / runs))
     out = {}
     for t in instants:
         e = np.array(errs[t])
-        row = {"rms_mm": float(np.sqrt(np.mean(np.sum(e**2, axis=1)))), "crb_mm": crb[t],
+        row = {"rms_mm": float(np.sqrt(np.mean(np.sum(e**2, axis=1)))), "crb_mm": float(np.sqrt(np.mean(crb[t]))),
                "nees": float(np.mean(nees[t])), "nees_bounds": (float(lo), float(hi)),
                "nees_frac_95": float(np.mean(np.array(nees[t]) <= gate)), "nees_frac_bounds": frac_bounds,
                "nees_crb": float(np.mean(nees_crb[t])), "cov_to_crb": float(np.median(cov_to_crb[t]))}
