@@ -107,7 +107,7 @@ def _bound_table(quick: bool, models=None, *, runs: int | None = None, acceptanc
     from ..tracking.bounds import FAMILIES, SPEEDS, ZIGZAGS
     from ..tracking.synthetic import compare_with_bound
 
-    sigma, fps = TrackingConfig().measurement_noise_mm, RunConfig().fps
+    sigma, fps, accel = TrackingConfig().measurement_noise_mm, RunConfig().fps, TableConfig().accel_mm_s2
     runs = runs or (8 if quick else RUNS)
     speeds = (12.0, 100.0) if quick else SPEEDS
     rows = []
@@ -123,7 +123,7 @@ def _bound_table(quick: bool, models=None, *, runs: int | None = None, acceptanc
                 res = compare_with_bound(lambda kw=kw, told=told: _make_tracker(kw, told), family, speed,
                                          runs=runs, rate_hz=fps, sigma_mm=sigma, with_ml=with_ml and ml is None,
                                          track_s=track_s, after_corner_s=after_corner_s, seed=int(speed),
-                                         corner_s=corner_s, table_accel_mm_s2=TableConfig().accel_mm_s2,
+                                         corner_s=corner_s, table_accel_mm_s2=accel,
                                          drop_frames=drop_frames)
                 if ml is None:
                     ml = {t: r.get("ml_rms_mm", np.inf) for t, r in res.items()}
@@ -131,7 +131,7 @@ def _bound_table(quick: bool, models=None, *, runs: int | None = None, acceptanc
                     ref = min(r["crb_mm"], ml[t])
                     after_corner = bool(zig and t > corner_s)
                     at = round(t - corner_s, 3) if after_corner else t
-                    if family == "zigzag_stop" and at <= speed / TableConfig().accel_mm_s2:
+                    if family == "zigzag_stop" and at <= speed / accel:
                         continue  # still speeding up: no frame yet says how fast the leg will go (the bound is ∞)
                     limit = CORNER_ACCEPTANCE.get(at) if after_corner else None if zig else ACCEPTANCE.get(at)
                     lo, hi = r["nees_bounds"]

@@ -80,7 +80,7 @@ def positions(family: str, theta, t) -> np.ndarray:
         d, a = t - th[6], th[7]
         into, out_of = _stop_leg(th[2:4], a, np.maximum(-d, 0.0), -1.0), _stop_leg(th[4:6], a, np.maximum(d, 0.0), 1.0)
         return th[:2] + into + out_of
-    raise ValueError(f"unknown family {family!r} (have {', '.join(FAMILIES)})")
+    raise ValueError(f"unknown family {family!r} (have {', '.join(FAMILIES + ZIGZAGS[1:])})")
 
 
 @dataclass(frozen=True)
@@ -119,7 +119,7 @@ def make_scenario(family: str, speed_mm_s: float, duration_s: float, *, rate_hz:
     at the corner at ``corner_s`` and accelerates at ``table_accel_mm_s2`` (mm/s²).
     """
     if family not in FAMILIES + ZIGZAGS:
-        raise ValueError(f"unknown family {family!r} (have {', '.join(FAMILIES)})")
+        raise ValueError(f"unknown family {family!r} (have {', '.join(FAMILIES + ZIGZAGS[1:])})")
     times = np.arange(0.0, duration_s + 1e-9, 1.0 / rate_hz)
     u = np.array([np.cos(heading_rad), np.sin(heading_rad)])
     v = speed_mm_s * u

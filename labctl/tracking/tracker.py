@@ -749,7 +749,7 @@ class MarkerTracker:
         """
         t0, _, x0, P0, *_ = entries[j - 1]
         cov = P0[np.ix_(self._pos, self._pos)]
-        if not between_frames or j >= len(entries):
+        if not between_frames:
             return cov
         v1 = x0[self._vel, 0]
         return cov + np.eye(2) * float(v1 @ v1) * (entries[j][0] - t0) ** 2 / 6.0

@@ -817,7 +817,7 @@ class LiveRun:
         the predictor's result."""
         warm_up()
         lab = load_lab(self.lab_root)
-        old = signal.getsignal(signal.SIGTERM) if _in_main_thread() else None
+        old = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)} if _in_main_thread() else {}
         if _in_main_thread():
             signal.signal(signal.SIGTERM, _raise_terminated)
             # Ctrl-C stops the run even if the parent started us ignoring SIGINT (`labctl run &` in a script)
@@ -830,9 +830,8 @@ class LiveRun:
                 logging.getLogger("labctl").removeHandler(handler)
                 with contextlib.suppress(Exception):
                     handler.record.close()
-            if _in_main_thread():
-                signal.signal(signal.SIGTERM, old)
-                signal.signal(signal.SIGINT, signal.default_int_handler)
+            for sig, previous in old.items():  # the stop path ignored both; the caller's handlers again
+                signal.signal(sig, previous)
 
     def _say(self, phase: str) -> None:
         """Tell the live view which start-up phase the run is in (before the workers' first beat)."""
