@@ -42,9 +42,14 @@ class Firmware:
     """The firmware served on a pty; ``raw()`` talks to it byte-wise (a second, independent client)."""
 
     def __init__(self, exe: Path, serve: Path):
+        self.exe, self.serve = exe, serve
+        self.restarts = 0
+        self._start()
+
+    def _start(self) -> None:
         # cwd: grbl-sim keeps its EEPROM in ./EEPROM.DAT — a fresh one per session, beside the build
-        self.proc = subprocess.Popen([sys.executable, str(serve), "--exe", str(exe)], stdout=subprocess.PIPE,
-                                     stderr=subprocess.DEVNULL, text=True, cwd=exe.parent)
+        self.proc = subprocess.Popen([sys.executable, str(self.serve), "--exe", str(self.exe)],
+                                     stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, cwd=self.exe.parent)
         self.path = self.proc.stdout.readline().strip()
         assert self.path.startswith("/dev/"), self.path
         self.raw("", until="Grbl 1.1h", timeout_s=30)  # first boot: error:7, settings dump, banner
@@ -77,8 +82,20 @@ class Firmware:
         return self.raw("?", until=">", timeout_s=30)
 
     def fresh(self) -> None:
-        """Soft reset to Idle with fast settings, no work offset, $10=1."""
-        out = self.raw(b"\x18", until="Grbl 1.1h", timeout_s=30, wait_s=0.3)
+        """Soft reset to Idle with fast settings, no work offset, $10=1.
+
+        A simulator that gives no banner for 30 s after a reset is started again: once (CI, 11:21 on
+        2026-11-30, load ~1) it stayed silent after a confirmed `[2-stream]` stop and then answered every later
+        reset with `ALARM:3` and no banner, failing the five tests after it (docs/notes/devices.md). The test
+        that met it still fails; the ones after it get a working oracle.
+        """
+        try:
+            out = self.raw(b"\x18", until="Grbl 1.1h", timeout_s=30, wait_s=0.3)
+        except AssertionError:
+            self.stop()
+            self.restarts += 1
+            self._start()
+            out = "restarted"
         if "Alarm" in self.status():
             self.command("$X")
         for k, v in {**FAST, 10: 1, 20: 0, 22: 0}.items():
