@@ -103,6 +103,32 @@ def test_dropped_counts_frames_overwritten_unread():
         assert cam.dropped == 4 and cam.info()["dropped"] == 4
 
 
+def test_grab_recent_hands_a_busy_caller_the_frames_it_missed_in_order():
+    src = FakeSource()
+    with FakeCamera(src, backlog=4) as cam:
+        src.push(1)
+        assert [f.seq for f in cam.grab_recent(8)] == [1]
+        for k in range(2, 5):  # the caller is busy (a robot command's round trip) while three arrive
+            src.push(k)
+        wait_until(lambda: cam.frames == 4)
+        assert [int(f.image[0, 0, 0]) for f in cam.grab_recent(8)] == [2, 3, 4]  # oldest first, none lost
+        assert cam.dropped == 0
+        for k in range(5, 12):  # seven while busy: the newest max_frames of them, and at most the backlog
+            src.push(k)
+        wait_until(lambda: cam.frames == 11)
+        assert [f.seq for f in cam.grab_recent(2)] == [10, 11] and cam.dropped == 5
+        threading.Timer(0.05, src.push, args=(12,)).start()
+        assert [f.seq for f in cam.grab_recent(8)] == [12]  # all delivered: waits for a new one
+        for k in range(13, 20):
+            src.push(k)
+        wait_until(lambda: cam.frames == 19)
+        assert [f.seq for f in cam.grab_recent(8)] == [16, 17, 18, 19] and cam.dropped == 8  # backlog 4
+        threading.Timer(0.05, src.push, args=(20,)).start()
+        assert cam.grab().seq == 20  # grab() delivers too: grab_recent() then waits for frame 21
+        threading.Timer(0.05, src.push, args=(21,)).start()
+        assert [f.seq for f in cam.grab_recent(8)] == [21]
+
+
 def test_a_stalled_source_times_out_and_an_ended_one_is_a_camera_error():
     src = FakeSource()
     with FakeCamera(src, timeout_s=0.1) as cam:
@@ -271,3 +297,63 @@ def test_labctl_mjpeg_server_is_read_by_opencv_ffmpeg_and_by_the_stream_camera()
             a, b = cam.grab(), cam.grab()
             assert b.seq > a.seq and 0 < b.t - a.t < 0.5
             assert abs(time.monotonic() - b.t) < 0.5  # X-Timestamp: the exposure on the caller's clock
+
+
+_MJPG_SERVER_PROCESS = r"""
+import sys, time
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+import cv2, numpy as np
+
+class Handler(BaseHTTPRequestHandler):
+    protocol_version = "HTTP/1.0"
+    def log_message(self, *a):
+        pass
+    def do_GET(self):  # mjpg-streamer's output_http wire format, one frame every 1/30 s, grey level 10·k
+        self.send_response(200)
+        self.send_header("Content-Type", "multipart/x-mixed-replace;boundary=boundarydonotcross")
+        self.end_headers()
+        self.wfile.write(b"--boundarydonotcross\r\n")
+        t0 = time.time()
+        try:
+            for k in range(1, 25):
+                time.sleep(max(0.0, t0 + k / 30.0 - time.time()))
+                ts = time.time()
+                jpeg = cv2.imencode(".jpg", np.full((48, 64, 3), 10 * k, np.uint8))[1].tobytes()
+                self.wfile.write(f"Content-Type: image/jpeg\r\nContent-Length: {len(jpeg)}\r\n"
+                                 f"X-Timestamp: {int(ts)}.{int((ts % 1) * 1e6):06d}\r\n\r\n".encode() + jpeg
+                                 + b"\r\n--boundarydonotcross\r\n")
+                self.wfile.flush()
+            time.sleep(5)
+        except OSError:
+            pass
+
+srv = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+print(srv.server_address[1], flush=True)
+srv.serve_forever()
+"""
+
+
+def test_stream_camera_catches_up_on_the_frames_a_busy_caller_missed_from_a_server_process():
+    """The predictor's loop blocks ~0.15-0.2 s on each robot command at 9600 bps: the frames the camera
+    delivered meanwhile come back from grab_recent() in order, none lost (a server in another process)."""
+    import subprocess
+    import sys
+
+    server = subprocess.Popen([sys.executable, "-c", _MJPG_SERVER_PROCESS], stdout=subprocess.PIPE, text=True)
+    try:
+        port = int(server.stdout.readline())
+        with StreamCamera(f"http://127.0.0.1:{port}/?action=stream", timestamps="header", backlog=16) as cam:
+            first = cam.grab_recent(16)[-1]
+            time.sleep(0.25)  # busy: ~7 frames arrive meanwhile
+            wait_until(lambda: cam.frames >= first.seq + 4)
+            missed = cam.grab_recent(16)
+    finally:
+        server.kill()
+        server.wait(timeout=10)
+    seqs = [f.seq for f in missed]
+    assert len(missed) >= 4 and seqs == list(range(first.seq + 1, first.seq + 1 + len(missed)))
+    values = [int(f.image[10, 10].mean()) for f in missed]
+    assert all(abs(v - 10 * s) <= 3 for v, s in zip(values, seqs))  # the server's own frame numbers, in order
+    assert cam.dropped == 0
+    gaps = np.diff([f.t for f in missed])  # each stamped when the server made it, not when it was grabbed
+    assert np.all(gaps > 0) and np.median(gaps) == pytest.approx(1 / 30, abs=0.01)

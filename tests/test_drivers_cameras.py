@@ -44,6 +44,21 @@ def test_replay_with_clock_gives_latest_frame(tmp_path):
         assert cam.grab().t == pytest.approx(0.2333, abs=1e-6)
 
 
+def test_replay_with_clock_catches_up_on_the_frames_stamped_since_the_last_delivered(tmp_path):
+    src = frames(8)  # stamped 0.0333, 0.1333, ... 0.7333
+    for f in src:
+        save_stamped_frame(tmp_path, f)
+    clk = VirtualClock(0.05)
+    with ReplayCamera(tmp_path, clock=clk) as cam:
+        assert [f.t for f in cam.grab_recent(4)] == pytest.approx([0.0333], abs=1e-6)
+        clk.sleep_until(0.36)  # three more stamped meanwhile
+        got = cam.grab_recent(4)
+        assert [f.t for f in got] == pytest.approx([0.1333, 0.2333, 0.3333], abs=1e-6)
+        assert all(np.array_equal(g.image, f.image) for g, f in zip(got, src[1:4]))
+        clk.sleep_until(0.75)  # four more: the newest two
+        assert [f.t for f in cam.grab_recent(2)] == pytest.approx([0.6333, 0.7333], abs=1e-6)
+
+
 def test_replay_index_file(tmp_path):
     import cv2
 

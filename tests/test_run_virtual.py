@@ -133,3 +133,25 @@ def test_images_follow_the_robots_arrival_without_a_status_round_trip(lab, ctx, 
     # the @DONE line (8–16 bytes), plus at most one robot HB round trip (~25 ms) the loop sends every 0.2 s
     assert all(8 * byte_s <= d <= 16 * byte_s + 0.03 for d in arrivals), arrivals
     assert res["stages"]["match"] <= 1.0 / lab.mobile_camera.fps + 0.03
+
+
+def test_the_predictor_tracks_the_frames_exposed_while_it_commanded_the_robot(lab, ctx):
+    """Each segment command blocks the predictor's loop for its round trip at 9600 bps (~0.1-0.2 s, longer
+    than a frame): the fixed camera's frames from then are caught up on (run.catch_up_frames), so from the
+    first sighting on every frame is tracked, across every segment sent."""
+    events = []
+
+    class Rec:
+        def event(self, name, **fields):
+            events.append((name, fields))
+
+        def save_image(self, name, image):
+            pass
+
+    res = simulate_run(lab, ctx, TrialSpec("zigzag", 30.0, None, 2), Rec())
+    assert res["correct"], res
+    dt = 1.0 / lab.config.run.fps
+    tracked = np.array([f["t"] for n, f in events if n == "track"])
+    segments = [f["t"] for n, f in events if n == "segment"]
+    assert len(segments) >= 3 and tracked[0] < segments[0] and segments[-1] < tracked[-1]
+    assert np.diff(tracked) == pytest.approx(dt, abs=1e-6)  # no frame missing, none twice

@@ -277,6 +277,42 @@ def test_frame_server_serves_another_process(lab, block):
     assert (seq, t, shape, total) == (0, 0.0, (480, 640, 3), expected)
 
 
+def _catch_up_in_child(address, authkey, go, queue):
+    with FrameClient(address, "fixed", authkey, timeout_s=20) as client:
+        queue.put(client.grab_recent(4)[-1].seq)
+        go.wait(30)  # meanwhile the server's clock moves on 0.2 s: six frames
+        queue.put([(f.seq, f.t, int(f.image.sum())) for f in client.grab_recent(4)])
+        queue.put([f.seq for f in client.grab_recent(4)])  # none left: the next one, when its time comes
+
+
+def test_frame_server_hands_a_busy_client_the_frames_it_missed(lab, block):
+    """Another process asks for the frames exposed since its last one: the newest ``max_frames`` of them, in
+    order, each exactly the frame the camera exposes at its own time (on the camera's fixed 30 Hz grid)."""
+    clock = VirtualClock(0.0)
+    cam = SimCamera(SimWorld.from_lab(lab, obj=block), "fixed", clock, fps=30.0, seed=1)
+    cam.open()
+    direct = SimCamera(SimWorld.from_lab(lab, obj=block), "fixed", VirtualClock(0.0), fps=30.0, seed=1)
+    ctx = mp.get_context("spawn")
+    go, queue = ctx.Event(), ctx.Queue()
+    with FrameServer({"fixed": cam}) as server:
+        child = ctx.Process(target=_catch_up_in_child, args=(server.address, server.authkey, go, queue))
+        child.start()
+        try:
+            first = queue.get(timeout=60)
+            clock.advance(0.2)
+            go.set()
+            missed, after = queue.get(timeout=60), queue.get(timeout=60)
+        finally:
+            child.join(timeout=30)
+            if child.is_alive():
+                child.kill()
+    assert first == 0
+    assert [s for s, _, _ in missed] == [3, 4, 5, 6]  # frames 1-6 were exposed; the newest four
+    for seq, t, total in missed:
+        assert t == pytest.approx(seq / 30.0) and total == int(direct.render_frame(seq).image.sum())
+    assert after == [7]
+
+
 # --- snapshot ---------------------------------------------------------------------------------
 @pytest.fixture
 def empty_lab(tmp_path):

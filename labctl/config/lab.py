@@ -138,6 +138,9 @@ class RunConfig:
     second_image_move: Literal["azimuth", "elevation"] = "azimuth"
     second_image_elevation_deg: Positive = 5.0  # the step up (on the 1 m sphere: twice the path of a step round)
     fps: Positive = 30.0
+    # the newest fixed-camera frames the predictor tracks after a busy spell: a robot command's round trip at
+    # 9600 bps (~0.15-0.2 s) blocks its loop for 5-6 frames, which latest-frame grabbing lost (1: the newest only)
+    catch_up_frames: PositiveInt = 8
     # the predictor's policy (paper §5.2–5.3)
     max_viewpoints: PositiveInt = 4  # viewpoints tried for a usable marker pose before the run fails
     next_viewpoint_deg: float = 120.0  # azimuth step round the object to the next viewpoint

@@ -5,7 +5,8 @@
   it waits for a frame captured after the call began (``wait_new=False``: the newest, even if
   delivered before). Frame times are on the caller's clock (``time.monotonic`` by default):
   the source's own capture time when it has one, else the time the frame arrived minus the
-  configured ``latency_s``. ``dropped`` counts frames overwritten before anyone grabbed them.
+  configured ``latency_s``. It also keeps the last ``backlog`` frames, so ``grab_recent()`` returns the
+  ones not yet delivered, in order. ``dropped`` counts frames never delivered.
   ``close()`` stops the grabber and joins it before the source is released (the thread owns
   the source and releases it itself, so a read blocked past the join timeout cannot race).
 * :class:`V4L2Camera` — ``cv2.VideoCapture(device, cv2.CAP_V4L2)`` with resolution, fps and
@@ -29,6 +30,7 @@ import logging
 import re
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Protocol
@@ -65,14 +67,15 @@ class GrabberCamera(OpenClose):
     """Latest-frame semantics over any :class:`CaptureSource` (see the module docstring).
 
     ``latency_s``: how long before its arrival a frame without its own capture time was exposed
-    (the camera's exposure-to-delivery delay; measure it and put it in the driver file).
+    (the camera's exposure-to-delivery delay; measure it and put it in the driver file). ``backlog``:
+    how many of the newest frames :meth:`grab_recent` can return.
     """
 
     kind = "grabber"
 
     def __init__(self, *, timeout_s: float = 2.0, latency_s: float = 0.0,
                  clock: Callable[[], float] = time.monotonic, name: str = "",
-                 wall_clock: Callable[[], float] = time.time):
+                 wall_clock: Callable[[], float] = time.time, backlog: int = 16):
         self.timeout_s, self.latency_s = timeout_s, latency_s
         self.clock, self.wall_clock = clock, wall_clock
         self.name = name
@@ -81,10 +84,11 @@ class GrabberCamera(OpenClose):
         self._stop = threading.Event()
         self._cond = threading.Condition()
         self._latest: Frame | None = None
+        self._recent: deque[Frame] = deque(maxlen=max(1, int(backlog)))
         self._seq = 0  # frames captured
         self._delivered = 0  # seq of the last frame grab() returned
         self._error: str | None = None
-        self.dropped = 0  # frames overwritten before anyone grabbed them
+        self.dropped = 0  # frames never delivered (counted when a later one is)
         self.close_timeout_s = 2.0  # how long close() waits for the grabber to leave a blocked read
 
     def _open_source(self) -> CaptureSource:
@@ -100,6 +104,7 @@ class GrabberCamera(OpenClose):
         source = self._open_source()
         with self._cond:
             self._latest, self._seq, self._delivered, self._error, self.dropped = None, 0, 0, None, 0
+            self._recent.clear()
         self._source = source
         self._stop.clear()
         self._thread = threading.Thread(target=self._grabber, args=(source,), name=f"grabber-{self.name}",
@@ -126,10 +131,9 @@ class GrabberCamera(OpenClose):
                 # the source's own capture time (wall clock) mapped onto our clock, else arrival − latency
                 t = t_arrived - (self.wall_clock() - t_wall) if t_wall is not None else t_arrived - self.latency_s
                 with self._cond:
-                    if self._latest is not None and self._latest.seq > self._delivered:
-                        self.dropped += 1  # the previous frame was never grabbed
                     self._seq += 1
                     self._latest = Frame(image=image, t=t, seq=self._seq, meta={**meta, "t_arrived": t_arrived})
+                    self._recent.append(self._latest)
                     self._cond.notify_all()
         finally:
             with contextlib.suppress(Exception):
@@ -137,19 +141,29 @@ class GrabberCamera(OpenClose):
 
     def grab(self, wait_new: bool = True) -> Frame:
         """The newest frame; with ``wait_new`` one captured after this call began (never a stale one)."""
+        with self._cond:
+            return self._deliver(self._seq if wait_new else -1, 1)[-1]
+
+    def grab_recent(self, max_frames: int) -> list[Frame]:
+        """The frames captured since the last one delivered, oldest first: the newest ``max_frames`` of them
+        (at most ``backlog``); waits for a new one if every frame was delivered."""
+        with self._cond:
+            return self._deliver(self._delivered, max_frames)
+
+    def _deliver(self, after_seq: int, max_frames: int) -> list[Frame]:
+        # under self._cond: wait for a frame newer than after_seq, then hand out the undelivered ones
         if self._thread is None:
             raise CameraError(f"camera {self.name} is not open")
-        with self._cond:
-            start_seq = self._seq
-            ok = self._cond.wait_for(lambda: self._error is not None or (
-                self._latest is not None and (not wait_new or self._latest.seq > start_seq)), self.timeout_s)
-            if self._error is not None:
-                raise CameraError(f"camera {self.name}: {self._error}")
-            latest = self._latest
-            if not ok or latest is None:
-                raise DeviceTimeout(f"camera {self.name}: no frame within {self.timeout_s:g} s")
-            self._delivered = max(self._delivered, latest.seq)
-            return latest
+        ok = self._cond.wait_for(lambda: self._error is not None or (
+            self._latest is not None and self._latest.seq > after_seq), self.timeout_s)
+        if self._error is not None:
+            raise CameraError(f"camera {self.name}: {self._error}")
+        if not ok or self._latest is None:
+            raise DeviceTimeout(f"camera {self.name}: no frame within {self.timeout_s:g} s")
+        frames = [f for f in self._recent if f.seq > self._delivered][-max(1, int(max_frames)):] or [self._latest]
+        self.dropped += max(0, frames[-1].seq - self._delivered - len(frames))
+        self._delivered = max(self._delivered, frames[-1].seq)
+        return frames
 
     @property
     def frames(self) -> int:
@@ -200,8 +214,9 @@ class V4L2Camera(GrabberCamera):
 
     def __init__(self, device, width: int = 640, height: int = 480, fps: float = 30.0,
                  exposure: float | None = None, timeout_s: float = 2.0, latency_s: float = 0.0,
-                 clock: Callable[[], float] = time.monotonic, name: str = ""):
-        super().__init__(timeout_s=timeout_s, latency_s=latency_s, clock=clock, name=name or str(device))
+                 clock: Callable[[], float] = time.monotonic, name: str = "", backlog: int = 16):
+        super().__init__(timeout_s=timeout_s, latency_s=latency_s, clock=clock, name=name or str(device),
+                         backlog=backlog)
         self.device = int(device) if isinstance(device, str) and device.isdigit() else device
         self.width, self.height, self.fps, self.exposure = width, height, fps, exposure
         self._size: tuple[int, int, float, str] | None = None
@@ -338,8 +353,9 @@ class StreamCamera(GrabberCamera):
     kind = "stream"
 
     def __init__(self, url: str, *, backend: str = "auto", timestamps: str = "arrival", timeout_s: float = 2.0,
-                 latency_s: float = 0.0, clock: Callable[[], float] = time.monotonic, name: str = ""):
-        super().__init__(timeout_s=timeout_s, latency_s=latency_s, clock=clock, name=name or url)
+                 latency_s: float = 0.0, clock: Callable[[], float] = time.monotonic, name: str = "",
+                 backlog: int = 16):
+        super().__init__(timeout_s=timeout_s, latency_s=latency_s, clock=clock, name=name or url, backlog=backlog)
         if backend not in ("auto", "http", "opencv"):
             raise CameraError(f"unknown stream backend {backend!r} (auto, http or opencv)")
         if timestamps not in ("arrival", "header"):
@@ -420,6 +436,7 @@ class ReplayCamera(OpenClose):
         self.name = name or self.folder.name
         self._frames: list[tuple[float, Path]] = []
         self._next = 0
+        self._delivered_i: int | None = None  # with a clock: the last frame grab_recent() delivered
 
     @classmethod
     def from_config(cls, cfg, root: Path | None = None, **kw) -> ReplayCamera:
@@ -434,6 +451,7 @@ class ReplayCamera(OpenClose):
         """List the folder's stamped frames, in time order, and start at the first."""
         self._frames = list_stamped_frames(self.folder)
         self._next = 0
+        self._delivered_i = None
 
     def close(self) -> None:
         """Forget the frame list."""
@@ -466,6 +484,17 @@ class ReplayCamera(OpenClose):
         frame = self._load(self._next)
         self._next += 1
         return frame
+
+    def grab_recent(self, max_frames: int) -> list[Frame]:
+        """Without a clock, the next frame in order; with one, the frames stamped after the last one delivered
+        and at or before the clock's now (the newest ``max_frames``), else the newest one."""
+        if self.clock is None or not self._frames:
+            return [self.grab()]
+        newest = self.grab()
+        last = self._delivered_i
+        self._delivered_i = newest.seq - 1
+        first = newest.seq - 1 if last is None else max(last + 1, newest.seq - max(1, int(max_frames)))
+        return [self._load(i) for i in range(first, newest.seq - 1)] + [newest]
 
     def info(self) -> dict:
         """Kind, folder, frame count and the first and last frame times (s)."""

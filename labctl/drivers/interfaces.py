@@ -53,6 +53,11 @@ class Camera(Protocol):
     def grab(self) -> Frame:
         """The latest frame (never a stale buffered one); blocks until one is available."""
         ...
+    def grab_recent(self, max_frames: int) -> list[Frame]:
+        """The frames not yet delivered, oldest first: the newest ``max_frames`` of them (the last is the
+        latest); blocks until there is one. A loop that was busy (a robot command's round trip at 9600 bps
+        is ~0.15-0.2 s) tracks the frames it would otherwise have missed; older ones are dropped."""
+        ...
     def info(self) -> dict:
         """What the camera is and how it is doing (kind, size, frames): plain data for ``labctl devices``."""
 

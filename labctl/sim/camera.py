@@ -84,6 +84,15 @@ class SimCamera(OpenClose):
             self._last_seq = seq
             return self.render_frame(seq)
 
+    def grab_recent(self, max_frames: int) -> list[Frame]:
+        """The frames exposed since the last one delivered, oldest first: the newest ``max_frames`` of them
+        (the camera's frames are on a fixed grid, so the ones a busy caller missed are rendered now)."""
+        with self._lock:
+            last = self._last_seq
+        newest = self.grab()
+        first = newest.seq if last is None else max(last + 1, newest.seq - max(1, int(max_frames)) + 1)
+        return [self.render_frame(seq) for seq in range(first, newest.seq)] + [newest]
+
     def info(self) -> dict:
         """Kind, role, image size, fps, noise sigma (grey levels) and the camera model of the rig."""
         rig = self.world.rigs[self.role]
@@ -97,9 +106,10 @@ class SimCamera(OpenClose):
 class FrameServer:
     """Serve cameras (by role) to other processes. Use as a context manager or start()/stop().
 
-    Requests on a connection: ``("grab", role)`` → a header dict (t, seq, shape, dtype) then the
-    raw image bytes; ``("info", role)`` → the camera's info dict; ``("bye",)`` closes. Errors
-    come back as ``{"error": "..."}``.
+    Requests on a connection: ``("grab", role)`` → a header ``{"frames": [{t, seq, shape, dtype}]}`` then
+    the raw image bytes; ``("grab_recent", role, n)`` → the same for up to n frames, then each one's
+    bytes; ``("info", role)`` → the camera's info dict; ``("bye",)`` closes. Errors come back as
+    ``{"error": "..."}``.
     """
 
     def __init__(self, cameras: dict[str, Camera], address=("127.0.0.1", 0), authkey: bytes | None = None):
@@ -162,6 +172,14 @@ class FrameServer:
             self._threads.append(th)
             th.start()
 
+    @staticmethod
+    def _send_frames(conn, frames: list[Frame]) -> None:
+        images = [np.ascontiguousarray(f.image) for f in frames]
+        conn.send({"frames": [{"t": f.t, "seq": f.seq, "shape": img.shape, "dtype": str(img.dtype)}
+                              for f, img in zip(frames, images)]})
+        for img in images:
+            conn.send_bytes(img.reshape(-1))
+
     def _serve(self, conn) -> None:
         with conn:
             while not self._stopping.is_set():
@@ -181,10 +199,9 @@ class FrameServer:
                     elif kind == "info":
                         conn.send(cam.info())
                     elif kind == "grab":
-                        frame = cam.grab()
-                        img = np.ascontiguousarray(frame.image)
-                        conn.send({"t": frame.t, "seq": frame.seq, "shape": img.shape, "dtype": str(img.dtype)})
-                        conn.send_bytes(img.reshape(-1))
+                        self._send_frames(conn, [cam.grab()])
+                    elif kind == "grab_recent":
+                        self._send_frames(conn, cam.grab_recent(int(req[2])))
                     else:
                         conn.send({"error": f"unknown request {kind!r}"})
                 except (EOFError, OSError, BrokenPipeError):
@@ -239,15 +256,28 @@ class FrameClient(OpenClose):
 
     def grab(self) -> Frame:
         """The latest frame the server renders for this role (raises DeviceError after ``timeout_s`` without one)."""
-        head = self._ask(("grab", self.role))
-        try:
-            if not self._conn.poll(self.timeout_s):
-                raise DeviceError(f"frame server sent no image within {self.timeout_s} s")
-            data = self._conn.recv_bytes()
-        except (OSError, EOFError) as exc:
-            raise DeviceError(f"frame server connection lost: {exc}") from None
-        image = np.frombuffer(bytearray(data), dtype=np.dtype(head["dtype"])).reshape(head["shape"])
-        return Frame(image=image, t=float(head["t"]), seq=int(head["seq"]), meta={"camera": self.role})
+        return self._frames(("grab", self.role))[-1]
+
+    def grab_recent(self, max_frames: int) -> list[Frame]:
+        """The frames the server's camera exposed since the last one delivered, oldest first (at most
+        ``max_frames``)."""
+        return self._frames(("grab_recent", self.role, int(max_frames)))
+
+    def _frames(self, request) -> list[Frame]:
+        heads = self._ask(request)["frames"]
+        frames = []
+        for head in heads:
+            try:
+                if not self._conn.poll(self.timeout_s):
+                    raise DeviceError(f"frame server sent no image within {self.timeout_s} s")
+                data = self._conn.recv_bytes()
+            except (OSError, EOFError) as exc:
+                raise DeviceError(f"frame server connection lost: {exc}") from None
+            image = np.frombuffer(bytearray(data), dtype=np.dtype(head["dtype"])).reshape(head["shape"])
+            frames.append(Frame(image=image, t=float(head["t"]), seq=int(head["seq"]), meta={"camera": self.role}))
+        if not frames:
+            raise DeviceError("frame server sent no frame")
+        return frames
 
     def info(self) -> dict:
         """The server's info for this camera role."""

@@ -496,8 +496,10 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
         while not planner.finished:
             if progress is not None:
                 progress.pump(_now(args.origin))
-            frame = camera.grab()
-            planner.on_frame(frame)
+            # once tracking, also the frames exposed while the loop was busy (a robot command's round trip);
+            # before, the newest only, as the virtual run (docs/notes/planning.md, "Frames caught up")
+            catch_up = lab.config.run.catch_up_frames if planner.t_first_seen is not None else 1
+            planner.on_frames(camera.grab_recent(catch_up))
             if "first_tracked_frame" not in marks and planner.t_first_seen is not None:
                 marks["first_tracked_frame"] = time.time()
                 log("startup", marks=marks)
