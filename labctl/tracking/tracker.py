@@ -144,6 +144,31 @@ class PredictedPath:
 
 
 @dataclass(frozen=True)
+class StopLegPath:
+    """A new leg after a corner the table stops at (:func:`_stop_profiles`): from ``t0`` (s) the old leg's
+    velocity ``v1`` slows to rest in ``r1`` s, then ``v2`` is reached in ``r2`` s; ``corner`` (mm) is where
+    the slow-down starts."""
+
+    t0: float
+    r1: float
+    r2: float
+    corner: np.ndarray
+    v1: np.ndarray
+    v2: np.ndarray
+
+    def __call__(self, times) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Positions, velocities and accelerations, each (N, 2), at ``times`` (s)."""
+        tau = np.atleast_1d(np.asarray(times, float)) - self.t0
+        down, down_rate, up, up_rate = _stop_profiles(tau, self.r1, self.r2)
+        sig = tau - self.r1
+        slowing = np.where((tau >= 0) & (tau < self.r1), -1.0 / max(self.r1, 1e-12), 0.0)
+        speeding = np.where((sig > 0) & (sig < self.r2), 1.0 / max(self.r2, 1e-12), 0.0)
+        pos = self.corner + np.outer(down, self.v1) + np.outer(up, self.v2)
+        vel = np.outer(down_rate, self.v1) + np.outer(up_rate, self.v2)
+        return pos, vel, np.outer(slowing, self.v1) + np.outer(speeding, self.v2)
+
+
+@dataclass(frozen=True)
 class MixturePath:
     """The IMM's mean path: ``Σ wᵢ pathᵢ(t)`` with the mode probabilities frozen at ``t_ref``.
 
@@ -606,10 +631,8 @@ class MarkerTracker:
                 self._corner = None  # the corner's time is settled
             else:
                 self._refine_corner()
-        if self._corner is not None and self._stop_accel is not None and self._hypotheses is not None:
-            hyp, k = self._hypotheses, self._hypotheses["ml"]
-            if t < hyp["t0"][k] + hyp["r1"][k] + hyp["r2"][k] + self._corner_window:
-                return  # the stop's ramps are the refined corner's frames, not a new corner
+        if self._corner is not None and self._stop_accel is not None and t < self._up_to_speed():
+            return  # the stop's ramps are the refined corner's frames, not a new corner
         recent = [h for h in self._history if t - h[0] <= self._corner_window]
         if self._corner is None:  # the corners not (yet) detected: only a prediction needs them (~0.5 ms)
             self._hypotheses, self._suspicion_pending = None, True
@@ -657,7 +680,7 @@ class MarkerTracker:
         log_odds = 0.5 * (hist[-1][4] - costs[keep] - GLR_THRESHOLD)
         if not len(log_odds) or log_odds.max() < -7.0:
             return None  # every hypothesis below e⁻⁷ ≈ 1e-3 of the track: not worth a prediction's time
-        odds = np.exp(log_odds)
+        odds = np.exp(np.minimum(log_odds, 700.0))  # a corner the detection has not taken yet can be that certain
         js = js[keep]
         corner = np.array([hist[j - 1][2][self._pos, 0] for j in js]) + dps[keep]
         return {"w": odds / (1.0 + odds.sum()), "corner": corner, "v2": v2s[keep], "cov": np.linalg.inv(A[keep]),
@@ -677,7 +700,7 @@ class MarkerTracker:
         vel = hyp["v1"] * down_rate[:, None] + hyp["v2"] * up_rate[:, None]
         return pos, vel, np.stack([up, up_rate], axis=1)
 
-    def _corner_legs(self) -> tuple[np.ndarray, list[PredictedPath]] | None:
+    def _corner_legs(self) -> tuple[np.ndarray, list] | None:
         """A detected corner's candidate times as paths to add to the track's: (weights, straight new legs).
 
         The quiet modes follow its ML candidate time (:meth:`_refine_corner`), so the posterior mean over
@@ -688,12 +711,16 @@ class MarkerTracker:
         hyp = self._corner_hypotheses()
         if hyp is None or hyp["cov"] is not None:
             return None
-        # after a stop, each leg as the line it runs along once up to speed (through the corner half its
-        # ramps later: the path G(t) is asked of the future, past the ramps)
-        legs = [PredictedPath(float(t0 + r1 + 0.5 * r2), c + 0.5 * r1 * v1, v)
-                for t0, r1, r2, c, v1, v in zip(hyp["t0"], hyp["r1"], hyp["r2"], hyp["corner"], hyp["v1"],
-                                                hyp["v2"])]
-        return np.r_[hyp["w"], -1.0], legs + [legs[hyp["ml"]]]
+        if "ref" not in hyp:
+            legs = [PredictedPath(float(t0), c, v) for t0, c, v in zip(hyp["t0"], hyp["corner"], hyp["v2"])]
+            return np.r_[hyp["w"], -1.0], legs + [legs[hyp["ml"]]]
+        # after a stop the modes hold the most likely leg's state at the last frame, maybe still on its ramps:
+        # that state's constant velocity is what they add, the legs with their ramps what is meant
+        t_ref, p_ref, v_ref = hyp["ref"]
+        stop_legs: list = [StopLegPath(float(t0), float(r1), float(r2), c, v1, v)
+                           for t0, r1, r2, c, v1, v in zip(hyp["t0"], hyp["r1"], hyp["r2"], hyp["corner"], hyp["v1"],
+                                                           hyp["v2"])]
+        return np.r_[hyp["w"], -1.0], stop_legs + [PredictedPath(float(t_ref), p_ref, v_ref)]
 
     def _with_corner_hypotheses(self, x: np.ndarray, P: np.ndarray, t: float) -> tuple[np.ndarray, np.ndarray]:
         """``(x, P)`` at ``t`` with the corner hypotheses' new legs mixed in.
@@ -713,7 +740,11 @@ class MarkerTracker:
         legs = np.concatenate([pos, vel], axis=1)
         x, P = x.copy(), P.copy()
         if hyp["cov"] is None:
-            d = legs - legs[hyp["ml"]]
+            if "ref" in hyp:  # after a stop: about the modes' own constant-velocity extrapolation (_corner_legs)
+                t_ref, p_ref, v_ref = hyp["ref"]
+                d = legs - np.r_[p_ref + v_ref * (t - t_ref), v_ref]
+            else:
+                d = legs - legs[hyp["ml"]]
             shift = w @ d
             x[idx, 0] += shift
             P[np.ix_(idx, idx)] += (w[:, None] * d).T @ d - np.outer(shift, shift)
@@ -883,7 +914,8 @@ class MarkerTracker:
         hyp = {"w": w, "corner": p0s + dps, "v2": v2s, "cov": None, "ml": k, **self._ramp_fields(ramps)}
         self._hypotheses, self._suspicion_pending = hyp, False
         if j == c["j"]:
-            if self._stop_accel is not None:  # the stop's fit takes every frame, the ramps' too: set it again
+            if self._stop_accel is not None:  # the fit through both ramps, again with this frame (set only up
+                # to speed, the IMM's mixing leaked the manoeuvre mode into the leg: 50 mm/s 2 s after 1.75× the bound)
                 self._set_on_leg(hyp, k, A[k], entries[j - 1], frames)
             return  # the same corner: no re-run
         t0, _, x0, P0, _, mu0 = entries[j - 1]
@@ -905,12 +937,21 @@ class MarkerTracker:
         if first:  # the quiet modes take over again, in the old track's proportions
             quiet = mu0[0] + mu0[1]
             keep = 1.0 - RESTART_MANEUVER_PROB
-            imm.mu = np.array([mu0[0] / quiet * keep, mu0[1] / quiet * keep, RESTART_MANEUVER_PROB])
+            share = mu0[:2] / quiet if quiet > 0 else np.array([1.0, 0.0])  # no quiet mode left: the line
+            imm.mu = np.array([share[0] * keep, share[1] * keep, RESTART_MANEUVER_PROB])
         imm._compute_mixing_probabilities()
         imm._compute_state_estimate()
         # the detection history starts again with the new leg (its filters were just re-run)
         self._history = []
         self._in_corner = True
+
+    def _up_to_speed(self) -> float:
+        """When the refined stop corner's most likely new leg is up to speed (s; −∞ without one)."""
+        hyp = self._hypotheses
+        if hyp is None or "ml" not in hyp:
+            return -np.inf
+        k = hyp["ml"]
+        return float(hyp["t0"][k] + hyp["r1"][k] + hyp["r2"][k])
 
     def _set_on_leg(self, hyp: dict, k: int, cov: np.ndarray, entry: tuple, frames: list) -> None:
         """Set every mode to hypothesis ``k``'s new leg after a stop, at the last frame (:meth:`_stop_corner_costs`).
@@ -927,6 +968,7 @@ class MarkerTracker:
         J[:2, 2:] = rates[0, 0] * np.eye(2)
         J[2:, 2:] = rates[0, 1] * np.eye(2)
         C = J @ np.linalg.inv(cov) @ J.T
+        hyp["ref"] = (float(t_last), pos[0].copy(), vel[0].copy())
         _, _, x0, P0, *_ = entry
         pv = self._pos + self._vel
         for kf in self._kfs:
