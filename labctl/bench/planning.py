@@ -307,7 +307,7 @@ def run(quick: bool = False) -> dict:
     table += _bound_table(quick, {BETWEEN_FRAMES: MODELS[INFORMED]}, acceptance_only=True, families=("zigzag",),
                           corner_frames=0.5)
     # the corners as the lab's table drives them: it stands at the corner (a diagnostic, not issue 18's acceptance),
-    # the tracker told the table's acceleration as a run tells it (tracking.stop_corners), and as the instant corner
+    # the tracker told the table's acceleration (what tracking.stop_corners does in a run), and as the instant corner
     accel = {"stop_accel_mm_s2": TableConfig().accel_mm_s2}
     table += _bound_table(quick, {STOPPING: {**MODELS[INFORMED], **accel}, STOPPING_INSTANT: MODELS[INFORMED]},
                           acceptance_only=True, families=("zigzag_stop",))
