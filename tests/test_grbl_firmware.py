@@ -265,9 +265,26 @@ def test_stream_300_lines_then_an_error_names_the_file_line_and_stops(fw, tmp_pa
     assert "<Idle" in s1 and s1.split("|")[1] == s2.split("|")[1]  # stopped, not Run with lines still queued
 
 
+class OracleSilent(AssertionError):
+    """The simulator answered nothing after the product's stop had been confirmed by its own report."""
+
+
 @pytest.mark.parametrize("sig,cmd", [(signal.SIGINT, "stream"), (signal.SIGTERM, "move")])
 def test_interrupt_stops_the_table(fw, tmp_path, sig, cmd):
-    """Ctrl-C / SIGTERM (twice) during `table stream|move`: hold, reset, status read back; exit 130, one line."""
+    """Ctrl-C / SIGTERM (twice) during `table stream|move`: hold, reset, status read back; exit 130, one line.
+
+    Twice in ~9 clean-clone CI runs (2026-11-30, `[2-stream]`) the simulator fell silent for good right after
+    a stop the product had confirmed from the firmware's own report, so the independent read-back got nothing
+    (docs/notes/devices.md). Then the whole scenario runs once more on a new simulator (``fresh()`` starts
+    one): a product that does not stop the table fails both times; a silent oracle twice still fails.
+    """
+    try:
+        _interrupt_and_read_back(fw, tmp_path, sig, cmd)
+    except OracleSilent:
+        _interrupt_and_read_back(fw, tmp_path, sig, cmd)
+
+
+def _interrupt_and_read_back(fw, tmp_path, sig, cmd):
     fw.fresh()
     fw.to_machine_zero()  # so that the move below is long whatever ran before
     prog = tmp_path / "long.nc"
@@ -288,7 +305,10 @@ def test_interrupt_stops_the_table(fw, tmp_path, sig, cmd):
     # Idle when the hold completed before the reset (the usual case); Alarm (ALARM:3) if a starved
     # simulator was still decelerating after 30 s — stopped either way, never Run
     assert len(err.strip().splitlines()) == 1 and "Traceback" not in err and "confirmed " in err, err
-    s1 = fw.status()
+    try:
+        s1 = fw.status()
+    except AssertionError as exc:
+        raise OracleSilent(f"{exc} (after the product's confirmed stop: {err.strip()})") from None
     time.sleep(0.5)
     s2 = fw.status()
     assert ("<Idle" in s1 or "<Alarm" in s1) and s1.split("|")[1] == s2.split("|")[1], (s1, err)

@@ -60,3 +60,17 @@ def test_a_view_the_margin_puts_out_of_reach_is_planned_and_re_planned_at_the_no
     _track(p, 1.0 + 1.0 / 30.0, 1.3, (150.0 - 0.2 * 50.0, 200.0), (60.0, 0.0))  # it sped up: a new aim
     p._replan(1.3)
     assert len(robot.segments) == 2 and not p.finished
+
+
+@pytest.mark.parametrize("stop_corners, family, told", [(True, "zigzag", True), (False, "zigzag", False),
+                                                        (True, None, False)])
+def test_the_tracker_is_told_the_tables_stops_only_when_set_and_labctl_drives_the_table(ctx, stop_corners, family,
+                                                                                         told):
+    import dataclasses
+
+    cfg = ctx.lab.config
+    cfg = dataclasses.replace(cfg, tracking=dataclasses.replace(cfg.tracking, stop_corners=stop_corners))
+    lab = dataclasses.replace(ctx.lab, config=cfg)
+    p = PredictorPlanner(dataclasses.replace(ctx, lab=lab), SegmentRobot(home_flange_pose(lab)), lambda msg: None,
+                         lambda *a, **k: None, family=family)
+    assert p.tracker._stop_accel == (lab.table.accel_mm_s2 if told else None)

@@ -24,6 +24,20 @@ def ctx(lab):
     return RunContext.load(lab)
 
 
+def _run_with_events(lab, ctx, spec):
+    """A virtual run and its record's events, (name, fields) in order."""
+    events = []
+
+    class Rec:
+        def event(self, name, **fields):
+            events.append((name, fields))
+
+        def save_image(self, name, image):
+            pass
+
+    return simulate_run(lab, ctx, spec, Rec()), events
+
+
 @pytest.mark.parametrize("seed", [1, 2, 3])
 def test_virtual_run_identifies_the_object(lab, ctx, seed):
     res = simulate_run(lab, ctx, TrialSpec("line", 8.0, None, seed))
@@ -100,15 +114,7 @@ def test_images_follow_the_robots_arrival_without_a_status_round_trip(lab, ctx, 
     and its identity: the rest pose comes from the robot's opening, arrivals from @DONE."""
     from labctl.drivers.robot import SerialRobot
 
-    events, status_at = [], []
-
-    class Rec:
-        def event(self, name, **fields):
-            events.append((name, fields))
-
-        def save_image(self, name, image):
-            pass
-
+    status_at = []
     real_status = SerialRobot.status
 
     def status(self):
@@ -116,7 +122,7 @@ def test_images_follow_the_robots_arrival_without_a_status_round_trip(lab, ctx, 
         return real_status(self)
 
     monkeypatch.setattr(SerialRobot, "status", status)
-    res = simulate_run(lab, ctx, TrialSpec("line", 8.0, None, 1, profile="ruckig"), Rec())
+    res, events = _run_with_events(lab, ctx, TrialSpec("line", 8.0, None, 1, profile="ruckig"))
     assert res["correct"], res
     t0 = next(f["t"] for n, f in events if n == "truth")
     t_done = next(f["t"] for n, f in events if n == "identity")
@@ -139,16 +145,7 @@ def test_the_predictor_tracks_the_frames_exposed_while_it_commanded_the_robot(la
     """Each segment command blocks the predictor's loop for its round trip at 9600 bps (~0.1-0.2 s, longer
     than a frame): the fixed camera's frames from then are caught up on (run.catch_up_frames), so from the
     first sighting on every frame is tracked, across every segment sent."""
-    events = []
-
-    class Rec:
-        def event(self, name, **fields):
-            events.append((name, fields))
-
-        def save_image(self, name, image):
-            pass
-
-    res = simulate_run(lab, ctx, TrialSpec("zigzag", 30.0, None, 2), Rec())
+    res, events = _run_with_events(lab, ctx, TrialSpec("zigzag", 30.0, None, 2))
     assert res["correct"], res
     dt = 1.0 / lab.config.run.fps
     tracked = np.array([f["t"] for n, f in events if n == "track"])

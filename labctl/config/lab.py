@@ -92,6 +92,11 @@ class TrackingConfig:
     curve_prior: Annotated[float, Range(gt=0, lt=1)] = 0.05
     # ... and when labctl drives the table along a named program, the prior of that program's family instead
     family_prior: FamilyPrior = field(default_factory=FamilyPrior)
+    # ... and the table's corners as GRBL drives them: to rest at a sharp corner and up to speed again at the
+    # table's acceleration (tracker ``stop_accel_mm_s2``). Off by measurement: at the bound on one corner (bench)
+    # but 91 → 88 of 100 zigzag trials at 100 mm/s, whose legs end before the next corner's slow-down
+    # (docs/notes/planning.md, "The table's own corners, modelled")
+    stop_corners: bool = False
     measurement_noise_mm: Positive = 0.7
     gate_sigma: Positive = 4.0
     window_px: PositiveInt = 48

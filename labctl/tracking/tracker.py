@@ -67,6 +67,8 @@ GLR_THRESHOLD = 25.0
 # after a restart at a corner, the manoeuvre mode's share: at 0.02 its mixing leaked into the new leg's
 # quiet modes for ~1 s (5-s covariance up to 1.2x the CRB at 100 mm/s, docs/notes/planning.md, sixth round)
 RESTART_MANEUVER_PROB = 1e-3
+#: a stopping corner's slow-down starts are tried on this many points of each frame interval
+SUBFRAME_STEPS = 4
 _GH_X, _GH_W = np.polynomial.hermite_e.hermegauss(9)  # probabilists' Gauss-Hermite nodes in σ, weights (sum √2π)
 
 
@@ -89,6 +91,25 @@ def _turn_offsets(v: np.ndarray, w: float, d: np.ndarray) -> tuple[np.ndarray, n
     disp = np.column_stack([so * v[0] - co * v[1], co * v[0] + so * v[1]])
     vel = np.column_stack([c * v[0] - s * v[1], s * v[0] + c * v[1]])
     return disp, vel
+
+
+def _stop_profiles(tau, r1, r2) -> tuple[np.ndarray, ...]:
+    """The distance profiles of a corner the table stops at (GRBL's planner at a sharp junction).
+
+    ``tau`` (s) since the old leg began to slow down; ``r1``, ``r2`` (s): the old leg's ramp down and the new
+    leg's ramp up (speed / the table's acceleration). Returns ``(D1, D1', D2, D2')``: the old leg's distance
+    over its speed ``τ − τ²/2r1`` (``r1/2`` once stopped) and the new leg's ``σ²/2r2`` then ``σ − r2/2`` with
+    ``σ = τ − r1`` (0 before), and their rates. ``r1 = r2 = 0`` is the instant corner: ``D1 = 0``, ``D2 = τ``.
+    """
+    tau, r1, r2 = np.broadcast_arrays(*(np.asarray(a, float) for a in (tau, r1, r2)))
+    tau = np.maximum(tau, 0.0)  # before the slow-down nothing has happened yet
+    sig = tau - r1
+    with np.errstate(divide="ignore", invalid="ignore"):
+        down = np.where(tau < r1, tau - tau * tau / (2 * r1), 0.5 * r1)
+        down_rate = np.where(tau < r1, 1.0 - tau / r1, 0.0)
+        up = np.where(sig <= 0, 0.0, np.where(sig < r2, sig * sig / (2 * r2), sig - 0.5 * r2))
+        up_rate = np.where(sig <= 0, 0.0, np.where(sig < r2, sig / r2, 1.0))
+    return down, down_rate, up, up_rate
 
 
 @dataclass(frozen=True)
@@ -120,6 +141,31 @@ class PredictedPath:
         disp, v = _turn_offsets(np.asarray(self.velocity, float), float(self.turn_rate), d)
         a = self.turn_rate * np.column_stack([-v[:, 1], v[:, 0]])
         return self.position + disp, v, a
+
+
+@dataclass(frozen=True)
+class StopLegPath:
+    """A new leg after a corner the table stops at (:func:`_stop_profiles`): from ``t0`` (s) the old leg's
+    velocity ``v1`` slows to rest in ``r1`` s, then ``v2`` is reached in ``r2`` s; ``corner`` (mm) is where
+    the slow-down starts."""
+
+    t0: float
+    r1: float
+    r2: float
+    corner: np.ndarray
+    v1: np.ndarray
+    v2: np.ndarray
+
+    def __call__(self, times) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Positions, velocities and accelerations, each (N, 2), at ``times`` (s)."""
+        tau = np.atleast_1d(np.asarray(times, float)) - self.t0
+        down, down_rate, up, up_rate = _stop_profiles(tau, self.r1, self.r2)
+        sig = tau - self.r1
+        slowing = np.where((tau >= 0) & (tau < self.r1), -1.0 / max(self.r1, 1e-12), 0.0)
+        speeding = np.where((sig > 0) & (sig < self.r2), 1.0 / max(self.r2, 1e-12), 0.0)
+        pos = self.corner + np.outer(down, self.v1) + np.outer(up, self.v2)
+        vel = np.outer(down_rate, self.v1) + np.outer(up_rate, self.v2)
+        return pos, vel, np.outer(slowing, self.v1) + np.outer(speeding, self.v2)
 
 
 @dataclass(frozen=True)
@@ -283,6 +329,7 @@ class MarkerTracker:
         corner_window_s: float = 0.6,
         corner_refine_s: float = 2.0,
         refit_window_s: float = 10.0,
+        stop_accel_mm_s2: float | None = None,
     ) -> None:
         if model not in MODELS:
             raise TrackingError(f"unknown tracking model {model!r} (expected {', '.join(MODELS)})")
@@ -323,6 +370,9 @@ class MarkerTracker:
         self._switch = float(imm_switch_prob)
         self._exit = float(maneuver_exit_prob)
         self._curve_prior = float(curve_prior)
+        if stop_accel_mm_s2 is not None and not (np.isfinite(stop_accel_mm_s2) and stop_accel_mm_s2 > 0):
+            raise TrackingError(f"stop_accel_mm_s2 must be a positive number or None, got {stop_accel_mm_s2!r}")
+        self._stop_accel = None if stop_accel_mm_s2 is None else float(stop_accel_mm_s2)
         self.reset()
 
     @property
@@ -581,6 +631,8 @@ class MarkerTracker:
                 self._corner = None  # the corner's time is settled
             else:
                 self._refine_corner()
+        if self._corner is not None and self._stop_accel is not None and t < self._up_to_speed():
+            return  # the stop's ramps are the refined corner's frames, not a new corner
         recent = [h for h in self._history if t - h[0] <= self._corner_window]
         if self._corner is None:  # the corners not (yet) detected: only a prediction needs them (~0.5 ms)
             self._hypotheses, self._suspicion_pending = None, True
@@ -622,19 +674,33 @@ class MarkerTracker:
         hist = self._history
         if len(hist) < 8:
             return None
-        js, costs, v2s, dps, A = self._corner_costs(hist, [(h[0], h[1]) for h in hist])
+        js, costs, v2s, dps, A, ramps = self._corner_costs(hist, [(h[0], h[1]) for h in hist])
         te = np.array([h[0] for h in hist])
         keep = te[-1] - te[js] >= 0.5 * self._corner_window
         log_odds = 0.5 * (hist[-1][4] - costs[keep] - GLR_THRESHOLD)
         if not len(log_odds) or log_odds.max() < -7.0:
             return None  # every hypothesis below e⁻⁷ ≈ 1e-3 of the track: not worth a prediction's time
-        odds = np.exp(log_odds)
+        odds = np.exp(np.minimum(log_odds, 700.0))  # a corner the detection has not taken yet can be that certain
         js = js[keep]
         corner = np.array([hist[j - 1][2][self._pos, 0] for j in js]) + dps[keep]
-        return {"w": odds / (1.0 + odds.sum()), "t0": te[js - 1], "corner": corner, "v2": v2s[keep],
-                "cov": np.linalg.inv(A[keep])}
+        return {"w": odds / (1.0 + odds.sum()), "corner": corner, "v2": v2s[keep], "cov": np.linalg.inv(A[keep]),
+                **self._ramp_fields(ramps, keep)}
 
-    def _corner_legs(self) -> tuple[np.ndarray, list[PredictedPath]] | None:
+    @staticmethod
+    def _ramp_fields(ramps, keep=slice(None)) -> dict:
+        t0, r1, r2, v1 = ramps
+        return {"t0": t0[keep], "r1": r1[keep], "r2": r2[keep], "v1": v1[keep]}
+
+    @staticmethod
+    def _legs_at(hyp: dict, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Each hypothesis's new leg at ``t``: positions (n, 2), velocities (n, 2), and the rates of the position
+        and the velocity in ``v2`` (the Jacobian's blocks; ``corner`` enters with the identity)."""
+        down, down_rate, up, up_rate = _stop_profiles(t - hyp["t0"], hyp["r1"], hyp["r2"])
+        pos = hyp["corner"] + hyp["v1"] * down[:, None] + hyp["v2"] * up[:, None]
+        vel = hyp["v1"] * down_rate[:, None] + hyp["v2"] * up_rate[:, None]
+        return pos, vel, np.stack([up, up_rate], axis=1)
+
+    def _corner_legs(self) -> tuple[np.ndarray, list] | None:
         """A detected corner's candidate times as paths to add to the track's: (weights, straight new legs).
 
         The quiet modes follow its ML candidate time (:meth:`_refine_corner`), so the posterior mean over
@@ -645,8 +711,16 @@ class MarkerTracker:
         hyp = self._corner_hypotheses()
         if hyp is None or hyp["cov"] is not None:
             return None
-        legs = [PredictedPath(float(t0), c, v) for t0, c, v in zip(hyp["t0"], hyp["corner"], hyp["v2"])]
-        return np.r_[hyp["w"], -1.0], legs + [legs[hyp["ml"]]]
+        if "ref" not in hyp:
+            legs = [PredictedPath(float(t0), c, v) for t0, c, v in zip(hyp["t0"], hyp["corner"], hyp["v2"])]
+            return np.r_[hyp["w"], -1.0], legs + [legs[hyp["ml"]]]
+        # after a stop the modes hold the most likely leg's state at the last frame, maybe still on its ramps:
+        # that state's constant velocity is what they add, the legs with their ramps what is meant
+        t_ref, p_ref, v_ref = hyp["ref"]
+        stop_legs: list = [StopLegPath(float(t0), float(r1), float(r2), c, v1, v)
+                           for t0, r1, r2, c, v1, v in zip(hyp["t0"], hyp["r1"], hyp["r2"], hyp["corner"], hyp["v1"],
+                                                           hyp["v2"])]
+        return np.r_[hyp["w"], -1.0], stop_legs + [PredictedPath(float(t_ref), p_ref, v_ref)]
 
     def _with_corner_hypotheses(self, x: np.ndarray, P: np.ndarray, t: float) -> tuple[np.ndarray, np.ndarray]:
         """``(x, P)`` at ``t`` with the corner hypotheses' new legs mixed in.
@@ -661,18 +735,24 @@ class MarkerTracker:
         if hyp is None:
             return x, P
         idx = self._pos + self._vel  # [x, y, vx, vy]
-        w, tau = hyp["w"], t - hyp["t0"]
-        legs = np.concatenate([hyp["corner"] + hyp["v2"] * tau[:, None], hyp["v2"]], axis=1)
+        w = hyp["w"]
+        pos, vel, rates = self._legs_at(hyp, t)
+        legs = np.concatenate([pos, vel], axis=1)
         x, P = x.copy(), P.copy()
         if hyp["cov"] is None:
-            d = legs - legs[hyp["ml"]]
+            if "ref" in hyp:  # after a stop: about the modes' own constant-velocity extrapolation (_corner_legs)
+                t_ref, p_ref, v_ref = hyp["ref"]
+                d = legs - np.r_[p_ref + v_ref * (t - t_ref), v_ref]
+            else:
+                d = legs - legs[hyp["ml"]]
             shift = w @ d
             x[idx, 0] += shift
             P[np.ix_(idx, idx)] += (w[:, None] * d).T @ d - np.outer(shift, shift)
             return x, P
         J = np.zeros((len(w), 4, 4))  # (corner offset, v2) -> (position, velocity) at t
-        J[:, :2, :2] = J[:, 2:, 2:] = np.eye(2)
-        J[:, :2, 2:] = tau[:, None, None] * np.eye(2)
+        J[:, :2, :2] = np.eye(2)
+        J[:, :2, 2:] = rates[:, 0, None, None] * np.eye(2)
+        J[:, 2:, 2:] = rates[:, 1, None, None] * np.eye(2)
         d = legs - x[idx, 0]
         legs_cov = np.einsum("n,nij->ij", w, J @ hyp["cov"] @ J.transpose(0, 2, 1)) + (w[:, None] * d).T @ d
         P[np.ix_(idx, idx)] = (1.0 - w.sum()) * P[np.ix_(idx, idx)] + legs_cov
@@ -686,8 +766,10 @@ class MarkerTracker:
         k = int(np.argmin(costs))
         return float(costs[k]), int(js[k])
 
-    def _corner_costs(self, entries: list, frames: list, between_frames: bool = False) -> tuple[np.ndarray, ...]:
-        """Each candidate corner j's cost and new leg: (js, costs, v2s (n, 2), δps (n, 2), normal matrices (n, 4, 4)).
+    def _corner_costs(self, entries: list, frames: list, between_frames: bool = False) -> tuple:
+        """Each candidate corner j's cost and new leg: (js, costs, v2s (n, 2), δps (n, 2), normal matrices (n, 4, 4),
+        (t0, r1, r2, v1) the leg's start and ramps, :func:`_stop_profiles`; the ramps are 0 unless the table
+        stops at its corners, :meth:`_stop_corner_costs`).
 
         The corner lies between ``entries[j-1]`` and ``entries[j]``.
 
@@ -706,7 +788,8 @@ class MarkerTracker:
         start = np.searchsorted(ft, te[1:] - 1e-9)
         js = np.flatnonzero(len(ft) - start >= 2) + 1
         if not len(js):
-            return js, np.zeros(0), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 4, 4))
+            e = np.zeros(0)
+            return js, e, np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 4, 4)), (e, e, e, np.zeros((0, 2)))
         start = start[js - 1]
 
         def suffix(a):
@@ -719,6 +802,8 @@ class MarkerTracker:
         p0 = np.array([entries[j - 1][2][self._pos, 0] for j in js])
         P0 = np.array([self._anchor_cov(entries, int(j), between_frames) for j in js])
         nis0 = np.array([entries[j - 1][4] for j in js])
+        if self._stop_accel is not None:
+            return self._stop_corner_costs(entries, js, start, ft, fz, t0, p0, P0, nis0)
         # τ = t − t0 and z' = z − p0, from the suffix sums
         st = S1 - n * t0
         stt = S2 - 2 * t0 * S1 + n * t0 * t0
@@ -734,7 +819,57 @@ class MarkerTracker:
         bvec = np.concatenate([sz, stz], axis=1) / R
         sol = np.linalg.solve(A, bvec[:, :, None])[:, :, 0]
         costs = nis0 + szz / R - np.sum(bvec * sol, axis=1) + n * np.log(R * R)
-        return js, costs, sol[:, 2:], sol[:, :2], A
+        zero = np.zeros(len(js))
+        return js, costs, sol[:, 2:], sol[:, :2], A, (t0, zero, zero, np.zeros((len(js), 2)))
+
+    def _stop_corner_costs(self, entries, js, start, ft, fz, t0, p0, P0, nis0) -> tuple:
+        """:meth:`_corner_costs` for a table that stops at its corners (``stop_accel_mm_s2``, GRBL at a sharp junction).
+
+        From candidate j the old leg slows from its speed ``v1`` (the old track's at ``entries[j-1]``) to rest
+        in ``r1 = |v1|/a`` and the new leg speeds up to ``v2`` in ``r2 = |v2|/a``: the frames since j are
+        ``p0 + v1·D1(τ) + δp + v2·D2(τ)`` (:func:`_stop_profiles`), still linear in ``(δp, v2)``; ``r2`` is
+        taken from ``|v1|`` first (the program's legs share one feed), then from the fit's ``v2``. The
+        straight new leg from the anchor (the instant corner) put the 5-s prediction 7.3× the bound 0.5 s after
+        a 50 mm/s stop (docs/notes/planning.md, seventh round). Also returns, per candidate, ``(t0, r1, r2, v1)``.
+        """
+        R, a = self._R[0, 0], self._stop_accel
+        v1 = np.array([entries[j - 1][2][self._vel, 0] for j in js])
+        # the old leg slows down from anywhere in the frame interval after entries[j-1]: a quarter-frame grid
+        # (each j four times; a start a frame late put the 5-s prediction 2× the bound 1.5 s after 50 mm/s)
+        te = np.array([e[0] for e in entries])
+        frac = np.tile(np.arange(SUBFRAME_STEPS) / SUBFRAME_STEPS, len(js))
+        rep = np.repeat(np.arange(len(js)), SUBFRAME_STEPS)
+        delay = frac * (te[js] - te[js - 1])[rep]
+        js, start, P0, nis0, v1 = js[rep], start[rep], P0[rep], nis0[rep], v1[rep]
+        t0 = t0[rep] + delay
+        shift = v1 * delay[:, None]  # the old track's own motion up to the slow-down's start
+        p0 = p0[rep] + shift
+        r1 = np.hypot(v1[:, 0], v1[:, 1]) / a
+        tau = ft[None, :] - t0[:, None]
+        mask = (np.arange(len(ft))[None, :] >= start[:, None]).astype(float)
+        n = mask.sum(axis=1)
+        down = _stop_profiles(tau, r1[:, None], 0.0)[0]
+        y = (fz[None, :, :] - p0[:, None, :] - v1[:, None, :] * down[:, :, None]) * mask[:, :, None]
+        syy = np.einsum("cfk,cfk->c", y, y)
+        sy = y.sum(axis=1)
+        eye = np.eye(2)
+        prior_v = 1.0 / self._init_sigmas[0] ** 2  # the new leg's diffuse speed, as a restart starts it
+
+        def solve(r2):  # the normal equations of (δp, v2) for the new leg's ramp r2, as _corner_costs's
+            g = _stop_profiles(tau, r1[:, None], r2[:, None])[2] * mask
+            sg, sgg, sgy = g.sum(axis=1), (g * g).sum(axis=1), np.einsum("cf,cfk->ck", g, y)
+            A = np.zeros((len(js), 4, 4))
+            A[:, :2, :2] = np.linalg.inv(P0) + eye * (n / R)[:, None, None]
+            A[:, :2, 2:] = A[:, 2:, :2] = eye * (sg / R)[:, None, None]
+            A[:, 2:, 2:] = eye * (sgg / R + prior_v)[:, None, None]
+            bvec = np.concatenate([sy, sgy], axis=1) / R
+            return A, bvec, np.linalg.solve(A, bvec[:, :, None])[:, :, 0]
+
+        first = solve(r1)[2]  # the legs share the program's feed: the old leg's speed first
+        r2 = np.hypot(first[:, 2], first[:, 3]) / a
+        A, bvec, sol = solve(r2)
+        costs = nis0 + syy / R - np.sum(bvec * sol, axis=1) + n * np.log(R * R)
+        return js, costs, sol[:, 2:], sol[:, :2] + shift, A, (t0, r1, r2, v1)
 
     def _anchor_cov(self, entries: list, j: int, between_frames: bool = True) -> np.ndarray:
         """The covariance (2, 2) mm² of the new leg's anchor for a corner between ``entries[j-1]`` and ``entries[j]``.
@@ -763,7 +898,7 @@ class MarkerTracker:
         frames = [f for f in self._zbuf if f[0] >= entries[1][0] - 1e-9] if len(entries) > 1 else []
         if len(entries) < 2 or len(frames) < 2:
             return
-        js, costs, v2s, dps, _ = self._corner_costs(entries, frames, between_frames=True)
+        js, costs, v2s, dps, A, ramps = self._corner_costs(entries, frames, between_frames=True)
         if not len(js):
             return
         k = int(np.argmin(costs))
@@ -775,11 +910,13 @@ class MarkerTracker:
         # corner was a frame or two off 3.2-8.3 (docs/notes/planning.md, sixth round)
         w = np.exp(-0.5 * (costs - costs[k]))
         w /= w.sum()
-        t0s = np.array([entries[i - 1][0] for i in js])
         p0s = np.array([entries[i - 1][2][self._pos, 0] for i in js])
-        self._hypotheses = {"w": w, "t0": t0s, "corner": p0s + dps, "v2": v2s, "cov": None, "ml": k}
-        self._suspicion_pending = False
+        hyp = {"w": w, "corner": p0s + dps, "v2": v2s, "cov": None, "ml": k, **self._ramp_fields(ramps)}
+        self._hypotheses, self._suspicion_pending = hyp, False
         if j == c["j"]:
+            if self._stop_accel is not None:  # the fit through both ramps, again with this frame (set only up
+                # to speed, the IMM's mixing leaked the manoeuvre mode into the leg: 50 mm/s 2 s after 1.75× the bound)
+                self._set_on_leg(hyp, k, A[k], entries[j - 1], frames)
             return  # the same corner: no re-run
         t0, _, x0, P0, _, mu0 = entries[j - 1]
         ct_anchor = P0[np.ix_(self._pos, self._pos)]
@@ -791,18 +928,65 @@ class MarkerTracker:
             self.corners.append(float(t0))
         else:
             self.corners[-1] = float(t0)
-        new_leg = [f for f in frames if f[0] >= entries[j][0] - 1e-9]
-        self._restart_at(t0, x0, P0, new_leg, ct_anchor)
+        if self._stop_accel is not None:
+            self._set_on_leg(hyp, k, A[k], entries[j - 1], frames)
+        else:
+            new_leg = [f for f in frames if f[0] >= entries[j][0] - 1e-9]
+            self._restart_at(t0, x0, P0, new_leg, ct_anchor)
         imm = self._imm_filter()
         if first:  # the quiet modes take over again, in the old track's proportions
             quiet = mu0[0] + mu0[1]
             keep = 1.0 - RESTART_MANEUVER_PROB
-            imm.mu = np.array([mu0[0] / quiet * keep, mu0[1] / quiet * keep, RESTART_MANEUVER_PROB])
+            share = mu0[:2] / quiet if quiet > 0 else np.array([1.0, 0.0])  # no quiet mode left: the line
+            imm.mu = np.array([share[0] * keep, share[1] * keep, RESTART_MANEUVER_PROB])
         imm._compute_mixing_probabilities()
         imm._compute_state_estimate()
         # the detection history starts again with the new leg (its filters were just re-run)
         self._history = []
         self._in_corner = True
+
+    def _up_to_speed(self) -> float:
+        """When the refined stop corner's most likely new leg is up to speed (s; −∞ without one)."""
+        hyp = self._hypotheses
+        if hyp is None or "ml" not in hyp:
+            return -np.inf
+        k = hyp["ml"]
+        return float(hyp["t0"][k] + hyp["r1"][k] + hyp["r2"][k])
+
+    def _set_on_leg(self, hyp: dict, k: int, cov: np.ndarray, entry: tuple, frames: list) -> None:
+        """Set every mode to hypothesis ``k``'s new leg after a stop, at the last frame (:meth:`_stop_corner_costs`).
+
+        The least-squares fit of ``(δp, v2)`` (normal matrix ``cov``'s inverse) is the leg; a Kalman re-run
+        would take the ramps' frames as constant velocity. Position and velocity at the last frame with their
+        covariance through the ramps' profiles, the curvature the old track's (``entry``). The CT refit takes
+        the frames once up to speed, anchored where the leg's line passes through the corner.
+        """
+        t_last = frames[-1][0]
+        pos, vel, rates = self._legs_at({key: hyp[key][k:k + 1] for key in ("t0", "r1", "r2", "corner", "v1", "v2")},
+                                        t_last)
+        J = np.eye(4)  # (δp, v2) -> (position, velocity)
+        J[:2, 2:] = rates[0, 0] * np.eye(2)
+        J[2:, 2:] = rates[0, 1] * np.eye(2)
+        C = J @ np.linalg.inv(cov) @ J.T
+        hyp["ref"] = (float(t_last), pos[0].copy(), vel[0].copy())
+        _, _, x0, P0, *_ = entry
+        pv = self._pos + self._vel
+        for kf in self._kfs:
+            x, P = x0.copy(), P0.copy()
+            x[self._pos, 0], x[self._vel, 0] = pos[0], vel[0]
+            P[pv, :] = 0.0
+            P[:, pv] = 0.0
+            P[np.ix_(pv, pv)] = C
+            kf.x, kf.P = x, P
+        t0, r1, r2 = hyp["t0"][k], hyp["r1"][k], hyp["r2"][k]
+        up_to_speed = t0 + r1 + r2
+        self._frames = [(th, zh.copy()) for th, zh in frames if th >= up_to_speed - 1e-9]
+        through = hyp["corner"][k] + 0.5 * r1 * hyp["v1"][k]
+        anchor_cov = np.linalg.inv(cov)[:2, :2]
+        self._anchor = (float(t0 + r1 + 0.5 * r2), through, np.linalg.cholesky(np.linalg.inv(anchor_cov)).T)
+        self._curv_prior = (float(x0[4, 0]), float(P0[4, 4]))
+        self._rev += 1
+        self._segment += 1
 
     def _restart_at(self, t0: float, x0: np.ndarray, P0: np.ndarray, new_leg: list, ct_anchor: np.ndarray) -> None:
         """Re-run every mode as a quiet mode from the old track's (x0, P0) at ``t0`` over ``new_leg`` (t, z).

@@ -113,7 +113,11 @@ class PredictorPlanner:
         self.cfg = cfg
         # the family of the program labctl drives the table along, if it does (paper §5.1): the tracker's
         # curve prior (tracking.family_prior); None (parts moved by something else): family-blind
-        self.tracker = MarkerTracker.from_config(cfg.tracking, family=family)
+        # ... and that table's corners are GRBL's: it slows to rest at a sharp one and speeds up again
+        table = ctx.lab.table
+        stops = {"stop_accel_mm_s2": table.accel_mm_s2} if family is not None and table is not None \
+            and cfg.tracking.stop_corners else {}
+        self.tracker = MarkerTracker.from_config(cfg.tracking, family=family, **stops)
         log("tracking_prior", t=t_start, family=family, curve_prior=self.tracker.curve_prior)
         self.stage = "wait"
         self.stage_times = StageTimes()

@@ -125,7 +125,7 @@ def simulate_run(lab: Lab, ctx: RunContext, spec: TrialSpec, record=None, *, hea
     # predictor catches up on the ones exposed while it was busy (run.catch_up_frames; a robot command's round
     # trip is 5-6 frames). Catching up before the first sighting too moved the start by up to a frame and
     # made the predictor commit on more frames of the object standing while the table's program started:
-    # 96 of 100 trials at 100 mm/s on the circle failed (docs/notes/planning.md, "Frames caught up").
+    # 50 of 60 trials at 50 mm/s failed (docs/notes/planning.md, "Frames caught up").
     grid0: float | None = None
     n = fixed_seq = 0
     next_beat = 0.0
