@@ -18,3 +18,23 @@ def tsai_points():
 
     path = TSAI_DATA / "willson_ncc_cd_300pts.txt"
     return np.loadtxt(path)
+
+
+@pytest.fixture
+def run_with_events():
+    """``run(lab, ctx, spec) -> (result, events)``: a virtual run and its record's events, (name, fields) in order."""
+    from labctl.workers.virtual import simulate_run
+
+    def run(lab, ctx, spec):
+        events = []
+
+        class Rec:
+            def event(self, name, **fields):
+                events.append((name, fields))
+
+            def save_image(self, name, image):
+                pass
+
+        return simulate_run(lab, ctx, spec, Rec()), events
+
+    return run

@@ -24,20 +24,6 @@ def ctx(lab):
     return RunContext.load(lab)
 
 
-def _run_with_events(lab, ctx, spec):
-    """A virtual run and its record's events, (name, fields) in order."""
-    events = []
-
-    class Rec:
-        def event(self, name, **fields):
-            events.append((name, fields))
-
-        def save_image(self, name, image):
-            pass
-
-    return simulate_run(lab, ctx, spec, Rec()), events
-
-
 @pytest.mark.parametrize("seed", [1, 2, 3])
 def test_virtual_run_identifies_the_object(lab, ctx, seed):
     res = simulate_run(lab, ctx, TrialSpec("line", 8.0, None, seed))
@@ -108,7 +94,7 @@ def test_fresh_workspace_runs(tmp_path):
     assert np.isfinite(res["time_to_identity_s"])
 
 
-def test_images_follow_the_robots_arrival_without_a_status_round_trip(lab, ctx, monkeypatch):
+def test_images_follow_the_robots_arrival_without_a_status_round_trip(lab, ctx, monkeypatch, run_with_events):
     """Issue 16: each image is requested as soon as the controller's @DONE reaches the host (the
     arrival + ~16 bytes at 9600 bps), and no STATUS round trip (0.1 s) sits between the run's start
     and its identity: the rest pose comes from the robot's opening, arrivals from @DONE."""
@@ -122,7 +108,7 @@ def test_images_follow_the_robots_arrival_without_a_status_round_trip(lab, ctx, 
         return real_status(self)
 
     monkeypatch.setattr(SerialRobot, "status", status)
-    res, events = _run_with_events(lab, ctx, TrialSpec("line", 8.0, None, 1, profile="ruckig"))
+    res, events = run_with_events(lab, ctx, TrialSpec("line", 8.0, None, 1, profile="ruckig"))
     assert res["correct"], res
     t0 = next(f["t"] for n, f in events if n == "truth")
     t_done = next(f["t"] for n, f in events if n == "identity")
@@ -141,11 +127,11 @@ def test_images_follow_the_robots_arrival_without_a_status_round_trip(lab, ctx, 
     assert res["stages"]["match"] <= 1.0 / lab.mobile_camera.fps + 0.03
 
 
-def test_the_predictor_tracks_the_frames_exposed_while_it_commanded_the_robot(lab, ctx):
+def test_the_predictor_tracks_the_frames_exposed_while_it_commanded_the_robot(lab, ctx, run_with_events):
     """Each segment command blocks the predictor's loop for its round trip at 9600 bps (~0.1-0.2 s, longer
     than a frame): the fixed camera's frames from then are caught up on (run.catch_up_frames), so from the
     first sighting on every frame is tracked, across every segment sent."""
-    res, events = _run_with_events(lab, ctx, TrialSpec("zigzag", 30.0, None, 2))
+    res, events = run_with_events(lab, ctx, TrialSpec("zigzag", 30.0, None, 2))
     assert res["correct"], res
     dt = 1.0 / lab.config.run.fps
     tracked = np.array([f["t"] for n, f in events if n == "track"])

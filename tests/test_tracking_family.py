@@ -70,24 +70,15 @@ def test_the_family_prior_is_a_lab_setting(tmp_path):
         load_lab(root)
 
 
-def test_a_virtual_run_tells_the_tracker_the_table_programs_family():
+def test_a_virtual_run_tells_the_tracker_the_table_programs_family(run_with_events):
     """The run path: simulate_run → PredictorPlanner → MarkerTracker.from_config(family=the trajectory)."""
     from labctl.config import load_lab
     from labctl.workers.context import RunContext
-    from labctl.workers.virtual import TrialSpec, simulate_run
+    from labctl.workers.virtual import TrialSpec
     from labctl.workspace import sample_lab_path
 
     lab = load_lab(sample_lab_path())
-    events = []
-
-    class Rec:
-        def event(self, name, **fields):
-            events.append((name, fields))
-
-        def save_image(self, name, image):
-            pass
-
-    res = simulate_run(lab, RunContext.load(lab), TrialSpec("zigzag", 10.0, None, 3), Rec())
+    res, events = run_with_events(lab, RunContext.load(lab), TrialSpec("zigzag", 10.0, None, 3))
     assert res["correct"], res
     prior = [f for n, f in events if n == "tracking_prior"]
     assert prior == [{"t": prior[0]["t"], "family": "zigzag",
