@@ -436,7 +436,7 @@ class ReplayCamera(OpenClose):
         self.name = name or self.folder.name
         self._frames: list[tuple[float, Path]] = []
         self._next = 0
-        self._delivered_i: int | None = None  # with a clock: the last frame grab_recent() delivered
+        self._delivered_i: int | None = None  # with a clock: the index of the last frame delivered
 
     @classmethod
     def from_config(cls, cfg, root: Path | None = None, **kw) -> ReplayCamera:
@@ -476,6 +476,7 @@ class ReplayCamera(OpenClose):
             i = int(np.searchsorted(times, now, side="right")) - 1
             if i < 0:
                 raise CameraError(f"replay camera {self.name}: no frame before t={now:.3f}")
+            self._delivered_i = i
             return self._load(i)
         if self._next >= len(self._frames):
             if not self.loop:
@@ -490,9 +491,8 @@ class ReplayCamera(OpenClose):
         and at or before the clock's now (the newest ``max_frames``), else the newest one."""
         if self.clock is None or not self._frames:
             return [self.grab()]
-        newest = self.grab()
         last = self._delivered_i
-        self._delivered_i = newest.seq - 1
+        newest = self.grab()
         first = newest.seq - 1 if last is None else max(last + 1, newest.seq - max(1, int(max_frames)))
         return [self._load(i) for i in range(first, newest.seq - 1)] + [newest]
 

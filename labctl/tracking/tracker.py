@@ -780,7 +780,6 @@ class MarkerTracker:
         (τ from there), ``δp`` under its covariance and ``v2`` free (both by least squares).
         Bar-Shalom et al. 2001 §11.3 (a manoeuvre's onset by ML); units of the old track's NIS.
         """
-        R = self._R[0, 0]
         ft = np.array([f[0] for f in frames])
         fz = np.array([f[1] for f in frames]).reshape(-1, 2)
         # candidates whose new leg has ≥ 2 frames; for each, suffix sums over the frames since entries[j]
@@ -810,17 +809,26 @@ class MarkerTracker:
         sz = Sz - n[:, None] * p0
         stz = Stz - t0[:, None] * Sz - st[:, None] * p0
         szz = Szz - 2 * np.sum(p0 * Sz, axis=1) + n * np.sum(p0 * p0, axis=1)
-        # normal equations of (δp, v2) with the prior δp ~ N(0, P0_pos); the minimum of the quadratic is c − bᵀA⁻¹b
-        eye = np.eye(2)
-        A = np.zeros((len(js), 4, 4))
-        A[:, :2, :2] = np.linalg.inv(P0) + eye * (n / R)[:, None, None]
-        A[:, :2, 2:] = A[:, 2:, :2] = eye * (st / R)[:, None, None]
-        A[:, 2:, 2:] = eye * (stt / R)[:, None, None]
-        bvec = np.concatenate([sz, stz], axis=1) / R
-        sol = np.linalg.solve(A, bvec[:, :, None])[:, :, 0]
-        costs = nis0 + szz / R - np.sum(bvec * sol, axis=1) + n * np.log(R * R)
+        A, sol, costs = self._new_leg_fit(P0, nis0, n, st, stt, sz, stz, szz)
         zero = np.zeros(len(js))
         return js, costs, sol[:, 2:], sol[:, :2], A, (t0, zero, zero, np.zeros((len(js), 2)))
+
+    def _new_leg_fit(self, P0, nis0, n, sg, sgg, sy, sgy, syy, prior_v: float = 0.0) -> tuple[np.ndarray, ...]:
+        """Each candidate's new leg ``δp + v2·g`` by least squares: (normal matrices (n, 4, 4), (δp, v2) (n, 4), costs).
+
+        From the sums over its frames of 1 (``n``), the regressor ``g`` and ``g²``, the residual ``y`` after the
+        anchor, ``g·y`` and ``|y|²``; ``δp ~ N(0, P0)``, ``v2`` with the prior precision ``prior_v`` per axis.
+        The cost is the old track's NIS ``nis0`` plus the minimum of the quadratic, ``c − bᵀA⁻¹b``.
+        """
+        R = self._R[0, 0]
+        eye = np.eye(2)
+        A = np.zeros((len(n), 4, 4))
+        A[:, :2, :2] = np.linalg.inv(P0) + eye * (n / R)[:, None, None]
+        A[:, :2, 2:] = A[:, 2:, :2] = eye * (sg / R)[:, None, None]
+        A[:, 2:, 2:] = eye * (sgg / R + prior_v)[:, None, None]
+        bvec = np.concatenate([sy, sgy], axis=1) / R
+        sol = np.linalg.solve(A, bvec[:, :, None])[:, :, 0]
+        return A, sol, nis0 + syy / R - np.sum(bvec * sol, axis=1) + n * np.log(R * R)
 
     def _stop_corner_costs(self, entries, js, start, ft, fz, t0, p0, P0, nis0) -> tuple:
         """:meth:`_corner_costs` for a table that stops at its corners (``stop_accel_mm_s2``, GRBL at a sharp junction).
@@ -832,7 +840,7 @@ class MarkerTracker:
         straight new leg from the anchor (the instant corner) put the 5-s prediction 7.3× the bound 0.5 s after
         a 50 mm/s stop (docs/notes/planning.md, seventh round). Also returns, per candidate, ``(t0, r1, r2, v1)``.
         """
-        R, a = self._R[0, 0], self._stop_accel
+        a = self._stop_accel
         v1 = np.array([entries[j - 1][2][self._vel, 0] for j in js])
         # the old leg slows down from anywhere in the frame interval after entries[j-1]: a quarter-frame grid
         # (each j four times; a start a frame late put the 5-s prediction 2× the bound 1.5 s after 50 mm/s)
@@ -852,23 +860,16 @@ class MarkerTracker:
         y = (fz[None, :, :] - p0[:, None, :] - v1[:, None, :] * down[:, :, None]) * mask[:, :, None]
         syy = np.einsum("cfk,cfk->c", y, y)
         sy = y.sum(axis=1)
-        eye = np.eye(2)
         prior_v = 1.0 / self._init_sigmas[0] ** 2  # the new leg's diffuse speed, as a restart starts it
 
-        def solve(r2):  # the normal equations of (δp, v2) for the new leg's ramp r2, as _corner_costs's
+        def fit(r2):
             g = _stop_profiles(tau, r1[:, None], r2[:, None])[2] * mask
             sg, sgg, sgy = g.sum(axis=1), (g * g).sum(axis=1), np.einsum("cf,cfk->ck", g, y)
-            A = np.zeros((len(js), 4, 4))
-            A[:, :2, :2] = np.linalg.inv(P0) + eye * (n / R)[:, None, None]
-            A[:, :2, 2:] = A[:, 2:, :2] = eye * (sg / R)[:, None, None]
-            A[:, 2:, 2:] = eye * (sgg / R + prior_v)[:, None, None]
-            bvec = np.concatenate([sy, sgy], axis=1) / R
-            return A, bvec, np.linalg.solve(A, bvec[:, :, None])[:, :, 0]
+            return self._new_leg_fit(P0, nis0, n, sg, sgg, sy, sgy, syy, prior_v)
 
-        first = solve(r1)[2]  # the legs share the program's feed: the old leg's speed first
+        first = fit(r1)[1]  # the legs share the program's feed: the old leg's speed first
         r2 = np.hypot(first[:, 2], first[:, 3]) / a
-        A, bvec, sol = solve(r2)
-        costs = nis0 + syy / R - np.sum(bvec * sol, axis=1) + n * np.log(R * R)
+        A, sol, costs = fit(r2)
         return js, costs, sol[:, 2:], sol[:, :2] + shift, A, (t0, r1, r2, v1)
 
     def _anchor_cov(self, entries: list, j: int, between_frames: bool = True) -> np.ndarray:
