@@ -7,9 +7,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from fakes import SegmentRobot
 
 from labctl.config import load_lab
-from labctl.drivers.interfaces import RobotStatus
 from labctl.sim.world import home_flange_pose
 from labctl.workers import messages as m
 from labctl.workers.context import RunContext
@@ -20,20 +20,6 @@ from labctl.workspace import sample_lab_path
 @pytest.fixture(scope="module")
 def ctx():
     return RunContext.load(load_lab(sample_lab_path()))
-
-
-class SegmentRobot:
-    """A controller that takes every segment and stands at ``pose``."""
-
-    def __init__(self, pose):
-        self.pose, self.segments = pose, []
-
-    def status(self):
-        return RobotStatus(T_base_flange=self.pose, moving=False, segment_id=0, t=0.0)
-
-    def segment(self, T_end, duration, seg_id, replace=True, **kw):
-        self.segments.append(np.array(T_end))
-        return float("nan"), float("nan")
 
 
 def _a_pose():
