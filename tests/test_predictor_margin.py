@@ -8,9 +8,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from fakes import SegmentRobot
 
 from labctl.config import load_lab
-from labctl.drivers.interfaces import RobotStatus
 from labctl.sim.world import home_flange_pose
 from labctl.workers.context import RunContext
 from labctl.workers.predictor import PredictorPlanner
@@ -22,20 +22,6 @@ AZIMUTH_STEPS = (0.0, 20.0, -20.0, 45.0, -45.0, 90.0, -90.0, 180.0)
 @pytest.fixture(scope="module")
 def ctx():
     return RunContext.load(load_lab(sample_lab_path()))
-
-
-class SegmentRobot:
-    """A controller on its own clock that takes every segment and stands at ``pose`` until then."""
-
-    def __init__(self, pose):
-        self.pose, self.segments = pose, []
-
-    def status(self):
-        return RobotStatus(T_base_flange=self.pose, moving=False, segment_id=0, t=0.0)
-
-    def segment(self, T_end, duration, seg_id, replace=True, **kw):
-        self.segments.append((np.array(T_end), float(duration)))
-        return float("nan"), float("nan")
 
 
 def _track(p, t0, t1, start, v):
@@ -58,6 +44,7 @@ def test_a_view_the_margin_puts_out_of_reach_is_planned_and_re_planned_at_the_no
     assert np.allclose(robot.segments[0][0][:3, 3], nominal.trajectory.segments[0].state(
         nominal.trajectory.segments[0].t1)[0], atol=0.01)  # the nominal view, not a failed run
     _track(p, 1.0 + 1.0 / 30.0, 1.3, (150.0 - 0.2 * 50.0, 200.0), (60.0, 0.0))  # it sped up: a new aim
+    monkeypatch.setattr(p, "_initial_view_holds", lambda: False)  # ... that leaves the view under way
     p._replan(1.3)
     assert len(robot.segments) == 2 and not p.finished
 
@@ -74,3 +61,35 @@ def test_the_tracker_is_told_the_tables_stops_only_when_set_and_labctl_drives_th
     p = PredictorPlanner(dataclasses.replace(ctx, lab=lab), SegmentRobot(home_flange_pose(lab)), lambda msg: None,
                          lambda *a, **k: None, family=family)
     assert p.tracker._stop_accel == (lab.table.accel_mm_s2 if told else None)
+
+
+def _planned_initial_view(ctx):
+    """An initial view planned at 1 s for a marker tracked at 50 mm/s along +y."""
+    robot = SegmentRobot(home_flange_pose(ctx.lab))
+    p = PredictorPlanner(ctx, robot, lambda msg: None, lambda *a, **k: None)
+    _track(p, 0.0, 1.0, (200.0, 150.0), (0.0, 50.0))
+    p.t_first_seen, p.stage = 0.0, "intercept"
+    p.azimuth_deg = p._choose_azimuth()
+    assert p._plan_initial(1.0, "initial1") and len(robot.segments) == 1 and p._initial_view_holds()
+    return p, robot
+
+
+def _then(p, t1, v_y, turn=False):
+    """The marker's frames from 1 s to ``t1`` at ``v_y`` mm/s along y (or along x, if it ``turn``s)."""
+    for t in np.arange(1.0 + 1.0 / 30.0, t1 + 1e-9, 1.0 / 30.0):
+        p.tracker.update(float(t), np.array([200.0 + v_y * (t - 1.0) * turn, 200.0 + v_y * (t - 1.0) * (not turn)]))
+
+
+@pytest.mark.parametrize("v_y, turn, re_aimed", [(65.0, False, False), (40.0, False, True), (150.0, True, True)])
+def test_an_initial_view_is_not_re_aimed_to_arrive_later_at_a_marker_it_already_holds(ctx, v_y, turn, re_aimed):
+    """An initial image needs the marker in view, not centred: a re-plan that would arrive later only to centre it
+    is skipped (the table's start ramp: docs/notes/planning.md, "Ninth round"). One that arrives sooner is taken,
+    and so is one for a marker the view under way would lose (it turned and ran off at 150 mm/s)."""
+    p, robot = _planned_initial_view(ctx)
+    _then(p, 1.3, v_y, turn)
+    new = p._plan(1.3, "initial1", p._initial_view_target(p.azimuth_deg))
+    holds = p._initial_view_holds()
+    assert (new.t_hit > p.plan.t_hit + 0.02, holds) == {(65.0, False): (True, True), (40.0, False): (False, True),
+                                                        (150.0, True): (True, False)}[(v_y, turn)]
+    p._replan(1.3)
+    assert len(robot.segments) == 1 + re_aimed

@@ -211,3 +211,26 @@ def test_line_bound_with_dropped_frames_is_the_fit_over_the_frames_kept():
     clean = scn.truth(scn.times)
     np.testing.assert_allclose(ml_prediction(scn, clean, 61, 5.0, keep=keep), scn.truth([scn.times[60] + 5.0])[0],
                                atol=1e-6)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.floats(-0.6, 0.6), st.floats(-0.6, 0.6), st.floats(0.0, 60.0), st.floats(500.0, 1500.0),
+       st.floats(0.3, 1.0))
+def test_a_view_holds_the_marker_where_a_pinhole_says_it_lies_in_the_central_image(fx, fy, margin, depth, fill):
+    """``view_holds_marker`` against the pinhole projection written out here: a camera looking down from
+    ``depth`` mm sees a point at image offset (u, v) px; it holds when |u| + margin·f/depth ≤ fill·w/2 (and in v)."""
+    from labctl.geometry import look_at
+    from labctl.planning.targets import view_holds_marker
+    from labctl.vision.synthetic import issue_camera
+
+    cam = issue_camera()
+    f = 2500.0
+    T_w_c = look_at([0.0, 0.0, depth], [0.0, 0.0, 0.0], up=(0.0, 1.0, 0.0))
+    u, v = fx * cam.width / 2, fy * cam.height / 2  # the wanted pixel offsets from the image centre
+    x_c, y_c = u * depth / f, v * depth / f  # camera frame: +x right, +y down
+    marker_w = (T_w_c @ np.array([x_c, y_c, depth, 1.0]))[:3]
+    slack = margin * f / depth
+    expected = abs(u) + slack <= fill * cam.width / 2 and abs(v) + slack <= fill * cam.height / 2
+    if min(abs(abs(u) + slack - fill * cam.width / 2), abs(abs(v) + slack - fill * cam.height / 2)) > 1e-6:
+        assert view_holds_marker(cam, T_w_c, marker_w, margin, fill) == expected
+    assert not view_holds_marker(cam, T_w_c, (T_w_c @ np.array([0.0, 0.0, -depth, 1.0]))[:3], 0.0)  # behind

@@ -67,20 +67,28 @@ def acceptance_summary(rows: list[dict]) -> dict:
     """Per model: acceptance cells whose ratio holds and whose NEES is inside its 95 % bounds, of how many.
 
     ``nees_frac_holds``: cells whose fraction of runs with NEES under chi-square(2)'s 95 % point is inside
-    its binomial bounds (tail-robust; reported beside the mean-NEES check, not instead of it).
+    its binomial bounds (tail-robust; reported beside the mean-NEES check, not instead of it). ``nees_fails``:
+    each cell whose mean NEES is outside its bounds, with the reference estimator's on the same runs (the ML
+    fit's errors against the Cramér-Rao covariance, ``nees_ml_crb``); ``nees_fails_reference_too`` counts those
+    where the reference is outside as well.
     """
     out: dict[str, dict] = {}
     for r in rows:
         if r["ratio_limit"] is None:
             continue
         s = out.setdefault(r["model"], {"cells": 0, "ratio_holds": 0, "nees_holds": 0, "nees_frac_holds": 0,
-                                        "ratio_fails": []})
+                                        "ratio_fails": [], "nees_fails": [], "nees_fails_reference_too": 0})
         s["cells"] += 1
         s["ratio_holds"] += bool(r["ratio_holds"])
         s["nees_holds"] += bool(r["nees_holds"])
         s["nees_frac_holds"] += bool(r.get("nees_frac_holds", False))  # runs with NEES ≤ 5.99: binomial bounds
+        cell = f"{r['family']} @ {r['speed_mm_s']:g} at {r['at_s']:g} s"
         if not r["ratio_holds"]:
-            s["ratio_fails"].append(f"{r['family']} @ {r['speed_mm_s']:g} at {r['at_s']:g} s: {r['ratio']:.2f}x")
+            s["ratio_fails"].append(f"{cell}: {r['ratio']:.2f}x")
+        if not r["nees_holds"]:
+            ref = r.get("nees_ml_crb")
+            s["nees_fails"].append(f"{cell}: {r['nees']:.2f}" + ("" if ref is None else f" (reference {ref:.2f})"))
+            s["nees_fails_reference_too"] += r.get("ml_nees_holds") is False
     return out
 
 
@@ -118,7 +126,7 @@ def _bound_table(quick: bool, models=None, *, runs: int | None = None, acceptanc
         track_s = () if zig and acceptance_only else (1.9,) if zig else tuple(ACCEPTANCE)
         after_corner_s = () if not zig else tuple(CORNER_ACCEPTANCE) if acceptance_only else AFTER_CORNER_S
         for speed in speeds:
-            ml = None
+            ml, ml_nees = None, {}
             for name, kw in (models or MODELS).items():
                 res = compare_with_bound(lambda kw=kw, told=told: _make_tracker(kw, told), family, speed,
                                          runs=runs, rate_hz=fps, sigma_mm=sigma, with_ml=with_ml and ml is None,
@@ -127,6 +135,7 @@ def _bound_table(quick: bool, models=None, *, runs: int | None = None, acceptanc
                                          drop_frames=drop_frames)
                 if ml is None:
                     ml = {t: r.get("ml_rms_mm", np.inf) for t, r in res.items()}
+                    ml_nees = {t: r.get("nees_ml_crb") for t, r in res.items()}
                 for t, r in res.items():
                     ref = min(r["crb_mm"], ml[t])
                     after_corner = bool(zig and t > corner_s)
@@ -147,6 +156,8 @@ def _bound_table(quick: bool, models=None, *, runs: int | None = None, acceptanc
                                  "nees_frac_holds": bool(r["nees_frac_bounds"][0] <= r["nees_frac_95"]
                                                          <= r["nees_frac_bounds"][1]),
                                  "nees_crb": round(r["nees_crb"], 2), "cov_to_crb": round(r["cov_to_crb"], 3),
+                                 "nees_ml_crb": None if ml_nees[t] is None else round(ml_nees[t], 2),
+                                 "ml_nees_holds": None if ml_nees[t] is None else bool(lo <= ml_nees[t] <= hi),
                                  "runs": runs, "corner_frames": corner_frames if zig else None})
     return rows
 

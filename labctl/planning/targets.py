@@ -161,6 +161,21 @@ def prediction_margin_mm(cov, n_sigma: float = 3.0) -> float:
     return float(n_sigma) * float(np.sqrt(max(lam, 0.0)))
 
 
+def view_holds_marker(camera, T_w_c: np.ndarray, marker_w, margin_mm: float, fill: float = 0.5) -> bool:
+    """Whether a camera at ``T_w_c`` (4×4, W ← camera) sees the marker point ``marker_w`` (mm, W) inside the
+    central ``fill`` of its image on each axis, with the prediction's ``margin_mm`` (its 3-σ radius on the table
+    plane, projected at the marker's depth) to spare. ``camera``: a :class:`labctl.geometry.CameraModel`.
+    The rule :func:`viewing_distance_with_margin` sizes the initial view by, checked for one pose (issue 18).
+    """
+    p_c = np.linalg.inv(np.asarray(T_w_c, dtype=float)) @ np.append(np.asarray(marker_w, dtype=float), 1.0)
+    if not p_c[2] > 0:
+        return False
+    px = camera.project(p_c[:3])
+    slack = max(float(margin_mm), 0.0) * np.diag(camera.K)[:2] / float(p_c[2])
+    half = 0.5 * np.array([camera.width, camera.height], dtype=float)
+    return bool(np.all(np.abs(px - (half - 0.5)) + slack <= fill * half))
+
+
 def viewing_distance_with_margin(distance_mm: float, margin_mm: float, half_fov_rad: float,
                                  marker_radius_mm: float = 0.0, fill: float = 0.5) -> float:
     """The initial viewing distance (mm), lengthened if the prediction is too uncertain for it.

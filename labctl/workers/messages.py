@@ -57,6 +57,7 @@ class FailureCode:
     NO_MARKER_FOUND = 6
     NO_MATCH = 7
     DEVICE = 8
+    VIEW_MISALIGNED = 9  # a standard view whose marker is off the image centre or oblique: the aim missed
 
 
 # ---- field helpers (validation + float32 rounding) -------------------------------------------

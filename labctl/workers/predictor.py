@@ -30,7 +30,7 @@ from ..geometry import make_T, matrix_to_rotvec, rotvec_to_matrix
 from ..planning import Interception, camera_placement_trajectory, plan_interception, rest_to_rest_times
 from ..planning.ruckig_interception import plan_interception_ruckig, ruckig_limits
 from ..planning.ruckig_profile import controller_limits
-from ..planning.targets import prediction_margin_mm, standard_view_path, viewing_distance_with_margin
+from ..planning.targets import prediction_margin_mm, standard_view_path, view_holds_marker, viewing_distance_with_margin
 from ..tracking.tracker import MarkerTracker
 from ..vision import detect_markers, detect_markers_windowed, red_blob_centroid
 from . import messages as m
@@ -349,6 +349,8 @@ class PredictorPlanner:
         self.t_last_plan = now
         if not plan.reachable:
             return  # keep executing the current plan
+        if self.plan_kind != "standard" and plan.t_hit > self.plan.t_hit and self._initial_view_holds():
+            return  # a later arrival only to centre a marker the view under way already holds
         old_end = self.plan.trajectory.state(self.plan.t_hit)[0]
         new_end = plan.trajectory.state(plan.t_hit)[0]
         if np.linalg.norm(new_end - old_end) > 0.5 or abs(plan.t_hit - self.plan.t_hit) > 0.02:
@@ -380,6 +382,20 @@ class PredictorPlanner:
         p1 = G(np.array([now]))[0][0]
         p0 = self._flange_state(now)[0][0]
         return rest_to_rest_times(p0, p1, self.ctx.limits.v_max, self.ctx.limits.a_max)[0]
+
+    def _initial_view_holds(self) -> bool:
+        """Does the initial view under way still show the marker inside the central half of the image at its
+        arrival, by the newest prediction with its 3-σ margin? An initial image needs the marker in view, not
+        centred; re-aiming at the centre each time the prediction moves lengthens the flight (the table's start
+        ramp: docs/notes/planning.md, "Ninth round")."""
+        traj, t_hit = self.plan.trajectory, self.plan.t_hit
+        R = traj.orientation(t_hit)
+        if R is None:
+            return False
+        T_w_c = make_T(R, traj.state(t_hit)[0]) @ self.ctx.T_f_c2
+        mean, cov = self.tracker.predict(t_hit)
+        marker = np.array([mean[0], mean[1], self.ctx.plane_height_mm])
+        return view_holds_marker(self.ctx.mobile_camera, T_w_c, marker, prediction_margin_mm(cov))
 
     def _plan_standard(self, now: float) -> bool:
         _, R = self._flange_state(now)
@@ -622,7 +638,12 @@ class PredictorPlanner:
         elif isinstance(msg, m.Failure):
             self.pending = None
             self.log("recognizer_failure", t=now, code=msg.code, text=msg.text)
-            if msg.code in (m.FailureCode.NO_MARKER_FOUND, m.FailureCode.MARKER_LOST, m.FailureCode.NO_MATCH):
+            if msg.code == m.FailureCode.VIEW_MISALIGNED:
+                # the aim missed (the table turned during the flight): nothing was matched, so the view does not
+                # count towards run.max_views, which bounds the views an ambiguity may take
+                self.views_used -= 1
+            if msg.code in (m.FailureCode.NO_MARKER_FOUND, m.FailureCode.MARKER_LOST, m.FailureCode.NO_MATCH,
+                            m.FailureCode.VIEW_MISALIGNED):
                 if not self._try_spare(now):
                     self._next_marker(now)
             else:

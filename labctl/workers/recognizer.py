@@ -336,7 +336,8 @@ class Recognizer:
         problem = self._misaligned(frame.image)
         if problem:  # a view not along the normal would be matched against the wrong standard view
             self.log("standard_view_misaligned", t=frame.t, view_id=msg.view_id, view=k, problem=problem)
-            return m.Failure(code=m.FailureCode.NO_MATCH, text=f"standard view {k} is not along the marker normal")
+            return m.Failure(code=m.FailureCode.VIEW_MISALIGNED,
+                             text=f"standard view {k} is not along the marker normal")
         scale = mm_per_px(self.ctx.mobile_camera, self.ctx.lab.config.viewing.standoff_mm)
         try:
             mask = silhouette_mask(frame.image)

@@ -161,3 +161,22 @@ def run_cli(capsys, *args) -> tuple[int, str, str]:
         code = exc.code or 0
     out, err = capsys.readouterr()
     return code, out, err
+
+
+class SegmentRobot:
+    """A robot controller on its own clock that takes every segment and stands at ``pose`` (4×4) until then:
+    for the predictor's planning, where no motion is wanted. ``segments``: (T_end, duration) as sent."""
+
+    def __init__(self, pose):
+        self.pose, self.segments = pose, []
+
+    def status(self):
+        from labctl.drivers.interfaces import RobotStatus
+
+        return RobotStatus(T_base_flange=self.pose, moving=False, segment_id=0, t=0.0)
+
+    def segment(self, T_end, duration, seg_id, replace=True, **kw):
+        import numpy as np
+
+        self.segments.append((np.array(T_end), float(duration)))
+        return float("nan"), float("nan")
