@@ -93,3 +93,14 @@ def test_an_initial_view_is_not_re_aimed_to_arrive_later_at_a_marker_it_already_
                                                         (150.0, True): (True, False)}[(v_y, turn)]
     p._replan(1.3)
     assert len(robot.segments) == 1 + re_aimed
+
+
+def test_the_initial_view_hold_is_a_setting(ctx):
+    import dataclasses
+
+    run = dataclasses.replace(ctx.lab.config.run, initial_view_hold=False)
+    lab = dataclasses.replace(ctx.lab, config=dataclasses.replace(ctx.lab.config, run=run))
+    p, robot = _planned_initial_view(dataclasses.replace(ctx, lab=lab))
+    _then(p, 1.3, 65.0)  # later and held: re-aimed all the same
+    p._replan(1.3)
+    assert len(robot.segments) == 2

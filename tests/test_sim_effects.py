@@ -227,6 +227,10 @@ def test_realistic_run_falls_back_to_a_suspect_marker_when_the_trusted_one_is_am
     # the robot limits this placement was found with: the viewpoints, and so which markers are seen, follow them
     cfg["run"]["robot_stop_budget_s"] = None
     cfg["run"]["profile"] = "quintic"  # (and the segment profile it was found with)
+    # (and the re-plans it was found with: holding an initial view that already has the marker makes the second
+    # and third viewpoints arrive seconds earlier, from where the side marker is not seen and the run ends
+    # "still ambiguous after 3 standard views"; docs/notes/planning.md, "Ninth round")
+    cfg["run"]["initial_view_hold"] = False
     (root / "lab.yaml").write_text(yaml.safe_dump(cfg))
     robot = yaml.safe_load((root / "drivers" / "robot.yaml").read_text())
     robot["a_max_mm_s2"] = 1500.0

@@ -153,6 +153,8 @@ class RunConfig:
     plan_horizon_s: Positive = 15.0  # how far ahead an interception is searched for
     replan_every_s: Positive = 0.25  # re-plan with the newest prediction at most this often ...
     replan_until_s: NonNegative = 0.4  # ... and not in the last this-many seconds before arrival
+    # an initial view that already holds the marker in its central half is not re-aimed to arrive later (issue 18)
+    initial_view_hold: bool = True
     marker_lost_s: Positive = 2.0  # no fixed-camera sighting for this long: the marker is lost
     spare_novelty_deg: NonNegative = 20.0  # a spare marker facing within this of a viewed face is not worth a view
     # which spare marker to view next: the one whose standard view is nearest, or the most novel face (issue 16)

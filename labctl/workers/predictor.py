@@ -349,7 +349,8 @@ class PredictorPlanner:
         self.t_last_plan = now
         if not plan.reachable:
             return  # keep executing the current plan
-        if self.plan_kind != "standard" and plan.t_hit > self.plan.t_hit and self._initial_view_holds():
+        if self.plan_kind != "standard" and run.initial_view_hold and plan.t_hit > self.plan.t_hit \
+                and self._initial_view_holds():
             return  # a later arrival only to centre a marker the view under way already holds
         old_end = self.plan.trajectory.state(self.plan.t_hit)[0]
         new_end = plan.trajectory.state(plan.t_hit)[0]
