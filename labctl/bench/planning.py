@@ -126,18 +126,17 @@ def _bound_table(quick: bool, models=None, *, runs: int | None = None, acceptanc
         track_s = () if zig and acceptance_only else (1.9,) if zig else tuple(ACCEPTANCE)
         after_corner_s = () if not zig else tuple(CORNER_ACCEPTANCE) if acceptance_only else AFTER_CORNER_S
         for speed in speeds:
-            ml, ml_nees = None, {}
+            first = None  # the first model's results: they carry the ML fit (the same runs for every model)
             for name, kw in (models or MODELS).items():
                 res = compare_with_bound(lambda kw=kw, told=told: _make_tracker(kw, told), family, speed,
-                                         runs=runs, rate_hz=fps, sigma_mm=sigma, with_ml=with_ml and ml is None,
+                                         runs=runs, rate_hz=fps, sigma_mm=sigma, with_ml=with_ml and first is None,
                                          track_s=track_s, after_corner_s=after_corner_s, seed=int(speed),
                                          corner_s=corner_s, table_accel_mm_s2=accel,
                                          drop_frames=drop_frames)
-                if ml is None:
-                    ml = {t: r.get("ml_rms_mm", np.inf) for t, r in res.items()}
-                    ml_nees = {t: r.get("nees_ml_crb") for t, r in res.items()}
+                first = first or res
                 for t, r in res.items():
-                    ref = min(r["crb_mm"], ml[t])
+                    ml_mm, ml_nees = first[t].get("ml_rms_mm", np.inf), first[t].get("nees_ml_crb")
+                    ref = min(r["crb_mm"], ml_mm)
                     after_corner = bool(zig and t > corner_s)
                     at = round(t - corner_s, 3) if after_corner else t
                     if family == "zigzag_stop" and at <= speed / accel:
@@ -147,7 +146,7 @@ def _bound_table(quick: bool, models=None, *, runs: int | None = None, acceptanc
                     rows.append({"family": family, "speed_mm_s": speed, "model": name, "at_s": at,
                                  "after_corner": after_corner,
                                  "rms_mm": round(r["rms_mm"], 3), "bound_mm": round(r["crb_mm"], 3),
-                                 "ml_mm": round(ml[t], 3) if with_ml else None, "ratio": round(r["rms_mm"] / ref, 3),
+                                 "ml_mm": round(ml_mm, 3) if with_ml else None, "ratio": round(r["rms_mm"] / ref, 3),
                                  "ratio_limit": limit,
                                  "ratio_holds": None if limit is None else bool(r["rms_mm"] / ref <= limit),
                                  "nees": round(r["nees"], 2), "nees_95": [round(lo, 2), round(hi, 2)],
@@ -156,8 +155,8 @@ def _bound_table(quick: bool, models=None, *, runs: int | None = None, acceptanc
                                  "nees_frac_holds": bool(r["nees_frac_bounds"][0] <= r["nees_frac_95"]
                                                          <= r["nees_frac_bounds"][1]),
                                  "nees_crb": round(r["nees_crb"], 2), "cov_to_crb": round(r["cov_to_crb"], 3),
-                                 "nees_ml_crb": None if ml_nees[t] is None else round(ml_nees[t], 2),
-                                 "ml_nees_holds": None if ml_nees[t] is None else bool(lo <= ml_nees[t] <= hi),
+                                 "nees_ml_crb": None if ml_nees is None else round(ml_nees, 2),
+                                 "ml_nees_holds": None if ml_nees is None else bool(lo <= ml_nees <= hi),
                                  "runs": runs, "corner_frames": corner_frames if zig else None})
     return rows
 

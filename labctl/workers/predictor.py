@@ -639,12 +639,12 @@ class PredictorPlanner:
         elif isinstance(msg, m.Failure):
             self.pending = None
             self.log("recognizer_failure", t=now, code=msg.code, text=msg.text)
-            if msg.code == m.FailureCode.VIEW_MISALIGNED:
-                # the aim missed (the table turned during the flight): nothing was matched, so the view does not
-                # count towards run.max_views, which bounds the views an ambiguity may take
-                self.views_used -= 1
             if msg.code in (m.FailureCode.NO_MARKER_FOUND, m.FailureCode.MARKER_LOST, m.FailureCode.NO_MATCH,
                             m.FailureCode.VIEW_MISALIGNED):
+                if msg.code == m.FailureCode.VIEW_MISALIGNED:
+                    # the aim missed (the table turned during the flight): nothing was matched, so the view does
+                    # not count towards run.max_views, which bounds the views an ambiguity may take
+                    self.views_used -= 1
                 if not self._try_spare(now):
                     self._next_marker(now)
             else:
