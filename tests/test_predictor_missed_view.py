@@ -39,11 +39,12 @@ def _planner_at_a_standard_view(ctx):
     return p, robot
 
 
-def _the_view_misses(p, now, code=m.FailureCode.VIEW_MISALIGNED):
+def _the_view_misses(p, now, code=m.FailureCode.VIEW_MISALIGNED, msg=None):
+    """The robot arrives at the standard view and the recogniser answers ``msg`` (a Failure with ``code``)."""
     p.views_used += 1  # as on arrival at the view
     p.plan, p.pending = None, 9
     p._enter("match", now)
-    p.on_message(m.Failure(code=code, text="standard view 1 is not along the marker normal"), now)
+    p.on_message(msg or m.Failure(code=code, text="standard view 1 is not along the marker normal"), now)
 
 
 def test_a_missed_standard_view_goes_to_another_marker_and_is_not_counted_as_a_view(ctx):
@@ -100,3 +101,27 @@ def test_the_recogniser_tells_a_missed_standard_view_from_a_failed_match(ctx):
         seen[aside] = rec._standard(req, Frame(image, 1.0, 1))
     assert isinstance(seen[150.0], m.Failure) and seen[150.0].code == m.FailureCode.VIEW_MISALIGNED, seen[150.0]
     assert getattr(seen[0.0], "code", None) != m.FailureCode.VIEW_MISALIGNED, seen[0.0]
+
+
+def test_a_missed_view_reaches_the_predictor_over_the_host_link_from_another_process(ctx):
+    """The recognizer's VIEW_MISALIGNED crosses the real host link (TCP, the workers' framing) from a separate
+    process, and the predictor does not count the view."""
+    import subprocess
+    import sys
+
+    from labctl.workers.transport import tcp_listen
+
+    p, robot = _planner_at_a_standard_view(ctx)
+    with tcp_listen("127.0.0.1", 0) as listener:
+        sender = subprocess.Popen([sys.executable, "-c", (
+            "import sys; from labctl.workers import messages as m; from labctl.workers.transport import tcp_connect\n"
+            "link = tcp_connect('127.0.0.1', int(sys.argv[1]))\n"
+            "link.send(m.Failure(code=m.FailureCode.VIEW_MISALIGNED, text='standard view 1 is not along the marker normal'))\n"
+            "link.close()\n"), str(listener.port)])
+        link = listener.accept(timeout=30.0)
+        msg = link.recv(timeout=30.0)
+        link.close()
+    assert sender.wait(timeout=30) == 0
+    assert isinstance(msg, m.Failure) and msg.code == m.FailureCode.VIEW_MISALIGNED, msg
+    _the_view_misses(p, 2.0, msg=msg)
+    assert p.views_used == 0 and p.stage == "intercept" and not p.finished
