@@ -116,7 +116,7 @@ def test_a_missed_view_reaches_the_predictor_over_the_host_link_from_another_pro
         sender = subprocess.Popen([sys.executable, "-c", (
             "import sys; from labctl.workers import messages as m; from labctl.workers.transport import tcp_connect\n"
             "link = tcp_connect('127.0.0.1', int(sys.argv[1]))\n"
-            "link.send(m.Failure(code=m.FailureCode.VIEW_MISALIGNED, text='standard view 1 is not along the marker normal'))\n"
+            "link.send(m.Failure(code=m.FailureCode.VIEW_MISALIGNED, text='standard view 1 missed'))\n"
             "link.close()\n"), str(listener.port)])
         link = listener.accept(timeout=30.0)
         msg = link.recv(timeout=30.0)
