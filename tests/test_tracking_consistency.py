@@ -58,3 +58,22 @@ def test_the_bench_names_the_nees_cells_the_reference_fails_too():
     assert (s["cells"], s["nees_holds"], s["nees_fails_reference_too"]) == (4, 1, 1)
     assert s["nees_fails"] == ["line @ 12 at 2 s: 1.36 (reference 1.44)", "line @ 12 at 4 s: 3.00 (reference 2.00)",
                                "line @ 12 at 3 s: 1.00"]
+
+
+def test_the_curve_covariance_is_the_posteriors_where_the_truth_follows_the_prior():
+    """After 2 s at 4 mm/s (8 mm of path) the curvature is the prior's, N(0, (1/80 mm)²). On the bench's one 200-mm
+    arc, at 0.4 σ of the prior's mean, the errors are smaller than the posterior says (NEES far below 2). With
+    each run's curvature drawn from that prior, as a Bayesian filter's covariance assumes, the same tracker's
+    mean NEES is chi-square(2)'s. The truth, the scenarios and the NEES are :mod:`labctl.tracking.bounds` and
+    :func:`compare_with_bound`, not the tracker."""
+    sigma = _tracker("arc")().curvature_prior_sigma
+    assert sigma == 1 / 80
+
+    def cell(curvature_sigma):
+        return compare_with_bound(_tracker("arc"), "arc", 4.0, runs=128, rate_hz=FPS, sigma_mm=SIGMA, with_ml=False,
+                                  track_s=(2.0,), seed=4, curvature_sigma=curvature_sigma)[2.0]
+
+    fixed, drawn = cell(None), cell(sigma)
+    lo, hi = drawn["nees_bounds"]
+    assert lo <= drawn["nees"] <= hi, drawn  # measured 2.05 (the bench's 256 runs: 2.05)
+    assert fixed["nees"] < lo, fixed  # measured 0.97 (the bench's 64 runs: 1.03, 256: 1.09)

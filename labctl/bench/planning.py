@@ -94,7 +94,7 @@ def acceptance_summary(rows: list[dict]) -> dict:
 
 def _bound_table(quick: bool, models=None, *, runs: int | None = None, acceptance_only: bool = False,
                  with_ml: bool = True, families=None, corner_frames: float = 0.0,
-                 drop_frames: float = 0.0) -> list[dict]:
+                 drop_frames: float = 0.0, curvature_sigma: float | None = None) -> list[dict]:
     """Each filter's 5-s prediction RMS and NEES against the bound, per family and speed (issue 18).
 
     The paths are :mod:`labctl.tracking.bounds`'s line, arc (r 200 mm), circle (r 80 mm) and
@@ -109,7 +109,8 @@ def _bound_table(quick: bool, models=None, *, runs: int | None = None, acceptanc
     fit can beat it); a filter's covariance there cannot be consistent without claiming better than
     the Cramér-Rao bound. ``corner_frames``: the zigzag's corner that many frame intervals after 2 s
     (a real corner lies between two frames; at 2 s it lies on one). ``drop_frames``: the share of frames
-    the tracker (and the bound) never gets (:func:`~labctl.tracking.synthetic.compare_with_bound`).
+    the tracker (and the bound) never gets; ``curvature_sigma``: arcs' and circles' curvature drawn per run from
+    N(0, curvature_sigma²) (both :func:`~labctl.tracking.synthetic.compare_with_bound`).
     """
     from ..config.lab import RunConfig
     from ..tracking.bounds import FAMILIES, SPEEDS, ZIGZAGS
@@ -132,7 +133,7 @@ def _bound_table(quick: bool, models=None, *, runs: int | None = None, acceptanc
                                          runs=runs, rate_hz=fps, sigma_mm=sigma, with_ml=with_ml and first is None,
                                          track_s=track_s, after_corner_s=after_corner_s, seed=int(speed),
                                          corner_s=corner_s, table_accel_mm_s2=accel,
-                                         drop_frames=drop_frames)
+                                         drop_frames=drop_frames, curvature_sigma=curvature_sigma)
                 first = first or res
                 for t, r in res.items():
                     ml_mm, ml_nees = first[t].get("ml_rms_mm", np.inf), first[t].get("nees_ml_crb")
@@ -327,6 +328,12 @@ def run(quick: bool = False) -> dict:
     # the informed tracker's NEES on 4x the runs (the first 64 are the main table's)
     consistency = _bound_table(quick, {INFORMED: MODELS[INFORMED]}, runs=16 if quick else CONSISTENCY_RUNS,
                                acceptance_only=True, with_ml=False)
+    # ... and on curves whose curvature follows the tracker's own prior (a fixed radius near the prior's mean scores
+    # a Bayesian filter's NEES below 2: docs/notes/planning.md, "Tenth round"). Arc and circle differ only in their
+    # radius, so with the curvature drawn they are one family: the arc's cells
+    prior_sigma = _make_tracker(MODELS[INFORMED], "arc").curvature_prior_sigma
+    prior_drawn = _bound_table(quick, {INFORMED: MODELS[INFORMED]}, runs=16 if quick else CONSISTENCY_RUNS,
+                               acceptance_only=True, with_ml=False, families=("arc",), curvature_sigma=prior_sigma)
     return {
         "rows": rows + irows + rrows,
         "interception": interception,
@@ -335,5 +342,7 @@ def run(quick: bool = False) -> dict:
         "acceptance": acceptance_summary(table),
         "consistency": consistency,
         "consistency_holds": f"{sum(r['nees_holds'] for r in consistency)} / {len(consistency)}",
+        "curvature_from_prior": prior_drawn,
+        "curvature_from_prior_holds": f"{sum(r['nees_holds'] for r in prior_drawn)} / {len(prior_drawn)}",
         "tracker_params": MODELS,
     }

@@ -111,10 +111,12 @@ class Scenario:
 
 def make_scenario(family: str, speed_mm_s: float, duration_s: float, *, rate_hz: float = 30.0,
                   sigma_mm: float = 0.7, heading_rad: float = 0.3, corner_s: float = 2.0,
-                  start=(0.0, 0.0), table_accel_mm_s2: float | None = None) -> Scenario:
+                  start=(0.0, 0.0), table_accel_mm_s2: float | None = None,
+                  curvature_mm_inv: float | None = None) -> Scenario:
     """A :class:`Scenario` of ``family`` at constant path speed, frames every ``1/rate_hz`` s from 0 to ``duration_s``.
 
-    Arcs and circles turn counter-clockwise at ``speed/RADII[family]``; the zigzag runs along
+    Arcs and circles turn counter-clockwise at ``speed/RADII[family]`` (or at ``speed·curvature_mm_inv``, signed:
+    negative turns clockwise); the zigzag runs along
     ``heading_rad`` and turns by the lab program's corner angle at ``corner_s``; ``zigzag_stop`` stands
     at the corner at ``corner_s`` and accelerates at ``table_accel_mm_s2`` (mm/s²).
     """
@@ -127,7 +129,8 @@ def make_scenario(family: str, speed_mm_s: float, duration_s: float, *, rate_hz:
     if family == "line":
         theta = np.r_[p0, v]
     elif family in ("arc", "circle"):
-        theta = np.r_[p0, v, speed_mm_s / RADII[family]]
+        kappa = 1.0 / RADII[family] if curvature_mm_inv is None else float(curvature_mm_inv)
+        theta = np.r_[p0, v, speed_mm_s * kappa]
     else:
         h2 = heading_rad - ZIGZAG_TURN_RAD
         theta = np.r_[p0 + corner_s * v, v, speed_mm_s * np.cos(h2), speed_mm_s * np.sin(h2), corner_s]

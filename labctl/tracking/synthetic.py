@@ -158,7 +158,8 @@ def prediction_errors(tracker, traj: TableTrajectory, horizons, warmup_s: float 
 def compare_with_bound(make_tracker, family: str, speed_mm_s: float, *, runs: int = 30, track_s=(2.0, 4.0),
                        horizon_s: float = 5.0, rate_hz: float = 30.0, sigma_mm: float = 0.7, with_ml: bool = True,
                        seed: int = 0, after_corner_s=(), corner_s: float = 2.0,
-                       table_accel_mm_s2: float | None = None, drop_frames: float = 0.0) -> dict:
+                       table_accel_mm_s2: float | None = None, drop_frames: float = 0.0,
+                       curvature_sigma: float | None = None) -> dict:
     """Monte-Carlo of a tracker's ``horizon_s`` prediction against the bound (:mod:`.bounds`) on one family.
 
     ``make_tracker()`` builds a fresh tracker; each run feeds it the frames of a
@@ -167,7 +168,11 @@ def compare_with_bound(make_tracker, family: str, speed_mm_s: float, *, runs: in
     instants that long after the corner (at ``corner_s``); ``table_accel_mm_s2``: the table's
     acceleration, for ``zigzag_stop`` (:func:`~.bounds.make_scenario`); ``drop_frames``: the share of
     frames the tracker never gets, each independently (never an instant's own frame), as a busy live
-    predictor skips some; the bound and the ML fit then use the same frames. Returns, per instant (keyed by its
+    predictor skips some; the bound and the ML fit then use the same frames. ``curvature_sigma`` (mm⁻¹; arcs and
+    circles): each run's curvature is drawn from N(0, curvature_sigma²) instead of the family's radius, i.e. the
+    truth follows a tracker's curvature prior of that width; a filter whose mean and covariance are the posterior's
+    then has a mean NEES of 2 over the runs (E[eᵀP⁻¹e] = tr(P⁻¹P)), where on one fixed radius near the prior's mean
+    it scores less. Returns, per instant (keyed by its
     time in s): the tracker's RMS error (mm), the Cramér-Rao bound on it, the RMS of the ML fit on
     the same measurements (if ``with_ml``), and the tracker's mean NEES of that prediction (2 dof)
     with its two-sided 95 % bounds for ``runs`` runs; and a tail-robust check of the same: the fraction of
@@ -198,10 +203,12 @@ def compare_with_bound(make_tracker, family: str, speed_mm_s: float, *, runs: in
     crb: dict[float, list[float]] = {t: [] for t in instants}
     nees_ml: dict[float, list[float]] = {t: [] for t in instants}
     drops = np.random.default_rng([seed, 1])  # its own stream: the runs' paths and noise do not change
+    curvatures = np.random.default_rng([seed, 2])  # the same: headings and noise as on the family's radius
     for _ in range(runs):
+        kappa = None if curvature_sigma is None else curvatures.normal(0.0, curvature_sigma)
         scn = make_scenario(family, speed_mm_s, duration, rate_hz=rate_hz, sigma_mm=sigma_mm,
                             heading_rad=rng.uniform(-np.pi, np.pi), corner_s=corner_s,
-                            table_accel_mm_s2=table_accel_mm_s2)
+                            table_accel_mm_s2=table_accel_mm_s2, curvature_mm_inv=kappa)
         z = scn.measure(rng)
         trk = make_tracker()
         marks = {int(round(t * rate_hz)): t for t in instants}

@@ -380,6 +380,11 @@ class MarkerTracker:
         """The IMM's prior probability of a curve (its CT mode) against a line, as built."""
         return self._curve_prior
 
+    @property
+    def curvature_prior_sigma(self) -> float:
+        """Standard deviation (mm⁻¹) of the CT mode's prior on the curvature, as built."""
+        return self._init_sigmas[1]
+
     @classmethod
     def from_config(cls, cfg, family: str | None = None, **overrides) -> MarkerTracker:
         """Build from a :class:`labctl.config.lab.TrackingConfig` (model, noises, gate, curve prior).
