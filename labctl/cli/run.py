@@ -27,14 +27,15 @@ def _trajectory(value: str, lab=None) -> str:
 
 def _speed(value: float | None, lab, trajectory: str | None = None) -> float:
     """The run's table speed (mm/s): ``value`` or lab.yaml's, in (0, 200] and, when labctl drives the table
-    (not ``external``), at most the table's maximum feed: GRBL would clamp a faster feed without a word, and the
-    run would record a speed the table never ran."""
+    (not ``external``), at most the table's maximum feed per axis: GRBL would clamp a faster feed without a word
+    where the path runs along an axis (every line, arc and circle program does somewhere), and the run would record
+    a speed the table never ran."""
     speed = lab.config.run.speed_mm_s if value is None else value
     if not 0 < speed <= 200:
         raise UserInputError(f"--speed must be in (0, 200] mm/s, got {speed}")
     if trajectory != "external" and lab.table is not None and speed > lab.table.max_feed_mm_min / 60.0 + 1e-9:
         where = lab.driver_paths.get("table", "the table's driver file")
-        raise UserInputError(f"--speed {speed:g} mm/s is above the table's maximum feed "
+        raise UserInputError(f"--speed {speed:g} mm/s is above the table's maximum feed per axis, "
                              f"{lab.table.max_feed_mm_min / 60.0:g} mm/s ({where}: max_feed_mm_min "
                              f"{lab.table.max_feed_mm_min:g} mm/min)")
     return speed
