@@ -105,3 +105,25 @@ def test_yaml_1_2_numbers_are_numbers(lab):
     text = (lab / "lab.yaml").read_text()
     (lab / "lab.yaml").write_text(re.sub(r"timeout_s: [0-9.]+", "timeout_s: 9.0e1", text, count=1))
     assert load_lab(lab).config.run.timeout_s == 90.0
+
+
+@pytest.mark.parametrize("args", [["run", "--virtual", "--seed", "1", "--speed", "150"],
+                                  ["trials", "--n", "1", "--speed", "50,150", "--no-record", "-j", "1"]])
+def test_a_speed_above_the_tables_maximum_feed_is_one_line_exit_2(lab, capsys, args):
+    """GRBL clamps a feed above its maximum rate ($110/$111) without a word: the run would record a speed the table
+    never ran. The sample table's max_feed_mm_min is 6000 (100 mm/s)."""
+    with pytest.raises(SystemExit) as info:
+        main(["--lab", str(lab), *args])
+    err = capsys.readouterr().err.strip()
+    assert info.value.code == 2 and len(err.splitlines()) == 1 and "Traceback" not in err, err
+    assert "150 mm/s" in err and "100 mm/s" in err and "table.yaml: max_feed_mm_min 6000" in err, err
+    runs = lab / "runs"
+    assert not runs.exists() or not any(runs.iterdir())
+
+
+def test_the_tables_maximum_feed_does_not_bound_motion_labctl_does_not_drive(lab):
+    from labctl.cli.run import _speed
+    from labctl.config import load_lab
+
+    loaded = load_lab(lab)
+    assert _speed(150.0, loaded, "external") == 150.0 and _speed(100.0, loaded, "line") == 100.0

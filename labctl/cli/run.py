@@ -25,10 +25,19 @@ def _trajectory(value: str, lab=None) -> str:
                          f"got {value!r}")
 
 
-def _speed(value: float | None, lab) -> float:
+def _speed(value: float | None, lab, trajectory: str | None = None) -> float:
+    """The run's table speed (mm/s): ``value`` or lab.yaml's, in (0, 200] and, when labctl drives the table
+    (not ``external``), at most the table's maximum feed per axis: GRBL would clamp a faster feed without a word
+    where the path runs along an axis (every line, arc and circle program does somewhere), and the run would record
+    a speed the table never ran."""
     speed = lab.config.run.speed_mm_s if value is None else value
     if not 0 < speed <= 200:
         raise UserInputError(f"--speed must be in (0, 200] mm/s, got {speed}")
+    if trajectory != "external" and lab.table is not None and speed > lab.table.max_feed_mm_min / 60.0 + 1e-9:
+        where = lab.driver_paths.get("table", "the table's driver file")
+        raise UserInputError(f"--speed {speed:g} mm/s is above the table's maximum feed per axis, "
+                             f"{lab.table.max_feed_mm_min / 60.0:g} mm/s ({where}: max_feed_mm_min "
+                             f"{lab.table.max_feed_mm_min:g} mm/min)")
     return speed
 
 
@@ -74,8 +83,8 @@ def run_cmd(trajectory, speed, object_name, seed, virtual) -> None:
 
     c = get_ctx()
     lab = c.lab()
-    spec = {"trajectory": _trajectory(trajectory or lab.config.run.trajectory, lab),
-            "speed_mm_s": _speed(speed, lab),
+    trajectory = _trajectory(trajectory or lab.config.run.trajectory, lab)
+    spec = {"trajectory": trajectory, "speed_mm_s": _speed(speed, lab, trajectory),
             "object_name": object_name, "seed": secrets.randbelow(2**31) if seed is None else seed}
     if (problem := lab.mixed_kinds_problem()) is not None:
         raise UserInputError(problem)
@@ -223,8 +232,8 @@ def worker_cmd(role, link, trajectory, speed) -> None:
     from ..workers.standalone import run_worker
 
     lab = get_ctx().lab()
-    spec = {"trajectory": _trajectory(trajectory or lab.config.run.trajectory, lab), "speed_mm_s": _speed(speed, lab),
-            "object_name": None, "seed": 0}
+    trajectory = _trajectory(trajectory or lab.config.run.trajectory, lab)
+    spec = {"trajectory": trajectory, "speed_mm_s": _speed(speed, lab, trajectory), "object_name": None, "seed": 0}
     result = run_worker(lab, role, spec, link)
     emit(result, lambda con: _print_result(con, result, None) if role == "predictor" else con.print(result["ended"]))
     if role == "predictor" and not result.get("identity"):

@@ -14,7 +14,7 @@ from __future__ import annotations
 import time
 
 from ..drivers.cameras import open_camera
-from ..errors import LabctlError
+from ..errors import DeviceError, LabctlError
 
 ROLES = ("table", "robot", "fixed_camera", "mobile_camera")
 
@@ -68,6 +68,60 @@ def open_device(role: str, lab, *, port: str | None = None, baud: int | None = N
     raise LabctlError(f"unknown device role {role!r} (have: {', '.join(ROLES)})")
 
 
+def robot_limits_problem(cfg, controller: dict) -> str | None:
+    """Where the lab's robot driver file ``cfg`` (:class:`labctl.config.RobotConfig`) promises more than the
+    controller's own ``LIMITS`` (``controller``, as :meth:`labctl.drivers.robot.SerialRobot.limits` returns them):
+    one line naming the file's key, or None.
+
+    The host plans every segment from the driver file (:func:`labctl.planning.ruckig_profile.controller_limits`:
+    vmax, amax, wmax, jmax, the stop ramp's a_stop = amax/√3 and angular 4·wmax per second, the box), and the
+    controller checks each against its own (docs/protocols/robot.md §5-§6, E10-E16): a file above them plans
+    moves the controller refuses mid-run. Lower is safe (the host asks for less). The heartbeat must also beat
+    the controller's watchdog, not only the file's."""
+    import math
+
+    from ..planning.ruckig_profile import controller_limits
+
+    host = controller_limits(cfg)
+
+    def above(mine: float, theirs: float) -> bool:
+        return mine > theirs * (1.0 + 1e-9) + 1e-6  # LIMITS prints up to 6 decimals
+
+    # (driver-file key, what the host plans with, LIMITS field, its name, unit, the key's largest safe value)
+    checks = [("v_max_mm_s", host.v_max, "v_max_mm_s", "vmax", "mm/s", 1.0),
+              ("a_max_mm_s2", host.a_max, "a_max_mm_s2", "amax", "mm/s²", 1.0),
+              ("w_max_deg_s", math.degrees(host.w_max), "w_max_deg_s", "wmax", "deg/s", 1.0),
+              ("j_max_mm_s3", host.j_max, "j_max_mm_s3", "jmax", "mm/s³", 1.0),
+              ("a_max_mm_s2", host.a_stop, "a_stop_mm_s2", "a_stop (amax/√3)", "mm/s²", math.sqrt(3.0)),
+              ("w_max_deg_s", math.degrees(host.alpha_max), "alpha_stop_deg_s2", "alpha_stop (4·wmax per second)",
+               "deg/s²", 0.25)]
+    for key, mine, field, name, unit, to_key in checks:
+        if field in controller and above(mine, theirs := float(controller[field])):
+            return (f"{key}: the host would plan with {name} {mine:g} {unit}, above the controller's {theirs:g} "
+                    f"(LIMITS), which refuses such moves; set {key} to at most {theirs * to_key:g}")
+    lo, hi = controller["workspace_min_mm"], controller["workspace_max_mm"]
+    for key, mine, outside in (("workspace_min_mm", cfg.workspace_min_mm, lambda a, b: a < b - 1e-6),
+                               ("workspace_max_mm", cfg.workspace_max_mm, lambda a, b: a > b + 1e-6)):
+        if any(outside(float(a), float(b)) for a, b in zip(mine, lo if key.endswith("min_mm") else hi)):
+            return (f"{key}: {list(mine)} reaches outside the controller's box {list(lo)} .. {list(hi)} (LIMITS), "
+                    "which refuses moves there")
+    if not cfg.heartbeat_s < float(controller["watchdog_s"]):
+        return (f"heartbeat_s: {cfg.heartbeat_s:g} s is not shorter than the controller's watchdog "
+                f"{float(controller['watchdog_s']):g} s (LIMITS), which would stop the arm between beats")
+    return None
+
+
+def check_robot_limits(robot, lab) -> dict:
+    """Read an open robot's ``LIMITS`` and raise DeviceError, one line naming the driver file's key, if the
+    lab's driver file promises more (:func:`robot_limits_problem`). Returns the controller's limits."""
+    limits = robot.limits()
+    problem = robot_limits_problem(lab.robot, limits)
+    if problem is not None:
+        where = lab.driver_paths.get("robot", "the robot driver file")
+        raise DeviceError(f"{robot.link.name}: {where}: {problem}")
+    return limits
+
+
 def _where(role: str, lab) -> tuple[str, str]:
     cfg = getattr(lab, role)
     kind = cfg.kind
@@ -98,6 +152,7 @@ def check_device(role: str, lab) -> dict:
             out["status"] = {"state": st.state, "position": dict(zip("xyz", st.position))}
         elif role == "robot":
             st = dev.status()
+            check_robot_limits(dev, lab)
             out["identity"] = dev.ident
             out["status"] = {"moving": st.moving, "segment_id": st.segment_id,
                              "position": dict(zip("xyz", (float(v) for v in st.T_base_flange[:3, 3])))}

@@ -390,6 +390,7 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
     way out it stops the robot and the table and records each outcome (``devices_stopped``)."""
     from ..drivers.grbl import GrblTable
     from ..drivers.robot import SerialRobot
+    from .devices import check_robot_limits
     from .simlab import trajectory_program
     from .transport import open_link
 
@@ -448,6 +449,8 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
         robot = SerialRobot.from_config(lab.robot, port=args.robot_port)
         camera = _fixed_camera(args, lab)
 
+        robot_checked, robot_ok = threading.Event(), []
+
         def table_ready() -> None:
             # a simulated table's power-up lock may be released (the simulator knows where it is); a real
             # table in Alarm must be homed or unlocked by the operator first (its position may be lost)
@@ -455,7 +458,9 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
             marks["table_connected"] = time.time()
             st = table.ensure_ready(unlock=lab.table.kind == "sim")
             marks["table_unlocked"] = time.time()
-            _to_start(table, args.spec["trajectory"], log, lambda: _now(args.origin), status=st)
+            robot_checked.wait()  # the robot's limits first: a run that cannot go on moves nothing
+            if robot_ok:
+                _to_start(table, args.spec["trajectory"], log, lambda: _now(args.origin), status=st)
             marks["table_ready"] = time.time()
 
         # The table's connection (board reset, banner, sync, $I, unlock: ~1 s of 9600-bps round trips)
@@ -466,8 +471,11 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
             for dev in (robot, camera):
                 dev.open()
             robot_rest = robot.ensure_ready()
+            check_robot_limits(robot, lab)  # before anything moves: the plans must be ones it accepts
+            robot_ok.append(True)
             marks["robot_and_camera_ready"] = time.time()
         finally:
+            robot_checked.set()
             if table_job is not None:
                 table_job.result()  # the table's own error, if it had one, comes out here
         ctx = ctx_job.result()

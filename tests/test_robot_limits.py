@@ -1,0 +1,110 @@
+"""The lab's robot driver file against the controller's own ``LIMITS``, before anything moves.
+
+The host plans every segment from the driver file; a controller whose limits are lower refuses those
+segments mid-run (docs/protocols/robot.md §5-§6). The end-to-end case is out of process: ``labctl sim serve``
+runs the reference controller (the sample lab's limits) on a pty, and the lab it writes is edited to promise
+more than that controller has.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import sys
+
+import pytest
+import yaml
+from hypothesis import given
+from hypothesis import strategies as st
+from test_hil import Served, labctl
+
+from labctl.config import load_lab
+from labctl.drivers.robot import SerialRobot
+from labctl.workers.devices import robot_limits_problem
+from labctl.workspace import sample_lab_path
+
+CFG = load_lab(sample_lab_path()).robot
+J = 20.0 * CFG.a_max_mm_s2  # the reference controller's jerk limit when the file sets none
+
+#: LIMITS as the reference controller built from CFG sends them (docs/protocols/robot.md §9), written out here
+CONTROLLER = {"workspace_min_mm": CFG.workspace_min_mm, "workspace_max_mm": CFG.workspace_max_mm,
+              "v_max_mm_s": CFG.v_max_mm_s, "a_max_mm_s2": CFG.a_max_mm_s2, "w_max_deg_s": CFG.w_max_deg_s,
+              "watchdog_s": CFG.watchdog_s, "a_stop_mm_s2": round(CFG.a_max_mm_s2 / math.sqrt(3), 6),
+              "alpha_stop_deg_s2": 4 * CFG.w_max_deg_s, "j_max_mm_s3": J}
+
+LIMIT_KEYS = ("v_max_mm_s", "a_max_mm_s2", "w_max_deg_s", "j_max_mm_s3")
+
+
+def test_the_reference_controllers_limits_are_the_files():
+    assert robot_limits_problem(CFG, CONTROLLER) is None
+
+
+@given(scales=st.tuples(*[st.floats(0.05, 1.0)] * 4), shrink=st.floats(0.0, 100.0))
+def test_a_file_at_or_below_the_controller_passes(scales, shrink):
+    cfg = dataclasses.replace(CFG, **{k: CONTROLLER[k] * s for k, s in zip(LIMIT_KEYS, scales)},
+                              workspace_min_mm=tuple(v + shrink for v in CFG.workspace_min_mm),
+                              workspace_max_mm=tuple(v - shrink for v in CFG.workspace_max_mm))
+    assert robot_limits_problem(cfg, CONTROLLER) is None
+
+
+@given(key=st.sampled_from(LIMIT_KEYS), excess=st.floats(1e-4, 3.0))
+def test_a_limit_above_the_controllers_is_named_with_the_value_to_set(key, excess):
+    cfg = dataclasses.replace(CFG, **{key: CONTROLLER[key] * (1 + excess)})
+    problem = robot_limits_problem(cfg, CONTROLLER)
+    assert problem is not None and problem.startswith(f"{key}: ") and "\n" not in problem
+    assert f"at most {CONTROLLER[key]:g}" in problem
+
+
+@pytest.mark.parametrize("change, key", [
+    ({"workspace_max_mm": (1400.0, 1300.0, 1301.0)}, "workspace_max_mm"),
+    ({"workspace_min_mm": (-801.0, -900.0, -150.0)}, "workspace_min_mm"),
+    ({"heartbeat_s": 0.5, "watchdog_s": 0.8}, "heartbeat_s"),
+])
+def test_a_box_or_heartbeat_the_controller_does_not_allow_is_named(change, key):
+    assert robot_limits_problem(dataclasses.replace(CFG, **change), CONTROLLER).startswith(f"{key}: ")
+
+
+def test_a_slower_stop_ramp_than_the_host_assumes_is_named():
+    """The host assumes the controller brakes at amax/√3 per axis (its stop budget and box checks)."""
+    slow = {**CONTROLLER, "a_stop_mm_s2": CONTROLLER["a_stop_mm_s2"] / 2}
+    problem = robot_limits_problem(CFG, slow)
+    assert problem.startswith("a_max_mm_s2: ") and f"at most {CFG.a_max_mm_s2 / 2:g}" in problem
+
+
+def test_a_1_0_controller_without_the_later_fields_is_checked_on_what_it_sends():
+    first_ten = {k: CONTROLLER[k] for k in ("workspace_min_mm", "workspace_max_mm", "v_max_mm_s", "a_max_mm_s2",
+                                            "w_max_deg_s", "watchdog_s")}
+    assert robot_limits_problem(CFG, first_ten) is None
+    assert robot_limits_problem(dataclasses.replace(CFG, a_max_mm_s2=4000.0), first_ten).startswith("a_max_mm_s2")
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="ptys and the served lab need Linux")
+def test_a_driver_file_above_the_controllers_limits_is_refused_before_anything_moves(tmp_path):
+    lab = tmp_path / "served"
+    with Served(lab):
+        robot_file = lab / "drivers" / "robot.yaml"
+        robot_cfg = yaml.safe_load(robot_file.read_text())
+        robot_cfg["v_max_mm_s"] = 800.0  # the served controller has 500
+        robot_file.write_text(yaml.safe_dump(robot_cfg))
+
+        checked = labctl("--json", "devices", lab=lab, timeout=60)
+        assert checked.returncode == 3, checked.stderr[-2000:]
+        robot_row = next(r for r in json.loads(checked.stdout)["devices"] if r["role"] == "robot")
+        assert not robot_row["ok"] and "v_max_mm_s: " in robot_row["verdict"] and "at most 500" in robot_row["verdict"]
+
+        # the served GRBL powers up homing-locked: vouch for it, away from the line's start (150, 200), so that a
+        # run which went on would move the table there first
+        assert labctl("table", "move", "300", "250", "--unlock", lab=lab, timeout=60).returncode == 0
+        run = labctl("run", "--trajectory", "line", lab=lab, timeout=120)
+        assert run.returncode == 3, (run.stdout[-1000:], run.stderr[-2000:])
+        assert "v_max_mm_s: " in run.stderr and "at most 500" in run.stderr, run.stderr[-2000:]
+
+        # nothing moved: the robot never ran a segment, and the table stands where it was put
+        with SerialRobot(robot_cfg["port"], robot_cfg["baud"]) as robot:
+            status = robot.status()
+            assert not status.moving and status.segment_id == 0
+        table = labctl("--json", "table", "status", lab=lab, timeout=60)
+        assert table.returncode == 0, table.stderr[-2000:]
+        where = json.loads(table.stdout)
+        assert where["state"] == "Idle" and (where["position"]["x"], where["position"]["y"]) == (300.0, 250.0), where
