@@ -90,8 +90,8 @@ GRBL = {110: TABLE.max_feed_mm_min, 111: TABLE.max_feed_mm_min, 120: TABLE.accel
 @given(feed=st.floats(0.05, 1.0), travel=st.tuples(st.floats(0.05, 1.0), st.floats(0.05, 1.0)),
        accel=st.floats(0.1, 10.0))
 def test_a_table_file_inside_grbls_settings_passes(feed, travel, accel):
-    cfg = dataclasses.replace(TABLE, max_feed_mm_min=TABLE.max_feed_mm_min * feed, accel_mm_s2=TABLE.accel_mm_s2 * accel,
-                              travel_mm=(TABLE.travel_mm[0] * travel[0], TABLE.travel_mm[1] * travel[1]))
+    cfg = dataclasses.replace(TABLE, max_feed_mm_min=TABLE.max_feed_mm_min * feed,
+                              accel_mm_s2=TABLE.accel_mm_s2 * accel, travel_mm=(TABLE.travel_mm[0] * travel[0], TABLE.travel_mm[1] * travel[1]))
     assert table_settings_problem(cfg, GRBL) is None
 
 
