@@ -91,7 +91,8 @@ GRBL = {110: TABLE.max_feed_mm_min, 111: TABLE.max_feed_mm_min, 120: TABLE.accel
        accel=st.floats(0.1, 10.0))
 def test_a_table_file_inside_grbls_settings_passes(feed, travel, accel):
     cfg = dataclasses.replace(TABLE, max_feed_mm_min=TABLE.max_feed_mm_min * feed,
-                              accel_mm_s2=TABLE.accel_mm_s2 * accel, travel_mm=(TABLE.travel_mm[0] * travel[0], TABLE.travel_mm[1] * travel[1]))
+                              accel_mm_s2=TABLE.accel_mm_s2 * accel,
+                              travel_mm=(TABLE.travel_mm[0] * travel[0], TABLE.travel_mm[1] * travel[1]))
     assert table_settings_problem(cfg, GRBL) is None
 
 
