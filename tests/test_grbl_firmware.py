@@ -188,6 +188,39 @@ def test_work_offsets_and_report_masks_g53_moves(fw, labctl):
     fw.command("$10=1")
 
 
+def test_devices_reads_the_firmwares_settings_against_the_table_file(fw, labctl, tmp_path):
+    """``labctl devices`` reads ``$$`` from the real firmware and names a table file that promises more travel or
+    feed than GRBL has ($130/$131, $110/$111); a file inside them is OK. Nothing moves."""
+    import yaml
+
+    from labctl.workspace import sample_lab_path
+
+    fw.fresh()  # $110 = $111 = 6000 mm/min; $130, $131: the firmware's own defaults
+    settings = {int(k): float(v) for k, v in (line[1:].split("=") for line in fw.command("$$").split()
+                                              if line.startswith("$") and "=" in line)}
+    lab = tmp_path / "lab"
+    shutil.copytree(sample_lab_path(), lab, ignore=shutil.ignore_patterns("runs", ".git", "labctl", "tests", "docs",
+                                                                          ".venv", ".ci"))
+    table_file = lab / "drivers" / "table.yaml"
+    base = {**yaml.safe_load(table_file.read_text()), "kind": "grbl", "port": fw.path, "baud": 115200,
+            "reset_on_open": False, "timeout_s": SLOW}
+    before = fw.status()
+
+    def table_row(**cfg):
+        table_file.write_text(yaml.safe_dump({**base, **cfg}))
+        code, out, err = labctl("--json", "--lab", str(lab), "devices")
+        return code, next(r for r in json.loads(out)["devices"] if r["role"] == "table")
+
+    code, row = table_row(travel_mm=[settings[130] + 100.0, settings[131]], max_feed_mm_min=settings[110])
+    assert code == 3 and not row["ok"] and "travel_mm: " in row["verdict"] and "$130" in row["verdict"], row
+    assert f"at most {settings[130]:g}" in row["verdict"]
+    code, row = table_row(travel_mm=[settings[130], settings[131]], max_feed_mm_min=settings[111] * 1.5)
+    assert not row["ok"] and "max_feed_mm_min: " in row["verdict"] and "$110" in row["verdict"], row
+    code, row = table_row(travel_mm=[settings[130], settings[131]], max_feed_mm_min=settings[110])
+    assert row["ok"], row
+    assert fw.status().split("|")[1] == before.split("|")[1]  # the same machine position: nothing moved
+
+
 def test_hold_check_and_stop_keep_the_position(fw, labctl):
     """Status in Run, Hold:1/Hold:0 (no sync line sent to a held GRBL), Check ($C); a stop is a
     hold then a reset, which the firmware answers with Idle, not ALARM:3."""

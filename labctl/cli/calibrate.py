@@ -136,7 +136,7 @@ def _open_devices(lab, cameras: str, seed: int, target, prompt_command: str | No
     from ..calibration.procedure import Devices
     from ..calibration.run import Truth
     from ..errors import UserInputError
-    from ..workers.devices import check_robot_limits, open_device
+    from ..workers.devices import check_robot_limits, check_table_settings, open_device
 
     roles = ["table", "fixed_camera"] if cameras == "fixed" else ["table", "robot", "fixed_camera", "mobile_camera"]
     if cameras == "mobile":
@@ -159,8 +159,10 @@ def _open_devices(lab, cameras: str, seed: int, target, prompt_command: str | No
             dev = open_device(r, lab)
             dev.open()
             opened[r] = dev
+        # before anything moves: the target's positions and the robot's stations must be moves the devices accept
+        check_table_settings(opened["table"], lab)
         if "robot" in opened:
-            check_robot_limits(opened["robot"], lab)  # before anything moves: the plans must be ones it accepts
+            check_robot_limits(opened["robot"], lab)
     except BaseException:
         for dev in opened.values():
             with contextlib.suppress(Exception):

@@ -122,6 +122,38 @@ def check_robot_limits(robot, lab) -> dict:
     return limits
 
 
+def table_settings_problem(cfg, settings: dict[int, float]) -> str | None:
+    """Where the lab's table driver file ``cfg`` (:class:`labctl.config.TableConfig`) disagrees with GRBL's own
+    settings (``$$``, as :meth:`labctl.drivers.grbl.GrblTable.settings` returns them): one line naming the file's
+    key, or None.
+
+    labctl writes every program inside the file's ``travel_mm`` and bounds ``--speed`` by its ``max_feed_mm_min``;
+    GRBL moves by its own: a travel beyond ``$130``/``$131`` trips soft limits (or reaches the end stops) mid-run,
+    a feed above ``$110``/``$111`` is clamped without a word. (``accel_mm_s2`` is not checked: only the simulator
+    and the off-by-default ``tracking.stop_corners`` read it.)"""
+    for axis, (rate, travel) in enumerate(((110, 130), (111, 131))):
+        name = "XY"[axis]
+        if rate in settings and cfg.max_feed_mm_min > settings[rate] * (1 + 1e-9):
+            return (f"max_feed_mm_min: {cfg.max_feed_mm_min:g} mm/min is above GRBL's ${rate} ({name} max rate) "
+                    f"{settings[rate]:g}, which clamps faster feeds; set at most {settings[rate]:g}")
+        if travel in settings and cfg.travel_mm[axis] > settings[travel] * (1 + 1e-9):
+            return (f"travel_mm: {cfg.travel_mm[axis]:g} mm in {name} is beyond GRBL's ${travel} ({name} max travel) "
+                    f"{settings[travel]:g}, where programs planned inside the file's travel would stop or collide; "
+                    f"set at most {settings[travel]:g}")
+    return None
+
+
+def check_table_settings(table, lab) -> dict[int, float]:
+    """Read an open table's ``$$`` and raise DeviceError, one line naming the driver file's key, if the lab's
+    driver file disagrees (:func:`table_settings_problem`). Returns GRBL's settings."""
+    settings = table.settings()
+    problem = table_settings_problem(lab.table, settings)
+    if problem is not None:
+        where = lab.driver_paths.get("table", "the table driver file")
+        raise DeviceError(f"{table.link.name}: {where}: {problem}")
+    return settings
+
+
 def _where(role: str, lab) -> tuple[str, str]:
     cfg = getattr(lab, role)
     kind = cfg.kind
@@ -147,6 +179,7 @@ def check_device(role: str, lab) -> dict:
         dev.open()
         if role == "table":
             st = dev.status()
+            check_table_settings(dev, lab)
             out["identity"] = f"Grbl {dev.info.get('version', '?')} (rx buffer {dev.rx_limit + 1} B, " \
                               f"connected by {dev.connected_by})"
             out["status"] = {"state": st.state, "position": dict(zip("xyz", st.position))}

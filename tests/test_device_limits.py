@@ -1,9 +1,11 @@
-"""The lab's robot driver file against the controller's own ``LIMITS``, before anything moves.
+"""The lab's driver files against what the devices say of themselves, before anything moves.
 
-The host plans every segment from the driver file; a controller whose limits are lower refuses those
-segments mid-run (docs/protocols/robot.md §5-§6). The end-to-end case is out of process: ``labctl sim serve``
-runs the reference controller (the sample lab's limits) on a pty, and the lab it writes is edited to promise
-more than that controller has.
+The robot: the host plans every segment from the driver file; a controller whose ``LIMITS`` are lower refuses
+those segments mid-run (docs/protocols/robot.md §5-§6). The table: labctl writes programs inside the file's
+travel at the file's feeds; GRBL moves by its own ``$$`` (``$110``/``$111``, ``$130``/``$131``). The end-to-end
+case is out of process: ``labctl sim serve`` runs the reference controller and the GRBL emulator (the sample
+lab's settings) on ptys, and the lab it writes is edited to promise more than they have. The table's check
+against the real GRBL 1.1h firmware is in tests/test_grbl_firmware.py.
 """
 
 from __future__ import annotations
@@ -21,10 +23,11 @@ from test_hil import Served, labctl
 
 from labctl.config import load_lab
 from labctl.drivers.robot import SerialRobot
-from labctl.workers.devices import robot_limits_problem
+from labctl.workers.devices import robot_limits_problem, table_settings_problem
 from labctl.workspace import sample_lab_path
 
 CFG = load_lab(sample_lab_path()).robot
+TABLE = load_lab(sample_lab_path()).table
 J = 20.0 * CFG.a_max_mm_s2  # the reference controller's jerk limit when the file sets none
 
 #: LIMITS as the reference controller built from CFG sends them (docs/protocols/robot.md §9), written out here
@@ -79,19 +82,53 @@ def test_a_1_0_controller_without_the_later_fields_is_checked_on_what_it_sends()
     assert robot_limits_problem(dataclasses.replace(CFG, a_max_mm_s2=4000.0), first_ten).startswith("a_max_mm_s2")
 
 
+#: GRBL's settings as the sample table's emulator reports them ($$), written out here
+GRBL = {110: TABLE.max_feed_mm_min, 111: TABLE.max_feed_mm_min, 120: TABLE.accel_mm_s2, 121: TABLE.accel_mm_s2,
+        130: TABLE.travel_mm[0], 131: TABLE.travel_mm[1]}
+
+
+@given(feed=st.floats(0.05, 1.0), travel=st.tuples(st.floats(0.05, 1.0), st.floats(0.05, 1.0)),
+       accel=st.floats(0.1, 10.0))
+def test_a_table_file_inside_grbls_settings_passes(feed, travel, accel):
+    cfg = dataclasses.replace(TABLE, max_feed_mm_min=TABLE.max_feed_mm_min * feed,
+                              accel_mm_s2=TABLE.accel_mm_s2 * accel,
+                              travel_mm=(TABLE.travel_mm[0] * travel[0], TABLE.travel_mm[1] * travel[1]))
+    assert table_settings_problem(cfg, GRBL) is None
+
+
+@given(axis=st.sampled_from([0, 1]), what=st.sampled_from(["rate", "travel"]), short=st.floats(0.05, 0.999))
+def test_grbl_settings_below_the_file_are_named_with_the_value_to_set(axis, what, short):
+    number = (110 if what == "rate" else 130) + axis
+    settings = {**GRBL, number: GRBL[number] * short}
+    problem = table_settings_problem(TABLE, settings)
+    key = "max_feed_mm_min" if what == "rate" else "travel_mm"
+    assert problem.startswith(f"{key}: ") and f"${number}" in problem and f"at most {settings[number]:g}" in problem
+
+
 @pytest.mark.skipif(sys.platform != "linux", reason="ptys and the served lab need Linux")
-def test_a_driver_file_above_the_controllers_limits_is_refused_before_anything_moves(tmp_path):
+def test_driver_files_above_the_devices_are_named_and_a_run_moves_nothing(tmp_path):
     lab = tmp_path / "served"
     with Served(lab):
         robot_file = lab / "drivers" / "robot.yaml"
         robot_cfg = yaml.safe_load(robot_file.read_text())
         robot_cfg["v_max_mm_s"] = 800.0  # the served controller has 500
         robot_file.write_text(yaml.safe_dump(robot_cfg))
+        table_file = lab / "drivers" / "table.yaml"
+        table_cfg = yaml.safe_load(table_file.read_text())
 
         checked = labctl("--json", "devices", lab=lab, timeout=60)
         assert checked.returncode == 3, checked.stderr[-2000:]
-        robot_row = next(r for r in json.loads(checked.stdout)["devices"] if r["role"] == "robot")
-        assert not robot_row["ok"] and "v_max_mm_s: " in robot_row["verdict"] and "at most 500" in robot_row["verdict"]
+        rows = {r["role"]: r for r in json.loads(checked.stdout)["devices"]}
+        assert rows["table"]["ok"], rows["table"]
+        assert not rows["robot"]["ok"] and "v_max_mm_s: " in rows["robot"]["verdict"], rows["robot"]
+        assert "at most 500" in rows["robot"]["verdict"]
+
+        table_file.write_text(yaml.safe_dump({**table_cfg, "max_feed_mm_min": 9000.0}))  # the served GRBL has 6000
+        checked = labctl("--json", "devices", lab=lab, timeout=60)
+        table_row = next(r for r in json.loads(checked.stdout)["devices"] if r["role"] == "table")
+        assert not table_row["ok"] and "max_feed_mm_min: " in table_row["verdict"], table_row
+        assert "$110" in table_row["verdict"] and "at most 6000" in table_row["verdict"]
+        table_file.write_text(yaml.safe_dump(table_cfg))
 
         # the served GRBL powers up homing-locked: vouch for it, away from the line's start (150, 200), so that a
         # run which went on would move the table there first
