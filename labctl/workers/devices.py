@@ -115,10 +115,7 @@ def check_robot_limits(robot, lab) -> dict:
     """Read an open robot's ``LIMITS`` and raise DeviceError, one line naming the driver file's key, if the
     lab's driver file promises more (:func:`robot_limits_problem`). Returns the controller's limits."""
     limits = robot.limits()
-    problem = robot_limits_problem(lab.robot, limits)
-    if problem is not None:
-        where = lab.driver_paths.get("robot", "the robot driver file")
-        raise DeviceError(f"{robot.link.name}: {where}: {problem}")
+    _refuse(robot_limits_problem(lab.robot, limits), robot, lab, "robot")
     return limits
 
 
@@ -147,11 +144,14 @@ def check_table_settings(table, lab) -> dict[int, float]:
     """Read an open table's ``$$`` and raise DeviceError, one line naming the driver file's key, if the lab's
     driver file disagrees (:func:`table_settings_problem`). Returns GRBL's settings."""
     settings = table.settings()
-    problem = table_settings_problem(lab.table, settings)
-    if problem is not None:
-        where = lab.driver_paths.get("table", "the table driver file")
-        raise DeviceError(f"{table.link.name}: {where}: {problem}")
+    _refuse(table_settings_problem(lab.table, settings), table, lab, "table")
     return settings
+
+
+def _refuse(problem: str | None, device, lab, role: str) -> None:
+    """DeviceError (exit 3) naming the device, the lab's driver file for ``role`` and ``problem``, if any."""
+    if problem is not None:
+        raise DeviceError(f"{device.link.name}: {lab.driver_paths.get(role, f'the {role} driver file')}: {problem}")
 
 
 def _where(role: str, lab) -> tuple[str, str]:
