@@ -11,6 +11,7 @@ verdict; it never raises for a device fault.
 
 from __future__ import annotations
 
+import math
 import time
 
 from ..drivers.cameras import open_camera
@@ -78,8 +79,6 @@ def robot_limits_problem(cfg, controller: dict) -> str | None:
     controller checks each against its own (docs/protocols/robot.md §5-§6, E10-E16): a file above them plans
     moves the controller refuses mid-run. Lower is safe (the host asks for less). The heartbeat must also beat
     the controller's watchdog, not only the file's."""
-    import math
-
     from ..planning.ruckig_profile import controller_limits
 
     host = controller_limits(cfg)
