@@ -11,6 +11,7 @@ verdict; it never raises for a device fault.
 
 from __future__ import annotations
 
+import math
 import time
 
 from ..drivers.cameras import open_camera
@@ -78,8 +79,6 @@ def robot_limits_problem(cfg, controller: dict) -> str | None:
     controller checks each against its own (docs/protocols/robot.md §5-§6, E10-E16): a file above them plans
     moves the controller refuses mid-run. Lower is safe (the host asks for less). The heartbeat must also beat
     the controller's watchdog, not only the file's."""
-    import math
-
     from ..planning.ruckig_profile import controller_limits
 
     host = controller_limits(cfg)
@@ -115,10 +114,7 @@ def check_robot_limits(robot, lab) -> dict:
     """Read an open robot's ``LIMITS`` and raise DeviceError, one line naming the driver file's key, if the
     lab's driver file promises more (:func:`robot_limits_problem`). Returns the controller's limits."""
     limits = robot.limits()
-    problem = robot_limits_problem(lab.robot, limits)
-    if problem is not None:
-        where = lab.driver_paths.get("robot", "the robot driver file")
-        raise DeviceError(f"{robot.link.name}: {where}: {problem}")
+    _refuse(robot_limits_problem(lab.robot, limits), robot, lab, "robot")
     return limits
 
 
@@ -147,11 +143,14 @@ def check_table_settings(table, lab) -> dict[int, float]:
     """Read an open table's ``$$`` and raise DeviceError, one line naming the driver file's key, if the lab's
     driver file disagrees (:func:`table_settings_problem`). Returns GRBL's settings."""
     settings = table.settings()
-    problem = table_settings_problem(lab.table, settings)
-    if problem is not None:
-        where = lab.driver_paths.get("table", "the table driver file")
-        raise DeviceError(f"{table.link.name}: {where}: {problem}")
+    _refuse(table_settings_problem(lab.table, settings), table, lab, "table")
     return settings
+
+
+def _refuse(problem: str | None, device, lab, role: str) -> None:
+    """DeviceError (exit 3) naming the device, the lab's driver file for ``role`` and ``problem``, if any."""
+    if problem is not None:
+        raise DeviceError(f"{device.link.name}: {lab.driver_paths.get(role, f'the {role} driver file')}: {problem}")
 
 
 def _where(role: str, lab) -> tuple[str, str]:

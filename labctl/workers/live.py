@@ -449,7 +449,7 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
         robot = SerialRobot.from_config(lab.robot, port=args.robot_port)
         camera = _fixed_camera(args, lab)
 
-        robot_checked, robot_ok = threading.Event(), []
+        robot_checked, robot_ok = threading.Event(), threading.Event()
 
         def table_ready() -> None:
             # a simulated table's power-up lock may be released (the simulator knows where it is); a real
@@ -459,7 +459,7 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
             st = table.ensure_ready(unlock=lab.table.kind == "sim")
             marks["table_unlocked"] = time.time()
             robot_checked.wait()  # the robot's limits first: a run that cannot go on moves nothing
-            if robot_ok:
+            if robot_ok.is_set():
                 _to_start(table, args.spec["trajectory"], log, lambda: _now(args.origin), status=st)
             marks["table_ready"] = time.time()
 
@@ -472,7 +472,7 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
                 dev.open()
             robot_rest = robot.ensure_ready()
             check_robot_limits(robot, lab)  # before anything moves: the plans must be ones it accepts
-            robot_ok.append(True)
+            robot_ok.set()
             marks["robot_and_camera_ready"] = time.time()
         finally:
             robot_checked.set()
