@@ -8,9 +8,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from fakes import SegmentRobot
+from hypothesis import given
+from hypothesis import strategies as st
 
 from labctl.config import load_lab
 from labctl.sim.world import home_flange_pose
+from labctl.tracking.tracker import position_from_frames
 from labctl.workers import messages as m
 from labctl.workers.context import RunContext
 from labctl.workers.predictor import PredictorPlanner
@@ -125,3 +128,46 @@ def test_a_missed_view_reaches_the_predictor_over_the_host_link_from_another_pro
     assert isinstance(msg, m.Failure) and msg.code == m.FailureCode.VIEW_MISALIGNED, msg
     _the_view_misses(p, 2.0, msg=msg)
     assert p.views_used == 0 and p.stage == "intercept" and not p.finished
+
+
+def _track(p, t, xy):
+    p.tracker.update(t, xy)
+    p.track_xy.append((t, float(xy[0]), float(xy[1])))  # as PredictorPlanner._track records each update
+
+
+def test_a_spare_markers_view_follows_the_table_round_the_corner_since_its_images(ctx):
+    """Leg 1 along +x, a corner at 1 s, leg 2 along +y (50 mm/s). The markers were resolved from images at 0.8 s;
+    at 2.5 s, after the first view missed, a spare's standard view aims where that marker is at 3 s:
+    c + s·(table(3) − table(0.8)), s the displacement scale of its height. The newest leg extended back to 0.8 s
+    (what the marker just resolved still uses) would cut the corner by (10, −10)·s mm: at 100 mm/s on the lab's
+    zigzag every such spare view missed (docs/notes/planning.md, "Tenth round")."""
+    robot = SegmentRobot(home_flange_pose(ctx.lab))
+    p = PredictorPlanner(ctx, robot, lambda msg: None, lambda *a, **k: None)
+
+    def table(t):
+        return np.array([200.0 + 50.0 * min(t, 1.0), 150.0 + 50.0 * max(t - 1.0, 0.0)])
+
+    for t in np.arange(0.0, 2.5 + 1e-9, 1.0 / 30.0):
+        _track(p, float(t), table(float(t)))
+    spare = m.MarkerPose(view_id=2, center_w=(250.0, 160.0, 45.0), normal_w=(0.0, 0.0, 1.0), ambiguous=False,
+                         margin=0.3)
+    s = ctx.displacement_scale(45.0)
+    truth = np.array(spare.center_w[:2]) + s * (table(3.0) - table(0.8))
+
+    def aim(measured):
+        return p._standard_target(spare, 0.8, measured=measured).G.marker_path(np.array([3.0]))[0][0]
+
+    assert np.allclose(aim(True), truth, atol=1.0), (aim(True), truth)
+    assert np.linalg.norm(aim(False) - truth) > 10.0 * s  # the extended leg: the corner cut
+
+
+@given(p0=st.tuples(st.floats(-500, 500), st.floats(-500, 500)),
+       v=st.tuples(st.floats(-150, 150), st.floats(-150, 150)), t=st.floats(0.5, 5.0), turn=st.floats(0.15, 2.0))
+def test_position_from_frames_is_exact_on_a_leg_whatever_the_path_did_outside_its_window(p0, v, t, turn):
+    times = np.arange(0.0, 6.0, 1.0 / 30.0)
+    p0, v = np.array(p0), np.array(v)
+    xy = p0 + np.outer(times, v)
+    later = times > t + turn  # a corner after the window: the frames there do not count
+    xy[later] += np.outer(times[later] - t - turn, [40.0, -90.0])
+    assert np.allclose(position_from_frames(times, xy, t), p0 + v * t, atol=1e-6)
+    assert position_from_frames(times[:2], xy[:2], 0.0) is None  # fewer than 3 frames near t

@@ -121,29 +121,35 @@ def standard_view_pose(marker_center_w, marker_normal_w, standoff_mm: float, cur
 
 @dataclass(frozen=True)
 class _CarriedMarker:
-    """A marker carried by the table: known at ``center_xy`` at ``t_ref``, moving as ``table_path`` moves."""
+    """A marker carried by the table: known at ``center_xy`` at ``t_ref``, moving as ``table_path`` moves from
+    ``ref_xy``, where the table was at ``t_ref`` (None: where ``table_path`` puts it then)."""
 
     table_path: MarkerPath
     t_ref: float
     center_xy: np.ndarray
+    ref_xy: np.ndarray | None = None
 
     def __call__(self, times):
         p, v, a = self.table_path(times)
-        p_ref, _, _ = self.table_path(np.array([self.t_ref]))
-        return p - p_ref[0] + self.center_xy, v, a
+        p_ref = self.table_path(np.array([self.t_ref]))[0][0] if self.ref_xy is None else self.ref_xy
+        return p - p_ref + self.center_xy, v, a
 
 
 def standard_view_path(table_path: MarkerPath, t_ref: float, marker_center_w, marker_normal_w,
-                       standoff_mm: float, current_R, T_f_c=None) -> TargetPath:
+                       standoff_mm: float, current_R, T_f_c=None, table_xy_at_ref=None) -> TargetPath:
     """G(t) of the standard view for a marker that rides the table (paper §4.3, standard-viewing location).
 
     The marker centre measured at ``t_ref`` translates with the table's predicted motion
-    ``table_path``; the view pose (:func:`standard_view_pose`) translates with it.
+    ``table_path``; the view pose (:func:`standard_view_pose`) translates with it. ``table_xy_at_ref``: where
+    the table was at ``t_ref`` (mm, table plane, in ``table_path``'s frame), as the track then had it; without it
+    ``table_path`` extended back to ``t_ref``, which misplaces the marker by the path's turns since then (a
+    zigzag's corners between the images and a spare marker's standard view).
     """
     T = standard_view_pose(marker_center_w, marker_normal_w, standoff_mm, current_R)
     c = np.asarray(marker_center_w, dtype=float).reshape(3)
     R, extra = _flange_offset(T[:3, :3], T_f_c)
-    carried = _CarriedMarker(table_path, float(t_ref), c[:2].copy())
+    ref = None if table_xy_at_ref is None else np.asarray(table_xy_at_ref, dtype=float).reshape(2)
+    carried = _CarriedMarker(table_path, float(t_ref), c[:2].copy(), ref)
     return TargetPath(carried, T[:3, 3] - c + extra, R, float(c[2]))
 
 

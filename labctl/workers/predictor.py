@@ -19,6 +19,7 @@ commands the robot through the :class:`labctl.drivers.interfaces.Robot` interfac
 from __future__ import annotations
 
 import math
+from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
@@ -31,7 +32,7 @@ from ..planning import Interception, camera_placement_trajectory, plan_intercept
 from ..planning.ruckig_interception import plan_interception_ruckig, ruckig_limits
 from ..planning.ruckig_profile import controller_limits
 from ..planning.targets import prediction_margin_mm, standard_view_path, view_holds_marker, viewing_distance_with_margin
-from ..tracking.tracker import MarkerTracker
+from ..tracking.tracker import MarkerTracker, position_from_frames
 from ..vision import detect_markers, detect_markers_windowed, red_blob_centroid
 from . import messages as m
 from .context import RunContext
@@ -39,6 +40,8 @@ from .tti_bound import Leg, identity_bound
 
 #: a robot at rest farther than this (mm) from the end of its segment did not run it to the end
 ARRIVAL_TOL_MM = 1.0
+#: fixed-camera positions kept for :func:`position_from_frames` (a minute at 30 frames/s)
+TRACK_HISTORY = 1800
 
 STAGES = ("wait", "track", "intercept", "initial", "standard", "match", "done", "failed")
 
@@ -141,11 +144,13 @@ class PredictorPlanner:
         self.marker_pose: m.MarkerPose | None = None
         self.R_w_c_ref = np.eye(3)
         self.t_requested: dict[int, float] = {}
+        self.track_xy: deque[tuple[float, float, float]] = deque(maxlen=TRACK_HISTORY)  # (t, x, y) of each update
         self.pose_view_id: int | None = None
         self.spare_poses: list[m.MarkerPose] = []
         self.used_normals: list[np.ndarray] = []
         self.coasting = False
         self.t_marker_pose: float | None = None
+        self.marker_is_spare = False  # the marker being viewed was resolved from earlier images (_try_spare)
         self.identity: m.Identity | None = None
         self.failure: str | None = None
         self.robot_path: list[tuple[float, list[float]]] = []
@@ -363,23 +368,47 @@ class PredictorPlanner:
                 self.plan, self.plan_shift = old, old_shift
                 self.log("replan_refused", t=now, error=str(exc))
 
-    def _standard_target(self, mp: m.MarkerPose | None = None, t_ref: float | None = None):
+    def _standard_target(self, mp: m.MarkerPose | None = None, t_ref: float | None = None,
+                         measured: bool | None = None):
         """G(t) of the standard view (paper §4.3): the marker, carried by the table's predicted
         motion from where it was measured, seen along its normal from the stand-off; at rest.
-        Default: the marker being viewed (``marker_pose`` measured at ``t_marker_pose``)."""
+        Default: the marker being viewed (``marker_pose`` measured at ``t_marker_pose``). ``measured``: carry it
+        by the table's measured motion up to the newest frame (:meth:`_table_since`), as for a spare marker
+        (default: whether the marker being viewed is one); else by the newest path extended back to its images."""
         mp = self.marker_pose if mp is None else mp
         t_ref = self.t_marker_pose if t_ref is None else t_ref
         scale = self.ctx.displacement_scale(mp.center_w[2])
+        ref = self._table_since(t_ref) if (self.marker_is_spare if measured is None else measured) else None
+        ref_xy = None if ref is None else scale * ref
         return _RestAt(standard_view_path(_Scaled(self._marker_path(), scale), t_ref,
                                           mp.center_w, mp.normal_w, self.cfg.viewing.standoff_mm, self.R_w_c_ref,
-                                          T_f_c=self.ctx.T_f_c2))
+                                          T_f_c=self.ctx.T_f_c2, table_xy_at_ref=ref_xy))
+
+    def _table_since(self, t_ref: float) -> np.ndarray | None:
+        """The point of the newest predicted path (table plane, mm) the table's motion since ``t_ref`` is counted
+        from: the path at the newest frame less the motion the frames measured from ``t_ref`` to it
+        (:func:`position_from_frames` at both ends); None without frames there.
+
+        A spare marker's standard view is planned a view's flight (1-3 s) after its images: on the zigzag the
+        table has turned corners since, and the newest leg extended back to the images cuts them (tens of mm at
+        100 mm/s: every spare view missed, docs/notes/planning.md "Tenth round"). For the marker just resolved
+        the extended leg is kept: its view is planned at once, and right after a corner the instant-corner path's
+        lead on GRBL's ramp and the extended leg's offset partly cancel (measured: with this for every view, 14
+        of 30 zigzag trials at 100 mm/s were slower)."""
+        frames = np.array(self.track_xy) if self.track_xy else np.zeros((0, 3))
+        at_ref = position_from_frames(frames[:, 0], frames[:, 1:], t_ref)
+        t_last = self.tracker.time
+        at_last = position_from_frames(frames[:, 0], frames[:, 1:], t_last)
+        if at_ref is None or at_last is None:
+            return None
+        return self._marker_path()(np.array([t_last]))[0][0] - (at_last - at_ref)
 
     def _travel_s(self, pose: m.MarkerPose, now: float) -> float:
         """Rough time (s) from where the robot stands to ``pose``'s standard view (rest-to-rest at the
         planner's limits, the view where the marker is now): to rank spare markers."""
         _, R = self._flange_state(now)
         self.R_w_c_ref = R @ self.ctx.T_f_c2[:3, :3]
-        G = self._standard_target(pose, self.t_requested.get(pose.view_id, now))
+        G = self._standard_target(pose, self.t_requested.get(pose.view_id, now), measured=True)
         p1 = G(np.array([now]))[0][0]
         p0 = self._flange_state(now)[0][0]
         return rest_to_rest_times(p0, p1, self.ctx.limits.v_max, self.ctx.limits.a_max)[0]
@@ -476,9 +505,11 @@ class PredictorPlanner:
                                    position=tuple(T_w_c2[:3, 3]), rotvec=tuple(matrix_to_rotvec(T_w_c2[:3, :3]))))
         self.log("capture_request", t=now, view_id=self.view_id, kind=kind, T_w_c2=T_w_c2)
 
-    def _use_pose(self, msg: m.MarkerPose, now: float) -> bool:
-        """Go for the standard view of this resolved marker; False if the robot cannot reach it."""
+    def _use_pose(self, msg: m.MarkerPose, now: float, spare: bool = False) -> bool:
+        """Go for the standard view of this resolved marker (``spare``: one resolved from earlier images, not
+        the one just resolved); False if the robot cannot reach it."""
         self.marker_pose, self.t_marker_pose = msg, self.t_requested.get(msg.view_id, now)
+        self.marker_is_spare = spare
         self.pose_view_id = msg.view_id
         self.used_normals.append(np.asarray(msg.normal_w, dtype=float))
         self._enter("standard", now)
@@ -500,7 +531,7 @@ class PredictorPlanner:
             self.spare_poses.sort(key=novelty, reverse=True)
         while self.spare_poses:
             pose = self.spare_poses.pop(0)
-            if self._use_pose(pose, now):
+            if self._use_pose(pose, now, spare=True):
                 return True
         return False
 
@@ -573,6 +604,7 @@ class PredictorPlanner:
         if px is not None:
             xy = self.ctx.fixed_pixel_to_plane(px)
             if self.tracker.update(now, xy):
+                self.track_xy.append((now, float(xy[0]), float(xy[1])))
                 self.n_updates += 1
                 self.t_last_seen, self.last_px = now, px
                 if self.t_first_seen is None:
