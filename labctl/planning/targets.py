@@ -121,8 +121,8 @@ def standard_view_pose(marker_center_w, marker_normal_w, standoff_mm: float, cur
 
 @dataclass(frozen=True)
 class _CarriedMarker:
-    """A marker carried by the table: known at ``center_xy`` at ``t_ref``, moving as ``table_path`` moves from
-    ``ref_xy``, where the table was at ``t_ref`` (None: where ``table_path`` puts it then)."""
+    """A marker carried by the table: known at ``center_xy`` at ``t_ref``, moved since by ``table_path(t) − ref_xy``
+    (``ref_xy`` None: ``table_path(t_ref)``, the path extended back to ``t_ref``)."""
 
     table_path: MarkerPath
     t_ref: float
@@ -140,10 +140,10 @@ def standard_view_path(table_path: MarkerPath, t_ref: float, marker_center_w, ma
     """G(t) of the standard view for a marker that rides the table (paper §4.3, standard-viewing location).
 
     The marker centre measured at ``t_ref`` translates with the table's predicted motion
-    ``table_path``; the view pose (:func:`standard_view_pose`) translates with it. ``table_xy_at_ref``: where
-    the table was at ``t_ref`` (mm, table plane, in ``table_path``'s frame), as the track then had it; without it
-    ``table_path`` extended back to ``t_ref``, which misplaces the marker by the path's turns since then (a
-    zigzag's corners between the images and a spare marker's standard view).
+    ``table_path``; the view pose (:func:`standard_view_pose`) translates with it. ``table_xy_at_ref`` (mm, table
+    plane, ``table_path``'s frame): the point of ``table_path`` the motion since ``t_ref`` is counted from, when it
+    is known otherwise (the motion measured since, ``PredictorPlanner._table_since``); without it ``table_path``
+    extended back to ``t_ref``, which misses the marker by the path's turns since then (a zigzag's corners).
     """
     T = standard_view_pose(marker_center_w, marker_normal_w, standoff_mm, current_R)
     c = np.asarray(marker_center_w, dtype=float).reshape(3)

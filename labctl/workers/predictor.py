@@ -391,7 +391,7 @@ class PredictorPlanner:
 
         A spare marker's standard view is planned a view's flight (1-3 s) after its images: on the zigzag the
         table has turned corners since, and the newest leg extended back to the images cuts them (tens of mm at
-        100 mm/s: every spare view missed, docs/notes/planning.md "Tenth round"). For the marker just resolved
+        100 mm/s: 18 of 19 spare views missed, docs/notes/planning.md "Tenth round"). For the marker just resolved
         the extended leg is kept: its view is planned at once, and right after a corner the instant-corner path's
         lead on GRBL's ramp and the extended leg's offset partly cancel (measured: with this for every view, 14
         of 30 zigzag trials at 100 mm/s were slower)."""
