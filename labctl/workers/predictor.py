@@ -378,7 +378,9 @@ class PredictorPlanner:
         mp = self.marker_pose if mp is None else mp
         t_ref = self.t_marker_pose if t_ref is None else t_ref
         scale = self.ctx.displacement_scale(mp.center_w[2])
-        ref = self._table_since(t_ref) if (self.marker_is_spare if measured is None else measured) else None
+        if measured is None:
+            measured = self.marker_is_spare
+        ref = self._table_since(t_ref) if measured else None
         ref_xy = None if ref is None else scale * ref
         return _RestAt(standard_view_path(_Scaled(self._marker_path(), scale), t_ref,
                                           mp.center_w, mp.normal_w, self.cfg.viewing.standoff_mm, self.R_w_c_ref,
@@ -396,9 +398,8 @@ class PredictorPlanner:
         lead on GRBL's ramp and the extended leg's offset partly cancel (measured: with this for every view, 14
         of 30 zigzag trials at 100 mm/s were slower)."""
         frames = np.array(self.track_xy) if self.track_xy else np.zeros((0, 3))
-        at_ref = position_from_frames(frames[:, 0], frames[:, 1:], t_ref)
-        t_last = self.tracker.time
-        at_last = position_from_frames(frames[:, 0], frames[:, 1:], t_last)
+        times, xy, t_last = frames[:, 0], frames[:, 1:], self.tracker.time
+        at_ref, at_last = position_from_frames(times, xy, t_ref), position_from_frames(times, xy, t_last)
         if at_ref is None or at_last is None:
             return None
         return self._marker_path()(np.array([t_last]))[0][0] - (at_last - at_ref)
