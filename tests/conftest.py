@@ -23,7 +23,7 @@ def tsai_points():
 @pytest.fixture
 def run_with_events():
     """``run(lab, ctx, spec) -> (result, events)``: a virtual run and its record's events, (name, fields) in order."""
-    from labctl.workers.virtual import simulate_run
+    from labctl.runtime.virtual import simulate_run
 
     def run(lab, ctx, spec):
         events = []

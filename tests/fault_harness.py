@@ -21,7 +21,7 @@ from pathlib import Path
 import pytest
 
 from labctl.records import read_events
-from labctl.workers.stopping import still_after
+from labctl.runtime.stopping import still_after
 
 STAGES = {  # when to strike: the first event of the run that matches
     "wait": lambda e: e["event"] == "table_program",

@@ -23,7 +23,7 @@ from test_hil import Served, labctl
 
 from labctl.config import load_lab
 from labctl.drivers.robot import SerialRobot
-from labctl.workers.devices import robot_limits_problem, table_settings_problem
+from labctl.runtime.devices import robot_limits_problem, table_settings_problem
 from labctl.workspace import sample_lab_path
 
 CFG = load_lab(sample_lab_path()).robot

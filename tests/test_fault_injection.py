@@ -21,7 +21,7 @@ from pathlib import Path
 import pytest
 from fault_harness import ALL_CASES, FULL, check_fault, events_of, inject, session_pids
 
-from labctl.workers.stopping import still_after
+from labctl.runtime.stopping import still_after
 from labctl.workspace import init_workspace
 
 DEFAULT_CASES = [("SIGINT", "group", "cruise"), ("SIGSTOP", "predictor", "intercept"),
@@ -69,7 +69,7 @@ def test_session_scan_finds_a_child(tmp_path):
 
 def test_stop_outcomes_never_hide_a_failure():
     from labctl.drivers.interfaces import RobotStatus, TableStatus
-    from labctl.workers.stopping import stop_devices, summary
+    from labctl.runtime.stopping import stop_devices, summary
 
     class BadRobot:
         def emergency_stop(self):

@@ -7,12 +7,12 @@ from __future__ import annotations
 import pytest
 
 from labctl.config import load_lab
+from labctl.decisions.context import RunContext
 from labctl.drivers.programs import program
 from labctl.records import RunRecord, load_run
+from labctl.runtime.simlab import SimBench
+from labctl.runtime.virtual import TrialSpec, simulate_run
 from labctl.sim.clock import VirtualClock
-from labctl.workers.context import RunContext
-from labctl.workers.simlab import SimBench
-from labctl.workers.virtual import TrialSpec, simulate_run
 from labctl.workspace import sample_lab_path
 
 

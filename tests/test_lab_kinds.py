@@ -41,7 +41,7 @@ def test_a_sim_camera_watching_real_motion_or_the_reverse_is_refused(sample, rol
 
 
 def test_devices_says_a_sim_camera_in_a_real_lab_shows_a_static_world(sample):
-    from labctl.workers.devices import check_device
+    from labctl.runtime.devices import check_device
 
     row = check_device("fixed_camera", _with(sample, table={"kind": "grbl", "port": "/dev/labctl-none"}))
     assert row["ok"] and "static world" in row["verdict"]
@@ -49,7 +49,7 @@ def test_devices_says_a_sim_camera_in_a_real_lab_shows_a_static_world(sample):
 
 
 def test_a_lab_without_a_table_loads_and_is_checked_without_it(tmp_path, sample):
-    from labctl.workers.devices import check_devices
+    from labctl.runtime.devices import check_devices
 
     root = init_workspace(tmp_path / "lab")
     cfg = yaml.safe_load((root / "lab.yaml").read_text())

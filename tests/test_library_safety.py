@@ -135,7 +135,7 @@ def test_broken_objects_are_skipped_with_one_line_and_named_ones_exit_2(lab, tmp
     assert "block: views/0.json" in r.stderr and "box_b: object.yaml" in r.stderr
     # every loader skips them: the run's context sees only the good object
     from labctl.config import load_lab
-    from labctl.workers.context import RunContext
+    from labctl.decisions.context import RunContext
 
     try:
         ctx = RunContext.load(load_lab(work))

@@ -18,14 +18,14 @@ from labctl.workspace import init_workspace
 @pytest.mark.slow
 def test_runs_on_an_uncoverable_pose_never_name_the_wrong_object(tmp_path, monkeypatch):
     from labctl.config import load_lab
+    from labctl.decisions.context import RunContext
     from labctl.library.placement import viewing_geometry
     from labctl.library.teach import teach_object
     from labctl.library.views import mm_per_px
+    from labctl.runtime.virtual import TrialSpec, simulate_run
     from labctl.sim import world as sim_world
     from labctl.sim.rigs import standard_view_renderer
     from labctl.sim.truth import camera_model
-    from labctl.workers.context import RunContext
-    from labctl.workers.virtual import TrialSpec, simulate_run
 
     root = init_workspace(tmp_path / "lab")
     for d in (root / "object_library").iterdir():

@@ -13,8 +13,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from labctl.config.devices import HostLinkConfig
-from labctl.workers import messages as m
-from labctl.workers.transport import (
+from labctl.decisions import messages as m
+from labctl.runtime.transport import (
     AUTH_MAGIC,
     TCP_HEADER,
     AuthError,
@@ -191,7 +191,7 @@ class _RecordingRobot:
 @pytest.fixture(scope="module")
 def ctx():
     from labctl.config import load_lab
-    from labctl.workers.context import RunContext
+    from labctl.decisions.context import RunContext
     from labctl.workspace import sample_lab_path
 
     return RunContext.load(load_lab(sample_lab_path()))
@@ -202,8 +202,8 @@ def ctx():
 def test_garbage_messages_never_move_the_robot(ctx, blobs):
     """Whatever decodes from garbage, handed to the predictor as the live worker does, commands no motion
     and raises nothing but a message error (the worker drops those)."""
-    from labctl.workers.live import plausible
-    from labctl.workers.predictor import PredictorPlanner
+    from labctl.decisions.predictor import PredictorPlanner
+    from labctl.runtime.live import plausible
 
     robot = _RecordingRobot()
     planner = PredictorPlanner(ctx, robot, lambda msg: None, lambda *a, **k: None, t_start=0.0)

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import multiprocessing as mp
 
-from labctl.workers import messages as m
-from labctl.workers.live import PeerWatch, _Control, plausible
+from labctl.decisions import messages as m
+from labctl.runtime.live import PeerWatch, _Control, plausible
 
 
 class Clock:

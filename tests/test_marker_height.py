@@ -187,10 +187,10 @@ def test_the_recogniser_sees_a_marker_facing_up_from_the_initial_viewpoint():
     """An initial image (1 m, 63° elevation) of a box with a marker on top shows a marker facing up;
     a plate on its edge, markers on its two faces only, shows none (whatever the azimuth)."""
     from labctl.config import load_lab
+    from labctl.decisions.recognizer import Recognizer
     from labctl.geometry import look_at
     from labctl.sim.truth import camera_model
     from labctl.vision import detect_markers
-    from labctl.workers.recognizer import Recognizer
     from labctl.workspace import sample_lab_path
 
     lab = load_lab(sample_lab_path())

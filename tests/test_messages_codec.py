@@ -10,9 +10,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from labctl.geometry.transforms import look_at, make_T, rotvec_to_matrix
-from labctl.workers import messages as m
-from labctl.workers.messages import (
+from labctl.decisions import messages as m
+from labctl.decisions.messages import (
     Ambiguous,
     CaptureRequest,
     Failure,
@@ -28,6 +27,7 @@ from labctl.workers.messages import (
     encode,
     size_of,
 )
+from labctl.geometry.transforms import look_at, make_T, rotvec_to_matrix
 
 f32 = st.floats(width=32, allow_nan=False, allow_infinity=False)
 f64 = st.floats(allow_nan=False, allow_infinity=False)

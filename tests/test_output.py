@@ -143,8 +143,8 @@ def test_bench_prints_tables_and_what_a_ratio_means_not_a_raw_dict(capsys, monke
 
 
 def test_trials_summary_lists_stages_in_pipeline_order():
-    from labctl.workers.predictor import STAGES
-    from labctl.workers.trials import STAGE_ORDER, summarize
+    from labctl.decisions.predictor import STAGES
+    from labctl.experiments.trials import STAGE_ORDER, summarize
 
     stages = {"match": 0.1, "initial": 1.1, "intercept": 1.2, "standard": 2.0, "track": 0.4, "wait": 0.3}
     res = {"speed_mm_s": 8.0, "correct": True, "time_to_identity_s": 5.1, "lower_bound_s": 3.0, "views": 1}

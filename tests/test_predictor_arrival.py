@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 
 from labctl.config import load_lab
+from labctl.decisions.context import RunContext
+from labctl.decisions.predictor import PredictorPlanner
 from labctl.drivers.interfaces import RobotStatus
 from labctl.geometry import make_T
 from labctl.sim.world import home_flange_pose
-from labctl.workers.context import RunContext
-from labctl.workers.predictor import PredictorPlanner
 from labctl.workspace import sample_lab_path
 
 

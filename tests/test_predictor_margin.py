@@ -11,9 +11,9 @@ import pytest
 from fakes import SegmentRobot
 
 from labctl.config import load_lab
+from labctl.decisions.context import RunContext
+from labctl.decisions.predictor import PredictorPlanner
 from labctl.sim.world import home_flange_pose
-from labctl.workers.context import RunContext
-from labctl.workers.predictor import PredictorPlanner
 from labctl.workspace import sample_lab_path
 
 AZIMUTH_STEPS = (0.0, 20.0, -20.0, 45.0, -45.0, 90.0, -90.0, 180.0)

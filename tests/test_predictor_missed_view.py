@@ -12,11 +12,11 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from labctl.config import load_lab
+from labctl.decisions import messages as m
+from labctl.decisions.context import RunContext
+from labctl.decisions.predictor import PredictorPlanner
 from labctl.sim.world import home_flange_pose
 from labctl.tracking.tracker import position_from_frames
-from labctl.workers import messages as m
-from labctl.workers.context import RunContext
-from labctl.workers.predictor import PredictorPlanner
 from labctl.workspace import sample_lab_path
 
 
@@ -82,10 +82,10 @@ def test_the_recogniser_tells_a_missed_standard_view_from_a_failed_match(ctx):
     predictor aims again on, not as NO_MATCH."""
     import trimesh
 
+    from labctl.decisions.recognizer import Recognizer
     from labctl.drivers.interfaces import Frame
     from labctl.geometry import look_at, matrix_to_rotvec
     from labctl.sim.render import MarkerDisc, Mesh, TableSurface, render
-    from labctl.workers.recognizer import Recognizer
 
     box = trimesh.creation.box(extents=(60.0, 50.0, 30.0))
     box.apply_translation((300.0, 100.0, 15.0))
@@ -112,12 +112,12 @@ def test_a_missed_view_reaches_the_predictor_over_the_host_link_from_another_pro
     import subprocess
     import sys
 
-    from labctl.workers.transport import tcp_listen
+    from labctl.runtime.transport import tcp_listen
 
     p, robot = _planner_at_a_standard_view(ctx)
     with tcp_listen("127.0.0.1", 0) as listener:
         sender = subprocess.Popen([sys.executable, "-c", (
-            "import sys; from labctl.workers import messages as m; from labctl.workers.transport import tcp_connect\n"
+            "import sys; from labctl.decisions import messages as m; from labctl.runtime.transport import tcp_connect\n"
             "link = tcp_connect('127.0.0.1', int(sys.argv[1]))\n"
             "link.send(m.Failure(code=m.FailureCode.VIEW_MISALIGNED, text='standard view 1 missed'))\n"
             "link.close()\n"), str(listener.port)])

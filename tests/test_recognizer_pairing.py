@@ -6,7 +6,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from labctl.workers.recognizer import pair_markers
+from labctl.decisions.recognizer import pair_markers
 
 
 @settings(max_examples=200, deadline=None)

@@ -22,8 +22,8 @@ from fakes import Wire, fake_robot, robot_test_limits
 from labctl.drivers.robot import RobotFault, SerialRobot
 from labctl.drivers.serial_link import LinkError, LinkLost
 from labctl.geometry import make_T, rot_x
+from labctl.runtime.stopping import stop_robot
 from labctl.sim.tcpserial import TcpSerialBridge
-from labctl.workers.stopping import stop_robot
 
 RECONNECT_S = 3.0
 

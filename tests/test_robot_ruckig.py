@@ -232,9 +232,9 @@ def test_run_ruckig_legs_brake_within_the_stop_budget():
     from interception_cases import stop_time, view_targets
 
     from labctl.config import load_lab
+    from labctl.planning.limits import planning_limits
     from labctl.planning.ruckig_interception import ruckig_limits
     from labctl.planning.ruckig_profile import controller_limits
-    from labctl.workers.context import planning_limits
     from labctl.workspace import sample_lab_path
 
     lab = load_lab(sample_lab_path())
@@ -264,7 +264,7 @@ def test_trials_sweep_profiles_on_the_same_seeds(capsys):
     a bad profile is exit 2 with one line."""
     from fakes import run_cli
 
-    from labctl.workers.trials import plan_specs, summarize
+    from labctl.experiments.trials import plan_specs, summarize
 
     specs = plan_specs(2, ["line", "zigzag"], [4.0, 8.0], ["a", "b"], 10, ["quintic", "ruckig"])
     assert len(specs) == 16

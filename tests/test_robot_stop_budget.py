@@ -15,10 +15,9 @@ from interception_cases import stop_time, view_targets
 
 from labctl.config import load_lab
 from labctl.planning import check_segment, plan_interception
-from labctl.planning.limits import LimitViolation
+from labctl.planning.limits import LimitViolation, planning_limits
 from labctl.planning.quintic import QuinticSegment
 from labctl.sim.emulators.robot import RobotEmulator
-from labctl.workers.context import planning_limits
 from labctl.workspace import sample_lab_path
 
 

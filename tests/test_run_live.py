@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from labctl.records import load_run
-from labctl.workers.stopping import still_after
+from labctl.runtime.stopping import still_after
 from labctl.workspace import init_workspace
 
 

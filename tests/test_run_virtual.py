@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from labctl.config import load_lab
+from labctl.decisions.context import RunContext
 from labctl.records import load_run
-from labctl.workers.context import RunContext
-from labctl.workers.virtual import TrialSpec, simulate_run
+from labctl.runtime.virtual import TrialSpec, simulate_run
 from labctl.workspace import init_workspace, sample_lab_path
 
 
@@ -62,8 +62,8 @@ def test_run_record_is_complete(tmp_path, lab, ctx):
 
 
 def test_replay_reproduces_the_identity(tmp_path, lab, ctx):
+    from labctl.experiments.replay import replay_run
     from labctl.records import RunRecord
-    from labctl.workers.replay import replay_run
 
     rec = RunRecord.create(tmp_path / "runs", {"command": "test"})
     res = simulate_run(lab, ctx, TrialSpec("line", 8.0, None, 5), rec)

@@ -28,8 +28,8 @@ def test_served_fixed_stream_shows_the_table_where_the_served_grbl_put_it():
     from labctl.drivers.cameras import StreamCamera
     from labctl.drivers.grbl import GrblTable
     from labctl.geometry import invert, make_T
+    from labctl.runtime.simlab import ServedLab
     from labctl.sim import truth
-    from labctl.workers.simlab import ServedLab
 
     lab = load_lab(sample_lab_path())
     spec = {"seed": 1, "object_name": "block", "trajectory": "line", "speed_mm_s": 8.0, "tcp": True,
@@ -73,7 +73,7 @@ class _FakeServed:
 
 
 def test_lab_out_is_all_real_kinds_without_the_simulators_truth(tmp_path):
-    from labctl.workers.simlab import write_served_lab
+    from labctl.runtime.simlab import write_served_lab
 
     lab = load_lab(sample_lab_path())
     out = write_served_lab(lab, tmp_path / "served", _FakeServed())
@@ -103,9 +103,9 @@ def test_conveyor_starts_only_when_the_fixed_camera_is_watched_without_a_pause()
     import threading
 
     from labctl.drivers.interfaces import Frame
+    from labctl.runtime.simlab import Conveyor
     from labctl.sim.clock import VirtualClock
     from labctl.sim.emulators.grbl import GrblEmulator
-    from labctl.workers.simlab import Conveyor
 
     clock = VirtualClock(0.0)
     grbl = GrblEmulator(clock.now, start_mm=(150.0, 200.0, 0.0))
@@ -139,7 +139,7 @@ def test_stream_timestamps_align_with_the_served_motion():
 
     from labctl.drivers.cameras import StreamCamera
     from labctl.drivers.grbl import GrblTable
-    from labctl.workers.simlab import ServedLab
+    from labctl.runtime.simlab import ServedLab
 
     lab = load_lab(sample_lab_path())
     spec = {"seed": 1, "object_name": "block", "trajectory": "line", "speed_mm_s": 8.0, "baud": 115200}
@@ -215,8 +215,8 @@ def test_served_scene_control_puts_the_calibration_target_on_a_spacer_and_back()
     from labctl.calibration.run import lab_target
     from labctl.drivers.cameras import StreamCamera
     from labctl.geometry import invert, make_T
+    from labctl.runtime.simlab import ServedLab
     from labctl.sim import truth
-    from labctl.workers.simlab import ServedLab
 
     lab = load_lab(sample_lab_path())
     target = lab_target(lab.calibration_dir)

@@ -197,8 +197,8 @@ def test_init_preset_makes_a_consistent_realistic_lab(tmp_path):
 
 
 def test_virtual_run_with_the_realistic_camera_identifies_its_object(tmp_path):
-    from labctl.workers.context import RunContext
-    from labctl.workers.virtual import TrialSpec, simulate_run
+    from labctl.decisions.context import RunContext
+    from labctl.runtime.virtual import TrialSpec, simulate_run
 
     lab = load_lab(init_workspace(tmp_path / "lab", preset="realistic-camera"))
     ctx = RunContext.load(lab)
@@ -218,8 +218,8 @@ def test_realistic_run_falls_back_to_a_suspect_marker_when_the_trusted_one_is_am
     # the recogniser's 0.6° gate for suspects; the refit now needs the anisotropic part to dominate.)
     import yaml
 
-    from labctl.workers.context import RunContext
-    from labctl.workers.virtual import TrialSpec, simulate_run
+    from labctl.decisions.context import RunContext
+    from labctl.runtime.virtual import TrialSpec, simulate_run
 
     root = init_workspace(tmp_path / "lab", preset="realistic-camera")
     cfg = yaml.safe_load((root / "lab.yaml").read_text())

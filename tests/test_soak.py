@@ -1,6 +1,6 @@
 """The live loop's long-lived parts in virtual time: every buffer stays bounded, no peer is lost.
 
-The hour-long soak with RSS at start and end is ``python -m labctl.workers.soak --hours 1``
+The hour-long soak with RSS at start and end is ``python -m labctl.experiments.soak --hours 1``
 (numbers in docs/notes/link_and_records.md); this is its short form, long enough for the robot's
 DONE reports to pass their bound."""
 
@@ -9,7 +9,7 @@ from __future__ import annotations
 import pytest
 
 from labctl.config import load_lab
-from labctl.workers.soak import soak
+from labctl.experiments.soak import soak
 from labctl.workspace import sample_lab_path
 
 

@@ -73,8 +73,8 @@ def test_the_family_prior_is_a_lab_setting(tmp_path):
 def test_a_virtual_run_tells_the_tracker_the_table_programs_family(run_with_events):
     """The run path: simulate_run → PredictorPlanner → MarkerTracker.from_config(family=the trajectory)."""
     from labctl.config import load_lab
-    from labctl.workers.context import RunContext
-    from labctl.workers.virtual import TrialSpec
+    from labctl.decisions.context import RunContext
+    from labctl.runtime.virtual import TrialSpec
     from labctl.workspace import sample_lab_path
 
     lab = load_lab(sample_lab_path())

@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 from labctl.bench import link
-from labctl.workers.messages import encode
-from labctl.workers.transport import SERIAL_OVERHEAD, serial_frame
+from labctl.decisions.messages import encode
+from labctl.runtime.transport import SERIAL_OVERHEAD, serial_frame
 
 
 def test_bench_link_quick_numbers():

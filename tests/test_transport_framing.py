@@ -8,8 +8,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from labctl.workers.messages import Heartbeat, MarkerPose, encode
-from labctl.workers.transport import (
+from labctl.decisions.messages import Heartbeat, MarkerPose, encode
+from labctl.runtime.transport import (
     MAX_SERIAL_PAYLOAD,
     SERIAL_OVERHEAD,
     HostLinkError,

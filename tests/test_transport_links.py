@@ -10,7 +10,7 @@ import time
 import pytest
 
 from labctl.config.devices import HostLinkConfig
-from labctl.workers.messages import (
+from labctl.decisions.messages import (
     CaptureRequest,
     FrameTaken,
     Heartbeat,
@@ -20,7 +20,7 @@ from labctl.workers.messages import (
     Stop,
     encode,
 )
-from labctl.workers.transport import (
+from labctl.runtime.transport import (
     SERIAL_OVERHEAD,
     TCP_HEADER,
     HostLinkError,

@@ -9,7 +9,7 @@ import shutil
 import pytest
 
 from labctl.config import load_lab
-from labctl.workers.trials import RESULTS, Sweep, run_sweep
+from labctl.experiments.trials import RESULTS, Sweep, run_sweep
 from labctl.workspace import sample_lab_path as _sample_lab_path
 
 N = 2  # trials per speed: enough to interleave on two workers

@@ -11,7 +11,7 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from labctl.planning import Limits, shortest_quintic
-from labctl.workers.tti_bound import Leg, identity_bound, leg_min_time, min_line_time, rotation_angle
+from labctl.planning.tti_bound import Leg, identity_bound, leg_min_time, min_line_time, rotation_angle
 
 V, A = 500.0, 3000.0
 LIMITS = Limits(np.full(3, -5000.0), np.full(3, 5000.0), V, A, math.radians(120.0))
@@ -61,8 +61,8 @@ def test_bound_parts_add_up():
 
 def test_a_virtual_run_reports_an_honest_bound():
     from labctl.config import load_lab
-    from labctl.workers.context import RunContext
-    from labctl.workers.virtual import TrialSpec, simulate_run
+    from labctl.decisions.context import RunContext
+    from labctl.runtime.virtual import TrialSpec, simulate_run
     from labctl.workspace import sample_lab_path
 
     lab = load_lab(sample_lab_path())

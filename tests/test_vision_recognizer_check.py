@@ -9,10 +9,10 @@ from types import SimpleNamespace
 
 import numpy as np
 
+from labctl.decisions import messages as m
+from labctl.decisions.recognizer import Recognizer, _Candidates
 from labctl.drivers.interfaces import Frame
 from labctl.vision import CirclePose, Ellipse, MarkerPoses
-from labctl.workers import messages as m
-from labctl.workers.recognizer import Recognizer, _Candidates
 
 
 def _rot(axis, deg):

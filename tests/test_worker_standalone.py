@@ -9,7 +9,7 @@ import pytest
 
 from labctl.config import load_lab
 from labctl.errors import UserInputError
-from labctl.workers.standalone import link_config
+from labctl.runtime.standalone import link_config
 from labctl.workspace import sample_lab_path
 
 

@@ -20,7 +20,7 @@ import statistics
 import time
 
 from ..config.devices import HostLinkConfig
-from ..workers.messages import (
+from ..decisions.messages import (
     Ambiguous,
     CaptureRequest,
     Failure,
@@ -35,7 +35,7 @@ from ..workers.messages import (
     decode,
     encode,
 )
-from ..workers.transport import SERIAL_OVERHEAD, TCP_HEADER, SerialDeframer, serial_frame, wire_time_s
+from ..runtime.transport import SERIAL_OVERHEAD, TCP_HEADER, SerialDeframer, serial_frame, wire_time_s
 from ._timing import median_time, row
 
 BAUD = 9600
@@ -76,7 +76,7 @@ def _json_bytes(msg) -> int:
 def _paced_carry_s(msg, repeat: int) -> float | None:
     """Median send->recv time of ``msg`` through a pty null modem paced at BAUD (None without ptys)."""
     try:
-        from ..workers.transport import SerialHostLink, pty_null_modem
+        from ..runtime.transport import SerialHostLink, pty_null_modem
 
         with pty_null_modem(baud=BAUD) as modem:
             a, b = SerialHostLink.open(modem.port_a, BAUD), SerialHostLink.open(modem.port_b, BAUD)

@@ -115,8 +115,8 @@ def _virtual_trials(lab, quick: bool) -> dict:
     """Whole trials (``simulate_run``: tracker, planner, emulators, link codec, recogniser) with the
     fixed camera windowed and, as the baseline in the same run, with full frames: simulated
     seconds per process-CPU second of each, and whether the results are identical."""
-    from ..workers.context import RunContext
-    from ..workers.virtual import TrialSpec, simulate_run
+    from ..decisions.context import RunContext
+    from ..runtime.virtual import TrialSpec, simulate_run
 
     ctx = RunContext.load(lab)
     seeds = [1, 2] if quick else [1, 2, 3, 4]

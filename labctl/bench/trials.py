@@ -22,7 +22,7 @@ from ._timing import row
 
 
 def _sweep(lab, n: int, jobs: int) -> tuple[float, dict]:
-    from ..workers.trials import run_sweep
+    from ..experiments.trials import run_sweep
 
     t0 = time.perf_counter()
     s = run_sweep(lab, n=n, trajectory="line", speeds=[4.0, 12.0], objects=None, seed=100, record=False, n_jobs=jobs)

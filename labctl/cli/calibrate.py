@@ -136,7 +136,7 @@ def _open_devices(lab, cameras: str, seed: int, target, prompt_command: str | No
     from ..calibration.procedure import Devices
     from ..calibration.run import Truth
     from ..errors import UserInputError
-    from ..workers.devices import check_robot_limits, check_table_settings, open_device
+    from ..runtime.devices import check_robot_limits, check_table_settings, open_device
 
     roles = ["table", "fixed_camera"] if cameras == "fixed" else ["table", "robot", "fixed_camera", "mobile_camera"]
     if cameras == "mobile":

@@ -15,7 +15,7 @@ from ._common import emit, get_ctx, json_option
 @json_option
 def devices_cmd() -> int:
     """List the lab's devices, open and identify each, and give a verdict per device."""
-    from ..workers.devices import check_devices
+    from ..runtime.devices import check_devices
 
     rows = check_devices(get_ctx().lab())
 

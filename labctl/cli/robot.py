@@ -68,7 +68,7 @@ def clear_cmd(port: str | None, baud: int | None) -> None:
 
     Reads STATUS, sends CLEAR if a fault is latched, and reads STATUS again to confirm. Moves nothing."""
     from ..drivers.robot import RobotFault
-    from ..workers.devices import open_device
+    from ..runtime.devices import open_device
 
     robot = open_device("robot", get_ctx().lab(), port=port, baud=baud)
     with robot:

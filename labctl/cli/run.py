@@ -73,13 +73,13 @@ def run_cmd(trajectory, speed, object_name, seed, virtual) -> None:
     import secrets
 
     if not virtual:  # the live run's process server imports the workers while this process loads the lab
-        from ..workers.live import warm_up
+        from ..runtime.live import warm_up
 
         warm_up()
 
+    from ..decisions.context import RunContext
     from ..records import RunRecord, write_report
-    from ..workers.context import RunContext
-    from ..workers.live import RunAborted
+    from ..runtime.live import RunAborted
 
     c = get_ctx()
     lab = c.lab()
@@ -98,7 +98,7 @@ def run_cmd(trajectory, speed, object_name, seed, virtual) -> None:
     record = RunRecord.create(lab.runs_dir, {"command": "run", "virtual": virtual, **spec})
     try:
         if virtual:
-            from ..workers.virtual import TrialSpec, simulate_run
+            from ..runtime.virtual import TrialSpec, simulate_run
 
             result = simulate_run(lab, ctx, TrialSpec(**{k: spec[k] for k in ("trajectory", "speed_mm_s", "seed")},
                                                       object_name=object_name), record)
@@ -120,7 +120,7 @@ def run_cmd(trajectory, speed, object_name, seed, virtual) -> None:
             write_report(record.path)
         raise LabctlError(f"{exc} (record: {record.path})") from None
     if not virtual:  # command → first tracked frame, phase by phase (issue 16, live start-up)
-        from ..workers.live import process_start_wall, startup_seconds
+        from ..runtime.live import process_start_wall, startup_seconds
 
         result["startup_s"] = startup_seconds(result.pop("startup_wall", None) or {}, process_start_wall())
     result["record"] = str(record.path)
@@ -133,7 +133,7 @@ def run_cmd(trajectory, speed, object_name, seed, virtual) -> None:
 
 
 def _run_live(c, lab, spec, record) -> dict:
-    from ..workers.live import WorkerDied, run_live
+    from ..runtime.live import WorkerDied, run_live
 
     con = live_console()  # stdout piped or --json: the live view goes to stderr's terminal, not into the result
     view = _LiveView(con) if con is not None else None
@@ -210,7 +210,7 @@ class _LiveView:
 @json_option
 def replay_cmd(run: Path) -> None:
     """Re-run the recognizer on a recorded run's images and compare with what it decided then."""
-    from ..workers.replay import replay_run
+    from ..experiments.replay import replay_run
 
     result = replay_run(get_ctx().lab(), run)
 
@@ -229,7 +229,7 @@ def replay_cmd(run: Path) -> None:
 @json_option
 def worker_cmd(role, link, trajectory, speed) -> None:
     """Run one worker on this host (two PCs: start one of each, linked by TCP or RS-232)."""
-    from ..workers.standalone import run_worker
+    from ..runtime.standalone import run_worker
 
     lab = get_ctx().lab()
     trajectory = _trajectory(trajectory or lab.config.run.trajectory, lab)

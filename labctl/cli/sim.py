@@ -57,7 +57,7 @@ def sim_serve(baud, tcp, lab_out, force, seed, object_name, trajectory, conveyor
     import time
 
     from ..errors import UserInputError
-    from ..workers.simlab import TRAJECTORY_STARTS, ServedLab, write_served_lab
+    from ..runtime.simlab import TRAJECTORY_STARTS, ServedLab, write_served_lab
 
     lab = get_ctx().lab()
     if not lab.is_simulated:

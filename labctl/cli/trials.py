@@ -34,7 +34,7 @@ def trials_cmd(n, trajectory, profile, speed, objects, seed, record, jobs, sched
 
     Writes one folder, runs/trials-<time>/: spec, per-trial results and records, summary.json and
     report.html. Results do not depend on --jobs or --scheduler. Ctrl-C keeps and prints the partial summary."""
-    from ..workers.trials import run_sweep
+    from ..experiments.trials import run_sweep
 
     c = get_ctx()
     lab = c.lab()

@@ -19,7 +19,7 @@
   e.g. ``12.345678.png``), or listed in ``index.csv`` (``t,file`` rows); ``grab()`` returns the
   frames in order (or, with a clock, the newest frame at or before the clock's time).
 * :func:`open_camera(role, lab)` builds the camera a lab's driver file names (v4l2, stream, replay;
-  simulated cameras come from the simulated lab: :func:`labctl.workers.devices.open_device`).
+  simulated cameras come from the simulated lab: :func:`labctl.runtime.devices.open_device`).
 """
 
 from __future__ import annotations
@@ -533,7 +533,7 @@ def open_camera(role: str, lab, **kw):
     if cfg.kind == "replay":
         return ReplayCamera.from_config(cfg, root=getattr(lab, "root", None), name=role, **kw)
     if cfg.kind == "sim":
-        raise CameraError(f"{role} is simulated: the simulated lab serves it (labctl.workers.devices.open_device)")
+        raise CameraError(f"{role} is simulated: the simulated lab serves it (labctl.runtime.devices.open_device)")
     raise CameraError(f"{role}: unknown camera kind {cfg.kind!r}")
 
 

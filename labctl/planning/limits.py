@@ -81,3 +81,27 @@ class Limits:
         """Which of ``points`` (..., 3) lie in the box (with ``tol`` mm slack)."""
         p = np.asarray(points, dtype=float)
         return np.all((p >= self.box_min - tol) & (p <= self.box_max + tol), axis=-1)
+
+
+#: the planner keeps this fraction of the controller's limits in hand (latency, sampling, round-off)
+LIMIT_MARGIN = 0.98
+
+
+#: the robot controller's angular braking, rad/s² per rad/s of w_max (docs/protocols/robot.md §Stopping:
+#: ``alpha_stop = 4·wmax``, full turning rate to rest in 0.25 s)
+ANGULAR_STOP_PER_S = 4.0
+
+
+def planning_limits(robot_cfg, stop_budget_s: float | None = None) -> Limits:
+    """The limits the planner plans to: the controller's, with a margin, and — with ``stop_budget_s``
+    (s, lab.yaml ``run.robot_stop_budget_s``) — speed and turning rate capped so that the controller's
+    stop ramp (each axis at ``a_stop = a_max/√3``, the rotation at ``4·w_max`` per second;
+    docs/protocols/robot.md §Stopping) brings the flange to rest within the budget from any instant:
+    ``v ≤ a_stop·budget`` (‖v‖ bounds every axis's |v_i|), ``ω ≤ alpha_stop·budget``. Every segment
+    the planner returns passes :func:`labctl.planning.safety.check_segment` against these limits."""
+    lim = Limits.from_config(robot_cfg)
+    v, w = lim.v_max * LIMIT_MARGIN, lim.w_max * LIMIT_MARGIN
+    if stop_budget_s is not None:
+        v = min(v, lim.a_stop * stop_budget_s)
+        w = min(w, ANGULAR_STOP_PER_S * lim.w_max * stop_budget_s)
+    return Limits(lim.box_min, lim.box_max, v, lim.a_max * LIMIT_MARGIN, w)

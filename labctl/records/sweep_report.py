@@ -1,6 +1,6 @@
 """A trials sweep's report: ``report.png`` and a self-contained ``report.html`` in the sweep folder.
 
-Reads only the summary (``labctl.workers.trials.summarize``): success against speed, a histogram
+Reads only the summary (``labctl.experiments.trials.summarize``): success against speed, a histogram
 of time to identity, stage medians in pipeline order, and the failed trials linked to their records.
 """
 

@@ -21,7 +21,7 @@ def target_world(lab, target, *, table_position, flange_pose_at, supersample: in
     With ``obj``/``placement`` the world holds the run's object as well and can switch between
     the two scenes: ``world.set_scene(t, calibration, spacer_mm)`` takes effect for frames
     exposed at or after ``t`` (s, the world's clock), so a frame never shows a change made after
-    its exposure (the served lab's control endpoint, :class:`labctl.workers.simlab.ServedLab`).
+    its exposure (the served lab's control endpoint, :class:`labctl.runtime.simlab.ServedLab`).
     Without a change, the scene is ``world.calibration`` (default True) on ``world.spacer_mm``.
     """
     import bisect

@@ -43,6 +43,7 @@ from ...drivers.robot_protocol import (
     parse_request,
 )
 from ...geometry import make_T, matrix_to_rotvec, rotvec_to_matrix
+from ...planning.limits import ANGULAR_STOP_PER_S  # angular braking: w_max to rest in 0.25 s
 from ...planning.quintic import _derivative, _norm_max, _poly_range
 from ...planning.rotation import right_jacobian
 from ...planning.ruckig_profile import JERK_PER_ACCEL, JerkLimits, RuckigPlan, check_ruckig, plan_ruckig
@@ -57,7 +58,6 @@ IDENT = f"{NAME} {DIALECT}"
 QUEUE_SIZE = 8
 MAX_DURATION_S = 60.0
 HOME_MIN_S = 1.0
-ANGULAR_STOP_PER_S = 4.0  # angular braking deceleration = 4·w_max per second: w_max to rest in 0.25 s
 HOME_RPY = (math.pi, 0.0, 0.0)  # flange z pointing down at the table
 REL_TOL = 1e-6  # relative slack on the v/a/ω limits (round-off of a state spliced right at a limit)
 BOX_TOL_MM = 1e-6

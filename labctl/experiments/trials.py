@@ -25,7 +25,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 from ..errors import UserInputError
-from .virtual import TrialSpec
+from ..runtime.virtual import TrialSpec
 
 SPEC = "spec.json"
 RESULTS = "results.jsonl"
@@ -38,7 +38,7 @@ _CONTEXTS: dict[str, tuple] = {}
 def _context(lab_root: str):
     if lab_root not in _CONTEXTS:
         from ..config import load_lab
-        from .context import RunContext
+        from ..decisions.context import RunContext
 
         lab = load_lab(Path(lab_root))
         _CONTEXTS[lab_root] = (lab, RunContext.load(lab))
@@ -51,7 +51,7 @@ def run_one(lab_root: str, index: int, spec: dict, records_dir: str | None) -> d
     Top-level and argument-only so that process pools and Dask workers can call it."""
     from ..records import RunRecord
     from ..records.record import to_jsonable
-    from .virtual import simulate_run
+    from ..runtime.virtual import simulate_run
 
     lab, ctx = _context(lab_root)
     trial = TrialSpec(**spec)
@@ -99,7 +99,7 @@ def _pool(lab_root: str, jobs: list[Job], records_dir: str | None, n_jobs: int) 
     # forkserver: a clean interpreter per worker (no inherited threads or open ports); the server
     # imports the runtime once and every worker forks from it with everything imported
     ctx = mp.get_context("forkserver")
-    ctx.set_forkserver_preload(["labctl.workers.trials", "labctl.workers.virtual", "labctl.workers.context"])
+    ctx.set_forkserver_preload(["labctl.experiments.trials", "labctl.runtime.virtual", "labctl.decisions.context"])
     with ProcessPoolExecutor(max_workers=n_jobs, mp_context=ctx, initializer=_ignore_sigint) as pool:
         pending = {pool.submit(run_one, lab_root, i, s, records_dir) for i, s in jobs}
         try:
@@ -232,7 +232,7 @@ def run_sweep(lab, *, n: int, trajectory: str, speeds: Sequence[float], objects:
         sweep = Sweep.open(resume)
         spec = sweep.spec
     else:
-        from .context import RunContext
+        from ..decisions.context import RunContext
 
         ctx = RunContext.load(lab)  # fails early, in one line, without a calibration or a library
         names = list(objects) if objects else list(ctx.names)

@@ -2,7 +2,7 @@
 
 The run record holds every capture request (with the camera pose the predictor sent) and the
 images the recognizer decided on. Replaying feeds the same requests and images, in order, to a
-fresh :class:`~labctl.workers.recognizer.Recognizer` — e.g. after changing the library or the
+fresh :class:`~labctl.decisions.recognizer.Recognizer` — e.g. after changing the library or the
 matcher — and compares its answers with the recorded ones.
 """
 
@@ -14,13 +14,13 @@ import cv2
 import numpy as np
 
 from ..config import Lab
+from ..decisions import messages as m
+from ..decisions.context import RunContext
+from ..decisions.recognizer import Recognizer
 from ..drivers.interfaces import Frame
 from ..errors import UserInputError
 from ..geometry import matrix_to_rotvec
 from ..records import load_run
-from . import messages as m
-from .context import RunContext
-from .recognizer import Recognizer
 
 
 def _image_for(run_dir: Path, view_id: int):

@@ -50,8 +50,8 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
+from ..decisions.messages import Message, MessageError, decode, encode
 from ..errors import DeviceError
-from .messages import Message, MessageError, decode, encode
 
 log = logging.getLogger("labctl.link")
 

@@ -32,11 +32,11 @@ from ..planning import Interception, camera_placement_trajectory, plan_intercept
 from ..planning.ruckig_interception import plan_interception_ruckig, ruckig_limits
 from ..planning.ruckig_profile import controller_limits
 from ..planning.targets import prediction_margin_mm, standard_view_path, view_holds_marker, viewing_distance_with_margin
+from ..planning.tti_bound import Leg, identity_bound
 from ..tracking.tracker import MarkerTracker, position_from_frames
 from ..vision import detect_markers, detect_markers_windowed, red_blob_centroid
 from . import messages as m
 from .context import RunContext
-from .tti_bound import Leg, identity_bound
 
 #: a robot at rest farther than this (mm) from the end of its segment did not run it to the end
 ARRIVAL_TOL_MM = 1.0

@@ -3,16 +3,16 @@
 Everything that runs for the whole of a live run, with the vision taken out (it allocates per
 frame and frees per frame; the buffers that grow are elsewhere):
 
-* the GRBL and robot emulators behind the real drivers (:class:`~labctl.workers.simlab.SimBench`),
+* the GRBL and robot emulators behind the real drivers (:class:`~labctl.runtime.simlab.SimBench`),
   the table re-streaming the zigzag program whenever it comes to rest, the robot sent a new
   segment every few seconds (``@DONE`` reports accumulate in ``SerialRobot.done_ids``), status
   reports at the drivers' rate, robot heartbeats;
 * the host link: a local pipe pair carrying both workers' heartbeats every ``heartbeat_s``, each
-  side's :class:`~labctl.workers.live.PeerWatch`;
+  side's :class:`~labctl.runtime.live.PeerWatch`;
 * the run record: one event per 30 Hz tick, durable (the writer thread batches the fsyncs).
 
 Resident set size (``/proc/self/statm``) is sampled after a warm-up minute and at the end.
-``python -m labctl.workers.soak [--hours H] [--lab DIR]`` prints the result as JSON.
+``python -m labctl.experiments.soak [--hours H] [--lab DIR]`` prints the result as JSON.
 """
 
 from __future__ import annotations
@@ -37,14 +37,14 @@ def soak(lab, hours: float = 1.0, runs_dir: Path | str | None = None, *, fps: fl
          warmup_s: float = 60.0, segment_every_s: float = 3.0, segment_mm: float = 20.0,
          sample_every_s: float = 300.0) -> dict:
     """Run the live loop's long-lived parts for ``hours`` of virtual time; RSS and buffer sizes."""
+    from ..decisions import messages as m
     from ..geometry import make_T
     from ..records import RunRecord
+    from ..runtime.live import PeerWatch
+    from ..runtime.simlab import SimBench, trajectory_program
+    from ..runtime.transport import local_pair
     from ..sim.clock import VirtualClock
     from ..sim.world import home_flange_pose
-    from . import messages as m
-    from .live import PeerWatch
-    from .simlab import SimBench, trajectory_program
-    from .transport import local_pair
 
     clock = VirtualClock()
     start, program = trajectory_program("zigzag", 10.0, lab)

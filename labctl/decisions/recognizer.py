@@ -1,6 +1,6 @@
 """Host 2: the object recognizer (paper §3, Fig. 1 Module 1).
 
-On each :class:`~labctl.workers.messages.CaptureRequest` it grabs the mobile camera's frame and
+On each :class:`~labctl.decisions.messages.CaptureRequest` it grabs the mobile camera's frame and
 
 * ``initial1`` — picks one marker and keeps both candidate poses (§3.2), in the world frame;
 * ``initial2`` — finds the same marker again and resolves the two-fold ambiguity (§3.3): the

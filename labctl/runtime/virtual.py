@@ -16,11 +16,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..config import Lab
+from ..decisions import messages as m
+from ..decisions.context import RunContext
+from ..decisions.predictor import PredictorPlanner
+from ..decisions.recognizer import Recognizer
 from ..drivers.interfaces import Frame
-from . import messages as m
-from .context import RunContext
-from .predictor import PredictorPlanner
-from .recognizer import Recognizer
 
 
 @dataclass(frozen=True)
@@ -114,7 +114,7 @@ def simulate_run(lab: Lab, ctx: RunContext, spec: TrialSpec, record=None, *, hea
 
     recognizer = Recognizer(ctx, grab_mobile, log, save)
     log("truth", t=t0, object=name, placement=world.truth(t0).to_dict()["placement"], seed=spec.seed)
-    from .predictor import ProgramProgress
+    from ..decisions.predictor import ProgramProgress
 
     progress = ProgramProgress(bench.table.start_program(program), log)  # pumped by the loop, never waited on
 

@@ -7,7 +7,7 @@ supervisor (the CLI process)                       — run record, live view, wa
  └─ recognizer worker        (Host 2)              — mobile camera, marker pose, matching, library
 ```
 
-The workers exchange :mod:`~labctl.workers.messages` over the host link of
+The workers exchange :mod:`~labctl.decisions.messages` over the host link of
 ``drivers/host_link.yaml``; each also has a control pipe to the supervisor carrying heartbeats
 and status for the live view. If a worker dies or stalls (no heartbeat for ``dead_after_s``),
 the supervisor stops the robot and the table itself — it opens their ports and sends the
@@ -31,8 +31,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from ..config import load_lab
+from ..decisions import messages as m
 from ..errors import DeviceError, LabctlError
-from . import messages as m
 
 # forkserver: each process still starts from a clean interpreter (no inherited threads or ports),
 # but the heavy imports (scipy.stats via filterpy, trimesh, OpenCV) are paid once, in the server,
@@ -42,7 +42,7 @@ CTX = mp.get_context("forkserver")
 # Not the predictor: its tracking imports filterpy → scipy.stats (~0.5 s CPU), which only the predictor
 # needs; it imports them after its fork, beside the simulated lab's set-up, instead of holding up the
 # lab's fork (issue 16, start-up)
-_PRELOAD = ["labctl.workers.live", "labctl.workers.recognizer", "labctl.workers.simlab", "labctl.workers.context"]
+_PRELOAD = ["labctl.runtime.live", "labctl.decisions.recognizer", "labctl.runtime.simlab", "labctl.decisions.context"]
 
 
 def warm_up() -> None:
@@ -422,8 +422,8 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
     def load_context():
         # CPU: the planner's imports (tracking → filterpy → scipy.stats, ~0.5 s) and the calibration and
         # library; in a thread, while the main thread waits for the ports and opens the devices (I/O)
-        from .context import RunContext
-        from .predictor import PredictorPlanner  # noqa: F401 — imported here, off the critical path
+        from ..decisions.context import RunContext
+        from ..decisions.predictor import PredictorPlanner  # noqa: F401 — imported here, off the critical path
 
         out = RunContext.load(lab)
         marks["predictor_context_loaded"] = time.time()
@@ -480,7 +480,7 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
                 table_job.result()  # the table's own error, if it had one, comes out here
         ctx = ctx_job.result()
         starting.shutdown()
-        from .predictor import PredictorPlanner, ProgramProgress
+        from ..decisions.predictor import PredictorPlanner, ProgramProgress
 
         if table is not None:
             table.while_reconnecting = keep_alive
@@ -591,8 +591,8 @@ def _to_start(table, trajectory: str, log, now, status=None) -> None:
 
 def recognizer_main(args: WorkerArgs, link_end, control) -> int:
     """Host 2's process: mobile camera → marker pose → standard-view matching. Returns its exit status."""
-    from .context import RunContext
-    from .recognizer import Recognizer
+    from ..decisions.context import RunContext
+    from ..decisions.recognizer import Recognizer
     from .transport import open_link
 
     ctl = control

@@ -103,7 +103,7 @@ class SimBench:
         self.robot_emu.advance(t)
 
     def stop(self) -> list[dict]:
-        """Stop and confirm both devices; every outcome returned (labctl.workers.stopping)."""
+        """Stop and confirm both devices; every outcome returned (labctl.runtime.stopping)."""
         from .stopping import stop_devices
 
         return stop_devices({"robot": self.robot, "table": self.table})
@@ -614,7 +614,7 @@ def write_served_lab(lab: Lab, out, served: ServedLab, *, force: bool = False):
 
 def emergency_stop(lab: Lab, endpoints: dict, timeout_s: float = 0.3) -> list[dict]:
     """The supervisor's stop bytes straight to the table's and robot's ports, one outcome per device
-    (see :func:`labctl.workers.stopping.send_stop_bytes`; failures are reported, never dropped)."""
+    (see :func:`labctl.runtime.stopping.send_stop_bytes`; failures are reported, never dropped)."""
     from .stopping import send_stop_bytes
 
     return send_stop_bytes(lab, endpoints, timeout_s)
