@@ -31,6 +31,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "trials": ("labctl.cli.trials", "trials_cmd"),
     "replay": ("labctl.cli.run", "replay_cmd"),
     "report": ("labctl.cli.report", "report_cmd"),
+    "runs": ("labctl.cli.runs", "runs_group"),
+    "export": ("labctl.cli.runs", "export_cmd"),
     "worker": ("labctl.cli.run", "worker_cmd"),
     "bench": ("labctl.cli.bench", "bench_group"),
 }

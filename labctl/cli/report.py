@@ -2,22 +2,23 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import click
 
 from ._common import emit, json_option
 
 
 @click.command("report")
-@click.argument("run", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.argument("run_ref", metavar="RUN")
 @json_option
-def report_cmd(run: Path) -> None:
-    """Write RUN's report.html and report.png from its record; a failed run's report leads with why."""
+def report_cmd(run_ref: str) -> None:
+    """Write RUN's report.html and report.png from its record (RUN: an id from ``labctl runs list``,
+    ``last`` or a path); a failed run's report leads with why."""
     from ..errors import UserInputError
     from ..records import load_run, write_report
     from ..records.report import failure_reason
+    from .runs import resolve_run
 
+    run = resolve_run(run_ref)
     if not (run / "meta.json").is_file():
         raise UserInputError(f"{run} is not a run record (no meta.json)")
     out = write_report(run)

@@ -206,13 +206,15 @@ class _LiveView:
 
 
 @click.command("replay")
-@click.argument("run", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.argument("run_ref", metavar="RUN")
 @json_option
-def replay_cmd(run: Path) -> None:
-    """Re-run the recognizer on a recorded run's images and compare with what it decided then."""
+def replay_cmd(run_ref: str) -> None:
+    """Re-run the recognizer on a recorded run's images (RUN: an id from ``labctl runs list``, ``last`` or a
+    path) and compare with what it decided then."""
     from ..experiments.replay import replay_run
+    from .runs import resolve_run
 
-    result = replay_run(get_ctx().lab(), run)
+    result = replay_run(get_ctx().lab(), resolve_run(run_ref))
 
     def human(con):
         con.print(f"recorded identity: {result['recorded_identity']}   replayed: {result['identity']}  "
