@@ -48,19 +48,22 @@ def _name_from_file(path: Path) -> str:
 @click.option("--markers", "markers", default="auto", show_default=True,
               help="'auto' to plan the markers, or a YAML file of markers (id, center, normal, radius; mm).")
 @click.option("--force", is_flag=True, help="Replace an object of the same name (atomically).")
+@click.option("--accept-partial", is_flag=True,
+              help="Keep an object covered less than lab.yaml's library.min_coverage (otherwise refused, exit 1).")
 @json_option
-def teach_object_cmd(name: str | None, model: str, markers: str, force: bool) -> int:
+def teach_object_cmd(name: str | None, model: str, markers: str, force: bool, accept_partial: bool) -> int:
     """Plan markers for CAD models and build their standard views into the object library.
 
-    Never refuses a valid watertight model that fits the lab: small faces get smaller markers, and
-    where full coverage is impossible the object is taught with a warning giving its coverage
-    probability and what would fix it. The library's initial viewing angle is re-checked after.
+    Small faces get smaller markers; resting poses the part's symmetry makes alike are taught once.
+    An object whose coverage (a tracked marker in view over random placements) is below lab.yaml's
+    library.min_coverage is refused with what would fix it (exit 1), unless --accept-partial. The
+    library's initial viewing angle is re-checked after.
     """
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     from ..library.placement import viewing_geometry
     from ..library.storage import check_name, library_angle, refresh_library
-    from ..library.teach import read_markers_file, teach_object
+    from ..library.teach import CoverageRefused, read_markers_file, teach_object
     from ..library.views import mm_per_px
     from ..sim.rigs import standard_view_renderer
     from ..sim.truth import camera_model
@@ -101,8 +104,9 @@ def teach_object_cmd(name: str | None, model: str, markers: str, force: bool) ->
                                    scale_mm_per_px=mm_per_px(camera, standoff),
                                    render_factory=standard_view_renderer(camera, noise_sigma=0.0),
                                    markers=given, library_dir=lab.library_dir, progress=progress, force=force,
-                                   sweep=not batch)
-            except UserInputError as exc:
+                                   sweep=not batch, pose_probability_floor=lab.config.library.pose_probability_floor,
+                                   min_coverage=lab.config.library.min_coverage, accept_partial=accept_partial)
+            except (UserInputError, CoverageRefused) as exc:
                 if not batch:
                     raise
                 failed[n] = str(exc)
@@ -114,6 +118,12 @@ def teach_object_cmd(name: str | None, model: str, markers: str, force: bool) ->
                 click.echo(f"warning: {w}", err=True)
         bar.update(total, completed=len(jobs))
     lib_info = refresh_library(lab.library_dir, viewing_geometry(lab)) if taught else None
+    if lib_info:  # what concerns the objects just taught, not the whole library's groups and coverage
+        new = {o.name for o in taught}
+        lib_info = {**lib_info,
+                    "ambiguity_groups": [g for g in lib_info.get("ambiguity_groups", [])
+                                         if any(t.split("#", 1)[0] in new for t in g)],
+                    "coverage": {n: v for n, v in lib_info.get("coverage", {}).items() if n in new}}
     data = {"taught": [_summary(o) for o in taught], "failed": failed, "warnings": warnings, "library": lib_info}
 
     def human(console):
@@ -239,7 +249,7 @@ def check_cmd() -> int:
     from ..library.storage import check_library
 
     lab = get_ctx().lab()
-    ok, problems = check_library(lab.library_dir)
+    ok, problems = check_library(lab.library_dir, min_coverage=lab.config.library.min_coverage)
 
     if not get_ctx().json:  # the problems go to stderr however stdout is read (terminal or pipe)
         for line in problems:

@@ -60,6 +60,18 @@ class ViewingConfig:
 
 
 @dataclass(frozen=True)
+class LibraryConfig:
+    """Teaching policy (``labctl teach-object``, ``labctl library check``)."""
+
+    # a part whose random placements show a tracked, visible marker less often than this fails that share
+    # of its runs for want of a marker: teach-object refuses it (exit 1) unless --accept-partial
+    min_coverage: Annotated[float, Range(ge=0, le=1)] = 0.9
+    # resting poses (after merging those the part's symmetry makes alike) less likely than this are left
+    # out: trimesh's quasi-static estimate is no finer, and each pose costs teaching time
+    pose_probability_floor: Annotated[float, Range(ge=0, lt=1)] = 0.005
+
+
+@dataclass(frozen=True)
 class FamilyPrior:
     """The IMM's prior probability of a curve (its CT mode) per trajectory family labctl drives the table along.
 
@@ -229,6 +241,7 @@ class LabConfig:
     drivers: DriverFiles = field(default_factory=DriverFiles)
     marker: MarkerConfig = field(default_factory=MarkerConfig)
     viewing: ViewingConfig = field(default_factory=ViewingConfig)
+    library: LibraryConfig = field(default_factory=LibraryConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
     run: RunConfig = field(default_factory=RunConfig)
     sim: SimConfig = field(default_factory=SimConfig)

@@ -100,6 +100,70 @@ def stable_poses(mesh: trimesh.Trimesh, *, min_probability: float = 0.0) -> list
     return out
 
 
+def _rested_points(mesh: trimesh.Trimesh, T: np.ndarray) -> np.ndarray:
+    """The hull's vertices in resting pose ``T`` (the centre of mass over the origin, as stable_poses puts it)."""
+    return trimesh.transform_points(mesh.convex_hull.vertices, T)
+
+
+def _z_rotation(phi: float) -> np.ndarray:
+    c, s = np.cos(phi), np.sin(phi)
+    R = np.eye(4)
+    R[:2, :2] = [[c, -s], [s, c]]
+    return R
+
+
+def same_pose_up_to_yaw(mesh: trimesh.Trimesh, T_a: np.ndarray, T_b: np.ndarray, tol_mm: float) -> np.ndarray | None:
+    """The symmetry ``S`` of the mesh that makes resting pose ``T_b`` pose ``T_a`` turned about the vertical.
+
+    Two resting poses look the same on the table (any yaw) exactly when the rested bodies differ by a
+    rotation ``Rz(φ)`` about the vertical through the centre of mass: ``T_b·X = Rz(φ)·T_a·X`` as point
+    sets, so ``S = T_b⁻¹·Rz(φ)·T_a`` maps the mesh onto itself. Tested on the convex hull's vertices
+    (every vertex within ``tol_mm`` of one of the other pose's); candidate angles φ come from pairing
+    the hull vertex farthest from the axis with the other pose's vertices at the same height and
+    radius. Returns S (4×4, object frame), or None when the poses differ."""
+    from scipy.spatial import cKDTree
+
+    pa, pb = _rested_points(mesh, T_a), _rested_points(mesh, T_b)
+    if len(pa) != len(pb):
+        return None
+    key = lambda p: np.column_stack([p[:, 2], np.hypot(p[:, 0], p[:, 1])])  # noqa: E731 - (height, radius)
+    ka, kb = key(pa), key(pb)
+    if not np.allclose(np.sort(ka[:, 0]), np.sort(kb[:, 0]), atol=tol_mm) or \
+            not np.allclose(np.sort(ka[:, 1]), np.sort(kb[:, 1]), atol=tol_mm):
+        return None
+    tree = cKDTree(pb)
+    i = int(np.argmax(ka[:, 1] - 1e-6 * ka[:, 0]))
+    if ka[i, 1] < tol_mm:  # every vertex on the axis: a degenerate body
+        return None
+    partners = np.flatnonzero(np.all(np.abs(kb - ka[i]) <= tol_mm, axis=1))
+    for j in partners:
+        phi = np.arctan2(pb[j, 1], pb[j, 0]) - np.arctan2(pa[i, 1], pa[i, 0])
+        Rz = _z_rotation(float(phi))
+        d, _ = tree.query(trimesh.transform_points(pa, Rz))
+        if np.max(d) <= tol_mm:
+            return np.linalg.inv(T_b) @ Rz @ T_a
+    return None
+
+
+def merge_symmetric_poses(mesh: trimesh.Trimesh, poses: list[tuple[np.ndarray, float]], *,
+                          tol_mm: float) -> list[list[tuple[np.ndarray, float, np.ndarray]]]:
+    """Group resting poses that are the same up to the part's symmetry (:func:`same_pose_up_to_yaw`).
+
+    Returns the classes in the order of their first (most likely) member; each class is a list of
+    ``(T_w_o, probability, S)`` with S the symmetry that takes the class's first pose to that member
+    (identity for the first). A 96-facet cylinder's 96 side poses are one class, its two end caps another."""
+    classes: list[list[tuple[np.ndarray, float, np.ndarray]]] = []
+    for T, p in poses:
+        for cls in classes:
+            S = same_pose_up_to_yaw(mesh, cls[0][0], T, tol_mm)
+            if S is not None:
+                cls.append((T, p, S))
+                break
+        else:
+            classes.append([(T, p, np.eye(4))])
+    return classes
+
+
 # --- building models (sample objects, tests) ------------------------------------------
 def triangulate_polygon(poly: np.ndarray) -> np.ndarray:
     """Ear-clipping triangulation of a simple polygon (n, 2); returns (n−2, 3) vertex indices, CCW."""

@@ -365,12 +365,13 @@ def refresh_library(library_dir: Path | str, view, *, threshold: float | None = 
     return data
 
 
-def check_library(library_dir: Path | str) -> tuple[list[str], list[str]]:
+def check_library(library_dir: Path | str, min_coverage: float | None = None) -> tuple[list[str], list[str]]:
     """Validate every object folder: (names that are fine, one line per problem naming object and file).
 
     Beyond what loading checks: every standard-view image is readable, the stored model matches the
-    content hash recorded when it was taught, stable-pose probabilities sum to 1, and
-    ``library.yaml`` is readable."""
+    content hash recorded when it was taught, stable-pose probabilities sum to 1, ``library.yaml``
+    is readable, and (with ``min_coverage``) the object's coverage probability reaches it unless it
+    was taught with ``--accept-partial``."""
     import hashlib
 
     root = Path(library_dir)
@@ -392,6 +393,14 @@ def check_library(library_dir: Path | str) -> tuple[list[str], list[str]]:
         total = sum(p for _, p in obj.stable_poses)
         if abs(total - 1.0) > 1e-3:
             errs.append(f"{name}: stable_poses.yaml probabilities sum to {total:.4f}, not 1")
+        cov = obj.info.get("coverage")
+        if min_coverage is not None and isinstance(cov, dict) and not obj.info.get("accepted_partial"):
+            kept = 1.0 - float((obj.info.get("resting_poses") or {}).get("dropped_probability", 0.0))
+            covered = float(cov.get("probability", 1.0)) * kept
+            if covered < min_coverage:
+                errs.append(f"{name}: coverage {100 * covered:.1f} % is below library.min_coverage "
+                            f"({100 * min_coverage:.0f} %); re-teach it with a fix from its warnings, or with "
+                            f"--accept-partial")
         problems += errs
         if not errs:
             ok.append(name)

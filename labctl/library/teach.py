@@ -18,7 +18,8 @@ import numpy as np
 import trimesh
 import yaml
 
-from .model import ModelError, load_model, stable_poses, validate_model
+from ..errors import LabctlError
+from .model import ModelError, load_model, merge_symmetric_poses, stable_poses, validate_model
 from .placement import (
     Marker,
     ViewingGeometry,
@@ -33,6 +34,30 @@ from .storage import LibraryError, LibraryObject, check_name, save_object
 from .views import RenderView, build_standard_views
 
 RenderFactory = Callable[..., RenderView]  # (mesh, markers, stable_poses) -> render_view
+
+#: resting poses closer than this (mm, every hull vertex) count as one pose turned about the vertical:
+#: STL's float32 coordinates round a 100-mm part at ~1e-5 mm, and a standard-view pixel is ~0.3 mm
+POSE_SYMMETRY_TOL_MM = 0.05
+#: a marker mapped by a symmetry of the part lands on another marker within these
+MARKER_SYMMETRY_TOL_MM = 0.5
+MARKER_SYMMETRY_TOL_DEG = 1.0
+
+
+class CoverageRefused(LabctlError):
+    """A taught object covered less than ``library.min_coverage`` (exit 1: the model is valid, the part is not)."""
+
+
+def markers_map_onto_themselves(markers: list[Marker], S: np.ndarray) -> bool:
+    """True when the symmetry ``S`` (4×4, object frame) maps the marker set onto itself (``S⁻¹·M = M``)."""
+    S_inv = np.linalg.inv(S)
+    cos_tol = np.cos(np.radians(MARKER_SYMMETRY_TOL_DEG))
+    for m in markers:
+        c = S_inv[:3, :3] @ m.center + S_inv[:3, 3]
+        n = S_inv[:3, :3] @ m.normal
+        if not any(np.linalg.norm(c - o.center) <= MARKER_SYMMETRY_TOL_MM and float(n @ o.normal) >= cos_tol
+                   and abs(m.radius - o.radius) < 1e-6 for o in markers):
+            return False
+    return True
 
 
 def read_markers_file(path: Path | str, default_radius_mm: float) -> list[Marker]:
@@ -141,7 +166,9 @@ def teach_object(name: str, model: Path | str | trimesh.Trimesh, *, radius_mm: f
                  standoff_mm: float, scale_mm_per_px: float, render_factory: RenderFactory,
                  markers: list[Marker] | None = None, library_dir: Path | str | None = None,
                  progress: Callable[[str, int, int], None] | None = None, sweep: bool = True,
-                 force: bool = False, angle_curve: bool | None = None) -> LibraryObject:
+                 force: bool = False, angle_curve: bool | None = None,
+                 pose_probability_floor: float = 0.0, min_coverage: float | None = None,
+                 accept_partial: bool = False) -> LibraryObject:
     """Teach one object; write it to ``library_dir/NAME`` (atomically) when a folder is given.
 
     Never refuses a valid watertight model that fits the lab: faces too small for the lab's
@@ -154,6 +181,15 @@ def teach_object(name: str, model: Path | str | trimesh.Trimesh, *, radius_mm: f
     §4.1); ``angle_curve`` the coverage of the chosen markers versus viewing angle (what the
     library-wide angle is chosen from, :func:`labctl.library.storage.update_library_angle`;
     default: when the object is written to a library).
+
+    Resting poses that are the same up to the part's symmetry (a cylinder's sides, a nut's flats) are
+    one pose with their summed probability (:func:`labctl.library.model.merge_symmetric_poses`), as
+    long as the markers are as symmetric as the part; classes below ``pose_probability_floor``
+    (lab.yaml ``library.pose_probability_floor``) are left out, and their share is reported.
+
+    With ``min_coverage`` (lab.yaml ``library.min_coverage``), an object whose coverage probability
+    (a tracked marker in the initial view, over the poses kept, times their share) is below it raises
+    :class:`CoverageRefused` and is not written, unless ``accept_partial``.
     """
     check_name(name)
     if library_dir is not None and (Path(library_dir) / name).exists() and not force:
@@ -173,51 +209,72 @@ def teach_object(name: str, model: Path | str | trimesh.Trimesh, *, radius_mm: f
     smallest = min(view.radii_mm) if view.radii_mm else radius_mm
     mesh = validate_model(mesh, marker_radius_mm=smallest, name=name)
     step("stable poses", 0, 1)
-    poses = stable_poses(mesh)
-    Ts = [T for T, _ in poses]
-    candidates = None
-    rejected: list[str] = []
-    for _attempt in range(8):
-        step("marker placement", 0, 1)
-        if markers is None or candidates is not None:
-            placement = plan_markers(mesh, poses, radius_mm, view, candidates=candidates)
-            chosen = placement.markers
-            method, bound = placement.method, placement.bound
-            n_candidates = len(placement.candidates)
+    classes = merge_symmetric_poses(mesh, stable_poses(mesh), tol_mm=POSE_SYMMETRY_TOL_MM)
+    n_resting = sum(len(c) for c in classes)
+    kept = [c for c in classes if sum(p for _, p, _ in c) >= pose_probability_floor]
+    dropped_probability = 1.0 - sum(p for c in kept for _, p, _ in c)
+    given_markers = markers
+
+    def place(poses):
+        markers = given_markers
+        candidates = None
+        rejected: list[str] = []
+        for _attempt in range(8):
+            step("marker placement", 0, 1)
+            if markers is None or candidates is not None:
+                placement = plan_markers(mesh, poses, radius_mm, view, candidates=candidates)
+                chosen = placement.markers
+                method, bound = placement.method, placement.bound
+                n_candidates = len(placement.candidates)
+            else:
+                chosen, method, bound, n_candidates = markers, "given", None, len(markers)
+            views, failed, crops = _standard_views(name, mesh, chosen, poses, render_factory, standoff_mm,
+                                                   scale_mm_per_px, step)
+            if not failed:
+                break
+            if method == "given":
+                mid, why = next(iter(failed.items()))
+                raise ModelError(f"{name}: the standard view of marker {mid} shows no usable silhouette ({why})")
+            # a site whose standard view leaves the image (an off-centre marker on a large part): drop that
+            # site and plan again from the others (the view is centred on the marker, paper §3.4)
+            bad = {tuple(np.round(chosen[mid].center, 6)) for mid in failed}
+            rejected += [f"marker site at {np.round(chosen[mid].center, 1).tolist()} mm: {why}"
+                         for mid, why in failed.items()]
+            candidates = [c for c in placement.candidates if tuple(np.round(c.center, 6)) not in bad]
+            if not candidates:
+                raise ModelError(f"{name}: no marker site has a standard view that fits the image "
+                                 f"({next(iter(failed.values()))}); a longer viewing.standoff_mm would fix it")
         else:
-            chosen, method, bound, n_candidates = markers, "given", None, len(markers)
-        views, failed, crops = _standard_views(name, mesh, chosen, poses, render_factory, standoff_mm,
-                                               scale_mm_per_px, step)
-        if not failed:
+            raise ModelError(f"{name}: standard views keep leaving the image ({next(iter(failed.values()))})")
+        if crops and method != "given":
+            # views that fit as taught but leave the image at some in-plane rotation fail in runs: plan once more
+            # without those sites and keep that plan if it covers as much and all its views fit any rotation
+            bad = {tuple(np.round(chosen[mid].center, 6)) for mid, _ in crops}
+            alt = [c for c in placement.candidates if tuple(np.round(c.center, 6)) not in bad]
+            if alt:
+                p2 = plan_markers(mesh, poses, radius_mm, view, candidates=alt)
+                if (len(p2.uncovered_rows), len(p2.untracked_poses)) <= (len(placement.uncovered_rows),
+                                                                       len(placement.untracked_poses)):
+                    v2, f2, c2 = _standard_views(name, mesh, p2.markers, poses, render_factory, standoff_mm,
+                                                 scale_mm_per_px, step)
+                    if not f2 and not c2:
+                        placement, chosen, views, crops = p2, p2.markers, v2, []
+                        method, bound, n_candidates = p2.method, p2.bound, len(p2.candidates)
+        return chosen, views, crops, rejected, method, bound, n_candidates
+
+    for _attempt in range(n_resting + 1):  # each round splits a class, so this ends
+        total = sum(p for c in kept for _, p, _ in c)
+        poses = [(c[0][0], sum(p for _, p, _ in c) / total) for c in kept]
+        Ts = [T for T, _ in poses]
+        chosen, views, crops, rejected, method, bound, n_candidates = place(poses)
+        # a class stands for its members only if the markers are as symmetric as the part: a member
+        # pose shows the markers S⁻¹·M of the first pose, so M must map onto itself
+        broken = [k for k, c in enumerate(kept) if not all(markers_map_onto_themselves(chosen, S) for _, _, S in c[1:])]
+        if not broken:
             break
-        if method == "given":
-            mid, why = next(iter(failed.items()))
-            raise ModelError(f"{name}: the standard view of marker {mid} shows no usable silhouette ({why})")
-        # a site whose standard view leaves the image (an off-centre marker on a large part): drop that
-        # site and plan again from the others (the view is centred on the marker, paper §3.4)
-        bad = {tuple(np.round(chosen[mid].center, 6)) for mid in failed}
-        rejected += [f"marker site at {np.round(chosen[mid].center, 1).tolist()} mm: {why}"
-                     for mid, why in failed.items()]
-        candidates = [c for c in placement.candidates if tuple(np.round(c.center, 6)) not in bad]
-        if not candidates:
-            raise ModelError(f"{name}: no marker site has a standard view that fits the image "
-                             f"({next(iter(failed.values()))}); a longer viewing.standoff_mm would fix it")
+        kept = [m for k, c in enumerate(kept) for m in ([[x] for x in c] if k in broken else [c])]
     else:
-        raise ModelError(f"{name}: standard views keep leaving the image ({next(iter(failed.values()))})")
-    if crops and method != "given":
-        # views that fit as taught but leave the image at some in-plane rotation fail in runs: plan once more
-        # without those sites and keep that plan if it covers as much and all its views fit any rotation
-        bad = {tuple(np.round(chosen[mid].center, 6)) for mid, _ in crops}
-        alt = [c for c in placement.candidates if tuple(np.round(c.center, 6)) not in bad]
-        if alt:
-            p2 = plan_markers(mesh, poses, radius_mm, view, candidates=alt)
-            if (len(p2.uncovered_rows), len(p2.untracked_poses)) <= (len(placement.uncovered_rows),
-                                                                   len(placement.untracked_poses)):
-                v2, f2, c2 = _standard_views(name, mesh, p2.markers, poses, render_factory, standoff_mm,
-                                             scale_mm_per_px, step)
-                if not f2 and not c2:
-                    placement, chosen, views, crops = p2, p2.markers, v2, []
-                    method, bound, n_candidates = p2.method, p2.bound, len(p2.candidates)
+        raise ModelError(f"{name}: its markers are not as symmetric as its resting poses; teach it with --markers")
     markers = chosen
     counts = check_coverage(mesh, Ts, markers, view)
     overhead = check_overhead_coverage(mesh, Ts, markers, view) if view.overhead_distance_mm is not None else None
@@ -227,6 +284,9 @@ def teach_object(name: str, model: Path | str | trimesh.Trimesh, *, radius_mm: f
         angle_curve = library_dir is not None
     curve = coverage_vs_angle(mesh, poses, markers, view, n_yaw=36) if angle_curve else None
     warnings = coverage_warnings(name, cov, view, curve) + [w for _, w in crops]
+    if dropped_probability > 0:
+        warnings.append(f"{name}: resting poses with {100 * dropped_probability:.1f} % of the probability are below "
+                        f"library.pose_probability_floor ({pose_probability_floor:g}) and were left out")
     if rejected:
         warnings.append(f"{name}: {len(rejected)} marker site(s) left out, their standard view leaves the image "
                         f"(e.g. {rejected[0]}); would fix it: a longer viewing.standoff_mm")
@@ -255,7 +315,19 @@ def teach_object(name: str, model: Path | str | trimesh.Trimesh, *, radius_mm: f
         "coverage_vs_angle": curve if curve is not None else {},
         "viewing_angle_sweep": sweep if sweep is not None else {},
         "standoff_mm": float(standoff_mm), "mm_per_px": float(scale_mm_per_px),
+        "resting_poses": {"computed": n_resting, "kept": len(poses), "merged": n_resting - len(poses),
+                          "dropped_probability": round(dropped_probability, 6),
+                          "probability_floor": float(pose_probability_floor)},
     }
+    covered = float(cov["probability"]) * (1.0 - dropped_probability)
+    if min_coverage is not None and covered < min_coverage:
+        if not accept_partial:
+            fixes = "; ".join(w.split("would fix it: ", 1)[1] for w in warnings if "would fix it: " in w)
+            raise CoverageRefused(f"{name}: a tracked marker is in view in {100 * covered:.1f} % of random placements, "
+                                  f"below library.min_coverage ({100 * min_coverage:.0f} %); "
+                                  + (f"would fix it: {fixes}; " if fixes else "")
+                                  + "or teach it anyway with --accept-partial")
+        info["accepted_partial"] = True
     obj = LibraryObject(name, mesh, list(markers), poses, {v.marker_id: v for v in views}, info=info)
     if library_dir is not None:
         try:
