@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import shutil
 from pathlib import Path
+from typing import TypedDict
 
 from .config.lab import LAB_FILE
 
@@ -35,8 +36,15 @@ def find_lab(start: Path | str | None = None) -> Path:
     return sample_lab_path()
 
 
+class InitPreset(TypedDict):
+    """A ``labctl init --preset``: text appended to lab.yaml, and the camera driver files' top-level keys."""
+
+    lab: str
+    cameras: dict[str, str]
+
+
 # `labctl init --preset NAME`: lab.yaml's sim section, and the camera driver files' keys that must agree with it
-INIT_PRESETS = {
+INIT_PRESETS: dict[str, InitPreset] = {
     "realistic-camera": {
         "lab": "sim:\n  camera:\n    preset: realistic   # shadows, highlights, table grain, Bayer, JPEG 80 "
                "(docs/notes/vision.md)\n",

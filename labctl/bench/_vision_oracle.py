@@ -234,7 +234,7 @@ def render(cam: Cam, disc: Disc, cond: Conditions, rng: np.random.Generator) -> 
     albedo = np.empty((H, W, 3), np.float32)
     albedo[:] = face
     if cond.texture_std > 0:
-        tex = cv2.GaussianBlur(rng.standard_normal((H, W)).astype(np.float32), (0, 0), 1.2)
+        tex: np.ndarray = cv2.GaussianBlur(rng.standard_normal((H, W)).astype(np.float32), (0, 0), 1.2)
         tex *= (cond.texture_std / 255.0) / max(float(tex.std()), 1e-6)
         albedo += tex[..., None]
 
@@ -296,19 +296,19 @@ def render(cam: Cam, disc: Disc, cond: Conditions, rng: np.random.Generator) -> 
         hc = center_px + rng.uniform(0.3, 0.8) * r_px * np.array([math.cos(a), math.sin(a)])
         spot = np.exp(-((xx - hc[0]) ** 2 + (yy - hc[1]) ** 2) / (2 * (0.25 * r_px) ** 2))
         radiance += np.float32(cond.highlight / 255.0) * spot[..., None]
-    img = radiance * np.float32(cond.exposure) if cond.exposure != 1.0 else radiance
+    img: np.ndarray = radiance * np.float32(cond.exposure) if cond.exposure != 1.0 else radiance
     if cond.defocus_px > 0:
         r = cond.defocus_px
         n = int(math.ceil(r)) + 1
-        k = _coverage(lambda u, v: u * u + v * v <= r * r, -n, -n, n + 1, n + 1).astype(np.float32)
-        img = cv2.filter2D(img, -1, k / k.sum(), borderType=cv2.BORDER_REFLECT)
+        ker = _coverage(lambda u, v: u * u + v * v <= r * r, -n, -n, n + 1, n + 1).astype(np.float32)
+        img = cv2.filter2D(img, -1, ker / ker.sum(), borderType=cv2.BORDER_REFLECT)
     if cond.motion_px > 0:
         L = cond.motion_px
         n = int(math.ceil(L / 2)) + 1
         ang = rng.uniform(0, np.pi)
-        k = _coverage(lambda u, v: (np.abs(u * math.cos(ang) + v * math.sin(ang)) <= L / 2)
-                      & (np.abs(-u * math.sin(ang) + v * math.cos(ang)) <= 0.5), -n, -n, n + 1, n + 1)
-        img = cv2.filter2D(img, -1, (k / k.sum()).astype(np.float32), borderType=cv2.BORDER_REFLECT)
+        ker = _coverage(lambda u, v: (np.abs(u * math.cos(ang) + v * math.sin(ang)) <= L / 2)
+                        & (np.abs(-u * math.sin(ang) + v * math.cos(ang)) <= 0.5), -n, -n, n + 1, n + 1)
+        img = cv2.filter2D(img, -1, (ker / ker.sum()).astype(np.float32), borderType=cv2.BORDER_REFLECT)
     rgb = img  # channels R, G, B
     if cond.bayer:  # RGGB mosaic: each pixel keeps one channel
         raw = np.empty((H, W), np.float32)

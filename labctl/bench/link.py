@@ -30,6 +30,7 @@ from ..decisions.messages import (
     Hello,
     Identity,
     MarkerPose,
+    Message,
     StandardViewRequest,
     Stop,
     decode,
@@ -42,7 +43,7 @@ BAUD = 9600
 RUN_S = 30.0  # a typical run to identity at the paper's 4-12 mm/s over a 600 mm field of view
 
 
-def examples() -> dict[str, object]:
+def examples() -> dict[str, Message]:
     """One realistic instance of each message type."""
     return {
         "Hello": Hello("predictor", 31337),
@@ -108,8 +109,14 @@ def run(quick: bool = False) -> dict:
                           "json_bytes": _json_bytes(msg),
                           "serial_ms_at_9600": round(wire_time_s(serial, BAUD) * 1e3, 2)}
         as_json = {"type": name, **dataclasses.asdict(msg)}
-        t_bin = median_time(lambda m=msg: decode(encode(m)), repeat=rep)
-        t_json = median_time(lambda d=as_json: json.loads(json.dumps(d)), repeat=rep)
+        def binary(m=msg):
+            return decode(encode(m))
+
+        def as_text(d=as_json):
+            return json.loads(json.dumps(d))
+
+        t_bin = median_time(binary, repeat=rep)
+        t_json = median_time(as_text, repeat=rep)
         rows.append(row(f"codec {name}", t_bin, baseline="json dumps+loads", baseline_s=t_json,
                         payload_bytes=payload, json_bytes=per_type[name]["json_bytes"]))
     pose = encode(msgs["MarkerPose"])

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import statistics
 import time
+from typing import cast
 
 import numpy as np
 
@@ -24,6 +25,7 @@ from ..config.devices import RobotConfig, TableConfig
 from ..config.lab import TrackingConfig
 from ..planning import Limits, camera_placement_trajectory, check_segment, plan_interception, replan
 from ..planning.interception import _score
+from ..planning.quintic import Trajectory
 from ..planning.ruckig_baseline import RuckigInterceptor
 from ..tracking import MarkerTracker, PredictedPath
 from ._timing import median_time, row
@@ -218,7 +220,7 @@ def _interception(quick: bool) -> tuple[list[dict], dict]:
         r_times.append(time.perf_counter() - t0)
         unreachable["quintic"] += not res.reachable
         unreachable["ruckig"] += not rr.reachable
-        if res.reachable and rr.reachable:
+        if res.t_hit is not None and rr.t_hit is not None:  # both reachable
             both += 1
             ratios.append(rr.t_hit / res.t_hit)
     bf_cases = cases[: 40 if quick else 200]
@@ -266,7 +268,8 @@ def _replanning(quick: bool) -> tuple[list[dict], dict]:
         return camera_placement_trajectory(path, 1000.0, 63.0, azimuth_deg=-90.0, marker_z_mm=40.0)
 
     res = plan_interception((home, np.zeros(3), np.zeros(3)), 0.0, noisy_G(0), limits, 10.0, R0=np.eye(3), follow_s=2.0)
-    traj, jumps, times, failures = res.trajectory, [], [], 0
+    # plan_interception's trajectories are quintic segments (ruckig ones come from plan_interception_ruckig)
+    traj, jumps, times, failures = cast(Trajectory, res.trajectory), [], [], 0
     for k in range(1, 60 if quick else 150):
         t = k / 30.0
         G = noisy_G(k)
@@ -276,8 +279,9 @@ def _replanning(quick: bool) -> tuple[list[dict], dict]:
         if not new.reachable:
             failures += 1
             continue
-        jumps.append(max(float(np.max(np.abs(a - b))) for a, b in zip(traj.state(t), new.trajectory.state(t))))
-        traj = new.trajectory
+        new_traj = cast(Trajectory, new.trajectory)
+        jumps.append(max(float(np.max(np.abs(a - b))) for a, b in zip(traj.state(t), new_traj.state(t))))
+        traj = new_traj
     rows = [row("replan at 30 Hz (with orientation)", statistics.median(times))]
     return rows, {"replans": len(times), "replan_failures": failures, "max_splice_jump": max(jumps) if jumps else None}
 
@@ -295,7 +299,10 @@ def _tracker_rows(quick: bool) -> list[dict]:
             trk.update(k / 30.0, zs[k % 4000] + [k / 3.0, 0.0])
 
         upd = median_time(step, repeat=100 if quick else 500)
-        pred = median_time(lambda trk=trk: trk.predict(trk.time + 5.0), repeat=100 if quick else 500)
+        def predict(trk=trk):
+            return trk.predict(trk.time + 5.0)
+
+        pred = median_time(predict, repeat=100 if quick else 500)
 
         def step_and_predict(trk=trk, step=step):  # the CT refit runs on the first prediction after an update
             step()

@@ -70,7 +70,7 @@ def render_pool(library: dict, camera, standoff: float, per_view: int, rng: np.r
     for name, obj in sorted(library.items()):
         render_view = factory(obj.mesh, obj.markers, obj.stable_poses)
         for m in obj.markers:
-            feats = []
+            feats: list[StandardViewQuery | None] = []
             for _ in range(per_view):
                 T_o_c = perturbed_view_pose(standard_view_pose(m, standoff), m.center, rng)
                 image, T_w_o = render_view(T_o_c, with_pose=True)
@@ -195,7 +195,7 @@ def generated_library(n_objects: int, camera, lab, rng: np.random.Generator) -> 
     from ..sim.rigs import standard_view_renderer
 
     standoff = lab.config.viewing.standoff_mm
-    out = {}
+    out: dict = {}
     attempts = 0
     while len(out) < n_objects and attempts < 4 * n_objects:
         attempts += 1

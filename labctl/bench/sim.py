@@ -86,7 +86,7 @@ def _painter_baseline(camera, T_w_c, meshes, rng) -> np.ndarray:
         for tri in uv[order]:
             cv2.fillConvexPoly(img, np.round(tri * 16).astype(np.int32), (185, 185, 185), cv2.LINE_8, 4)
     noise = np.empty(img.shape, np.int16)
-    cv2.randn(noise, 0, 2.0)
+    cv2.randn(noise, 0, 2.0)  # type: ignore[call-overload]  # OpenCV takes scalars; its stubs want arrays
     return cv2.add(img, noise, dtype=cv2.CV_8U)
 
 
@@ -121,9 +121,9 @@ def _virtual_trials(lab, quick: bool) -> dict:
     ctx = RunContext.load(lab)
     seeds = [1, 2] if quick else [1, 2, 3, 4]
     simulate_run(lab, ctx, TrialSpec(seed=0))  # caches (texture, rays, noise bank) out of the timing
-    cpu = {False: [], True: []}
-    sim = {False: [], True: []}
-    results = {False: [], True: []}
+    cpu: dict[bool, list[float]] = {False: [], True: []}
+    sim: dict[bool, list[float]] = {False: [], True: []}
+    results: dict[bool, list[dict]] = {False: [], True: []}
     for seed in seeds:
         for full in (True, False):
             c0 = time.process_time()
@@ -174,8 +174,9 @@ def run(quick: bool = False) -> dict:
 
     lab = load_lab(sample_lab_path())
     repeat = 5 if quick else 30
-    rows = []
-    fps, cpu_fps = {}, {}
+    rows: list[dict] = []
+    fps: dict[str, float] = {}
+    cpu_fps: dict[str, float] = {}
     threads = cv2.getNumThreads()
     cv2.setNumThreads(1)  # the target is for one core: no OpenCV worker threads
     try:
@@ -213,8 +214,10 @@ def _run(lab, quick, repeat, rows, fps, cpu_fps) -> dict:
 
             med, med_cpu = _median_wall_cpu(frame, repeat)
             if role == "fixed":
-                base = median_time(lambda rig=rig, T_w_c=T_w_c, meshes=meshes:
-                                   _painter_baseline(rig.model, T_w_c, meshes, rng), repeat)
+                def painter(rig=rig, T_w_c=T_w_c, meshes=meshes):
+                    return _painter_baseline(rig.model, T_w_c, meshes, rng)
+
+                base = median_time(painter, repeat)
             else:
                 base = None
             fps[f"{role}/{name}"] = 1.0 / med

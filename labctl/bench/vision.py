@@ -25,7 +25,7 @@ def _interleaved(cases: dict, repeat: int, warmup: int = 3) -> dict:
     for fn in cases.values():
         for _ in range(warmup):
             fn()
-    samples = {name: [] for name in cases}
+    samples: dict[str, list[float]] = {name: [] for name in cases}
     for _ in range(repeat):
         for name, fn in cases.items():
             t0 = time.perf_counter()
@@ -92,7 +92,7 @@ def run(quick: bool = False) -> dict:
     rows.append(row(f"cv2.fitEllipse alone ({n_pts} pts)", tm["cv_fit"], "fit + pose (ours)", tm["pose"]))
 
     # the ellipse fitters on 360 noisy points (σ = 0.5 px): full boundary and half arc
-    accuracy = {}
+    accuracy: dict[str, dict[str, dict[str, float]]] = {}
     for name, arc in (("full", 2 * np.pi), ("half arc", np.pi)):
         frng = np.random.default_rng(5)
         sets = []
@@ -111,11 +111,17 @@ def run(quick: bool = False) -> dict:
         }
         accuracy[name] = {}
         pts0 = sets[0][1]
-        t_cv = median_time(lambda p=pts0: cv2.fitEllipse(p.astype(np.float32)), repeat * 2)
+        def cv_fit(p=pts0):
+            return cv2.fitEllipse(p.astype(np.float32))
+
+        t_cv = median_time(cv_fit, repeat * 2)
         for fname, fn in fitters.items():
             errs = [np.linalg.norm(fn(p).center - e.center) for e, p in sets]
             accuracy[name][fname] = {"centre_rms_px": float(np.sqrt(np.mean(np.square(errs))))}
-            t = median_time(lambda p=pts0, fn=fn: fn(p), repeat * 2)
+            def fit(p=pts0, fn=fn):
+                return fn(p)
+
+            t = median_time(fit, repeat * 2)
             rows.append(row(f"ellipse fit {name}, 360 pts: {fname}", t, "cv2.fitEllipse", t_cv))
     from ._vision_suite import acceptance, run_suite
 

@@ -98,7 +98,7 @@ def tsai_lenz(T_b_f, T_c_t) -> np.ndarray:
             f"need ≥ {MIN_AXIS_SPREAD_DEG:.0f}°); rotate the flange about two different axes")
 
     # rotation: skew(Pg + Pc) Pcg' = Pc − Pg with P = 2 sin(θ/2) n (eq. 9–12)
-    M, v = [], []
+    M_rows, v_rows = [], []
     for A, B in zip(As, Bs):
         rg, rc = matrix_to_rotvec(A[:3, :3]), matrix_to_rotvec(B[:3, :3])
         tg, tc = np.linalg.norm(rg), np.linalg.norm(rc)
@@ -106,9 +106,9 @@ def tsai_lenz(T_b_f, T_c_t) -> np.ndarray:
             continue
         pg = 2.0 * np.sin(tg / 2.0) * rg / tg
         pc = 2.0 * np.sin(tc / 2.0) * rc / tc
-        M.append(_skew(pg + pc))
-        v.append(pc - pg)
-    M, v = np.vstack(M), np.concatenate(v)
+        M_rows.append(_skew(pg + pc))
+        v_rows.append(pc - pg)
+    M, v = np.vstack(M_rows), np.concatenate(v_rows)
     p_prime, *_ = np.linalg.lstsq(M, v, rcond=None)
     p = 2.0 * p_prime / np.sqrt(1.0 + p_prime @ p_prime)
     n2 = p @ p

@@ -31,7 +31,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import Any, Protocol, cast
 
 import numpy as np
 
@@ -58,10 +58,11 @@ class Devices:
     """The opened devices the procedure uses (any may be None when its step is not run) and the
     clock they run on: ``sleep(s)`` and ``now() -> s`` (real or the simulator's virtual clock)."""
 
-    table: object  # drivers.interfaces.Table
-    robot: object | None  # drivers.interfaces.Robot
-    fixed: object | None  # drivers.interfaces.Camera
-    mobile: object | None
+    # drivers.interfaces' Table, Robot and Camera, or None (Any: calibration does not import drivers)
+    table: Any
+    robot: Any
+    fixed: Any
+    mobile: Any
     sleep: Callable[[float], None]
     now: Callable[[], float]
 
@@ -183,7 +184,7 @@ def plan_calibration(target: Target, *, cameras: str, travel_mm, workspace, T_w_
                                              "wholly in view")
     if cameras in ("mobile", "all"):
         h = float(target.spacers_mm[0])
-        xy0 = tuple(float(v) for v in target.robot_position_mm)
+        xy0 = cast("tuple[float, float]", tuple(float(v) for v in target.robot_position_mm))  # (x, y)
         plan.robot_spacer_mm, plan.robot_table_xy = h, xy0
         on_table(xy0, "robot stations")
         T_w_t = T_w_table @ target.T_table_t(xy0, h)
@@ -426,6 +427,7 @@ def calibrate_on_target(images: list[np.ndarray], placements: list[np.ndarray], 
             start = res.T_c_w if res is not None else obs[0][2] @ invert(placements[0])
             res = refine_pose(intrinsics, start, P_w, px)
         px = raw - circle_centroid_bias(res.camera, res.T_c_w, P_w, n_w, radii)
+    res = cast(TsaiResult, res)  # the loop ran at least once
     res = TsaiResult(camera=res.camera, T_c_w=res.T_c_w, method=res.method,
                      residuals_px=res.camera.project_world(res.T_c_w, P_w) - px)
     return TargetView(result=res, model_idx=np.concatenate([mi for mi, _, _ in obs]), pixels=px, raw_pixels=raw)

@@ -13,6 +13,7 @@ import io
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 
@@ -213,14 +214,16 @@ def run_lab_calibration(cal_dir: Path, devs: Devices, prompt: Prompt, target: Ta
                     "nominal_from": nominal.sources, "robot_moves_recommanded": cap.robot_recovered}
     files: dict[str, str] = {}
     created = _now()
-    plot_data = {}
+    plot_data: dict[str, np.ndarray] = {}
     try:
         T_w_table = T_w_table_prev
         if cameras in ("mobile", "all"):
             mc = calibrate_mobile(cap, target, nominal.mobile_camera, full=full)
             tick("mobile camera: hand-eye")
             ri = mc.intrinsics_view.result
-            res = mc.refined_residuals_px
+            # calibrate_mobile sets both
+            res = cast(np.ndarray, mc.refined_residuals_px)
+            X_tsai_lenz = cast(np.ndarray, mc.T_f_c2_tsai_lenz)
             mobile_stats = {"rms_px": float(np.sqrt(np.mean(np.sum(res**2, axis=1)))),
                             "max_px": float(np.max(np.linalg.norm(res, axis=1))),
                             "method": f"tsai {ri.method} at one station + Tsai-Lenz hand-eye + reprojection refinement",
@@ -233,7 +236,7 @@ def run_lab_calibration(cal_dir: Path, devs: Devices, prompt: Prompt, target: Ta
                                        "skipped_stations": mc.skipped}
             plot_data["mobile camera C2 (all stations)"] = res
             if mc.T_f_c2_opencv is not None:
-                report["mobile_camera"]["opencv_vs_tsai_lenz"] = hand_eye_error(mc.T_f_c2_opencv, mc.T_f_c2_tsai_lenz)
+                report["mobile_camera"]["opencv_vs_tsai_lenz"] = hand_eye_error(mc.T_f_c2_opencv, X_tsai_lenz)
             tab = register_table(cap, target, mc, plan.robot_spacer_mm, plan.robot_table_xy)
             tick("table registration")
             T_w_table = tab.T_w_table
@@ -243,7 +246,7 @@ def run_lab_calibration(cal_dir: Path, devs: Devices, prompt: Prompt, target: Ta
             report["table"] = {**table_stats, "T_w_table": T_w_table}
             if truth is not None:
                 err = {"hand_eye": hand_eye_error(mc.T_f_c2, truth.T_f_c2),
-                       "hand_eye_tsai_lenz_only": hand_eye_error(mc.T_f_c2_tsai_lenz, truth.T_f_c2),
+                       "hand_eye_tsai_lenz_only": hand_eye_error(X_tsai_lenz, truth.T_f_c2),
                        "f_mm": mc.camera.f - truth.mobile_camera.f,
                        "kappa1": mc.camera.kappa1 - truth.mobile_camera.kappa1}
                 if mc.T_f_c2_opencv is not None:

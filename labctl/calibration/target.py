@@ -20,8 +20,10 @@ the fixed camera, to ``robot_position_mm`` for the robot's stations and to
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 import yaml
@@ -88,6 +90,24 @@ class Layout:
     fiducial_colour_bgr: tuple[int, int, int] = (170, 70, 20)  # dark blue: chroma tells them apart
     dots_mm: tuple[tuple[float, float, float], ...] | None = None  # measured centres (replace the grid)
 
+    if TYPE_CHECKING:  # each target kind provides these
+        kind: ClassVar[str]
+
+        @property
+        def fiducials(self) -> Sequence[tuple[int, ...]]:
+            """The coloured fiducial dots, as :meth:`dot_table` names them."""
+
+        @property
+        def width_mm(self) -> float:
+            """The base's width (x, mm)."""
+
+        @property
+        def length_mm(self) -> float:
+            """The base's length (y, mm)."""
+
+        def dot_table(self) -> Sequence[tuple[int, ...]]:
+            """The name of every dot, in :meth:`solid`'s order."""
+
     # --- the layout as poses ------------------------------------------------------------------
     @property
     def T_table_mount(self) -> np.ndarray:
@@ -138,7 +158,7 @@ class Layout:
         table = self.dot_table()
         return np.array([table.index(tuple(f)) for f in self.fiducials])
 
-    def dot_colours(self) -> list[tuple[int, int, int]]:
+    def dot_colours(self) -> list[tuple[int, ...]]:
         """BGR colour of every dot (fiducials coloured), in :meth:`solid`'s order."""
         fid = set(tuple(f) for f in self.fiducials)
         return [tuple(self.fiducial_colour_bgr) if d in fid else tuple(self.dot_colour_bgr) for d in self.dot_table()]
@@ -300,11 +320,11 @@ class PlaneTarget(Layout):
 
 
 Target = RoofTarget | PlaneTarget
-KINDS = {"roof": RoofTarget, "plane": PlaneTarget}
+KINDS: dict[str, type[RoofTarget] | type[PlaneTarget]] = {"roof": RoofTarget, "plane": PlaneTarget}
 _TUPLE_OF_TUPLES = ("fiducials", "fixed_positions_mm", "registration_positions_mm", "dots_mm")
 
 
-def load_target(path: Path | str) -> RoofTarget:
+def load_target(path: Path | str) -> Target:
     """Read ``calibration/target.yaml``; raise :class:`TargetError` with a one-line reason."""
     path = Path(path)
     if not path.is_file():
@@ -346,7 +366,7 @@ def target_yaml(target: Target, *, with_dots: bool = False) -> str:
     """The YAML text of a target definition (the sample lab's ``calibration/target.yaml``)."""
     from dataclasses import asdict
 
-    d = {"kind": target.kind}
+    d: dict[str, Any] = {"kind": target.kind}
     for k, v in asdict(target).items():
         if k == "dots_mm" and v is None:
             if not with_dots:

@@ -7,6 +7,7 @@ library's ``render_view(T_o_c)`` (the library itself never imports the simulator
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any, cast
 
 import click
 import numpy as np
@@ -80,7 +81,8 @@ def teach_object_cmd(name: str | None, model: str, markers: str, force: bool, ac
         name = _name_from_file(files[0])
     if batch and markers != "auto":
         raise UserInputError("--markers FILE applies to one model; teach a folder or glob with --markers auto")
-    jobs = [(name if not batch else _name_from_file(f), f) for f in files]
+    # one model: NAME given or taken from its file above
+    jobs = [(cast(str, name) if not batch else _name_from_file(f), f) for f in files]
     for n, _ in jobs:
         check_name(n)
     radius = lab.config.marker.radius_mm
@@ -136,7 +138,7 @@ def teach_object_cmd(name: str | None, model: str, markers: str, force: bool, ac
             sw = obj.info.get("viewing_angle_sweep") or {}
             if sw.get("optimal_deg") is not None:
                 console.print(f"  optimal initial viewing angle for this object alone {sw['optimal_deg']}° "
-                              f"(range {sw['optimal_range_deg']}°); contact sheet: {obj.path / 'contact_sheet.png'}")
+                              f"(range {sw['optimal_range_deg']}°); contact sheet: {obj.folder / 'contact_sheet.png'}")
         if lib_info:
             a, prev = lib_info["initial_angle_deg"], lib_info["previous_deg"]
             low = {n: v for n, v in lib_info["coverage"].items() if v < 1.0}
@@ -175,9 +177,10 @@ def list_cmd() -> None:
 
     lab = get_ctx().lab()
     lib = load_library(lab.library_dir)
-    rows = [{"name": n, "markers": len(o.markers), "stable_poses": len(o.stable_poses), "views": len(o.views),
-             "extents_mm": o.info.get("extents_mm"), "marker_radii_mm": o.info.get("marker_radii_mm"),
-             "coverage": (o.info.get("coverage") or {}).get("probability")} for n, o in lib.items()]
+    rows: list[dict[str, Any]] = [
+        {"name": n, "markers": len(o.markers), "stable_poses": len(o.stable_poses), "views": len(o.views),
+         "extents_mm": o.info.get("extents_mm"), "marker_radii_mm": o.info.get("marker_radii_mm"),
+         "coverage": (o.info.get("coverage") or {}).get("probability")} for n, o in lib.items()]
     angle = library_angle(lab.library_dir, lab.config.viewing.initial_angle_deg)
 
     def human(console):

@@ -68,7 +68,7 @@ def _print_result(console, result: dict, run_dir: Path | None) -> None:
 @click.option("--seed", type=int, default=None, help="Seed of the simulated lab (default: random).")
 @click.option("--virtual", is_flag=True, help="Simulated lab in virtual time, one process (as fast as the CPU allows).")
 @json_option
-def run_cmd(trajectory, speed, object_name, seed, virtual) -> None:
+def run_cmd(trajectory, speed, object_name, seed, virtual) -> int | None:
     """A live run: move the table, track, intercept, pose, standard view, identify."""
     import secrets
 
@@ -130,6 +130,7 @@ def run_cmd(trajectory, speed, object_name, seed, virtual) -> None:
     emit(result, lambda con: _print_result(con, result, record.path))
     if not result.get("identity"):
         return 1
+    return None
 
 
 def _run_live(c, lab, spec, record) -> dict:
@@ -229,7 +230,7 @@ def replay_cmd(run_ref: str) -> None:
 @click.option("--trajectory", default=None)
 @click.option("--speed", type=float, default=None)
 @json_option
-def worker_cmd(role, link, trajectory, speed) -> None:
+def worker_cmd(role, link, trajectory, speed) -> int | None:
     """Run one worker on this host (two PCs: start one of each, linked by TCP or RS-232)."""
     from ..runtime.standalone import run_worker
 
@@ -240,3 +241,4 @@ def worker_cmd(role, link, trajectory, speed) -> None:
     emit(result, lambda con: _print_result(con, result, None) if role == "predictor" else con.print(result["ended"]))
     if role == "predictor" and not result.get("identity"):
         return 1
+    return None

@@ -9,7 +9,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 from .devices import ROLE_TYPES, CameraConfig, HostLinkConfig, RobotConfig, TableConfig
 from .schema import ConfigError, NonNegative, Positive, PositiveInt, Range, defaulted_keys, from_mapping, read_yaml
@@ -336,7 +336,8 @@ def load_lab(root: Path | str) -> Lab:
     raw = read_yaml(lab_file)
     config = from_mapping(LabConfig, raw, lab_file)
     defaulted = {"lab": tuple(defaulted_keys(LabConfig, raw))}
-    devices, paths = {}, {}
+    devices: dict[str, Any] = {}
+    paths: dict[str, Path] = {}
     for role, cls in ROLE_TYPES.items():
         rel = getattr(config.drivers, role)
         if rel is None:  # only the table may be null (its field alone is typed optional)

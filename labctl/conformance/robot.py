@@ -18,6 +18,7 @@ import re
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
+from typing import cast
 
 import numpy as np
 
@@ -225,6 +226,13 @@ class Suite:
     limits: Limits | None = None
     next_id: int = 100
 
+    @property
+    def lim(self) -> Limits:
+        """The LIMITS read by ``hello``; only motion rules use them, and ``hello`` refuses a motion run without."""
+        if self.limits is None:
+            raise AttributeError("the controller's LIMITS were not read")
+        return self.limits
+
     # --- helpers --------------------------------------------------------------------------
     def want(self, rule: str) -> bool:
         """True if ``rule`` matches one of the ``only`` glob patterns (or there are none)."""
@@ -290,7 +298,7 @@ class Suite:
             st = self.status()
             if not st["moving"] or time.monotonic() > end:
                 return st
-            self.client._pump(min(0.05, self.limits.watchdog_s / 4))
+            self.client._pump(min(0.05, self.lim.watchdog_s / 4))
 
     def _arrival(self, sid: int, p1, took_s: float, expect_s: float, mid_err: float, expected: str,
                  path: str) -> tuple[bool, float, list[str]]:
@@ -319,7 +327,7 @@ class Suite:
                 if ln.text.split() == ["@DONE", str(seg_id)]:
                     return True
             self.req("HB")
-            self.client._pump(min(0.05, self.limits.watchdog_s / 4))
+            self.client._pump(min(0.05, self.lim.watchdog_s / 4))
         return False
 
     def done_seen(self, seg_id: int) -> bool:
@@ -467,7 +475,7 @@ class Suite:
         ok = code == "ok" and len(f) == want and self.limits is not None \
             and bool(np.all(self.limits.box_min < self.limits.box_max))
         if ok and self.v11:
-            ok = self.limits.a_stop >= self.limits.a_max / math.sqrt(3.0) * (1 - 1e-6)
+            ok = self.lim.a_stop >= self.lim.a_max / math.sqrt(3.0) * (1 - 1e-6)
         self.record("limits.format", ok, f"{len(f)} fields (want {want}); a_stop ≥ amax/√3" if ok else " ".join(f))
 
     def r_checksum_optional(self) -> None:
@@ -574,7 +582,7 @@ class Suite:
     def _room(self, p, nearest_over: float | None = None) -> tuple[int, float, float]:
         """(axis, direction ±1, free mm) of the axis with the most room from p — or, with
         ``nearest_over``, the nearest wall at least that far."""
-        L = self.limits
+        L = self.lim
         options = [(ax, sgn, room) for ax in range(3)
                    for sgn, room in ((1.0, L.box_max[ax] - p[ax]), (-1.0, p[ax] - L.box_min[ax]))]
         if nearest_over is not None:
@@ -597,8 +605,8 @@ class Suite:
         ok = self.wait_done(0, t1 - t0 + 3.0)
         st = self.wait_rest()
         problems = [] if ok else ["no @DONE 0"]
-        if self.limits.home is not None:
-            err = float(np.linalg.norm(st["p"] - self.limits.home[:3]))
+        if self.lim.home is not None:
+            err = float(np.linalg.norm(st["p"] - self.lim.home[:3]))
             if err > 0.05:
                 problems.append(f"rests {err:.3f} mm from LIMITS' home")
         if t1 - t0 < 1.0 - 1e-4:
@@ -612,7 +620,7 @@ class Suite:
         D = min(60.0, room / 4)
         p1 = p0.copy()
         p1[ax] += sgn * D
-        T = max(0.8, 2.5 * 1.875 * D / self.limits.v_max)
+        T = max(0.8, 2.5 * 1.875 * D / self.lim.v_max)
         code, f, sid = self.seg(p1, rv, T)
         if code != "ok":
             self.record("timing.arrival", False, f"SEG of {D:.0f} mm in {T:.2f} s → {code}")
@@ -638,7 +646,7 @@ class Suite:
         code, _, _ = self.seg(p1, rv1, T, v)
         if code == "ok":
             st = self.wait_rest(T + 5.0)
-            outside = bool(np.any(st["p"] < self.limits.box_min - 1e-3) or np.any(st["p"] > self.limits.box_max + 1e-3))
+            outside = bool(np.any(st["p"] < self.lim.box_min - 1e-3) or np.any(st["p"] > self.lim.box_max + 1e-3))
             self.record(rule, False, f"{why}: accepted (want {want}); came to rest at {np.round(st['p'], 2).tolist()}"
                         + (" OUTSIDE the box" if outside else ""))
             self.recover()
@@ -649,8 +657,8 @@ class Suite:
         """limits.speed: a rest-to-rest segment peaking at 1.1·vmax is refused with E12."""
         p0, rv = self._here()
         ax, sgn, room = self._room(p0)
-        T = 3.6 * self.limits.v_max / self.limits.a_max
-        D = 1.1 * self.limits.v_max * T / 1.875  # peak speed 1.1·vmax, peak acceleration 0.93·amax
+        T = 3.6 * self.lim.v_max / self.lim.a_max
+        D = 1.1 * self.lim.v_max * T / 1.875  # peak speed 1.1·vmax, peak acceleration 0.93·amax
         if D > room - 5:
             self.record("limits.speed", None, f"needs {D:.0f} mm of room, has {room:.0f}")
             return
@@ -663,10 +671,10 @@ class Suite:
         p0, rv = self._here()
         ax, sgn, _ = self._room(p0)
         T = 0.2
-        D = 1.2 * self.limits.a_max * T * T / 5.7735
-        if 1.875 * D / T > 0.9 * self.limits.v_max:
-            T = 0.9 * self.limits.v_max * 5.7735 / (1.875 * 1.2 * self.limits.a_max)
-            D = 1.2 * self.limits.a_max * T * T / 5.7735
+        D = 1.2 * self.lim.a_max * T * T / 5.7735
+        if 1.875 * D / T > 0.9 * self.lim.v_max:
+            T = 0.9 * self.lim.v_max * 5.7735 / (1.875 * 1.2 * self.lim.a_max)
+            D = 1.2 * self.lim.a_max * T * T / 5.7735
         p1 = p0.copy()
         p1[ax] += sgn * D
         self._expect_refusal("limits.acceleration", "E13", p1, rv, T, why=f"{D:.1f} mm in {T:.3f} s (1.2·amax)")
@@ -675,7 +683,7 @@ class Suite:
         """limits.angular: a rotation peaking at 1.2·wmax is refused with E14."""
         p0, rv = self._here()
         T = 0.5
-        theta = 1.2 * self.limits.w_max * T / 1.875
+        theta = 1.2 * self.lim.w_max * T / 1.875
         from scipy.spatial.transform import Rotation
 
         R = Rotation.from_rotvec(rv) * Rotation.from_rotvec([0, 0, theta])  # about the flange z
@@ -688,19 +696,19 @@ class Suite:
         ax, sgn, room = self._room(p0)
         p1 = p0.copy()
         p1[ax] += sgn * (room + 20.0)
-        T = max(4.0, 3 * 1.875 * (room + 20) / self.limits.v_max)
+        T = max(4.0, 3 * 1.875 * (room + 20) / self.lim.v_max)
         self._expect_refusal("limits.box", "E10", p1, rv, T, why=f"target 20 mm outside on axis {'xyz'[ax]}")
 
     def _candidates(self, p0, ax, sgn, wall_gap, v_end, Ts):
         for T in Ts:
             p1 = p0.copy()
-            p1[ax] = (self.limits.box_max[ax] if sgn > 0 else self.limits.box_min[ax]) - sgn * wall_gap
+            p1[ax] = (self.lim.box_max[ax] if sgn > 0 else self.lim.box_min[ax]) - sgn * wall_gap
             v1 = np.zeros(3)
             v1[ax] = v_end
             c = quintic(p0, np.zeros(3), np.zeros(3), p1, v1, np.zeros(3), T)
             _, P, V, A = sample(c, T)
-            if np.linalg.norm(V, axis=1).max() < 0.8 * self.limits.v_max and \
-                    np.linalg.norm(A, axis=1).max() < 0.8 * self.limits.a_max:
+            if np.linalg.norm(V, axis=1).max() < 0.8 * self.lim.v_max and \
+                    np.linalg.norm(A, axis=1).max() < 0.8 * self.lim.a_max:
                 yield T, p1, v1, P, V
 
     def r_path(self) -> None:
@@ -708,11 +716,11 @@ class Suite:
         narrow one; any exact check does not): here by 2–10 mm."""
         p0, rv = self._here()
         ax, sgn, room = self._room(p0, nearest_over=120.0)
-        wall = self.limits.box_max[ax] if sgn > 0 else self.limits.box_min[ax]
+        wall = self.lim.box_max[ax] if sgn > 0 else self.lim.box_min[ax]
         for u in (40.0, 60.0, 90.0, 130.0):
             for T, p1, v1, P, _V in self._candidates(p0, ax, sgn, 30.0, -sgn * u, np.geomspace(1.0, 20.0, 60)):
                 over = float(np.max(sgn * (P[:, ax] - wall)))
-                rest = p1[ax] + v1[ax] * abs(v1[ax]) / (2 * self.limits.a_stop)
+                rest = p1[ax] + v1[ax] * abs(v1[ax]) / (2 * self.lim.a_stop)
                 if 2.0 < over < 10.0 and sgn * (rest - wall) < 0:
                     self._expect_refusal("limits.path", "E10", p1, rv, T, v1,
                                          why=f"ends 30 mm inside moving inwards, path {over:.1f} mm outside")
@@ -723,8 +731,8 @@ class Suite:
         """Path inside, end 5 mm from the wall moving out at a speed that needs ≥ 15 mm to stop."""
         p0, rv = self._here()
         ax, sgn, _ = self._room(p0)
-        u = math.sqrt(2 * self.limits.a_stop * 20.0)  # 20 mm to brake, 5 mm of room
-        wall = self.limits.box_max[ax] if sgn > 0 else self.limits.box_min[ax]
+        u = math.sqrt(2 * self.lim.a_stop * 20.0)  # 20 mm to brake, 5 mm of room
+        wall = self.lim.box_max[ax] if sgn > 0 else self.lim.box_min[ax]
         for T, p1, v1, P, _V in self._candidates(p0, ax, sgn, 5.0, sgn * u, np.linspace(0.8, 8.0, 37)):
             if float(np.max(sgn * (P[:, ax] - wall))) < -1.0:  # the path itself stays inside
                 self._expect_refusal("stop.refuse_outward_end", "E10", p1, rv, T, v1,
@@ -739,7 +747,7 @@ class Suite:
         D = min(0.45 * room, 200.0)
         # at half the limits the path never decelerates harder than a_stop (≥ amax/√3), so the rest
         # point p + v|v|/(2 a_stop) only grows along the move: a later STOP never rests shorter
-        T = max(1.875 * D / (0.5 * self.limits.v_max), math.sqrt(5.7735 * D / (0.5 * self.limits.a_max)))
+        T = max(1.875 * D / (0.5 * self.lim.v_max), math.sqrt(5.7735 * D / (0.5 * self.lim.a_max)))
         p1 = p0.copy()
         p1[ax] += sgn * D
         code, f, sid = self.seg(p1, rv, T)
@@ -767,18 +775,18 @@ class Suite:
         tau = np.linspace(max(before["t"] - t0 - 1e-4, 0), min(after["t"] - t0 + 1e-4, T), 800)
         P = (tau[:, None] ** k) @ c
         V = (k * tau[:, None] ** np.maximum(k - 1, 0)) @ c
-        E = P + V * np.abs(V) / (2 * self.limits.a_stop)
+        E = P + V * np.abs(V) / (2 * self.lim.a_stop)
         ax = int(np.argmax(np.abs(V).max(axis=0)))
         sgn = float(np.sign(V[:, ax].sum()))
         if after["moving"]:  # still braking at `after`: t_s is where the ramp from there passes p(after)
-            d = np.clip(after["t"] - t0 - tau, 0.0, np.abs(V[:, ax]) / self.limits.a_stop)
-            x_after = P[:, ax] + V[:, ax] * d - 0.5 * sgn * self.limits.a_stop * d * d
+            d = np.clip(after["t"] - t0 - tau, 0.0, np.abs(V[:, ax]) / self.lim.a_stop)
+            x_after = P[:, ax] + V[:, ax] * d - 0.5 * sgn * self.lim.a_stop * d * d
             match = np.abs(x_after - after["p"][ax]) <= 0.3
             if match.any():
                 E = E[match]
         far = float(sgn * E[:, ax].max() if sgn > 0 else sgn * E[:, ax].min())
         r = rest["p"]
-        inside = bool(np.all(r >= self.limits.box_min) and np.all(r <= self.limits.box_max))
+        inside = bool(np.all(r >= self.lim.box_min) and np.all(r <= self.lim.box_max))
         beyond = sgn * r[ax] - far
         behind = sgn * (before["p"][ax] - r[ax])
         ok = beyond <= 0.5 and behind <= 0.5 and inside and not self.done_seen(sid)
@@ -845,17 +853,17 @@ class Suite:
         ax, sgn, room = self._room(p0)
         p1 = p0.copy()
         p1[ax] += sgn * min(30.0, room / 4)
-        T = 3 * self.limits.watchdog_s
+        T = 3 * self.lim.watchdog_s
         code, _, sid = self.seg(p1, rv, T)
         end = time.monotonic() + T + 2.0
         done = False
         while time.monotonic() < end and not done:  # STATUS, not HB: every valid request feeds it
             self.req("STATUS")
-            self.client._pump(self.limits.watchdog_s / 3)
+            self.client._pump(self.lim.watchdog_s / 3)
             done = self.done_seen(sid)
         trips = self.client.asyncs("WATCHDOG")
         self.record("watchdog.fed", code == "ok" and done and not trips,
-                    f"{T:.2f} s segment with a STATUS every {self.limits.watchdog_s / 3:.2f} s: "
+                    f"{T:.2f} s segment with a STATUS every {self.lim.watchdog_s / 3:.2f} s: "
                     f"{'@DONE' if done else 'no @DONE'}, {len(trips)} @WATCHDOG")
 
     def r_watchdog_trips(self) -> None:
@@ -864,10 +872,10 @@ class Suite:
         ax, sgn, room = self._room(p0)
         p1 = p0.copy()
         p1[ax] += sgn * min(40.0, room / 4)
-        T = max(2.0, 4 * self.limits.watchdog_s)
+        T = max(2.0, 4 * self.lim.watchdog_s)
         self.client.asyncs("WATCHDOG")
         code, _, sid = self.seg(p1, rv, T)
-        silent = 2 * self.limits.watchdog_s + 0.2
+        silent = 2 * self.lim.watchdog_s + 0.2
         self.client._pump(silent)  # say nothing
         trips = self.client.asyncs("WATCHDOG")
         st = self.wait_rest()
@@ -875,7 +883,7 @@ class Suite:
         cl, _ = self.req("CLEAR")
         ok = code == "ok" and bool(trips) and st["fault"] == "watchdog" and refused == "E40" and cl == "ok" \
             and not self.done_seen(sid)
-        self.record("watchdog.trips", ok, f"silent for {silent:.2f} s (watchdog {self.limits.watchdog_s:g} s): "
+        self.record("watchdog.trips", ok, f"silent for {silent:.2f} s (watchdog {self.lim.watchdog_s:g} s): "
                     f"{'@WATCHDOG' if trips else 'no @WATCHDOG'}, fault {st['fault']}, SEG then {refused}, "
                     f"rest {'short of' if not self.done_seen(sid) else 'AT'} the target")
         if not ok:
@@ -894,7 +902,7 @@ class Suite:
             self.record(rule, None, f"the controller does not list ruckig in a 1.2 session (profiles "
                         f"{','.join(self.profiles)}, session {self.version})")
             return True
-        if self.limits.j_max is None:
+        if self.lim.j_max is None:
             self.record(rule, False, "ruckig listed but LIMITS has no field 19 (jmax)")
             return True
         return False
@@ -906,8 +914,8 @@ class Suite:
 
         inp, traj = InputParameter(1), Trajectory(1)
         inp.current_position, inp.target_position = [0.0], [D]
-        inp.max_velocity, inp.max_acceleration = [self.limits.v_max], [self.limits.a_max]
-        inp.max_jerk = [self.limits.j_max]
+        inp.max_velocity, inp.max_acceleration = [self.lim.v_max], [self.lim.a_max]
+        inp.max_jerk = [self.lim.j_max]
         Ruckig(1).calculate(inp, traj)
         return traj
 
@@ -957,7 +965,7 @@ class Suite:
         p1[ax] += sgn * D
         p2[ax] += sgn * D / 2
         p2[(ax + 1) % 3] += min(40.0, self._room(p0)[2] / 4) * (1 if p0[(ax + 1) % 3] < np.mean(
-            [self.limits.box_min[(ax + 1) % 3], self.limits.box_max[(ax + 1) % 3]]) else -1)
+            [self.lim.box_min[(ax + 1) % 3], self.lim.box_max[(ax + 1) % 3]]) else -1)
         code, f, a = self._ruckig_seg(p1, rv, 2.0)
         if code != "ok":
             self.record("ruckig.splice", False, f"ruckig SEG of {D:.0f} mm in 2 s → {code}")
@@ -975,7 +983,7 @@ class Suite:
             # the arm moved on from `before` at no more than vmax: no jump back to a rest state
             dt = after["t"] - before["t"]
             jump = float(np.linalg.norm(after["p"] - before["p"]))
-            if jump > self.limits.v_max * dt + 0.05:
+            if jump > self.lim.v_max * dt + 0.05:
                 problems.append(f"moved {jump:.2f} mm in {dt:.4f} s across the splice")
             if not done:
                 problems.append(f"no @DONE {b}")
@@ -995,20 +1003,21 @@ class Suite:
         ax, sgn, room = self._room(p0)
         p1 = p0.copy()
         p1[ax] += sgn * min(30.0, room / 4)
-        c16, _, _ = self._ruckig_seg(p1, rv, 0, extra=f"jmax={_num(2 * self.limits.j_max)}")
-        wall = self.limits.box_max[ax] if sgn > 0 else self.limits.box_min[ax]
+        # _skip_ruckig returned False: LIMITS has jmax
+        c16, _, _ = self._ruckig_seg(p1, rv, 0, extra=f"jmax={_num(2 * cast(float, self.lim.j_max))}")
+        wall = self.lim.box_max[ax] if sgn > 0 else self.lim.box_min[ax]
         p2 = p0.copy()
         p2[ax] = wall - sgn * 5.0
-        u = math.sqrt(2 * self.limits.a_stop * 20.0)
+        u = math.sqrt(2 * self.lim.a_stop * 20.0)
         v = np.zeros(3)
-        v[ax] = sgn * min(u, 0.9 * self.limits.v_max)
+        v[ax] = sgn * min(u, 0.9 * self.lim.v_max)
         sid = self.new_id()
         args = [str(sid), *map(_num, p2), *map(_num, rv), "0", *map(_num, v), "0", "0", "0"]
         c10, _ = self.req(f"SEG {' '.join(args)} profile=ruckig")
         for c in (c16, c10):
             if c == "ok":
                 self.recover()
-        need = float(v[ax] ** 2 / (2 * self.limits.a_stop))
+        need = float(v[ax] ** 2 / (2 * self.lim.a_stop))
         self.record("ruckig.limits", (c16, c10) == ("E16", "E10"),
                     f"jmax 2·LIMITS → {c16} (want E16); ends 5 mm from the wall at {abs(v[ax]):.0f} mm/s outwards "
                     f"(needs {need:.0f} mm) → {c10} (want E10)")

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import cast
 
 import numpy as np
 
@@ -199,8 +200,9 @@ def needs_top_marker(index: LibraryIndex, name: str, scores: np.ndarray, bound: 
     if index.heights is None or index.top_marker is None or tol_mm <= 0:
         return False
     rows = np.flatnonzero((np.array(index.names) == name) & (np.asarray(scores) <= bound))
+    all_normal_z = cast(np.ndarray, index.normal_z)  # set with heights
     fits = ((np.abs(index.heights[rows] - height_mm) <= tol_mm)
-            & (np.abs(index.normal_z[rows] - normal_z) <= normal_tol))
+            & (np.abs(all_normal_z[rows] - normal_z) <= normal_tol))
     return bool(fits.any() and np.all(index.top_marker[rows][fits]))
 
 
@@ -416,7 +418,8 @@ def identify(first: ShapeFeatures | StandardViewQuery, index: LibraryIndex,
     """
     first_f, first_h = split_query(first)
     r = match(first_f, index, threshold, method=method, margin=margin, **{**weights, **first_h})
-    steps, requested = [r], []
+    steps = [r]
+    requested: list[tuple[str, int]] = []
     if r.best is None:
         return Identification(None, False, [], 1, steps, requested)
     remaining = list(r.candidates) or [r.best[0]]

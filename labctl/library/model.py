@@ -175,7 +175,7 @@ def triangulate_polygon(poly: np.ndarray) -> np.ndarray:
     def cross(o, a, b):
         return (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0])
 
-    tris = []
+    tris: list[tuple[int, ...]] = []
     guard = 0
     while len(idx) > 3 and guard < 10 * n * n:
         guard += 1

@@ -43,6 +43,7 @@ Formulation used here:
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from typing import cast
 
 import cv2
 import numpy as np
@@ -343,6 +344,8 @@ def overhead_visibility(mesh: trimesh.Trimesh, sites: list[Marker], poses: list[
     while the object crosses its field."""
     dirs = overhead_directions_o(poses, view.overhead_cone_deg, n_azimuth, n_rings, azimuth_offset)
     P, K = dirs.shape[:2]
+    if view.overhead_distance_mm is None:
+        raise TypeError("overhead visibility needs view.overhead_distance_mm")
     # the obliquity to any cone direction is at most tilt + cone: the tilt test below is the binding one
     seen = visibility_matrix(mesh, sites, dirs.reshape(-1, 3), distance_mm=float(view.overhead_distance_mm),
                              max_obliquity_deg=min(89.0, view.overhead_max_tilt_deg + view.overhead_cone_deg + 1.0))
@@ -448,7 +451,9 @@ def optimal_viewing_angle(mesh: trimesh.Trimesh, poses: list[tuple[np.ndarray, f
     angles = np.arange(30.0, 90.01, 3.0) if angles_deg is None else np.asarray(angles_deg, float)
     sites = candidate_sites(mesh, radius_mm, radii_mm=view.radii_mm)
     probs = np.array([p for _, p in poses])
-    counts, worst, cover = [], [], []
+    counts: list[int | None] = []
+    worst: list[int] = []
+    cover: list[float] = []
     for a in angles:
         v = replace(view, angle_deg=float(a), n_yaw=n_yaw, overhead_distance_mm=None)
         try:
@@ -466,7 +471,7 @@ def optimal_viewing_angle(mesh: trimesh.Trimesh, poses: list[tuple[np.ndarray, f
     if not valid:
         return {"angles_deg": angles.tolist(), "counts": counts, "coverage": cover, "min_visible": worst,
                 "optimal_deg": None, "optimal_range_deg": None}
-    key = {i: (cover[i], -counts[i], worst[i], angles[i]) for i in valid}
+    key = {i: (cover[i], -cast(int, counts[i]), worst[i], angles[i]) for i in valid}  # valid: counted
     pick = max(valid, key=lambda i: key[i])
     tied = [i for i in valid if key[i][:2] == key[pick][:2]]
     return {"angles_deg": angles.tolist(), "counts": counts, "coverage": cover, "min_visible": worst,

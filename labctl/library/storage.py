@@ -59,6 +59,13 @@ class LibraryObject:
     info: dict = field(default_factory=dict)
     path: Path | None = None
 
+    @property
+    def folder(self) -> Path:
+        """The object's folder (``path``); TypeError for an object that is not stored in a library."""
+        if self.path is None:
+            raise TypeError(f"{self.name} is not stored in a library folder")
+        return self.path
+
     def marker(self, marker_id: int) -> Marker:
         """The marker with id ``marker_id``; raises KeyError if the object has none."""
         for m in self.markers:
@@ -360,8 +367,9 @@ def refresh_library(library_dir: Path | str, view, *, threshold: float | None = 
         sheet = _sheet(obj, images, new)
         ok, png = cv2.imencode(".png", sheet)
         if ok:
-            atomic_write_bytes(obj.path / "contact_sheet.png", png.tobytes())
-        atomic_write_text(obj.path / "object.yaml", yaml.safe_dump(_plain({"name": name, **obj.info}), sort_keys=False))
+            atomic_write_bytes(obj.folder / "contact_sheet.png", png.tobytes())
+        atomic_write_text(obj.folder / "object.yaml",
+                          yaml.safe_dump(_plain({"name": name, **obj.info}), sort_keys=False))
     return data
 
 
@@ -381,14 +389,14 @@ def check_library(library_dir: Path | str, min_coverage: float | None = None) ->
     for name, obj in objs.items():
         errs = []
         for mid in obj.views:
-            png = obj.path / "views" / f"{mid}.png"
+            png = obj.folder / "views" / f"{mid}.png"
             if not png.is_file():
                 errs.append(f"{name}: missing views/{mid}.png")
             elif cv2.imread(str(png), cv2.IMREAD_COLOR) is None:
                 errs.append(f"{name}: views/{mid}.png is not a readable image")
         want = (obj.info.get("source") or {}).get("stored_model_sha256") if isinstance(obj.info.get("source"),
                                                                                        dict) else None
-        if want and hashlib.sha256((obj.path / "model.stl").read_bytes()).hexdigest() != want:
+        if want and hashlib.sha256((obj.folder / "model.stl").read_bytes()).hexdigest() != want:
             errs.append(f"{name}: model.stl differs from the model it was taught with (content hash)")
         total = sum(p for _, p in obj.stable_poses)
         if abs(total - 1.0) > 1e-3:

@@ -13,6 +13,7 @@ import hashlib
 import io
 from collections.abc import Callable
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 import trimesh
@@ -147,7 +148,8 @@ def _standard_views(name, mesh, markers, poses, render_factory, standoff_mm, sca
     """Standard views of ``markers``: (views, {marker id: why it has none}, [(marker id, crop warning)])."""
     step("standard views", 0, len(markers))
     render_view = render_factory(mesh, markers, poses)
-    done, failed, crops = [0], {}, []
+    done, crops = [0], []
+    failed: dict[int, str] = {}
 
     def tick(k):
         done[0] += k
@@ -290,7 +292,7 @@ def teach_object(name: str, model: Path | str | trimesh.Trimesh, *, radius_mm: f
     if rejected:
         warnings.append(f"{name}: {len(rejected)} marker site(s) left out, their standard view leaves the image "
                         f"(e.g. {rejected[0]}); would fix it: a longer viewing.standoff_mm")
-    sweep = optimal_viewing_angle(mesh, poses, radius_mm, view) if sweep else None
+    sweep_info = optimal_viewing_angle(mesh, poses, radius_mm, view) if sweep else None
     with io.BytesIO() as buf:
         mesh.export(buf, file_type="stl")
         stored_sha = hashlib.sha256(buf.getvalue()).hexdigest()
@@ -306,14 +308,16 @@ def teach_object(name: str, model: Path | str | trimesh.Trimesh, *, radius_mm: f
                       "distance_mm": view.distance_mm, "max_obliquity_deg": view.max_obliquity_deg,
                       "min_visible_markers": int(counts.min()), "checked_yaw_steps": int(counts.shape[1]),
                       "overhead": None if overhead is None else {
-                          "distance_mm": float(view.overhead_distance_mm), "cone_deg": float(view.overhead_cone_deg),
+                          # overhead is checked only with a distance
+                          "distance_mm": float(cast(float, view.overhead_distance_mm)),
+                          "cone_deg": float(view.overhead_cone_deg),
                           "max_tilt_deg": float(view.overhead_max_tilt_deg),
                           "min_tracked_markers": int(overhead.min()),
                           "untracked_poses": untracked,
                           "untracked_probability": round(sum(poses[p][1] for p in untracked), 4),
                           "tracked_markers_per_pose": [int(v) for v in overhead]}},
         "coverage_vs_angle": curve if curve is not None else {},
-        "viewing_angle_sweep": sweep if sweep is not None else {},
+        "viewing_angle_sweep": sweep_info if sweep_info is not None else {},
         "standoff_mm": float(standoff_mm), "mm_per_px": float(scale_mm_per_px),
         "resting_poses": {"computed": n_resting, "kept": len(poses), "merged": n_resting - len(poses),
                           "dropped_probability": round(dropped_probability, 6),

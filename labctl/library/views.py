@@ -9,7 +9,7 @@ tests), so this module never imports the simulator or a device.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -93,13 +93,13 @@ def resting_pose_for_view(stable_poses: list[tuple[np.ndarray, float]], T_o_c: n
     run meets). Returns None when no stable pose puts the camera above the table.
     """
     T_o_c = np.asarray(T_o_c, float)
-    ok, elev, prob = [], [], []
+    ok_l, elev_l, prob_l = [], [], []
     for T_s_o, p in stable_poses:
         cam_w = T_s_o[:3, :3] @ T_o_c[:3, 3] + T_s_o[:3, 3]
-        ok.append(cam_w[2] >= min_camera_height_mm)
-        elev.append(float(-(T_s_o[:3, :3] @ T_o_c[:3, 2])[2]))  # upward component of the view-to-camera axis
-        prob.append(float(p))
-    ok, elev, prob = np.array(ok), np.array(elev), np.array(prob)
+        ok_l.append(cam_w[2] >= min_camera_height_mm)
+        elev_l.append(float(-(T_s_o[:3, :3] @ T_o_c[:3, 2])[2]))  # upward component of the view-to-camera axis
+        prob_l.append(float(p))
+    ok, elev, prob = np.array(ok_l), np.array(elev_l), np.array(prob_l)
     if not ok.any():
         return None
     idx = np.flatnonzero(ok)
@@ -169,7 +169,7 @@ def check_fits_any_rotation(mask: np.ndarray, margin_px: int = 4) -> None:
                          "in-plane rotation): too large for the standard view at this stand-off")
 
 
-def silhouette_renderer(camera: CameraModel, mesh: trimesh.Trimesh, markers: list[Marker] = (), *,
+def silhouette_renderer(camera: CameraModel, mesh: trimesh.Trimesh, markers: Sequence[Marker] = (), *,
                         table_grey: int = 60, object_grey: int = 185, noise_sigma: float = 2.0,
                         rng: np.random.Generator | None = None) -> RenderView:
     """A quick flat-shaded renderer ``T_o_c -> BGR image`` (for tests and fast sweeps).

@@ -24,8 +24,12 @@ import io
 import math
 import re
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from matplotlib.artist import Artist
 
 from ..fsutil import atomic_write_bytes, atomic_write_text
 from .record import RunData, load_run
@@ -193,7 +197,7 @@ def render_figure(run: RunData):
         ax.set_aspect("equal", adjustable="datalim")
         ax.set_xlabel("x (mm)")
         ax.set_title("Tracked and predicted object path, up close (W)")
-    handles = {}
+    handles: dict[str, Artist] = {}
     for a_ in fig.axes:
         for h, lab in zip(*a_.get_legend_handles_labels()):
             handles.setdefault(lab, h)
@@ -206,7 +210,7 @@ def render_figure(run: RunData):
     if not scores:
         _not_reached(ax, "Match scores")
     else:
-        names = sorted(scores, key=scores.get)  # best (lowest) first, drawn at the top
+        names = sorted(scores, key=lambda n: scores[n])  # best (lowest) first, drawn at the top
         ident = _identity_name(run) or names[0]
         colors = ["tab:red" if n == ident else "0.6" for n in names]
         ax.barh(names[::-1], [scores[n] for n in names][::-1], color=colors[::-1])
@@ -358,8 +362,9 @@ def _html(run: RunData, png: bytes) -> str:
     counts: dict[str, int] = {}
     for e in run.events:
         counts[str(e.get("event"))] = counts.get(str(e.get("event")), 0) + 1
-    last = run.events[-1].get("event") if run.events else None
-    body = _kv_table(counts) + (f"<p>Last event: {html.escape(str(last))}</p>" if last else _nr("no events"))
+    last_event = run.events[-1].get("event") if run.events else None
+    body = _kv_table(counts) + (f"<p>Last event: {html.escape(str(last_event))}</p>" if last_event
+                                else _nr("no events"))
     parts.append(_section("events", "Event log", body))
 
     lead = parts.pop(0) if reason is not None else ""

@@ -18,7 +18,8 @@ import math
 import os
 import threading
 from multiprocessing import AuthenticationError
-from multiprocessing.connection import Client, Listener
+from multiprocessing.connection import Client, Connection, Listener
+from typing import Any, cast
 
 import numpy as np
 
@@ -66,7 +67,7 @@ class SimCamera(OpenClose):
         rng = np.random.default_rng([self.seed, _ROLE_CODE[self.role], int(seq)])
         res = self.world.render(self.role, t, rng, truth=self.truth)
         self.frames_rendered += 1
-        meta = {"camera": self.role}
+        meta: dict[str, Any] = {"camera": self.role}
         if self.truth:
             meta.update(mask=res.mask, depth=res.depth, markers_c=res.markers_c, marker_pixels=res.marker_pixels,
                         T_w_c=self.world.T_w_c(self.role, t))
@@ -193,7 +194,7 @@ class FrameServer:
                     if not isinstance(req, tuple) or not req or req[0] == "bye":
                         return
                     kind, role = req[0], req[1] if len(req) > 1 else None
-                    cam = self.cameras.get(role)
+                    cam = self.cameras.get(role) if role is not None else None
                     if cam is None:
                         conn.send({"error": f"no camera {role!r} (have {sorted(self.cameras)})"})
                     elif kind == "info":
@@ -219,7 +220,7 @@ class FrameClient(OpenClose):
     def __init__(self, address, role: str, authkey: bytes, *, timeout_s: float = 5.0):
         self.address, self.role, self.authkey = address, role, authkey
         self.timeout_s = timeout_s
-        self._conn = None
+        self._conn: Connection | None = None
 
     def open(self) -> None:
         """Connect to the frame server with its key; raises DeviceError when it is unreachable or refuses the key."""
@@ -265,12 +266,13 @@ class FrameClient(OpenClose):
 
     def _frames(self, request) -> list[Frame]:
         heads = self._ask(request)["frames"]
+        conn = cast(Connection, self._conn)  # _ask checked that it is open
         frames = []
         for head in heads:
             try:
-                if not self._conn.poll(self.timeout_s):
+                if not conn.poll(self.timeout_s):
                     raise DeviceError(f"frame server sent no image within {self.timeout_s} s")
-                data = self._conn.recv_bytes()
+                data = conn.recv_bytes()
             except (OSError, EOFError) as exc:
                 raise DeviceError(f"frame server connection lost: {exc}") from None
             image = np.frombuffer(bytearray(data), dtype=np.dtype(head["dtype"])).reshape(head["shape"])

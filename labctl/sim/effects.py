@@ -21,6 +21,7 @@ All functions are pure (numpy in, numpy out); units mm and grey levels.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import cast
 
 import cv2
 import numpy as np
@@ -48,15 +49,16 @@ class EffectsError(ValueError):
 class CameraEffects:
     """What a simulated camera adds to the clean linear render (all off by default).
 
-    ``response`` the camera's response (a :class:`~labctl.vision.response.Response`; None or
-    linear: none); ``shadows`` the fraction of the direct light the object blocks on the table
-    (0 off … 1 only ambient light in the shadow); ``specular`` Blinn-Phong strength (fraction of
+    ``response`` the camera's response (a :class:`~labctl.vision.response.Response`, or a driver
+    file's spec, parsed on construction; None or linear: none); ``shadows`` the fraction of the
+    direct light the object blocks on the table (0 off … 1 only ambient light in the shadow);
+    ``specular`` Blinn-Phong strength (fraction of
     full scale at n·h = 1) and ``shininess`` its exponent; ``texture`` table texture contrast (1:
     the default breadboard); ``bayer`` demosaicing (None, ``bilinear``, ``vng``, ``ea``);
     ``jpeg_quality`` 1–100 or None.
     """
 
-    response: Response | None = None
+    response: Response | str | float | list[float] | None = None
     shadows: float = 0.0
     specular: float = 0.0
     shininess: float = 40.0
@@ -80,9 +82,10 @@ class CameraEffects:
             raise EffectsError(f"jpeg_quality must be within 1–100, got {self.jpeg_quality}")
         r = self.response
         if r is not None and not isinstance(r, Response):
-            object.__setattr__(self, "response", parse_response(r))
-        if self.response is not None and not self.response.is_linear:
-            object.__setattr__(self, "_enc", encoding_lut(self.response))
+            r = parse_response(r)
+            object.__setattr__(self, "response", r)
+        if r is not None and not r.is_linear:
+            object.__setattr__(self, "_enc", encoding_lut(r))
 
     @property
     def any(self) -> bool:
@@ -202,7 +205,7 @@ def _rasterise_shadow(tris: np.ndarray, penumbra_mm: float, grid_mm: float):
     pts = np.round((tris - lo) / res * 16.0).astype(np.int32)
     for tri in pts:
         cv2.fillConvexPoly(mask, tri, 255, lineType=cv2.LINE_AA, shift=4)
-    m = mask.astype(np.float32) * np.float32(1.0 / 255.0)
+    m: np.ndarray = mask.astype(np.float32) * np.float32(1.0 / 255.0)
     if penumbra_mm > 0:
         m = cv2.GaussianBlur(m, (0, 0), penumbra_mm / 2.0 / res)
     m.flags.writeable = False
@@ -242,7 +245,7 @@ def camera_pipeline(image: np.ndarray, fx: CameraEffects) -> np.ndarray:
         ok, buf = cv2.imencode(".jpg", out, [cv2.IMWRITE_JPEG_QUALITY, int(fx.jpeg_quality)])
         if not ok:
             raise EffectsError("JPEG encoding failed")
-        out = cv2.imdecode(buf, cv2.IMREAD_COLOR)
+        out = cast(np.ndarray, cv2.imdecode(buf, cv2.IMREAD_COLOR))  # a JPEG just encoded decodes
     return out
 
 

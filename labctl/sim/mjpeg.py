@@ -21,6 +21,7 @@ import threading
 import time
 from collections.abc import Callable
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from typing import cast
 
 log = logging.getLogger(__name__)
 
@@ -194,7 +195,8 @@ class MjpegServer:
         self._server.streams = {n: _Stream(n, cam, clock, quality) for n, cam in cameras.items()}
         self._server.controls = dict(controls or {})
         self._server.stopping = threading.Event()
-        self.host, self.port = self._server.server_address[:2]
+        bound_host, self.port = self._server.server_address[:2]
+        self.host = cast(str, bound_host)  # an IPv4 server's address is (host, port)
         self._thread = threading.Thread(target=self._server.serve_forever, kwargs={"poll_interval": 0.1},
                                         name="mjpeg-server", daemon=True)
 

@@ -32,6 +32,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from functools import lru_cache
+from typing import cast
 
 import cv2
 import numpy as np
@@ -635,7 +636,7 @@ def _render_noiseless(camera: CameraModel, T_w_c: np.ndarray, meshes: Sequence[M
     corners_w, base_colour, _ = _gather_meshes(meshes)
     # table layer (uint8 BGR)
     if table is False or table is None:
-        colour = np.zeros((H, W, 3), np.uint8)
+        colour: np.ndarray = np.zeros((H, W, 3), np.uint8)
         invz = np.zeros(H * W, np.float32)
     else:
         surface = table if isinstance(table, TableSurface) else TableSurface()
@@ -677,7 +678,8 @@ def _render_noiseless(camera: CameraModel, T_w_c: np.ndarray, meshes: Sequence[M
                 table_roi = colour[roi[0]:roi[1], roi[2]:roi[3]].copy() if supersample > 1 else None
                 flat[win_pix] = np.round(tri_colour).astype(np.uint8)[win_tri]
                 if supersample > 1:
-                    _edge_supersample(camera, supersample, coef, tri_colour, colour, tri_id, table_roi, roi)
+                    _edge_supersample(camera, supersample, coef, tri_colour, colour, tri_id,
+                                      cast(np.ndarray, table_roi), roi)  # copied above when supersample > 1
     markers = [mk for m in meshes for mk in m.markers]
     counts = _marker_pass(camera, T_c_w, light_w, markers, colour, invz, fx) if markers else []
     return _Layer(colour=colour, tri_id=tri_id, invz=invz, marker_pixels=counts), T_c_w, markers

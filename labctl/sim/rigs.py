@@ -33,6 +33,8 @@ def target_world(lab, target, *, table_position, flange_pose_at, supersample: in
     class _World(SimWorld):
         spacer_mm = 0.0
         calibration = True
+        _changes: list[tuple[float, bool, float]]  # (from t, calibration, spacer_mm), set on the instance below
+        _changes_lock: threading.Lock
 
         def set_scene(self, t: float, calibration: bool, spacer_mm: float = 0.0) -> None:
             """From time ``t`` on: the target on a ``spacer_mm`` spacer (``calibration``) or the object."""

@@ -10,6 +10,7 @@ a built-in 40×40×35 mm test block with a marker on every face stands in (and t
 from __future__ import annotations
 
 from pathlib import Path
+from typing import cast
 
 import cv2
 import numpy as np
@@ -82,6 +83,7 @@ def snapshot(lab, camera: str, t: float, out: Path, seed: int = 0, object_name: 
     except OSError as exc:
         raise UserInputError(f"cannot write {out}: {exc.strerror or exc}") from None
     truth = world.truth(t)
+    mask, marker_pixels = cast(np.ndarray, res.mask), cast("list[int]", res.marker_pixels)  # truth=True: both set
     info = {
         "out": str(out),
         "camera": camera,
@@ -95,9 +97,9 @@ def snapshot(lab, camera: str, t: float, out: Path, seed: int = 0, object_name: 
         "table_position_mm": [round(float(v), 3) for v in world.table_position(t)],
         "table_motion": f"line along +x at {speed:g} mm/s",
         "T_w_c": np.round(world.T_w_c(camera, t), 6).tolist(),
-        "T_w_o": np.round(truth.T_w_o, 6).tolist(),
-        "object_pixels": int(res.mask.sum()),
-        "marker_pixels": {str(m.id): int(n) for m, n in zip(obj.markers, res.marker_pixels)},
+        "T_w_o": np.round(cast(np.ndarray, truth.T_w_o), 6).tolist(),  # an object is placed
+        "object_pixels": int(mask.sum()),
+        "marker_pixels": {str(m.id): int(n) for m, n in zip(obj.markers, marker_pixels)},
     }
     if source == "built-in":
         info["note"] = (f"{fallback}; " if fallback else "") + "drew the built-in test block (40×40×35 mm)"

@@ -20,6 +20,7 @@ import select
 import socket
 import threading
 import tty
+from typing import cast
 
 log = logging.getLogger(__name__)
 
@@ -32,7 +33,7 @@ class TcpSerialBridge:
         self._fd = os.open(path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
         with contextlib.suppress(OSError):
             tty.setraw(self._fd)
-        self._sock = socket.create_server((host, port))
+        self._sock: socket.socket | None = socket.create_server((host, port))
         self._sock.settimeout(0.1)
         self.host, self.port = self._sock.getsockname()[:2]
         self._stop = threading.Event()
@@ -69,7 +70,7 @@ class TcpSerialBridge:
                 client.close()
                 client = None
             with contextlib.suppress(OSError):
-                self._sock.close()
+                cast(socket.socket, self._sock).close()  # is_up: the port is listening
             self._sock = None
             self.drops += 1
             log.info("ser2net-style bridge %s:%s stopped", self.host, self.port)
@@ -146,7 +147,8 @@ class TcpSerialBridge:
         self._stop.set()
         self._thread.join(timeout=2.0)
         with contextlib.suppress(OSError, AttributeError):
-            self._sock.close()
+            if self._sock is not None:  # None while the port is down
+                self._sock.close()
         with contextlib.suppress(OSError):
             os.close(self._fd)
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -22,14 +23,18 @@ from .camera import SimCamera
 from .clock import VirtualClock
 from .world import Placement, SimObject, SimWorld, builtin_test_object, random_placement
 
+if TYPE_CHECKING:
+    from .emulators.grbl import GrblEmulator
+    from .emulators.robot import RobotEmulator
+
 
 @dataclass
 class VirtualLab:
     """A simulated lab in virtual time: one clock, the world, the GRBL and robot emulators, and the cameras by role."""
     clock: VirtualClock
     world: SimWorld
-    table: object  # labctl.sim.emulators.grbl.GrblEmulator
-    robot: object  # labctl.sim.emulators.robot.RobotEmulator
+    table: GrblEmulator
+    robot: RobotEmulator
     cameras: dict[str, SimCamera]
     seed: int
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import Self
 
 import numpy as np
 
@@ -94,7 +95,7 @@ def builtin_test_object(marker_radius_mm: float = 8.0) -> SimObject:
 
     size = np.array([40.0, 40.0, 35.0])
     mesh = trimesh.creation.box(size)
-    markers = []
+    markers: list[SimMarker] = []
     for axis in range(3):
         for sign in (1.0, -1.0):
             n = np.zeros(3)
@@ -188,7 +189,7 @@ class SimWorld:
 
     def __init__(self, *, fixed: CameraRig, mobile: CameraRig, T_w_c1: np.ndarray, T_f_c2: np.ndarray,
                  T_w_b: np.ndarray | None = None, table_origin_w=(0.0, 0.0, 0.0),
-                 table_position: Callable[[float], Sequence[float]] | None = None,
+                 table_position: Callable[[float], Sequence[float] | np.ndarray] | None = None,
                  flange_pose_at: Callable[[float], np.ndarray] | None = None,
                  obj: SimObject | None = None, placement: Placement | None = None,
                  light_dir_w=DEFAULT_LIGHT_DIR_W, supersample: int = 3):
@@ -325,9 +326,9 @@ class SimWorld:
     # --- construction from a lab ------------------------------------------------------------
     @classmethod
     def from_lab(cls, lab, *, obj: SimObject | None = None, placement: Placement | None = None,
-                 table_position: Callable[[float], Sequence[float]] | None = None,
+                 table_position: Callable[[float], Sequence[float] | np.ndarray] | None = None,
                  flange_pose_at: Callable[[float], np.ndarray] | None = None,
-                 exposure_s: float = 0.0, supersample: int = 3) -> SimWorld:
+                 exposure_s: float = 0.0, supersample: int = 3) -> Self:
         """The world of a lab's driver files (their *sim* ground-truth fields, via :mod:`labctl.sim.truth`).
 
         Defaults: the table held at the centre of its travel, the robot at home looking at the

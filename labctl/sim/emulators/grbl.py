@@ -149,7 +149,7 @@ class GrblEmulator:
         """What GRBL's main() does after power-up or a soft reset (abort)."""
         self.rx = bytearray()
         self.line = bytearray()
-        self.line_flags = set()
+        self.line_flags: set[str] = set()
         self.task = None  # generator executing the current line
         self.wake_at: float | None = None
         self.locked = False  # critical alarm: only a reset is served ('?' too is ignored, as in 1.1h)
@@ -167,7 +167,7 @@ class GrblEmulator:
         self.coolant = 9
         self.tool = 0
         self.wco_counter = 0
-        self._wco_reported = None
+        self._wco_reported: np.ndarray | None = None
         self.ovr_counter = 1
         self._write("\r\nGrbl " + VERSION + " ['$' for help]\r\n")
         if self.state in ("Alarm", "Sleep"):

@@ -15,6 +15,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 
@@ -231,7 +232,9 @@ class Planner:
                 and last.t1 == t0 and last.p0 == tuple(float(x) for x in p0)):
             self.history[-1] = Piece(last.t0, t1, last.p0, last.unit, 0.0, 0.0)  # merge idle stretches
             return
-        self.history.append(Piece(t0, t1, tuple(float(x) for x in p0), tuple(float(x) for x in unit), v0, a))
+        # p0 and unit are 3-vectors
+        self.history.append(Piece(t0, t1, cast("tuple[float, float, float]", tuple(float(x) for x in p0)),
+                                  cast("tuple[float, float, float]", tuple(float(x) for x in unit)), v0, a))
         while self.history and self.history[0].t1 < t1 - self.history_s:
             self.history.popleft()
 

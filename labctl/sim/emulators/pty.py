@@ -91,9 +91,9 @@ class PtyDevice:
                 except OSError:
                     data = b""  # no client has the slave open: keep serving
                     time.sleep(self.tick_s)
-                for b in data:
+                for byte in data:
                     t_in = max(t_in, now) + self.byte_s
-                    inbound.append((t_in, bytes([b])))
+                    inbound.append((t_in, bytes([byte])))
                 self.bytes_in += len(data)
             try:
                 with self.lock:

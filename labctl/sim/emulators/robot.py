@@ -28,6 +28,7 @@ import math
 import re
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any, cast
 
 import numpy as np
 
@@ -609,7 +610,7 @@ class RobotEmulator:
         ``profile=`` (1.1); ``vmax= amax= jmax= wmax=`` (1.2, ruckig only: the segment's own limits, mm/s,
         mm/s², mm/s³, deg/s); 17 numbers (with the end acceleration) only for ruckig."""
         args = list(req.args)
-        opts: dict[str, str] = {}
+        opts: dict[str, Any] = {}  # profile (str); vmax= amax= jmax= wmax= (str, float once parsed)
         while args and "=" in args[-1]:
             key, _, value = args.pop().partition("=")
             key = key.lower()
@@ -623,10 +624,10 @@ class RobotEmulator:
             return 2
         for key in LIMIT_KEYS:
             if key in opts:
-                value = parse_number(opts[key])
-                if not ruckig or value is None or value <= 0:
+                number = parse_number(opts[key])
+                if not ruckig or number is None or number <= 0:
                     return 2
-                opts[key] = value
+                opts[key] = number
         lowest = 0 if self.session == "1.0" else 1  # 1.1 reserves id 0 for HOME
         if not args[0].isdigit() or not lowest <= int(args[0]) <= 65535:
             return 2
@@ -687,6 +688,7 @@ class RobotEmulator:
             last = max((s.t1 for s in self.segments), default=-math.inf)
             t0 = max(self.now, last)
             start = self._end_state() if last > self.now else self.state_at(self.now)
+        seg: Segment | RuckigSegment | None
         if ruckig is not None:
             lim, a1 = ruckig
             plan = plan_ruckig(start, p1, R1, v1, w1, a1, T, lim)
@@ -698,6 +700,7 @@ class RobotEmulator:
         if code:
             self._error(seq, code)
             return
+        seg = cast("Segment | RuckigSegment", seg)  # no error code: the segment was made
         if replace:
             self._cut_at(t0)
         self.segments.append(seg)
