@@ -159,10 +159,11 @@ def export_cmd(run: str, mcap_path: Path, force: bool) -> None:
     if not mcap_path.parent.is_dir():
         raise UserInputError(f"no folder {mcap_path.parent} for {mcap_path.name}")
     counts = export_mcap(load_run(path), mcap_path)
-    data = {"run": str(path), "mcap": str(mcap_path), "messages": counts, "bytes": mcap_path.stat().st_size}
+    size = mcap_path.stat().st_size
+    data = {"run": str(path), "mcap": str(mcap_path), "messages": counts, "bytes": size}
 
     def human(con):
-        con.print(f"wrote {mcap_path} ({sum(counts.values())} messages, {data['bytes'] / 1e6:.1f} MB): "
+        con.print(f"wrote {mcap_path} ({sum(counts.values())} messages, {size / 1e6:.1f} MB): "
                   + ", ".join(f"{k} {v}" for k, v in counts.items()))
         con.print("next: open it in Foxglove (File > Open local file), or read it with the mcap package")
 

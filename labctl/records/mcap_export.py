@@ -114,9 +114,8 @@ def quaternion_from_matrix(R: Any) -> dict:
         v[j] = (m[j][i] + m[i][j]) / s
         v[k] = (m[k][i] + m[i][k]) / s
         q = (v[0], v[1], v[2], (m[k][j] - m[j][k]) / s)
-    if q[3] < 0:
-        q = tuple(-c for c in q)
-    return dict(zip("xyzw", q))
+    sign = -1.0 if q[3] < 0 else 1.0
+    return dict(zip("xyzw", (sign * c for c in q), strict=True))
 
 
 _IDENTITY = {"position": {"x": 0.0, "y": 0.0, "z": 0.0}, "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}}
