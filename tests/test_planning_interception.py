@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from labctl.bench.ruckig_baseline import RuckigInterceptor
 from labctl.planning import (
     Limits,
     camera_placement_trajectory,
@@ -14,7 +15,6 @@ from labctl.planning import (
     replan,
     standard_view_pose,
 )
-from labctl.planning.ruckig_baseline import RuckigInterceptor
 from labctl.tracking import PredictedPath
 
 # fixed limits (a 1.2 × 1.4 × 1.1 m box, 500 mm/s, 1500 mm/s², 120°/s) so the tests do not move with the sample lab

@@ -5,7 +5,7 @@ families (line, arc, circle, zigzag at 4, 12, 50, 100 mm/s, the lab's frame rate
 noise) — the IMM both told the cell's family (what a run does when labctl drives the table along
 that program) and family-blind (external motion) — and reports each one's 5-s prediction RMS and
 NEES after 2 s and 4 s of tracking (and after a zigzag corner) against the estimation bound of
-:mod:`labctl.tracking.bounds`; the informed tracker also with the zigzag's corner half a frame
+:mod:`labctl.bench.track_bound`; the informed tracker also with the zigzag's corner half a frame
 off the grid, with 30 % of the frames dropped, and on ``zigzag_stop``, the corner as the table
 drives it (a diagnostic). Part 2 times
 the quintic interception planner (the paper's method) against the ruckig jerk-limited baseline
@@ -24,9 +24,9 @@ from ..config.devices import RobotConfig, TableConfig
 from ..config.lab import TrackingConfig
 from ..planning import Limits, camera_placement_trajectory, check_segment, plan_interception, replan
 from ..planning.interception import _score
-from ..planning.ruckig_baseline import RuckigInterceptor
 from ..tracking import MarkerTracker, PredictedPath
 from ._timing import median_time, row
+from .ruckig_baseline import RuckigInterceptor
 
 # the filters compared with the bound (docs/notes/planning.md); measurement noise and frame rate are the lab's
 # "family": the cell's trajectory family is passed to the tracker, as a run does when labctl drives the table
@@ -97,7 +97,7 @@ def _bound_table(quick: bool, models=None, *, runs: int | None = None, acceptanc
                  drop_frames: float = 0.0, curvature_sigma: float | None = None) -> list[dict]:
     """Each filter's 5-s prediction RMS and NEES against the bound, per family and speed (issue 18).
 
-    The paths are :mod:`labctl.tracking.bounds`'s line, arc (r 200 mm), circle (r 80 mm) and
+    The paths are :mod:`labctl.bench.track_bound`'s line, arc (r 200 mm), circle (r 80 mm) and
     zigzag (the lab program's 97° corner at 2 s) at 4, 12, 50, 100 mm/s with random headings,
     measured at the lab's frame rate (``run.fps``) with the tracker's ``measurement_noise_mm``
     per axis. "bound" is the Cramér-Rao bound; "ml" the ML fit of the true model on the same
@@ -110,11 +110,11 @@ def _bound_table(quick: bool, models=None, *, runs: int | None = None, acceptanc
     the Cramér-Rao bound. ``corner_frames``: the zigzag's corner that many frame intervals after 2 s
     (a real corner lies between two frames; at 2 s it lies on one). ``drop_frames``: the share of frames
     the tracker (and the bound) never gets; ``curvature_sigma``: arcs' and circles' curvature drawn per run from
-    N(0, curvature_sigma²) (both :func:`~labctl.tracking.synthetic.compare_with_bound`).
+    N(0, curvature_sigma²) (both :func:`~labctl.bench.synthetic_tracks.compare_with_bound`).
     """
     from ..config.lab import RunConfig
-    from ..tracking.bounds import FAMILIES, SPEEDS, ZIGZAGS
-    from ..tracking.synthetic import compare_with_bound
+    from .synthetic_tracks import compare_with_bound
+    from .track_bound import FAMILIES, SPEEDS, ZIGZAGS
 
     sigma, fps, accel = TrackingConfig().measurement_noise_mm, RunConfig().fps, TableConfig().accel_mm_s2
     runs = runs or (8 if quick else RUNS)
