@@ -147,4 +147,4 @@ def test_a_device_that_never_ends_a_line_cannot_fill_memory():
     link = SerialLink(port=Noise(), timeout_s=0.1)
     link.open()
     assert link.readline(0.05) is None
-    assert len(link._buf) <= link.max_buffer and link.bytes_discarded >= 100_000 - link.max_buffer
+    assert link.buffered_bytes <= link.max_buffer and link.bytes_discarded >= 100_000 - link.max_buffer

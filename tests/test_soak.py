@@ -20,7 +20,7 @@ def test_short_soak_keeps_every_buffer_bounded(tmp_path):
     assert r["virtual_s"] >= 160 and r["segments"] > 300  # more DONE reports than the bound holds
     b = r["buffers"]
     assert b["robot.done_ids"] == 256 and b["robot.faults"] == 0
-    assert b["table.messages"] <= 200 and b["table.link._buf"] < 4096 and b["robot.link._buf"] < 4096
+    assert b["table.messages"] <= 200 and b["table.link.buffered"] < 4096 and b["robot.link.buffered"] < 4096
     assert r["peer_lost"] == []
     # the record: one durable event per tick, fsynced in batches by the writer thread, not per event
     assert r["record_events"] == r["ticks"] and 0 < r["record_fsyncs"] < r["ticks"] / 10

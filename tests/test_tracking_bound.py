@@ -1,6 +1,6 @@
 """Issue 18: the estimation bound, and the trackers measured against it (paper §4.2).
 
-The bound (labctl.tracking.bounds) shares no code with the filters; here it is itself checked
+The bound (labctl.bench.track_bound) shares no code with the filters; here it is itself checked
 against closed forms that owe nothing to it: the textbook variance of a least-squares line's
 extrapolation, and an exact circle.
 """
@@ -12,12 +12,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from labctl.bench.synthetic_tracks import compare_with_bound
+from labctl.bench.track_bound import crb_prediction_cov, crb_prediction_rms, make_scenario, ml_prediction, positions
 from labctl.config.lab import RunConfig, TrackingConfig
 from labctl.planning import camera_placement_trajectory
 from labctl.planning.targets import prediction_margin_mm, viewing_distance_with_margin
 from labctl.tracking import MarkerTracker
-from labctl.tracking.bounds import crb_prediction_cov, crb_prediction_rms, make_scenario, ml_prediction, positions
-from labctl.tracking.synthetic import compare_with_bound
 
 SIGMA = TrackingConfig().measurement_noise_mm  # the noise the tracker is told about (lab.yaml: 0.7 mm)
 FPS = RunConfig().fps
@@ -151,9 +151,9 @@ def test_stopping_corner_is_how_the_grbl_planner_turns_the_lab_zigzag():
     vertex. The bound's model stands still there; GRBL's junction speed is ~2 mm/s. The bound's corners in
     :data:`FAMILIES` are instant instead: 0.25 s of this ramp at 50 mm/s is where the lab's tracker is furthest
     from it (docs/notes/planning.md, seventh round)."""
+    from labctl.bench.track_bound import ZIGZAG_TURN_RAD
     from labctl.sim.clock import VirtualClock
     from labctl.sim.emulators.grbl import GrblEmulator
-    from labctl.tracking.bounds import ZIGZAG_TURN_RAD
 
     clk = VirtualClock()
     g = GrblEmulator(clk, accel_mm_s2=200.0, homing=False, start_mm=(200.0, 250.0, 0.0))
@@ -219,9 +219,9 @@ def test_line_bound_with_dropped_frames_is_the_fit_over_the_frames_kept():
 def test_a_view_holds_the_marker_where_a_pinhole_says_it_lies_in_the_central_image(fx, fy, margin, depth, fill):
     """``view_holds_marker`` against the pinhole projection written out here: a camera looking down from
     ``depth`` mm sees a point at image offset (u, v) px; it holds when |u| + margin·f/depth ≤ fill·w/2 (and in v)."""
+    from labctl.bench.synthetic_images import issue_camera
     from labctl.geometry import look_at
     from labctl.planning.targets import view_holds_marker
-    from labctl.vision.synthetic import issue_camera
 
     cam = issue_camera()
     f = 2500.0

@@ -1,6 +1,6 @@
 """Issue 18: the 5-s prediction's covariance sits at the Cramér-Rao bound where the filter reaches it.
 
-The reference is :func:`labctl.tracking.bounds.crb_prediction_cov` (independent of the filters). Before the
+The reference is :func:`labctl.bench.track_bound.crb_prediction_cov` (independent of the filters). Before the
 sixth round (docs/notes/planning.md) the lab's process noise (0.01 mm/s^1.5) put a line's 5-s covariance
 after 4 s of tracking at 1.058x the bound. (After a corner: tests/test_tracking_corner.py.)
 """
@@ -9,9 +9,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from labctl.bench.synthetic_tracks import compare_with_bound
 from labctl.config.lab import RunConfig, TrackingConfig
 from labctl.tracking import MarkerTracker
-from labctl.tracking.synthetic import compare_with_bound
 
 FPS, SIGMA = RunConfig().fps, TrackingConfig().measurement_noise_mm
 
@@ -64,7 +64,7 @@ def test_the_curve_covariance_is_the_posteriors_where_the_truth_follows_the_prio
     """After 2 s at 4 mm/s (8 mm of path) the curvature is the prior's, N(0, (1/80 mm)²). On the bench's one 200-mm
     arc, at 0.4 σ of the prior's mean, the errors are smaller than the posterior says (NEES far below 2). With
     each run's curvature drawn from that prior, as a Bayesian filter's covariance assumes, the same tracker's
-    mean NEES is chi-square(2)'s. The truth, the scenarios and the NEES are :mod:`labctl.tracking.bounds` and
+    mean NEES is chi-square(2)'s. The truth, the scenarios and the NEES are :mod:`labctl.bench.track_bound` and
     :func:`compare_with_bound`, not the tracker."""
     sigma = _tracker("arc")().curvature_prior_sigma
     assert sigma == 1 / 80

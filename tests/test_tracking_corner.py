@@ -1,6 +1,6 @@
 """Issue 18: after a zigzag corner the prediction settles back under 1.5× the bound, and stays there.
 
-The reference is :mod:`labctl.tracking.bounds` (the Cramér-Rao bound of the two-leg model with an
+The reference is :mod:`labctl.bench.track_bound` (the Cramér-Rao bound of the two-leg model with an
 unknown corner time, and its ML fit on the very same frames), which shares no code with the filter.
 Before the corner-time refinement (docs/notes/planning.md, "Fourth round") the lab tracker was
 0.9-1.4× the bound 0.5 s after the corner but 1.7-2.5× 1 s after it: the corner estimate was taken
@@ -15,10 +15,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from labctl.bench.synthetic_tracks import compare_with_bound
+from labctl.bench.track_bound import make_scenario
 from labctl.config.lab import RunConfig, TrackingConfig
 from labctl.tracking import MarkerTracker
-from labctl.tracking.bounds import make_scenario
-from labctl.tracking.synthetic import compare_with_bound
 
 FPS, SIGMA = RunConfig().fps, TrackingConfig().measurement_noise_mm
 
@@ -131,7 +131,7 @@ def test_a_corner_the_table_stops_at_settles_under_the_bound(speed):
 def test_the_trackers_stop_profiles_are_the_bounds_stopping_corner(speed1, speed2, accel, h1, turn):
     """The tracker's stop-corner leg ``p_s + v1·D1(τ) + v2·D2(τ)`` (τ from the slow-down's start) is
     ``bounds.positions("zigzag_stop")``, written apart and checked against the GRBL emulator's planner."""
-    from labctl.tracking.bounds import positions
+    from labctl.bench.track_bound import positions
     from labctl.tracking.tracker import _stop_profiles
 
     v1 = speed1 * np.array([np.cos(h1), np.sin(h1)])

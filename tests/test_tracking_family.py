@@ -3,7 +3,7 @@
 Paper §5.1: the object's motions are induced by programmed movement of the NC table, so a run that
 drives the table along a named program knows the path's *family* (not its geometry) and sets the
 IMM's curve prior from ``tracking.family_prior``; motion labctl does not drive keeps the family-blind
-``tracking.curve_prior``. The reference is the estimation bound of :mod:`labctl.tracking.bounds`
+``tracking.curve_prior``. The reference is the estimation bound of :mod:`labctl.bench.track_bound`
 (Cramér-Rao bound and the ML fit of the true model on the very same measurements), which is
 independent of the filters.
 """
@@ -12,9 +12,9 @@ from __future__ import annotations
 
 import pytest
 
+from labctl.bench.synthetic_tracks import compare_with_bound
 from labctl.config.lab import RunConfig, TrackingConfig
 from labctl.tracking import MarkerTracker
-from labctl.tracking.synthetic import compare_with_bound
 
 FPS, SIGMA = RunConfig().fps, TrackingConfig().measurement_noise_mm
 

@@ -6,14 +6,9 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
+from labctl.bench.synthetic_tracks import make_trajectory, prediction_errors, sample_measurements
 from labctl.config.lab import TrackingConfig
-from labctl.tracking import (
-    MarkerTracker,
-    TrackingError,
-    make_trajectory,
-    prediction_errors,
-    sample_measurements,
-)
+from labctl.tracking import MarkerTracker, TrackingError
 from labctl.tracking.models import axis_process_noise, axis_transition
 
 

@@ -4,7 +4,7 @@ On the lab's 80 mm circle at 12 mm/s after 2 s of tracking the curvature is ~3σ
 (Gaussian) posterior then made the 5-s prediction over-confident (bench, 64 runs: mean NEES 3.06, a few
 runs 13-37). The profile over Gauss-Hermite curvature nodes (``MarkerTracker._curvature_profile``) is
 checked here against a dense brute-force quadrature of the same posterior and on the NEES of runs whose
-truth comes from :mod:`labctl.tracking.bounds` (independent of the filter).
+truth comes from :mod:`labctl.bench.track_bound` (independent of the filter).
 """
 
 from __future__ import annotations
@@ -12,9 +12,9 @@ from __future__ import annotations
 import numpy as np
 
 import labctl.tracking.tracker as tracker_mod
+from labctl.bench.track_bound import make_scenario
 from labctl.config.lab import RunConfig, TrackingConfig
 from labctl.tracking import MarkerTracker
-from labctl.tracking.bounds import make_scenario
 
 FPS, SIGMA = RunConfig().fps, TrackingConfig().measurement_noise_mm
 
@@ -78,7 +78,7 @@ class _Scaled:
 def test_nees_fraction_flags_an_over_confident_filter():
     """The tail-robust NEES check: share of runs with NEES ≤ 5.99; its binomial lower bound catches a filter
     whose covariance is 100× too small, and passes the lab tracker on a line (where its mean NEES is inside)."""
-    from labctl.tracking.synthetic import compare_with_bound
+    from labctl.bench.synthetic_tracks import compare_with_bound
 
     kw = dict(runs=16, rate_hz=FPS, sigma_mm=SIGMA, with_ml=False, track_s=(2.0,), seed=3)
     good = compare_with_bound(lambda: _Scaled(1.0), "line", 50.0, **kw)[2.0]

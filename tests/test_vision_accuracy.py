@@ -10,9 +10,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from labctl.bench.synthetic_images import issue_camera, random_disc_pose, render_disc
+from labctl.bench.vision_baselines import opencv_marker_ellipse
 from labctl.vision import circle_poses, detect_markers, marker_pose_candidates
-from labctl.vision.baseline import opencv_marker_ellipse
-from labctl.vision.synthetic import issue_camera, random_disc_pose, render_disc
 
 CASES = 160
 RADIUS = 10.0

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 import yaml
 
+from labctl.bench.synthetic_images import issue_camera, render_disc
 from labctl.cli import main
 from labctl.geometry.camera_io import camera_info_dict
-from labctl.vision.synthetic import issue_camera, render_disc
 
 CAM = issue_camera()
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from labctl.bench.synthetic_images import disc_outline, issue_camera, random_disc_pose, render_disc
 from labctl.geometry.transforms import rot_x, rot_z
 from labctl.vision import (
     CirclePose,
@@ -15,7 +16,6 @@ from labctl.vision import (
     resolve_duality,
     resolve_duality_detailed,
 )
-from labctl.vision.synthetic import disc_outline, issue_camera, random_disc_pose, render_disc
 
 CAM = issue_camera()
 K = CAM.K

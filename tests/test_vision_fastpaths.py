@@ -10,11 +10,11 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from labctl.bench.synthetic_images import issue_camera, render_disc
 from labctl.vision import CirclePose, Ellipse, circle_poses, detect_markers, fit_ellipse, marker_pose_candidates
 from labctl.vision.circle_pose import _cone_frame
 from labctl.vision.ellipse import _fit
 from labctl.vision.markers import _edge_offsets, _sampson
-from labctl.vision.synthetic import issue_camera, render_disc
 
 CAM = issue_camera()
 

@@ -6,8 +6,8 @@ import cv2
 import numpy as np
 import pytest
 
+from labctl.bench.synthetic_images import FACE_BGR, disc_coverage, issue_camera, render_disc
 from labctl.vision import MarkerImageError, detect_markers, detect_markers_windowed, marker_pose_candidates
-from labctl.vision.synthetic import FACE_BGR, disc_coverage, issue_camera, render_disc
 
 CAM = issue_camera()
 

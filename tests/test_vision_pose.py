@@ -7,8 +7,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from labctl.bench.synthetic_images import disc_outline, issue_camera
 from labctl.vision import CirclePoseError, Ellipse, circle_poses, fit_ellipse
-from labctl.vision.synthetic import disc_outline, issue_camera
 
 K = np.array([[2500.0, 0.0, 319.5], [0.0, 2400.0, 239.5], [0.0, 0.0, 1.0]])
 

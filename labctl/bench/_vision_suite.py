@@ -124,7 +124,7 @@ def _ours(img, cam, disc, truth_px, tol_px, cond, opts):
 
 def _baseline(img, cam, disc, truth_px, tol_px, cond, opts):
     from ..vision import CirclePoseError, circle_poses
-    from ..vision.baseline import opencv_marker_ellipse
+    from .vision_baselines import opencv_marker_ellipse
 
     ell = opencv_marker_ellipse(img)
     if ell is None:

@@ -5,30 +5,30 @@ families (line, arc, circle, zigzag at 4, 12, 50, 100 mm/s, the lab's frame rate
 noise) — the IMM both told the cell's family (what a run does when labctl drives the table along
 that program) and family-blind (external motion) — and reports each one's 5-s prediction RMS and
 NEES after 2 s and 4 s of tracking (and after a zigzag corner) against the estimation bound of
-:mod:`labctl.tracking.bounds`; the informed tracker also with the zigzag's corner half a frame
+:mod:`labctl.bench.track_bound`; the informed tracker also with the zigzag's corner half a frame
 off the grid, with 30 % of the frames dropped, and on ``zigzag_stop``, the corner as the table
 drives it (a diagnostic). Part 2 times
 the quintic interception planner (the paper's method) against the ruckig jerk-limited baseline
-on the same random cases, checks it against a brute-force dense search over the arrival time,
-and times 30 Hz re-planning with the splice continuity it achieves.
+and the run's own planner (one ruckig segment, ``plan_interception_ruckig``) on the same random
+cases, checks the quintic against a brute-force dense search over the arrival time, and times
+re-planning as a run does it (the run's limits and cadence) with the splice continuity it achieves.
 """
 
 from __future__ import annotations
 
 import statistics
 import time
-from typing import cast
 
 import numpy as np
 
 from ..config.devices import RobotConfig, TableConfig
 from ..config.lab import TrackingConfig
-from ..planning import Limits, camera_placement_trajectory, check_segment, plan_interception, replan
+from ..planning import Limits, camera_placement_trajectory, check_segment, plan_interception
 from ..planning.interception import _score
-from ..planning.quintic import Trajectory
-from ..planning.ruckig_baseline import RuckigInterceptor
+from ..planning.ruckig_interception import RuckigTrajectory, plan_interception_ruckig, ruckig_limits
 from ..tracking import MarkerTracker, PredictedPath
 from ._timing import median_time, row
+from .ruckig_baseline import RuckigInterceptor
 
 # the filters compared with the bound (docs/notes/planning.md); measurement noise and frame rate are the lab's
 # "family": the cell's trajectory family is passed to the tracker, as a run does when labctl drives the table
@@ -99,7 +99,7 @@ def _bound_table(quick: bool, models=None, *, runs: int | None = None, acceptanc
                  drop_frames: float = 0.0, curvature_sigma: float | None = None) -> list[dict]:
     """Each filter's 5-s prediction RMS and NEES against the bound, per family and speed (issue 18).
 
-    The paths are :mod:`labctl.tracking.bounds`'s line, arc (r 200 mm), circle (r 80 mm) and
+    The paths are :mod:`labctl.bench.track_bound`'s line, arc (r 200 mm), circle (r 80 mm) and
     zigzag (the lab program's 97° corner at 2 s) at 4, 12, 50, 100 mm/s with random headings,
     measured at the lab's frame rate (``run.fps``) with the tracker's ``measurement_noise_mm``
     per axis. "bound" is the Cramér-Rao bound; "ml" the ML fit of the true model on the same
@@ -112,11 +112,11 @@ def _bound_table(quick: bool, models=None, *, runs: int | None = None, acceptanc
     the Cramér-Rao bound. ``corner_frames``: the zigzag's corner that many frame intervals after 2 s
     (a real corner lies between two frames; at 2 s it lies on one). ``drop_frames``: the share of frames
     the tracker (and the bound) never gets; ``curvature_sigma``: arcs' and circles' curvature drawn per run from
-    N(0, curvature_sigma²) (both :func:`~labctl.tracking.synthetic.compare_with_bound`).
+    N(0, curvature_sigma²) (both :func:`~labctl.bench.synthetic_tracks.compare_with_bound`).
     """
     from ..config.lab import RunConfig
-    from ..tracking.bounds import FAMILIES, SPEEDS, ZIGZAGS
-    from ..tracking.synthetic import compare_with_bound
+    from .synthetic_tracks import compare_with_bound
+    from .track_bound import FAMILIES, SPEEDS, ZIGZAGS
 
     sigma, fps, accel = TrackingConfig().measurement_noise_mm, RunConfig().fps, TableConfig().accel_mm_s2
     runs = runs or (8 if quick else RUNS)
@@ -209,8 +209,8 @@ def _interception(quick: bool) -> tuple[list[dict], dict]:
     cases = _random_cases(60 if quick else 300, limits, rng)
     horizon = 10.0
     ruck = RuckigInterceptor(limits)
-    q_times, r_times, ratios, rel_err, both = [], [], [], [], 0
-    unreachable = {"quintic": 0, "ruckig": 0}
+    q_times, r_times, s_times, ratios, rel_err, both = [], [], [], [], [], 0
+    unreachable = {"quintic": 0, "ruckig": 0, "ruckig_segment": 0}
     for state, G in cases:
         t0 = time.perf_counter()
         res = plan_interception(state, 0.0, G, limits, horizon)
@@ -218,8 +218,12 @@ def _interception(quick: bool) -> tuple[list[dict], dict]:
         t0 = time.perf_counter()
         rr = ruck.plan(state, 0.0, G, horizon)
         r_times.append(time.perf_counter() - t0)
+        t0 = time.perf_counter()  # the run's own planner (run.profile ruckig): one segment, rotation included
+        seg = plan_interception_ruckig(state, 0.0, G, limits, horizon)
+        s_times.append(time.perf_counter() - t0)
         unreachable["quintic"] += not res.reachable
         unreachable["ruckig"] += not rr.reachable
+        unreachable["ruckig_segment"] += not seg.reachable
         if res.t_hit is not None and rr.t_hit is not None:  # both reachable
             both += 1
             ratios.append(rr.t_hit / res.t_hit)
@@ -237,14 +241,17 @@ def _interception(quick: bool) -> tuple[list[dict], dict]:
         elif res.reachable:
             brute_force_missed += 1  # a feasible window narrower than the brute-force grid
     q_med, r_med, bf_med = statistics.median(q_times), statistics.median(r_times), statistics.median(bf_times)
+    s_med = statistics.median(s_times)
     rows = [
         row("interception: quintic (paper §4.3)", q_med, baseline="ruckig jerk-limited", baseline_s=r_med),
+        row("interception: ruckig segment (a run's planner)", s_med, baseline="quintic", baseline_s=q_med),
         row("interception: quintic vs brute force", q_med, baseline="dense search over t", baseline_s=bf_med),
     ]
     results = {
         "cases": len(cases),
         "quintic_median_ms": round(q_med * 1e3, 3),
         "ruckig_median_ms": round(r_med * 1e3, 3),
+        "ruckig_segment_median_ms": round(s_med * 1e3, 3),
         "brute_force_median_ms": round(bf_med * 1e3, 2),
         "unreachable": unreachable,
         "ruckig_over_quintic_arrival_time_median": round(float(np.median(ratios)), 3) if ratios else None,
@@ -258,32 +265,72 @@ def _interception(quick: bool) -> tuple[list[dict], dict]:
 
 
 def _replanning(quick: bool) -> tuple[list[dict], dict]:
-    limits = Limits.from_config(RobotConfig())
+    """Re-planning as a run does it (``PredictorPlanner._plan``), on approaches to a noisy moving view.
+
+    The sample lab's limits (``planning_limits``; its ruckig segments' ``ruckig_limits`` and the
+    controller's own ``controller_limits``), horizon and cadence (``run.replan_every_s``, stopping
+    ``run.replan_until_s`` before arrival); the view is reached at rest. Each plan starts from the state
+    of the plan under way: one ruckig segment, the quintic where ruckig finds none (the run's fallback).
+    """
+    from ..config import load_lab
+    from ..decisions.predictor import _RestAt
+    from ..planning.limits import planning_limits
+    from ..planning.ruckig_profile import controller_limits
+    from ..workspace import sample_lab_path
+
+    lab = load_lab(sample_lab_path())
+    run_cfg = lab.config.run
+    limits = planning_limits(lab.robot, run_cfg.robot_stop_budget_s)
+    jerk, base = ruckig_limits(lab.robot, run_cfg.robot_stop_budget_s), controller_limits(lab.robot)
+    horizon, every, until = run_cfg.plan_horizon_s, run_cfg.replan_every_s, run_cfg.replan_until_s
+    home = np.array(lab.robot.home_mm, dtype=float)
     rng = np.random.default_rng(2)
-    home = np.array(RobotConfig().home_mm, dtype=float)
 
-    def noisy_G(k):
-        path = PredictedPath(k / 30.0, np.array([200.0, 0.0]) + rng.normal(0, 0.5, 2) + np.array([10.0, 4.0]) * k / 30,
-                             np.array([10.0, 4.0]) + rng.normal(0, 0.3, 2))
-        return camera_placement_trajectory(path, 1000.0, 63.0, azimuth_deg=-90.0, marker_z_mm=40.0)
+    def plan(traj, t, G):
+        if traj is None:
+            state, R, w = (home, np.zeros(3), np.zeros(3)), np.eye(3), None
+        else:
+            # a quintic plan's body rates are not passed on, as in the run
+            w = traj.angular_velocity(t) if isinstance(traj, RuckigTrajectory) else None
+            state, R = traj.state(t), traj.orientation(t)
+        res = plan_interception_ruckig(state, t, G, limits, horizon, R0=R, w0=w, jerk=jerk, base=base)
+        if res.reachable:
+            return res, False
+        return plan_interception(state, t, G, limits, horizon_s=horizon, R0=R), True
 
-    res = plan_interception((home, np.zeros(3), np.zeros(3)), 0.0, noisy_G(0), limits, 10.0, R0=np.eye(3), follow_s=2.0)
-    # plan_interception's trajectories are quintic segments (ruckig ones come from plan_interception_ruckig)
-    traj, jumps, times, failures = cast(Trajectory, res.trajectory), [], [], 0
-    for k in range(1, 60 if quick else 150):
-        t = k / 30.0
-        G = noisy_G(k)
-        t0 = time.perf_counter()
-        new = replan(traj, t, G, limits, 10.0, follow_s=2.0)
-        times.append(time.perf_counter() - t0)
-        if not new.reachable:
-            failures += 1
+    times, jumps, failures, fallbacks, approaches = [], [], 0, 0, 0
+    for _ in range(8 if quick else 30):
+        p0, v = rng.uniform([100, -150], [400, 150]), rng.uniform(4, 100) * _unit(rng.uniform(0, 2 * np.pi))
+        azimuth = rng.uniform(-180, 180)
+
+        def noisy_G(t, p0=p0, v=v, azimuth=azimuth):
+            path = PredictedPath(t, p0 + v * t + rng.normal(0, 0.5, 2), v + rng.normal(0, 0.3, 2))
+            return _RestAt(camera_placement_trajectory(path, 1000.0, 63.0, azimuth_deg=azimuth, marker_z_mm=40.0))
+
+        res, _ = plan(None, 0.0, noisy_G(0.0))
+        if not res.reachable:
             continue
-        new_traj = cast(Trajectory, new.trajectory)
-        jumps.append(max(float(np.max(np.abs(a - b))) for a, b in zip(traj.state(t), new_traj.state(t))))
-        traj = new_traj
-    rows = [row("replan at 30 Hz (with orientation)", statistics.median(times))]
-    return rows, {"replans": len(times), "replan_failures": failures, "max_splice_jump": max(jumps) if jumps else None}
+        approaches += 1
+        t = every
+        while t < res.t_hit - until:
+            t0 = time.perf_counter()
+            new, fallback = plan(res.trajectory, t, noisy_G(t))
+            times.append(time.perf_counter() - t0)
+            fallbacks += fallback
+            if not new.reachable:  # the run keeps the plan under way
+                failures += 1
+            else:
+                jumps.append(max(float(np.max(np.abs(a - b)))
+                                 for a, b in zip(res.trajectory.state(t), new.trajectory.state(t))))
+                res = new
+            t += every
+    rows = [row(f"replan as a run does (ruckig, every {every:g} s)", statistics.median(times))]
+    return rows, {"approaches": approaches, "replans": len(times), "quintic_fallbacks": fallbacks,
+                  "replan_failures": failures, "max_splice_jump": max(jumps) if jumps else None}
+
+
+def _unit(angle: float) -> np.ndarray:
+    return np.array([np.cos(angle), np.sin(angle)])
 
 
 def _tracker_rows(quick: bool) -> list[dict]:

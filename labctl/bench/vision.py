@@ -44,8 +44,8 @@ def run(quick: bool = False) -> dict:
         fit_ellipse,
         marker_pose_candidates,
     )
-    from ..vision.baseline import centroid_inrange_moments
-    from ..vision.synthetic import issue_camera, render_disc
+    from .synthetic_images import issue_camera, render_disc
+    from .vision_baselines import centroid_inrange_moments
 
     repeat = 15 if quick else 200
     cam = issue_camera()

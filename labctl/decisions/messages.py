@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import math
 import struct
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import ClassVar, Literal
 
 import numpy as np
@@ -546,8 +546,3 @@ def decode(data: bytes | bytearray | memoryview) -> Message:
 def size_of(msg: Message) -> int:
     """Encoded size of ``msg`` in bytes (payload, without link framing)."""
     return len(encode(msg))
-
-
-def field_names(cls: type) -> list[str]:
-    """The dataclass field names of a message type (for logs and docs)."""
-    return [f.name for f in fields(cls)]

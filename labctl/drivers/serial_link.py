@@ -74,6 +74,11 @@ class SerialLink(OpenClose):
         self.max_buffer = 4096  # bytes kept while waiting for a line end
         self.bytes_discarded = 0
 
+    @property
+    def buffered_bytes(self) -> int:
+        """Bytes received and kept while waiting for a line end (at most ``max_buffer``)."""
+        return len(self._buf)
+
     # --- lifecycle --------------------------------------------------------------------------
     @property
     def is_open(self) -> bool:

@@ -108,8 +108,8 @@ def soak(lab, hours: float = 1.0, runs_dir: Path | str | None = None, *, fps: fl
         rss_end = rss_bytes()
         # measured before the final stop: the stop itself leaves its own (expected) fault report
         buffers = {"robot.done_ids": len(bench.robot.done_ids), "robot.faults": len(bench.robot.faults),
-                   "table.messages": len(bench.table.messages), "table.link._buf": len(bench.table.link._buf),
-                   "robot.link._buf": len(bench.robot.link._buf)}
+                   "table.messages": len(bench.table.messages), "table.link.buffered": bench.table.link.buffered_bytes,
+                   "robot.link.buffered": bench.robot.link.buffered_bytes}
     finally:
         bench.stop()
         record.close()

@@ -1,6 +1,6 @@
 """labctl.planning — time-optimal interception with task-space quintics, viewpoints, safety (paper §4.3)."""
 
-from .interception import Interception, plan_interception, plan_standard_view, replan, shortest_quintic
+from .interception import Interception, plan_interception, replan, shortest_quintic
 from .limits import Limits, LimitViolation, PlanningError
 from .quintic import QuinticSegment, Trajectory, quintic_coefficients, rest_to_rest_times
 from .safety import check_segment, check_trajectory
@@ -18,7 +18,6 @@ __all__ = [
     "check_segment",
     "check_trajectory",
     "plan_interception",
-    "plan_standard_view",
     "quintic_coefficients",
     "replan",
     "rest_to_rest_times",

@@ -26,7 +26,6 @@ from .limits import Limits, LimitViolation, PlanningError
 from .quintic import QuinticSegment, Trajectory, basis, quintic_coefficients
 from .rotation import log_so3
 from .safety import check_segment
-from .targets import MarkerPath, TargetPath, standard_view_path
 
 if TYPE_CHECKING:
     from .ruckig_interception import RuckigTrajectory
@@ -275,27 +274,6 @@ def replan(current: Trajectory, t_now: float, new_G: TargetFn, limits: Limits, h
         kwargs.setdefault("w0", w)
         kwargs.setdefault("dw0", dw)
     return plan_interception((p, v, a), t_now, new_G, limits, horizon_s, **kwargs)
-
-
-def plan_standard_view(state0, t0: float, table_path: MarkerPath, t_ref: float, marker_center_w,
-                       marker_normal_w, standoff_mm: float, limits: Limits, current_R,
-                       horizon_s: float = 10.0, *, T_f_c=None, **kwargs) -> Interception:
-    """Plan the move to the standard view of a marker riding the table (paper §4.3, standard-viewing location).
-
-    The marker measured at ``marker_center_w`` (with outward normal ``marker_normal_w``) at time
-    ``t_ref`` moves with the table's predicted motion ``table_path``; the view is the camera
-    ``standoff_mm`` out along the normal looking back along it, with the least roll from
-    ``current_R``. This is the interception problem again, solved for the marker's predicted
-    position at arrival time. An unreachable view returns ``t_hit=None`` with ``code``
-    ``"below_floor"``, ``"outside_box"`` or ``"too_slow"`` so the caller can choose another marker.
-    """
-    G: TargetPath = standard_view_path(table_path, t_ref, marker_center_w, marker_normal_w, standoff_mm,
-                                       current_R, T_f_c=T_f_c)
-    R_now = np.asarray(current_R, dtype=float)
-    if T_f_c is not None:  # the commanded frame is the flange: R_w_f = R_w_c · R_c_f
-        R_now = R_now @ np.asarray(T_f_c, dtype=float)[:3, :3].T
-    kwargs.setdefault("R0", R_now)
-    return plan_interception(state0, t0, G, limits, horizon_s, **kwargs)
 
 
 def shortest_quintic(p0, v0, a0, p1, v1, a1, limits: Limits, t0: float = 0.0, max_duration_s: float = 120.0,

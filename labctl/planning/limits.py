@@ -92,16 +92,23 @@ LIMIT_MARGIN = 0.98
 ANGULAR_STOP_PER_S = 4.0
 
 
+def stop_budget_caps(a_stop: float, w_max: float, stop_budget_s: float) -> tuple[float, float]:
+    """The speed (mm/s) and turning rate (rad/s) from which the controller's stop ramp (each axis at
+    ``a_stop``, the rotation at ``ANGULAR_STOP_PER_S·w_max``; docs/protocols/robot.md §Stopping) brings
+    the flange to rest within ``stop_budget_s``: ``a_stop·budget`` (‖v‖ bounds every axis's |v_i|) and
+    ``alpha_stop·budget``."""
+    return a_stop * stop_budget_s, ANGULAR_STOP_PER_S * w_max * stop_budget_s
+
+
 def planning_limits(robot_cfg, stop_budget_s: float | None = None) -> Limits:
     """The limits the planner plans to: the controller's, with a margin, and — with ``stop_budget_s``
     (s, lab.yaml ``run.robot_stop_budget_s``) — speed and turning rate capped so that the controller's
-    stop ramp (each axis at ``a_stop = a_max/√3``, the rotation at ``4·w_max`` per second;
-    docs/protocols/robot.md §Stopping) brings the flange to rest within the budget from any instant:
-    ``v ≤ a_stop·budget`` (‖v‖ bounds every axis's |v_i|), ``ω ≤ alpha_stop·budget``. Every segment
-    the planner returns passes :func:`labctl.planning.safety.check_segment` against these limits."""
+    stop ramp brings the flange to rest within the budget from any instant (:func:`stop_budget_caps`,
+    with ``a_stop = a_max/√3``). Every segment the planner returns passes
+    :func:`labctl.planning.safety.check_segment` against these limits."""
     lim = Limits.from_config(robot_cfg)
     v, w = lim.v_max * LIMIT_MARGIN, lim.w_max * LIMIT_MARGIN
     if stop_budget_s is not None:
-        v = min(v, lim.a_stop * stop_budget_s)
-        w = min(w, ANGULAR_STOP_PER_S * lim.w_max * stop_budget_s)
+        v_cap, w_cap = stop_budget_caps(lim.a_stop, lim.w_max, stop_budget_s)
+        v, w = min(v, v_cap), min(w, w_cap)
     return Limits(lim.box_min, lim.box_max, v, lim.a_max * LIMIT_MARGIN, w)

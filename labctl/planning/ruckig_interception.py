@@ -19,7 +19,7 @@ from dataclasses import replace
 import numpy as np
 
 from .interception import Interception, TargetFn, _checked_start, _unreachable_reason
-from .limits import Limits
+from .limits import Limits, stop_budget_caps
 from .ruckig_profile import JerkLimits, RuckigPlan, check_ruckig, controller_limits, plan_ruckig
 
 
@@ -75,12 +75,14 @@ class RuckigTrajectory:
 def ruckig_limits(robot_cfg, stop_budget_s: float | None = None) -> JerkLimits:
     """The limits a run's ruckig segments carry: the controller's own (:func:`controller_limits`) with the
     speed capped, with ``stop_budget_s`` (lab.yaml ``run.robot_stop_budget_s``), so that the stop ramp
-    brings the arm to rest within the budget (``v ≤ a_stop·budget``, as for the quintic planner). No
-    further margin: the controller re-plans the segment from its own state and checks it exactly."""
+    brings the arm to rest within the budget (:func:`~labctl.planning.limits.stop_budget_caps`, as for the
+    quintic planner). No further margin: the controller re-plans the segment from its own state and checks it
+    exactly. The turning rate stays the controller's: at the lab's 0.25 s budget its cap is ``w_max`` itself."""
     ctrl = controller_limits(robot_cfg)
     if stop_budget_s is None:
         return ctrl
-    return replace(ctrl, v_max=min(ctrl.v_max, ctrl.a_stop * float(stop_budget_s)))
+    v_cap, _ = stop_budget_caps(ctrl.a_stop, ctrl.w_max, float(stop_budget_s))
+    return replace(ctrl, v_max=min(ctrl.v_max, v_cap))
 
 
 def plan_interception_ruckig(state0, t0: float, G: TargetFn, limits: Limits, horizon_s: float = 10.0, *,

@@ -42,6 +42,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .limits import ANGULAR_STOP_PER_S
 from .quintic import _poly_range
 from .rotation import exp_so3, log_so3, right_jacobian
 
@@ -83,7 +84,7 @@ class JerkLimits:
         to the limits' own (a_max/√3; pass the controller's when ``limits`` are a planner's reduced ones)."""
         return cls(float(limits.v_max), float(limits.a_max),
                    float(j_max if j_max is not None else JERK_PER_ACCEL * limits.a_max), float(limits.w_max),
-                   float(alpha_max if alpha_max is not None else 4.0 * limits.w_max),
+                   float(alpha_max if alpha_max is not None else ANGULAR_STOP_PER_S * limits.w_max),
                    np.asarray(limits.box_min, float), np.asarray(limits.box_max, float),
                    float(a_stop if a_stop is not None else limits.a_stop))
 
@@ -112,7 +113,7 @@ def controller_limits(robot_cfg) -> JerkLimits:
     a = float(robot_cfg.a_max_mm_s2)
     j = getattr(robot_cfg, "j_max_mm_s3", None)
     w = math.radians(float(robot_cfg.w_max_deg_s))
-    return JerkLimits(float(robot_cfg.v_max_mm_s), a, float(j) if j else JERK_PER_ACCEL * a, w, 4.0 * w,
+    return JerkLimits(float(robot_cfg.v_max_mm_s), a, float(j) if j else JERK_PER_ACCEL * a, w, ANGULAR_STOP_PER_S * w,
                       np.asarray(robot_cfg.workspace_min_mm, float), np.asarray(robot_cfg.workspace_max_mm, float),
                       a / math.sqrt(3.0))
 

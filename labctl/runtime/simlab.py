@@ -1,4 +1,4 @@
-"""The simulated lab assembled for a run: emulators, drivers, world, trajectories, emergency stop.
+"""The simulated lab assembled for a run: emulators, drivers, world, trajectories.
 
 * :class:`SimBench` — virtual time: the GRBL and robot emulators behind the real drivers on
   in-process ports (bytes in the real protocols, paced at the driver files' baud rate on the
@@ -6,7 +6,6 @@
 * :class:`LiveSimLab` — real time, for ``labctl run``: the same emulators on pseudo-terminals
   paced at the baud rate, and a frame server rendering both cameras from the world.
 * :func:`trajectory_program` — where the table starts and the G-code it runs for a trajectory.
-* :func:`emergency_stop` — what the supervisor sends when a worker dies.
 """
 
 from __future__ import annotations
@@ -610,11 +609,3 @@ def write_served_lab(lab: Lab, out, served: ServedLab, *, force: bool = False):
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return out
-
-
-def emergency_stop(lab: Lab, endpoints: dict, timeout_s: float = 0.3) -> list[dict]:
-    """The supervisor's stop bytes straight to the table's and robot's ports, one outcome per device
-    (see :func:`labctl.runtime.stopping.send_stop_bytes`; failures are reported, never dropped)."""
-    from .stopping import send_stop_bytes
-
-    return send_stop_bytes(lab, endpoints, timeout_s)

@@ -67,14 +67,13 @@ def choose_object(ctx: RunContext, spec: TrialSpec, rng: np.random.Generator) ->
     return ctx.names[int(rng.integers(len(ctx.names)))]
 
 
-def simulate_run(lab: Lab, ctx: RunContext, spec: TrialSpec, record=None, *, heartbeat_s: float = 0.2,
-                 full_fixed_frames: bool = False) -> dict:
+def simulate_run(lab: Lab, ctx: RunContext, spec: TrialSpec, record=None, *, heartbeat_s: float = 0.2) -> dict:
     """One complete run in virtual time; returns the result with the simulator's ground truth.
 
     The fixed camera's frames go only to the marker tracker, which reads red pixels, all of them
     on the object: they are rendered in the object's window, without silhouette anti-aliasing,
-    the rest a flat table grey (``full_fixed_frames=True``: whole anti-aliased frames, the
-    baseline ``labctl bench sim`` times; the results are the same).
+    the rest a flat table grey (``labctl bench sim`` times it against whole anti-aliased frames;
+    the results are the same).
     """
     from ..sim.clock import VirtualClock
     from ..sim.world import SimObject, random_placement
@@ -167,10 +166,8 @@ def simulate_run(lab: Lab, ctx: RunContext, spec: TrialSpec, record=None, *, hea
             next_beat = t + heartbeat_s
         frames = []
         for tk in times:
-            if full_fixed_frames:
-                image = world.render("fixed", tk, rng).image
-            else:  # the tracker reads only the red markers, all on the object: render its footprint only
-                image = world.render("fixed", tk, rng, window="object", supersample=1).image
+            # the tracker reads only the red markers, all on the object: render its footprint only
+            image = world.render("fixed", tk, rng, window="object", supersample=1).image
             fixed_seq += 1
             frames.append(Frame(image, tk, fixed_seq))
         predictor.on_frames(frames)

@@ -159,20 +159,6 @@ def _validate(points, weights) -> tuple[np.ndarray, np.ndarray]:
     return p, w
 
 
-def _inv3(m: list[list[float]]) -> list[list[float]] | None:
-    """Inverse of a 3×3 matrix (nested lists) by its adjugate; None if (nearly) singular."""
-    (a, b, c), (d, e, f), (g, h, i) = m
-    A, B, C = e * i - f * h, f * g - d * i, d * h - e * g
-    det = a * A + b * B + c * C
-    scale = max(abs(a), abs(b), abs(c), abs(d), abs(e), abs(f), abs(g), abs(h), abs(i)) ** 3
-    if not abs(det) > 1e-10 * scale:
-        return None
-    r = 1.0 / det
-    return [[A * r, (c * h - b * i) * r, (b * f - c * e) * r],
-            [B * r, (a * i - c * g) * r, (c * d - a * f) * r],
-            [C * r, (b * g - a * h) * r, (a * e - b * d) * r]]
-
-
 def _real_eigenvalues3(m: list[list[float]]) -> list[float]:
     """Real roots of the characteristic cubic of a 3×3 matrix (closed form, Cardano/Viète)."""
     (a, b, c), (d, e, f), (g, h, i) = m

@@ -415,8 +415,7 @@ class GrblEmulator:
 
     # --- $ commands -------------------------------------------------------------------------
     def _system_command(self, line: str):
-        if False:
-            yield None
+        yield from ()  # a generator, stepped as ``self.task``, even where it never waits
         rest = line[1:]
         if rest in ("", "$", "G", "C", "X") and len(rest) <= 1:
             if rest == "":
@@ -551,8 +550,7 @@ class GrblEmulator:
             words = parse_words(line)
         except GcodeError as e:
             return e.code
-        if False:
-            yield None
+        yield from ()  # a generator, stepped as ``self.task``, even where it never waits
         groups: dict[str, int] = {}
         values: dict[str, float] = {}
         mgroups: dict[str, int] = {}

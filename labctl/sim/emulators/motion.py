@@ -55,11 +55,6 @@ class Piece:
         s = self.v0 * tau + 0.5 * self.a * tau * tau
         return np.asarray(self.p0) + np.asarray(self.unit) * s
 
-    def speed(self, t: float) -> float:
-        """Speed (mm/s) at time ``t`` (s), clamped to the piece's interval."""
-        tau = min(max(t - self.t0, 0.0), self.t1 - self.t0)
-        return max(0.0, self.v0 + self.a * tau)
-
 
 def limit_by_axes(values: np.ndarray, unit: np.ndarray) -> float:
     """Largest scalar rate along ``unit`` keeping every axis within ``values`` (GRBL limit_value_by_axis_maximum)."""
@@ -316,12 +311,3 @@ class Planner:
             else:
                 hi = mid - 1
         return hist[lo].at(t)
-
-    def speed_at(self, t: float) -> float:
-        """Carriage speed (mm/s) at a time already run (≤ ``self.t``), from the recorded history."""
-        if t >= self.t or not self.history:
-            return self.speed
-        for p in reversed(self.history):
-            if p.t0 <= t:
-                return p.speed(t)
-        return 0.0

@@ -160,13 +160,13 @@ def compare_with_bound(make_tracker, family: str, speed_mm_s: float, *, runs: in
                        seed: int = 0, after_corner_s=(), corner_s: float = 2.0,
                        table_accel_mm_s2: float | None = None, drop_frames: float = 0.0,
                        curvature_sigma: float | None = None) -> dict:
-    """Monte-Carlo of a tracker's ``horizon_s`` prediction against the bound (:mod:`.bounds`) on one family.
+    """Monte-Carlo of a tracker's ``horizon_s`` prediction against the bound (:mod:`.track_bound`) on one family.
 
     ``make_tracker()`` builds a fresh tracker; each run feeds it the frames of a
-    :func:`~.bounds.make_scenario` path (random heading) and, after each of ``track_s`` seconds
+    :func:`~.track_bound.make_scenario` path (random heading) and, after each of ``track_s`` seconds
     of tracking, predicts ``horizon_s`` ahead. For the zigzag, ``after_corner_s`` adds the
     instants that long after the corner (at ``corner_s``); ``table_accel_mm_s2``: the table's
-    acceleration, for ``zigzag_stop`` (:func:`~.bounds.make_scenario`); ``drop_frames``: the share of
+    acceleration, for ``zigzag_stop`` (:func:`~.track_bound.make_scenario`); ``drop_frames``: the share of
     frames the tracker never gets, each independently (never an instant's own frame), as a busy live
     predictor skips some; the bound and the ML fit then use the same frames. ``curvature_sigma`` (mm⁻¹; arcs and
     circles): each run's curvature is drawn from N(0, curvature_sigma²) instead of the family's radius, i.e. the
@@ -190,7 +190,7 @@ def compare_with_bound(make_tracker, family: str, speed_mm_s: float, *, runs: in
     """
     from scipy.stats import binom, chi2
 
-    from .bounds import crb_prediction_cov, make_scenario, ml_prediction
+    from .track_bound import crb_prediction_cov, make_scenario, ml_prediction
 
     instants = sorted({float(t) for t in track_s} | {corner_s + float(t) for t in after_corner_s})
     duration = max(instants)

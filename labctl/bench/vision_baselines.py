@@ -10,8 +10,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from .ellipse import Ellipse, EllipseFitError, ellipse_from_cv_box
-from .markers import red_mask
+from ..vision.ellipse import Ellipse, EllipseFitError, ellipse_from_cv_box
+from ..vision.markers import red_mask
 
 
 def opencv_marker_ellipse(image_bgr, *, hue_range_deg=(-15.0, 15.0), min_saturation: float = 0.45) -> Ellipse | None:

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .limits import Limits, PlanningError
+from ..planning.limits import Limits, PlanningError
 
 
 @dataclass(frozen=True)

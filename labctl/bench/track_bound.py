@@ -1,10 +1,10 @@
 """The best achievable 5-s prediction from the same measurements: Cramér-Rao bound and ML fit.
 
-Independent of the filters on purpose (it imports neither :mod:`.tracker` nor :mod:`.models`):
-each trajectory family the lab runs (paper §5.2; ``labctl.drivers.programs``) is written as a
-deterministic path with a handful of unknown parameters θ, measured with white Gaussian noise
-σ per axis at the camera's frame times. Two references for the position predicted ``horizon``
-seconds past the last frame:
+Independent of the filters on purpose (it imports neither :mod:`labctl.tracking.tracker` nor
+:mod:`labctl.tracking.models`): each trajectory family the lab runs (paper §5.2;
+``labctl.drivers.programs``) is written as a deterministic path with a handful of unknown
+parameters θ, measured with white Gaussian noise σ per axis at the camera's frame times.
+Two references for the position predicted ``horizon`` seconds past the last frame:
 
 * :func:`crb_prediction_cov` — the Cramér-Rao bound: ``g I(θ)⁻¹ gᵀ`` with the Fisher
   information ``I = JᵀJ/σ²`` (J the Jacobian of the measured positions, g of the predicted one;
