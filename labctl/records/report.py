@@ -340,8 +340,8 @@ def _html(run: RunData, png: bytes) -> str:
                         f"{html.escape(_fmt(ell)) if ell else 'not recorded'}</li>")
     poses = run.of(MARKER_POSE.name)
     if poses:
-        last = {k: v for k in MARKER_POSE_SHOWN if (v := MARKER_POSE.valid(poses[-1], k)) is not None}
-        rows.append(f"<li>marker pose: {html.escape(_fmt(last))}</li>")
+        shown = {k: v for k in MARKER_POSE_SHOWN if (v := MARKER_POSE.valid(poses[-1], k)) is not None}
+        rows.append(f"<li>marker pose: {html.escape(_fmt(shown))}</li>")
     else:
         rows.append(f"<li>marker pose: {NOT_REACHED}</li>")
     parts.append(_section("markers", "Marker images and ellipses", "<ul>" + "".join(rows) + "</ul>"))
