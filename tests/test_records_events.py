@@ -13,8 +13,7 @@ import pytest
 
 import labctl
 from labctl.records import RunRecord, load_run, read_events
-from labctl.records.events import (NAMES, SCHEMA, EventSchemaError, compile_type, problem, spec,
-                                   validate)
+from labctl.records.events import NAMES, SCHEMA, EventSchemaError, compile_type, problem, spec, validate
 from labctl.records.record import STRICT_ENV
 
 PACKAGE = Path(labctl.__file__).resolve().parent
@@ -137,12 +136,14 @@ def test_outside_tests_a_mismatch_is_written_and_warned_of_once(tmp_path, monkey
     monkeypatch.setenv(STRICT_ENV, "0")
     rec = RunRecord.create(tmp_path)
     with caplog.at_level(logging.WARNING, logger="labctl.records.record"):
-        for _ in range(3):
+        for i in range(3):
             rec.event("track", t=0.0, x=1.0, y=2.0, px=[1.0, 2.0], extra_field_xyz=1)
+            rec.event("track", t=0.0, x=f"{i}", y=2.0, px=[1.0, 2.0])  # a different wrong value each time
     rec.close()
-    assert len(read_events(rec.path)) == 3  # a run never loses its record to a writer's mistake
-    warned = [r.getMessage() for r in caplog.records if "extra_field_xyz" in r.getMessage()]
-    assert len(warned) == 1 and "field 'extra_field_xyz' is not declared" in warned[0]
+    assert len(read_events(rec.path)) == 6  # a run never loses its record to a writer's mistake
+    warned = [r.getMessage() for r in caplog.records if r.name == "labctl.records.record"]
+    assert len(warned) == 2, warned
+    assert "field 'extra_field_xyz' is not declared" in warned[0] and "field 'x' = '0' is not number" in warned[1]
 
 
 def test_an_unchecked_record_is_a_free_form_log(tmp_path):

@@ -257,8 +257,9 @@ class RunRecord:
     def _schema_mismatch(self, why: str) -> None:
         if self._strict:
             raise EventSchemaError(f"{self.events_path}: {why}")
-        if why not in _WARNED:  # once per mismatch and process: a track event comes 30 times a second
-            _WARNED.add(why)
+        key = why.split(" = ", 1)[0]  # the event and field, not the value
+        if key not in _WARNED:  # once per event, field and process: a track event comes 30 times a second
+            _WARNED.add(key)
             _log.warning("run record %s: %s (written as given)", self.path.name, why)
 
     def save_image(self, name: str, image: np.ndarray) -> Path:
