@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
+
+# every event a test writes, here and in the processes it starts, must match labctl.records.events
+os.environ["LABCTL_STRICT_EVENTS"] = "1"
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
@@ -23,6 +27,8 @@ def tsai_points():
 @pytest.fixture
 def run_with_events():
     """``run(lab, ctx, spec) -> (result, events)``: a virtual run and its record's events, (name, fields) in order."""
+    from labctl.records.events import validate
+    from labctl.records.record import to_jsonable
     from labctl.runtime.virtual import simulate_run
 
     def run(lab, ctx, spec):
@@ -30,6 +36,7 @@ def run_with_events():
 
         class Rec:
             def event(self, name, **fields):
+                validate(to_jsonable({"event": name, "wall": 0.0, **fields}))  # as RunRecord.event checks it
                 events.append((name, fields))
 
             def save_image(self, name, image):

@@ -25,22 +25,24 @@ def _full_run(tmp_path):
     rec.event("worker_started", role="recognizer", pid=12)
     for i in range(20):
         t = 0.1 * i
-        rec.event("track", t=t, x=100 + 8 * t, y=50.0)
+        rec.event("track", t=t, x=100 + 8 * t, y=50.0, px=[160.0 + i, 120.0])
         if i % 5 == 4:
             rec.event("predict", t=t, path=[[100 + 8 * (t + s), 50.0] for s in np.linspace(0, 5, 11)])
         rec.event("robot", t=t, p=np.array([300 - 10 * t, 20 + 2 * t, 400.0]))
     rec.save_image("initial1", _marker_image(160, 120, 30, 18, 20))
     rec.save_image("initial2", _marker_image(150, 125, 28, 20, 35))
-    rec.event("marker_pose", view_id=2, center_w=[120.0, 50.0, 35.0], normal_w=[0.0, 0.0, 1.0], ambiguous=False,
-              margin=3.1, ellipses={"initial1": [160, 120, 30, 18, np.deg2rad(20)],
-                                    "initial2": [150, 125, 28, 20, np.deg2rad(35)]})
+    rec.event("marker_pose", t=2.0, view_id=2, marker=0,
+              ellipses={"initial1": [160, 120, 30, 18, np.deg2rad(20)], "initial2": [150, 125, 28, 20, np.deg2rad(35)]},
+              center_w=[120.0, 50.0, 35.0], normal_w=[0.0, 0.0, 1.0], resolved=True, index=0, margin_deg=3.1,
+              threshold_deg=0.1, suspect=False, scores_deg=[0.2, 3.3], pose=None, consistency=None)
     std = np.full((240, 320), 90, np.uint8)
     sil = np.zeros((240, 320), bool)
     sil[60:180, 100:220] = True
     std[sil] = 200
     rec.save_image("standard_0", std)
     rec.save_image("silhouette_0", sil)
-    rec.event("match", view=0, scores={"wedge": 0.04, "cube": 0.61, "prism": np.float32(0.97)})  # lower is better
+    rec.event("match", t=3.0, view_id=3, view=0, scores={"wedge": 0.04, "cube": 0.61, "prism": np.float32(0.97)},
+              candidates=["wedge"], best="wedge", planned_marker_height_mm=35.0)  # lower is better
     rec.finish({"identity": "wedge", "true_identity": "wedge", "correct": True, "time_to_identity_s": 9.2,
                 "views": 1, "stages": {"track": 3.0, "intercept": 4.0, "standard": 2.2}})
     return rec
@@ -119,8 +121,8 @@ def test_early_ended_run_reports_not_reached(tmp_path):
     rec = RunRecord.create(tmp_path, {"trajectory": "arc"})
     rec.event("worker_started", role="predictor", pid=11)
     for i in range(5):
-        rec.event("track", t=0.1 * i, x=10.0 * i, y=0.0)
-    rec.event("failure", stage="intercept", reason="recognizer worker died")
+        rec.event("track", t=0.1 * i, x=10.0 * i, y=0.0, px=[10.0 * i, 0.0])
+    rec.event("failure", t=0.5, stage="intercept", reason="recognizer worker died")
     text = write_report(rec.path).read_text()
     assert "5 tracked points" in _section(text, "paths")
     for sid in ("standard", "scores"):
@@ -134,7 +136,7 @@ def test_early_ended_run_reports_not_reached(tmp_path):
 
 
 def test_report_of_an_empty_record_and_of_bad_event_fields(tmp_path):
-    rec = RunRecord.create(tmp_path)
+    rec = RunRecord.create(tmp_path, checked=False)  # as a broken or older writer left it
     rec.event("track", t="soon", x=None, y=1)  # malformed: ignored, not a crash
     rec.event("predict", t=0.0, path="nowhere")
     rec.event("robot", t=0.0, p=[1, 2])
@@ -159,7 +161,7 @@ def test_several_standard_views_are_all_shown(tmp_path):
 def test_failed_run_report_leads_with_the_reason(tmp_path):
     rec = RunRecord.create(tmp_path, {"trajectory": "line"})
     for i in range(5):
-        rec.event("track", t=0.1 * i, x=10.0 * i, y=0.0)
+        rec.event("track", t=0.1 * i, x=10.0 * i, y=0.0, px=[10.0 * i, 0.0])
     why = "no marker gave a usable pose (radius 8 mm does not fit the detected ellipse)"
     rec.finish({"identity": None, "failure": why})
     text = write_report(rec.path).read_text()
@@ -174,7 +176,7 @@ def test_failed_run_report_leads_with_the_reason(tmp_path):
 
 def test_unfinished_run_report_leads_with_the_last_event(tmp_path):
     rec = RunRecord.create(tmp_path, {"trajectory": "arc"})
-    rec.event("failure", stage="intercept", reason="recognizer worker died")
+    rec.event("failure", t=0.0, stage="intercept", reason="recognizer worker died")
     text = write_report(rec.path).read_text()
     lead = text.index('id="failure"')
     assert "did not finish" in text[lead:lead + 300] and "last event: failure" in text[lead:lead + 300]

@@ -13,6 +13,7 @@ from pathlib import Path
 import pytest
 
 from labctl.records import load_run
+from labctl.records.events import validate
 from labctl.runtime.stopping import still_after
 from labctl.workspace import init_workspace
 
@@ -37,6 +38,8 @@ def test_live_run_identifies_with_two_worker_processes(lab):
     for key in ("identity", "true_identity", "correct", "time_to_identity_s", "views", "stages"):
         assert key in res
     run = load_run(res["record"])
+    for e in run.events:  # all three processes wrote to the record the schema declares
+        validate(e)
     started = run.of("worker_started")
     assert {e["role"] for e in started} == {"predictor", "recognizer"}
     pids = {e["pid"] for e in started}
@@ -84,6 +87,8 @@ def test_killed_worker_stops_robot_and_table(lab, role):
     lines = [x for x in err.strip().splitlines() if x.strip()]
     assert len(lines) == 1 and role in lines[0] and "stopped" in lines[0], err
     run = load_run(run_dir)
+    for e in run.events:  # the exit paths' events too (devices_stopped, run_aborted, sim_truth)
+        validate(e)
     aborted = run.of("run_aborted")
     assert aborted, "the record must say how the run ended"
     a = aborted[-1]

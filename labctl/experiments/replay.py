@@ -21,6 +21,9 @@ from ..drivers.interfaces import Frame
 from ..errors import UserInputError
 from ..geometry import matrix_to_rotvec
 from ..records import load_run
+from ..records.events import spec
+
+CAPTURE = spec("capture_request")
 
 
 def _image_for(run_dir: Path, view_id: int):
@@ -35,7 +38,7 @@ def replay_run(lab: Lab, run_dir: Path | str) -> dict:
     """Feed the recorded capture requests and images to a new recognizer; compare identities."""
     run_dir = Path(run_dir)
     run = load_run(run_dir)
-    requests = [e for e in run.events if e.get("event") == "capture_request"]
+    requests = run.of(CAPTURE.name)
     if not requests:
         raise UserInputError(f"{run_dir}: no capture requests recorded (the run ended before any image)")
     ctx = RunContext.load(lab)
@@ -43,10 +46,10 @@ def replay_run(lab: Lab, run_dir: Path | str) -> dict:
     recognizer = Recognizer(ctx, lambda: queue.pop(0), lambda *a, **k: None)
     answers, identity = [], None
     for e in requests:
-        kind = e["kind"]
-        T = np.asarray(e["T_w_c2"], dtype=float)
-        queue.append(Frame(_image_for(run_dir, int(e["view_id"])), float(e["t"]), int(e["view_id"])))
-        req = m.CaptureRequest(view_id=int(e["view_id"]), kind=kind, t_capture=float(e["t"]),
+        kind, view_id, t = CAPTURE.get(e, "kind"), int(CAPTURE.get(e, "view_id")), float(CAPTURE.get(e, "t"))
+        T = np.asarray(CAPTURE.get(e, "T_w_c2"), dtype=float)
+        queue.append(Frame(_image_for(run_dir, view_id), t, view_id))
+        req = m.CaptureRequest(view_id=view_id, kind=kind, t_capture=t,
                                position=tuple(T[:3, 3]), rotvec=tuple(matrix_to_rotvec(T[:3, :3])))
         for reply in recognizer.handle(req):
             answers.append(type(reply).__name__)

@@ -17,6 +17,12 @@ holds the line. Durability against a power cut (``durable=True``) costs nothing 
 loop: a writer thread fsyncs the log at most every ``fsync_period_s`` (batching every event
 written meanwhile), and :meth:`RunRecord.close` — called on every exit path, and at interpreter
 exit for records still open — does the last fsync.
+
+Every event is checked against its declaration in :mod:`labctl.records.events` (name, fields, types)
+as it is written. A mismatch raises :class:`~labctl.records.events.EventSchemaError` when the
+environment sets ``LABCTL_STRICT_EVENTS=1`` (the test suite does, for itself and every process it
+starts); otherwise the event is written as given and the mismatch logged once as a warning, so a
+run never loses its record, nor its motion, to a writer's mistake.
 """
 
 from __future__ import annotations
@@ -24,6 +30,7 @@ from __future__ import annotations
 import atexit
 import dataclasses
 import json
+import logging
 import math
 import os
 import re
@@ -38,6 +45,7 @@ import numpy as np
 
 from ..errors import LabctlError
 from ..fsutil import atomic_write_bytes, atomic_write_text
+from .events import EventSchemaError, problem, spec
 
 __all__ = ["RecordError", "RunRecord", "RunData", "read_events", "load_run", "to_jsonable", "EVENTS", "META",
            "RESULT"]
@@ -46,6 +54,15 @@ EVENTS = "events.jsonl"
 META = "meta.json"
 RESULT = "result.json"
 _NAME_OK = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
+#: set to 1 to make an event that does not match its declaration raise (tests, debugging)
+STRICT_ENV = "LABCTL_STRICT_EVENTS"
+_log = logging.getLogger(__name__)
+_WARNED: set[str] = set()  # schema mismatches already warned about in this process
+
+
+def strict_events() -> bool:
+    """Whether an event that does not match the schema raises (``LABCTL_STRICT_EVENTS=1``) or is only warned of."""
+    return os.environ.get(STRICT_ENV, "") not in ("", "0")
 
 
 class RecordError(LabctlError):
@@ -76,8 +93,9 @@ def to_jsonable(obj: Any) -> Any:
     return str(obj)
 
 
-def _dumps(obj: Any) -> str:
-    return json.dumps(to_jsonable(obj), allow_nan=False, ensure_ascii=False, separators=(",", ":"))
+def _dumps_json(obj: Any) -> str:
+    """``obj`` (already JSON types) as one compact line."""
+    return json.dumps(obj, allow_nan=False, ensure_ascii=False, separators=(",", ":"))
 
 
 def _timestamp(now: datetime | None = None) -> str:
@@ -103,11 +121,12 @@ class RunRecord:
     #: longest time a written event waits for its fsync (s); the loop that logs never waits
     fsync_period_s = 0.25
 
-    def __init__(self, path: Path | str, *, durable: bool = True) -> None:
+    def __init__(self, path: Path | str, *, durable: bool = True, checked: bool = True) -> None:
         self.path = Path(path)
         if not self.path.is_dir():
             raise RecordError(f"no run record at {self.path}")
         self.durable = durable
+        self.checked = checked  # False: a free-form log (tests of the record itself), no schema
         self._init_state()
 
     def _init_state(self) -> None:
@@ -120,12 +139,13 @@ class RunRecord:
         self._stop = threading.Event()
         self.fsyncs = 0  # how many fsyncs the writer thread and close() did (batches, not events)
         self.sync_error: str | None = None
+        self._strict = strict_events()
 
     # ---- creation ---------------------------------------------------------------------------
 
     @classmethod
     def create(cls, runs_dir: Path | str, meta: dict | None = None, *, now: datetime | None = None,
-               durable: bool = True) -> RunRecord:
+               durable: bool = True, checked: bool = True) -> RunRecord:
         """Make ``runs_dir/<UTC timestamp>[-NNN]/`` with ``meta.json``; unique even within one second."""
         runs_dir = Path(runs_dir)
         try:
@@ -148,12 +168,12 @@ class RunRecord:
                   **(meta or {})}
         atomic_write_text(path / META, json.dumps(to_jsonable(header), indent=2, allow_nan=False) + "\n")
         (path / EVENTS).touch()
-        return cls(path, durable=durable)
+        return cls(path, durable=durable, checked=checked)
 
     @classmethod
-    def open(cls, run_dir: Path | str, *, durable: bool = True) -> RunRecord:
+    def open(cls, run_dir: Path | str, *, durable: bool = True, checked: bool = True) -> RunRecord:
         """Attach to an existing record (e.g. from a worker process) to add events and images."""
-        return cls(run_dir, durable=durable)
+        return cls(run_dir, durable=durable, checked=checked)
 
     @property
     def events_path(self) -> Path:
@@ -163,11 +183,12 @@ class RunRecord:
     # ---- pickling: the fd belongs to one process ----------------------------------------------
 
     def __getstate__(self):
-        return {"path": self.path, "durable": self.durable}
+        return {"path": self.path, "durable": self.durable, "checked": self.checked}
 
     def __setstate__(self, state):
         self.path = state["path"]
         self.durable = state["durable"]
+        self.checked = state.get("checked", True)
         self._init_state()
 
     def _events_fd(self) -> int:
@@ -207,13 +228,21 @@ class RunRecord:
 
     def event(self, name: str, **fields) -> dict:
         """Append ``{"event": name, "wall": <unix time>, **fields}`` as one line (written at once, in
-        order; fsynced by the writer thread within ``fsync_period_s``). Returns the line."""
+        order; fsynced by the writer thread within ``fsync_period_s``). Returns the line.
+
+        The line, once made JSON, is checked against ``name``'s declaration in
+        :mod:`labctl.records.events` (see the module docstring for what a mismatch does)."""
         if not isinstance(name, str) or not name:
             raise RecordError(f"event name must be a non-empty string, not {name!r}")
-        if "event" in fields:
-            raise RecordError("'event' is reserved for the event name")
+        if "event" in fields or "wall" in fields:
+            raise RecordError("'event' and 'wall' are reserved for the event name and its time")
         line = {"event": name, "wall": time.time(), **fields}
-        data = (_dumps(line) + "\n").encode("utf-8")
+        obj = to_jsonable(line)
+        if self.checked:
+            why = problem(obj)
+            if why is not None:
+                self._schema_mismatch(why)
+        data = (_dumps_json(obj) + "\n").encode("utf-8")
         with self._lock:
             fd = self._events_fd()
             try:
@@ -224,6 +253,14 @@ class RunRecord:
             except OSError as exc:
                 raise RecordError(f"cannot append to {self.events_path}: {exc.strerror or exc}") from exc
         return line
+
+    def _schema_mismatch(self, why: str) -> None:
+        if self._strict:
+            raise EventSchemaError(f"{self.events_path}: {why}")
+        key = why.split(" = ", 1)[0]  # the event and field, not the value
+        if key not in _WARNED:  # once per event, field and process: a track event comes 30 times a second
+            _WARNED.add(key)
+            _log.warning("run record %s: %s (written as given)", self.path.name, why)
 
     def save_image(self, name: str, image: np.ndarray) -> Path:
         """Write ``image`` (uint8/uint16 gray, BGR or BGRA; bool masks as 0/255) as PNG ``name``.
@@ -340,7 +377,9 @@ class RunData:
         return self.result is not None
 
     def of(self, name: str) -> list[dict]:
-        """The events called ``name``, in order."""
+        """The events called ``name``, in order; EventSchemaError if no such event is declared
+        (:mod:`labctl.records.events`), so a reader never asks for an event no writer writes."""
+        spec(name)
         return [e for e in self.events if e.get("event") == name]
 
 

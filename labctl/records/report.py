@@ -1,17 +1,19 @@
 """A run's report: one figure (``report.png``) and a self-contained page (``report.html``).
 
-What the report reads from the record (names are the contract with the workers):
+What the report reads from the record, each through its declaration in
+:mod:`labctl.records.events` (a name or a field the schema does not declare is an error, not a guess):
 
 * events ``track``   — ``t`` (s), ``x``, ``y`` (mm, table plane in W): the Kalman estimate (paper §2);
 * events ``predict`` — ``t``, ``path=[[x, y], ...]`` (mm): a predicted object path;
 * events ``robot``   — ``t``, ``p=[x, y, z]`` (mm, W): the mobile camera / flange position;
 * event  ``marker_pose`` — ``ellipses={"initial1": [cx, cy, a, b, theta], "initial2": [...]}``
-  (pixels; a, b semi-axes; theta rad from the image x axis towards y), optionally ``center_w``,
-  ``normal_w``, ``ambiguous``, ``margin`` (paper §3.2);
-* event  ``match``   — ``scores={name: score}``, optionally ``view`` (k) (paper §3.3);
+  (pixels; a, b semi-axes; theta rad from the image x axis towards y), ``center_w``, ``normal_w``,
+  ``resolved``, ``margin_deg`` (paper §3.2);
+* event  ``match``   — ``scores={name: score}``, ``view`` (k) (paper §3.3);
 * images ``initial1.png``, ``initial2.png``, ``standard_<k>.png``, ``silhouette_<k>.png``;
 * ``result.json``    — shown as the summary (identity, true identity, correct, times, stages).
 
+A field of the wrong type (a record from an older or broken writer) reads as missing.
 Anything missing is drawn and listed as "not reached", so a run that ended early still gets a
 report of what happened up to the end.
 """
@@ -32,6 +34,7 @@ if TYPE_CHECKING:
     from matplotlib.artist import Artist
 
 from ..fsutil import atomic_write_bytes, atomic_write_text
+from .events import spec
 from .record import RunData, load_run
 
 __all__ = ["write_report", "render_figure", "failure_reason", "SECTIONS"]
@@ -39,6 +42,10 @@ __all__ = ["write_report", "render_figure", "failure_reason", "SECTIONS"]
 SECTIONS = ("summary", "paths", "markers", "standard", "scores", "events")
 NOT_REACHED = "not reached"
 _STD = re.compile(r"^standard_(\d+)$")
+TRACK, PREDICT, ROBOT, MARKER_POSE, MATCH = (spec(n) for n in ("track", "predict", "robot", "marker_pose", "match"))
+MARKER_POSE_SHOWN = ("center_w", "normal_w", "resolved", "margin_deg")  # the pose's summary, in this order
+for _k in MARKER_POSE_SHOWN:
+    MARKER_POSE.declared(_k)
 
 
 def _finite(vals) -> bool:
@@ -46,15 +53,19 @@ def _finite(vals) -> bool:
 
 
 def _track(run: RunData) -> np.ndarray:
-    pts = [(e["t"], e["x"], e["y"]) for e in run.of("track") if _finite([e.get("t"), e.get("x"), e.get("y")])]
+    pts = []
+    for e in run.of(TRACK.name):
+        p = [TRACK.get(e, "t"), TRACK.get(e, "x"), TRACK.get(e, "y")]
+        if _finite(p):
+            pts.append(p)
     return np.array(pts, dtype=float).reshape(-1, 3)
 
 
 def _predictions(run: RunData) -> list[np.ndarray]:
     out = []
-    for e in run.of("predict"):
+    for e in run.of(PREDICT.name):
         try:
-            path = np.asarray(e.get("path"), dtype=float)
+            path = np.asarray(PREDICT.get(e, "path"), dtype=float)
         except (TypeError, ValueError):
             continue
         if path.ndim == 2 and path.shape[1] >= 2 and len(path) >= 2 and np.all(np.isfinite(path[:, :2])):
@@ -64,8 +75,8 @@ def _predictions(run: RunData) -> list[np.ndarray]:
 
 def _robot(run: RunData) -> np.ndarray:
     pts = []
-    for e in run.of("robot"):
-        p = e.get("p")
+    for e in run.of(ROBOT.name):
+        p = ROBOT.get(e, "p")
         if isinstance(p, list) and len(p) == 3 and _finite(p):
             pts.append(p)
     return np.array(pts, dtype=float).reshape(-1, 3)
@@ -73,8 +84,8 @@ def _robot(run: RunData) -> np.ndarray:
 
 def _ellipses(run: RunData) -> dict[str, list[float]]:
     out: dict[str, list[float]] = {}
-    for e in run.of("marker_pose"):
-        ell = e.get("ellipses")
+    for e in run.of(MARKER_POSE.name):
+        ell = MARKER_POSE.get(e, "ellipses")
         if isinstance(ell, dict):
             for k, v in ell.items():
                 if isinstance(v, list) and len(v) == 5 and _finite(v):
@@ -87,8 +98,8 @@ def _standard_views(run: RunData) -> list[int]:
 
 
 def _last_scores(run: RunData) -> tuple[dict[str, float], dict | None]:
-    for e in reversed(run.of("match")):
-        s = e.get("scores")
+    for e in reversed(run.of(MATCH.name)):
+        s = MATCH.get(e, "scores")
         if isinstance(s, dict):
             scores = {str(k): float(v) for k, v in s.items() if _finite([v])}
             if scores:
@@ -214,7 +225,7 @@ def render_figure(run: RunData):
         ident = _identity_name(run) or names[0]
         colors = ["tab:red" if n == ident else "0.6" for n in names]
         ax.barh(names[::-1], [scores[n] for n in names][::-1], color=colors[::-1])
-        view = ev.get("view") if ev else None
+        view = MATCH.get(ev, "view") if ev else None
         ax.set_title("Match scores" + (f" (view {view})" if view is not None else ""))
         ax.set_xlabel("silhouette mismatch (lower is better)")
 
@@ -331,10 +342,10 @@ def _html(run: RunData, png: bytes) -> str:
             ell = ellipses.get(name)
             rows.append(f"<li>{name}: <a href=\"{name}.png\">{name}.png</a>; ellipse "
                         f"{html.escape(_fmt(ell)) if ell else 'not recorded'}</li>")
-    poses = run.of("marker_pose")
+    poses = run.of(MARKER_POSE.name)
     if poses:
-        last = {k: v for k, v in poses[-1].items() if k in ("center_w", "normal_w", "ambiguous", "margin")}
-        rows.append(f"<li>marker pose: {html.escape(_fmt(last))}</li>")
+        shown = {k: v for k in MARKER_POSE_SHOWN if (v := MARKER_POSE.valid(poses[-1], k)) is not None}
+        rows.append(f"<li>marker pose: {html.escape(_fmt(shown))}</li>")
     else:
         rows.append(f"<li>marker pose: {NOT_REACHED}</li>")
     parts.append(_section("markers", "Marker images and ellipses", "<ul>" + "".join(rows) + "</ul>"))
@@ -350,11 +361,12 @@ def _html(run: RunData, png: bytes) -> str:
     parts.append(_section("standard", "Standard view and silhouette", body))
 
     body = ""
-    for e in run.of("match"):
-        s = e.get("scores")
+    for e in run.of(MATCH.name):
+        s = MATCH.get(e, "scores")
         valid = {str(k): float(v) for k, v in s.items() if _finite([v])} if isinstance(s, dict) else {}
         if valid:
-            label = f"view {e['view']}" if "view" in e else "match"
+            view = MATCH.get(e, "view")
+            label = f"view {view}" if view is not None else "match"
             body += f"<h3>{html.escape(label)}</h3>" + _kv_table(dict(sorted(valid.items(), key=lambda kv: kv[1])))
     body = ("<p>Silhouette mismatch per object, best first: lower is better.</p>" + body) if body else _nr()
     parts.append(_section("scores", "Match scores", body))

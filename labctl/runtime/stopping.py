@@ -301,19 +301,22 @@ def still_after(events: list[dict], t_stop: float) -> dict[str, float]:
     ``robot_stop_received_s``, from ``t_stop`` to the first ramp that began after it, and
     ``robot_braking_s``, that ramp's length. Raises ValueError if a device is still moving at the
     end of the log (issue 13's fault table)."""
-    truth = [e for e in events if e["event"] == "sim_truth"]
+    from ..records.events import spec
+
+    truth_ev = spec("sim_truth")
+    truth = [e for e in events if e["event"] == truth_ev.name]
     out: dict[str, float] = {}
     for dev in ("robot", "table"):
-        moving = [i for i, e in enumerate(truth) if e[f"{dev}_moving"]]
+        moving = [i for i, e in enumerate(truth) if truth_ev.get(e, f"{dev}_moving")]
         if not moving:
             out[dev] = 0.0
             continue
         last = moving[-1]
         if last + 1 >= len(truth):
             raise ValueError(f"the {dev} is still moving at the end of the ground truth")
-        out[dev] = max(0.0, truth[last + 1]["t"] - t_stop)
-    ramps = sorted({tuple(e["robot_stop"]) for e in truth if e.get("robot_stop")
-                    and e["robot_stop"][0] >= t_stop - 0.05})
+        out[dev] = max(0.0, truth_ev.get(truth[last + 1], "t") - t_stop)
+    stops = [truth_ev.get(e, "robot_stop") for e in truth]
+    ramps = sorted({tuple(r) for r in stops if r and r[0] >= t_stop - 0.05})
     if ramps:
         out["robot_stop_received_s"] = max(0.0, ramps[0][0] - t_stop)
         out["robot_braking_s"] = ramps[0][1] - ramps[0][0]
