@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import UserInputError
+from .events import spec
 from .record import RunData
 
 MM_PER_M = 1000.0
@@ -132,6 +133,9 @@ def _log_message(e: dict) -> str:
     return f"t={e.get('t', 0.0):.3f} s {e['event']}" + (f": {body}" if body else "")
 
 
+TRACK, PREDICT, SEGMENT, CAPTURE = (spec(n) for n in ("track", "predict", "segment", "capture_request"))
+
+
 def messages(run: RunData) -> Iterable[tuple[str, float, dict]]:
     """The export's messages as (topic, wall time s, message), in the record's order."""
     captures = {}
@@ -142,22 +146,23 @@ def messages(run: RunData) -> Iterable[tuple[str, float, dict]]:
         if name in _LOGGED:
             yield "/log", wall, {"timestamp": _stamp(wall), "level": _LOGGED[name], "message": _log_message(e),
                                  "name": "labctl", "file": "", "line": 0}
-        if name == "track":
+        if name == "track" and TRACK.valid(e, "x") is not None and TRACK.valid(e, "y") is not None:
             yield "/scene", wall, {"deletions": [], "entities": [_entity(wall, "marker", spheres=[
-                {"pose": {**_IDENTITY, "position": _point((e["x"], e["y"]))},
+                {"pose": {**_IDENTITY, "position": _point((TRACK.get(e, "x"), TRACK.get(e, "y")))},
                  "size": {"x": 0.016, "y": 0.016, "z": 0.016}, "color": {"r": 1.0, "g": 0.1, "b": 0.1, "a": 1.0}}])]}
-        elif name == "predict" and e.get("path"):
+        elif name == "predict" and PREDICT.valid(e, "path"):
             yield "/scene", wall, {"deletions": [], "entities": [_entity(wall, "prediction", lines=[
                 {"type": LINE_STRIP, "pose": _IDENTITY, "thickness": 2.0, "scale_invariant": True,
-                 "points": [_point(p) for p in e["path"]], "color": {"r": 0.2, "g": 0.6, "b": 1.0, "a": 1.0}}])]}
-        elif name == "segment" and e.get("p") is not None:
-            target = f"robot_target_{e.get('kind', '')}"
+                 "points": [_point(p) for p in PREDICT.get(e, "path")],
+                 "color": {"r": 0.2, "g": 0.6, "b": 1.0, "a": 1.0}}])]}
+        elif name == "segment" and SEGMENT.valid(e, "p") is not None:
+            target = f"robot_target_{SEGMENT.get(e, 'kind', '')}"
             yield "/scene", wall, {"deletions": [], "entities": [_entity(wall, target, cubes=[
-                {"pose": {**_IDENTITY, "position": _point(e["p"])}, "size": {"x": 0.03, "y": 0.03, "z": 0.03},
-                 "color": {"r": 0.2, "g": 0.9, "b": 0.3, "a": 0.8}}])]}
-        elif name == "capture_request" and e.get("T_w_c2") is not None:
-            T = e["T_w_c2"]
-            captures[e.get("view_id")] = wall
+                {"pose": {**_IDENTITY, "position": _point(SEGMENT.get(e, "p"))},
+                 "size": {"x": 0.03, "y": 0.03, "z": 0.03}, "color": {"r": 0.2, "g": 0.9, "b": 0.3, "a": 0.8}}])]}
+        elif name == "capture_request" and CAPTURE.valid(e, "T_w_c2") is not None:
+            T = CAPTURE.get(e, "T_w_c2")
+            captures[CAPTURE.get(e, "view_id")] = wall
             yield "/tf", wall, {"timestamp": _stamp(wall), "parent_frame_id": WORLD, "child_frame_id": MOBILE_CAMERA,
                                 "translation": _point(row[3] for row in T[:3]),
                                 "rotation": quaternion_from_matrix([row[:3] for row in T[:3]])}
