@@ -17,12 +17,16 @@ from __future__ import annotations
 import contextlib
 import os
 import time
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..config import Lab
 from ..drivers.programs import program
 from ..errors import UserInputError
+
+if TYPE_CHECKING:
+    from ..sim.lab import Ports
 
 
 def trajectory_program(name: str, speed_mm_s: float, lab: Lab) -> tuple[tuple[float, float], list[str]]:
@@ -178,7 +182,7 @@ class LiveSimLab:
             with cam._lock:
                 cam.render_frame(0)
 
-    def _ports(self) -> str:
+    def _ports(self) -> Ports:
         """The emulators' ports: ptys (the served lab can bridge them to TCP)."""
         return "pty"
 
@@ -219,7 +223,7 @@ class ServedLab(LiveSimLab):
     ser2net is stopped and restarted (a link dropped mid-run, issue 12 Build 7).
     """
 
-    def _ports(self) -> str:
+    def _ports(self) -> Ports:
         """TCP ports as ser2net would serve them with ``spec["tcp"]``, else ptys."""
         return "tcp" if self.spec.get("tcp") else "pty"
 

@@ -34,7 +34,7 @@ import numpy as np
 
 if TYPE_CHECKING:  # imported where used: a live run's workers import this module for table_config alone
     from .camera import SimCamera
-    from .world import Placement, SimObject, SimWorld
+    from .world import Placement, SimObject
 
 #: the devices of a simulated lab, by role
 DEVICES = ("table", "robot", "fixed", "mobile")
@@ -96,7 +96,7 @@ class SimLab:
         self.robot: Any = None  # labctl.drivers.robot.SerialRobot
         self.ptys: dict[str, Any] = {}
         self.bridges: dict[str, Any] = {}
-        self.world: SimWorld | None = None
+        self.world: Any = None  # a SimWorld; with a calibration target, one that can switch scenes (set_scene)
         self.cameras: dict[str, SimCamera] = {}
         self._locks: dict[str, Any] = {"table": threading.RLock(), "robot": threading.RLock()}
         self._stack = contextlib.ExitStack()

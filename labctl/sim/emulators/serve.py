@@ -16,29 +16,27 @@ from ..clock import RealClock
 from ..lab import SimLab
 
 
+def _served(lab, baud: int | None, clock: RealClock | None) -> SimLab:
+    clock = clock if clock is not None else RealClock(time.monotonic())  # origin ≈ 0: monotonic time
+    return SimLab.build(lab, clock, ports="pty", devices=("table", "robot"), baud=baud, table_start_mm=(0.0, 0.0),
+                        robot_start="controller")
+
+
 def start_emulators(lab, baud: int | None = None, clock: RealClock | None = None) -> dict:
     """Start both emulators on ptys (``clock``: default CLOCK_MONOTONIC itself); returns {role: PtyDevice}
     (call ``.stop()`` on each)."""
-    clock = clock if clock is not None else RealClock(time.monotonic())  # origin ≈ 0: monotonic time
-    sim = SimLab.build(lab, clock, ports="pty", devices=("table", "robot"), baud=baud, table_start_mm=(0.0, 0.0),
-                       robot_start="controller")
-    return dict(sim.ptys)
+    return dict(_served(lab, baud, clock).ptys)
 
 
 def serve_forever(lab, baud: int | None = None, on_ready: Callable[[dict], None] | None = None,
                   should_stop: Callable[[], bool] | None = None) -> None:
     """Serve until Ctrl-C (or ``should_stop()``); ``on_ready({role: pty path})`` once both are up."""
-    devices = start_emulators(lab, baud)
-    try:
-        if on_ready is not None:
-            on_ready({role: d.path for role, d in devices.items()})
-        while not (should_stop and should_stop()):
-            time.sleep(0.1)
-            for role, d in devices.items():
-                if not d._thread.is_alive():
-                    raise RuntimeError(f"the {role} emulator stopped: {d.errors[-1] if d.errors else 'unknown'}")
-    except KeyboardInterrupt:
-        pass
-    finally:
-        for d in devices.values():
-            d.stop()
+    with _served(lab, baud, None) as sim:
+        try:
+            if on_ready is not None:
+                on_ready(sim.endpoints())
+            while not (should_stop and should_stop()):
+                time.sleep(0.1)
+                sim.check_alive()
+        except KeyboardInterrupt:
+            pass
