@@ -31,9 +31,12 @@ def test_trajectory_names_are_one_list_and_every_setting_has_each():
 def test_trajectory_starts_are_read_from_lab_yaml(tmp_path):
     from labctl.runtime.simlab import trajectory_program
 
+    import yaml
+
     root = init_workspace(tmp_path / "lab")
-    text = (root / "lab.yaml").read_text()
-    (root / "lab.yaml").write_text(text.replace("run:\n", "run:\n  trajectory_start_mm:\n    arc: [250.0, 120.0]\n", 1))
+    cfg = yaml.safe_load((root / "lab.yaml").read_text())
+    cfg["run"]["trajectory_start_mm"] = {"arc": [250.0, 120.0]}  # only arc set: the others keep their defaults
+    (root / "lab.yaml").write_text(yaml.safe_dump(cfg))
     lab = load_lab(root)
     assert lab.config.run.trajectory_start_mm.arc == (250.0, 120.0)
     start, lines = trajectory_program("arc", 8.0, lab)
