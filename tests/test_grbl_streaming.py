@@ -10,9 +10,9 @@ from labctl.config import load_lab
 from labctl.decisions.context import RunContext
 from labctl.drivers.programs import program
 from labctl.records import RunRecord, load_run
-from labctl.runtime.simlab import SimBench
 from labctl.runtime.virtual import TrialSpec, simulate_run
 from labctl.sim.clock import VirtualClock
+from labctl.sim.lab import SimLab
 from labctl.workspace import sample_lab_path
 
 
@@ -23,7 +23,8 @@ def lab():
 
 def test_pump_returns_at_once_while_an_arc_executes(lab):
     clock = VirtualClock()
-    bench = SimBench(lab, clock, (200.0, 200.0))
+    bench = SimLab.build(lab, clock, devices=("table", "robot"), table_start_mm=(200.0, 200.0))
+    bench.open()
     prog = bench.table.start_program(program("circle", 8.0, start=(200.0, 200.0)))
     t0 = clock.now()
     for _ in range(300):  # 10 virtual s of a 63 s circle

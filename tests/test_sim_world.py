@@ -18,9 +18,9 @@ from labctl.errors import DeviceError, UserInputError
 from labctl.geometry import apply, invert, make_T, rot_x
 from labctl.sim.camera import FrameClient, FrameServer, SimCamera
 from labctl.sim.clock import ClockError, RealClock, VirtualClock
+from labctl.sim.lab import Scene, SimLab
 from labctl.sim.snapshot import snapshot
 from labctl.sim.truth import fixed_camera_pose, hand_eye
-from labctl.sim.virtual import build_virtual_lab
 from labctl.sim.world import (
     Placement,
     SimWorld,
@@ -195,10 +195,15 @@ def test_sim_camera_paces_frames_on_the_clock(lab, block):
     assert cam.info()["fps"] == 30.0 and cam.info()["camera_model"]["f"] == 25.0
 
 
+def _virtual_lab(lab, seed: int, truth: bool = False) -> SimLab:
+    """The whole simulated lab on a virtual clock at t = 0: the test block placed by the seed."""
+    return SimLab.build(lab, VirtualClock(0.0), scene=Scene.test_block(lab, seed), seed=seed, truth=truth)
+
+
 def test_same_seed_same_frames_bit_for_bit(lab):
-    a = build_virtual_lab(lab, seed=11)
-    b = build_virtual_lab(lab, seed=11)
-    c = build_virtual_lab(lab, seed=12)
+    a = _virtual_lab(lab, seed=11)
+    b = _virtual_lab(lab, seed=11)
+    c = _virtual_lab(lab, seed=12)
     for v in (a, b, c):
         v.cameras["fixed"].open()
         v.cameras["mobile"].open()
@@ -211,8 +216,8 @@ def test_same_seed_same_frames_bit_for_bit(lab):
 
 
 def test_virtual_trial_moves_the_object_as_grbl_runs(lab):
-    vl = build_virtual_lab(lab, seed=2, truth=True)
-    g = vl.table
+    vl = _virtual_lab(lab, seed=2, truth=True)
+    g = vl.grbl
     g.receive(b"$X\n")
     g.receive(b"G90 G1 X320 Y200 F480\n")  # 20 mm at 8 mm/s (with 200 mm/s² ramps)
     cam = vl.cameras["fixed"]
@@ -362,23 +367,23 @@ def test_snapshot_cli_on_the_sample_lab(tmp_path):
 def test_mobile_camera_rides_the_robot_emulator(lab):
     from labctl.geometry import matrix_to_rotvec
 
-    vl = build_virtual_lab(lab, seed=3)
+    vl = _virtual_lab(lab, seed=3)
     home = home_flange_pose(lab)
     assert np.allclose(vl.world.T_w_c("mobile", 0.0)[:3, 3], lab.robot.home_mm)
     rv = matrix_to_rotvec(home[:3, :3])
     target = home[:3, 3] + [100.0, 50.0, -150.0]
     args = " ".join(f"{v:.9f}" for v in (*target, *rv))
-    vl.robot.receive(f"#1 SEG 7 {args} 2.0\n".encode())
-    assert b"ok" in vl.robot.read_output()
+    vl.robot_emu.receive(f"#1 SEG 7 {args} 2.0\n".encode())
+    assert b"ok" in vl.robot_emu.read_output()
     for k in range(1, 13):  # heartbeats every 0.2 s keep the controller's watchdog quiet
         vl.step_to(0.2 * k)
-        vl.robot.receive(f"#{k + 1} HB\n".encode())
+        vl.robot_emu.receive(f"#{k + 1} HB\n".encode())
         if k == 5:
             mid = vl.world.T_w_c("mobile", 1.0)
     vl.step_to(2.5)
     end = vl.world.T_w_c("mobile", 2.5)
     T_f_c2 = hand_eye(lab.mobile_camera)
-    assert np.allclose(end, vl.robot.flange_pose_at(2.5) @ T_f_c2)
+    assert np.allclose(end, vl.robot_emu.flange_pose_at(2.5) @ T_f_c2)
     assert np.allclose(end[:3, :3], (home @ T_f_c2)[:3, :3], atol=1e-9)
     assert np.allclose((end @ invert(T_f_c2))[:3, 3], target, atol=1e-6)
     # a quintic is symmetric: halfway in time is halfway in space

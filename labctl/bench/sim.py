@@ -94,12 +94,13 @@ def _painter_baseline(camera, T_w_c, meshes, rng) -> np.ndarray:
 
 def _trial(lab, seconds: float = 10.0) -> tuple[float, float, float]:
     """A virtual-time trial of ``seconds`` simulated seconds; returns (wall_s, cpu_s, sim_s)."""
-    from ..sim.virtual import build_virtual_lab
+    from ..sim.clock import VirtualClock
+    from ..sim.lab import Scene, SimLab
 
     t0 = time.perf_counter()
     c0 = time.process_time()
-    vl = build_virtual_lab(lab, seed=1)
-    g = vl.table
+    vl = SimLab.build(lab, VirtualClock(0.0), scene=Scene.test_block(lab, seed=1), seed=1)
+    g = vl.grbl
     g.receive(b"$X\n")
     g.receive(b"G90 G1 X%.1f Y200 F480\n" % (300 + 8.0 * seconds))  # 8 mm/s along +x
     cam = vl.cameras["fixed"]

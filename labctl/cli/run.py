@@ -7,10 +7,9 @@ from pathlib import Path
 
 import click
 
+from ..config.lab import TRAJECTORIES
 from ..errors import LabctlError, UserInputError
 from ._common import emit, get_ctx, json_option, live_console
-
-TRAJECTORIES = ("line", "arc", "circle", "zigzag")
 
 
 def _trajectory(value: str, lab=None) -> str:

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import click
 
+from ..config.lab import TRAJECTORIES
 from ._common import emit, get_ctx, json_option
 
 
@@ -25,7 +26,7 @@ def sim_group() -> None:
 @click.option("--object", "object_name", default=None, help="Object on the table (default: random from the library).")
 @click.option("--trajectory", default="line", show_default=True,
               help="Start the table where this trajectory starts (line, arc, circle, zigzag).")
-@click.option("--conveyor", type=click.Choice(["line", "arc", "circle", "zigzag"]), default=None,
+@click.option("--conveyor", type=click.Choice(TRAJECTORIES), default=None,
               help="Move the parts by the simulator itself (a conveyor labctl does not drive); with --lab-out "
                    "the lab has no table and runs --trajectory external.")
 @click.option("--conveyor-delay", type=click.FloatRange(min=0), default=1.0, show_default=True,
@@ -57,13 +58,13 @@ def sim_serve(baud, tcp, lab_out, force, seed, object_name, trajectory, conveyor
     import time
 
     from ..errors import UserInputError
-    from ..runtime.simlab import TRAJECTORY_STARTS, ServedLab, write_served_lab
+    from ..runtime.simlab import ServedLab, write_served_lab
 
     lab = get_ctx().lab()
     if not lab.is_simulated:
         raise UserInputError("sim serve serves the simulated lab: every driver file of this lab must say kind: sim")
-    if trajectory not in TRAJECTORY_STARTS:
-        raise UserInputError(f"--trajectory must be one of {', '.join(TRAJECTORY_STARTS)}, got {trajectory!r}")
+    if trajectory not in TRAJECTORIES:
+        raise UserInputError(f"--trajectory must be one of {', '.join(TRAJECTORIES)}, got {trajectory!r}")
     if object_name is not None:
         from ..library.storage import load_library
 

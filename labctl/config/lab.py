@@ -59,6 +59,33 @@ class ViewingConfig:
     max_obliquity_deg: float = 75.0  # a marker seen more obliquely than this does not count as visible
 
 
+#: the named table programs labctl drives (``--trajectory``; G-code by :func:`labctl.drivers.programs.program`):
+#: the one list of their names — :class:`FamilyPrior` and :class:`TrajectoryStarts` have a field for each
+TRAJECTORIES = ("line", "arc", "circle", "zigzag")
+
+
+@dataclass(frozen=True)
+class TrajectoryStarts:
+    """Where the table's carriage starts each named program (mm, GRBL machine coordinates, x and y).
+
+    A run first brings the table there and waits (live) or powers the simulated carriage up there
+    (virtual), so the object then crosses the fixed camera's field while the run takes place. The
+    defaults are for the sample lab's 600 × 400 mm travel with the fixed camera over its centre
+    (300, 200): the 300-mm line runs 150 → 450 mm along the centre line, the arc and the circle of
+    80 mm radius turn about (200, 280), the zigzag's ±40 mm legs straddle y = 170. A lab whose camera
+    looks elsewhere moves them here (``--trajectory external`` parts start at ``line``'s).
+    """
+
+    line: tuple[float, float] = (150.0, 200.0)
+    arc: tuple[float, float] = (200.0, 200.0)
+    circle: tuple[float, float] = (200.0, 200.0)
+    zigzag: tuple[float, float] = (150.0, 170.0)
+
+    def get(self, name: str) -> tuple[float, float] | None:
+        """The start of trajectory ``name``, or None if it is not a named program (a G-code file, external)."""
+        return dataclasses.asdict(self).get(name)
+
+
 @dataclass(frozen=True)
 class LibraryConfig:
     """Teaching policy (``labctl teach-object``, ``labctl library check``)."""
@@ -127,7 +154,7 @@ class TrackingConfig:
         ``family_prior``'s value for a named program family; ``curve_prior`` (family-blind) for None,
         ``external`` or anything else (a G-code file: its shape is not known to be one family).
         """
-        if family is not None and family in {f.name for f in dataclasses.fields(FamilyPrior)}:
+        if family is not None and family in TRAJECTORIES:
             return float(getattr(self.family_prior, family))
         return float(self.curve_prior)
 
@@ -138,6 +165,8 @@ class RunConfig:
 
     trajectory: str = "line"
     speed_mm_s: Positive = 8.0
+    # where the table starts each named program (mm): the object then crosses the fixed camera's field
+    trajectory_start_mm: TrajectoryStarts = field(default_factory=TrajectoryStarts)
     timeout_s: Positive = 90.0
     ambiguity_threshold: float | None = None  # None: the library's own default
     max_views: PositiveInt = 3

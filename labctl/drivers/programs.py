@@ -12,9 +12,8 @@ import math
 import re
 from pathlib import Path
 
+from ..config.lab import TRAJECTORIES
 from ..errors import UserInputError
-
-TRAJECTORIES = ("line", "arc", "circle", "zigzag")
 
 
 def _fmt(v: float) -> str:

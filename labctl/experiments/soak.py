@@ -3,7 +3,7 @@
 Everything that runs for the whole of a live run, with the vision taken out (it allocates per
 frame and frees per frame; the buffers that grow are elsewhere):
 
-* the GRBL and robot emulators behind the real drivers (:class:`~labctl.runtime.simlab.SimBench`),
+* the GRBL and robot emulators behind the real drivers (:meth:`~labctl.sim.lab.SimLab.build`),
   the table re-streaming the zigzag program whenever it comes to rest, the robot sent a new
   segment every few seconds (``@DONE`` reports accumulate in ``SerialRobot.done_ids``), status
   reports at the drivers' rate, robot heartbeats;
@@ -41,14 +41,17 @@ def soak(lab, hours: float = 1.0, runs_dir: Path | str | None = None, *, fps: fl
     from ..geometry import make_T
     from ..records import RunRecord
     from ..runtime.live import PeerWatch
-    from ..runtime.simlab import SimBench, trajectory_program
+    from ..runtime.simlab import trajectory_program
+    from ..runtime.stopping import stop_devices
     from ..runtime.transport import local_pair
     from ..sim.clock import VirtualClock
+    from ..sim.lab import SimLab
     from ..sim.world import home_flange_pose
 
     clock = VirtualClock()
     start, program = trajectory_program("zigzag", 10.0, lab)
-    bench = SimBench(lab, clock, start)
+    sim = SimLab.build(lab, clock, devices=("table", "robot"), table_start_mm=start)
+    sim.open()
     a, b = local_pair()
     hl = lab.host_link
     watch = {"predictor": PeerWatch("recognizer", hl.dead_after_s, hl.start_timeout_s, clock=clock.now),
@@ -67,16 +70,16 @@ def soak(lab, hours: float = 1.0, runs_dir: Path | str | None = None, *, fps: fl
     rss_start = None
     samples = []
     wall0 = time.perf_counter()
-    bench.table.stream(program)
+    sim.table.stream(program)
     n = 0
     try:
         while clock.now() < t_end:
             n += 1
             t = clock.advance(dt)
-            bench.advance(t)
+            sim.advance(t)
             if t >= next_beat:
                 next_beat = t + hl.heartbeat_s
-                bench.robot.heartbeat()
+                sim.robot.heartbeat()
                 a.send(m.Heartbeat(role="predictor", seq=n % 65536, t=t))
                 b.send(m.Heartbeat(role="recognizer", seq=n % 65536, t=t))
                 for end, role in ((a, "predictor"), (b, "recognizer")):
@@ -88,16 +91,16 @@ def soak(lab, hours: float = 1.0, runs_dir: Path | str | None = None, *, fps: fl
                         lost.append((t, role, why))
             if t >= next_status:
                 next_status = t + 0.2
-                st = bench.table.status()
+                st = sim.table.status()
                 if st.state == "Idle":  # the program ended: run it again
-                    bench.table.stream(program)
+                    sim.table.stream(program)
             if t >= next_segment:
                 next_segment = t + segment_every_s
                 seg_id += 1
                 offset = np.array([segment_mm if seg_id % 2 else -segment_mm, 0.0, 0.0])
                 T = make_T(T_home[:3, :3], T_home[:3, 3] + offset)
-                bench.robot.segment(T, segment_every_s * 0.6, seg_id)
-            bench.robot.poll()
+                sim.robot.segment(T, segment_every_s * 0.6, seg_id)
+            sim.robot.poll()
             record.event("tick", t=t, n=n)
             if rss_start is None and t >= warmup_s:
                 gc.collect()
@@ -107,11 +110,11 @@ def soak(lab, hours: float = 1.0, runs_dir: Path | str | None = None, *, fps: fl
         gc.collect()
         rss_end = rss_bytes()
         # measured before the final stop: the stop itself leaves its own (expected) fault report
-        buffers = {"robot.done_ids": len(bench.robot.done_ids), "robot.faults": len(bench.robot.faults),
-                   "table.messages": len(bench.table.messages), "table.link.buffered": bench.table.link.buffered_bytes,
-                   "robot.link.buffered": bench.robot.link.buffered_bytes}
+        buffers = {"robot.done_ids": len(sim.robot.done_ids), "robot.faults": len(sim.robot.faults),
+                   "table.messages": len(sim.table.messages), "table.link.buffered": sim.table.link.buffered_bytes,
+                   "robot.link.buffered": sim.robot.link.buffered_bytes}
     finally:
-        bench.stop()
+        stop_devices(sim.drivers())
         record.close()
         a.close()
         b.close()

@@ -31,42 +31,40 @@ def open_device(role: str, lab, *, port: str | None = None, baud: int | None = N
         if cfg is None:
             raise LabctlError("this lab has no table (lab.yaml drivers.table: null)")
         if cfg.kind == "sim" and port is None:
-            from ..sim.clock import VirtualClock
-            from ..sim.emulators.grbl import GrblEmulator
-            from ..sim.emulators.link import EmulatorPort
-
-            clock = VirtualClock()
-            emu = GrblEmulator(clock, travel_mm=cfg.travel_mm, max_feed_mm_min=cfg.max_feed_mm_min,
-                               accel_mm_s2=cfg.accel_mm_s2)
-            dev = GrblTable.from_config(cfg, serial_port=EmulatorPort(emu, clock, baud or cfg.baud, name="sim://table"),
-                                        clock=clock, sleep=clock.sleep)
-            dev.emulator = emu
-            return dev
+            return _sim_device("table", lab, baud)
         return GrblTable.from_config(cfg, port=port or cfg.port, baud=baud or cfg.baud)
     if role == "robot":
         from ..drivers.robot import SerialRobot
 
         cfg = lab.robot
         if cfg.kind == "sim" and port is None:
-            from ..sim.clock import VirtualClock
-            from ..sim.emulators.link import EmulatorPort
-            from ..sim.emulators.robot import RobotEmulator
-
-            clock = VirtualClock()
-            emu = RobotEmulator(clock, cfg)
-            dev = SerialRobot.from_config(cfg, serial_port=EmulatorPort(emu, clock, baud or cfg.baud, name="sim://robot"),
-                                          clock=clock, sleep=clock.sleep)
-            dev.emulator = emu
-            return dev
+            return _sim_device("robot", lab, baud)
         return SerialRobot.from_config(cfg, port=port or cfg.port, baud=baud or cfg.baud)
     if role in ("fixed_camera", "mobile_camera", "fixed", "mobile"):
         role = role if role.endswith("_camera") else f"{role}_camera"
         if getattr(lab, role).kind == "sim":
-            from ..sim.virtual import build_virtual_lab
-
-            return build_virtual_lab(lab).cameras[role.removesuffix("_camera")]
+            return _sim_device(role.removesuffix("_camera"), lab)
         return open_camera(role, lab, **({"clock": clock} if clock is not None else {}))
     raise LabctlError(f"unknown device role {role!r} (have: {', '.join(ROLES)})")
+
+
+def _sim_device(role: str, lab, baud: int | None = None):
+    """One simulated device of ``lab`` on a fresh virtual clock, without the rest of the lab.
+
+    A table or robot: the real driver on an in-process port to its emulator (``.emulator``), at machine
+    zero / the controller's home, as a board powers up. A camera (``fixed``, ``mobile``): the world with
+    the built-in test block (seed 0) and the table and robot at rest where a whole lab's emulators start
+    them (the travel's centre; the mobile camera at ``robot.home_mm`` looking at the table's centre)."""
+    from ..sim.clock import VirtualClock
+    from ..sim.lab import Scene, SimLab
+
+    if role in ("table", "robot"):
+        sim = SimLab.build(lab, VirtualClock(), devices=(role,), baud=baud, table_start_mm=(0.0, 0.0),
+                           robot_start="controller")
+        dev = sim.table if role == "table" else sim.robot
+        dev.emulator = sim.emulator(role)
+        return dev
+    return SimLab.build(lab, VirtualClock(0.0), devices=(role,), scene=Scene.test_block(lab, 0)).cameras[role]
 
 
 def robot_limits_problem(cfg, controller: dict) -> str | None:

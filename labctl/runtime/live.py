@@ -460,7 +460,8 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
             marks["table_unlocked"] = time.time()
             robot_checked.wait()  # the robot's limits first: a run that cannot go on moves nothing
             if robot_ok.is_set():
-                _to_start(table, args.spec["trajectory"], log, lambda: _now(args.origin), status=st)
+                _to_start(table, lab.config.run.trajectory_start_mm.get(args.spec["trajectory"]), log,
+                          lambda: _now(args.origin), status=st)
             marks["table_ready"] = time.time()
 
         # The table's connection (board reset, banner, sync, $I, unlock: ~1 s of 9600-bps round trips)
@@ -570,17 +571,15 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
     return code
 
 
-def _to_start(table, trajectory: str, log, now, status=None) -> None:
-    """Bring the table to a named trajectory's start and wait there, before tracking begins: a table
-    left elsewhere (after ``labctl calibrate``, say) would otherwise carry the object into view on
-    the program's rapid move, which the tracker cannot tell from the object's own motion. A G-code
-    file starts where its own first move goes. ``status``: the table's status just read (Idle), to spare
-    another 9600-bps round trip."""
-    from .simlab import TRAJECTORY_STARTS
-
-    if trajectory not in TRAJECTORY_STARTS:
+def _to_start(table, start_xy: tuple[float, float] | None, log, now, status=None) -> None:
+    """Bring the table to a named trajectory's start (lab.yaml ``run.trajectory_start_mm``) and wait
+    there, before tracking begins: a table left elsewhere (after ``labctl calibrate``, say) would
+    otherwise carry the object into view on the program's rapid move, which the tracker cannot tell
+    from the object's own motion. A G-code file (``start_xy`` None) starts where its own first move
+    goes. ``status``: the table's status just read (Idle), to spare another 9600-bps round trip."""
+    if start_xy is None:
         return
-    x, y = TRAJECTORY_STARTS[trajectory]
+    x, y = start_xy
     p = (status or table.status()).position
     if abs(p[0] - x) < 0.5 and abs(p[1] - y) < 0.5:
         return
@@ -666,36 +665,10 @@ def _worker_process(role: str, args: WorkerArgs, link_end, conn) -> None:
     sys.exit(code)
 
 
-class _TruthLog:
-    """The simulator's ground truth of motion, logged to the record as ``sim_truth`` transitions
-    (``t`` on the run's shared clock, s): an oracle independent of every driver and worker."""
-
-    def __init__(self, sim, log):
-        self.sim, self.log = sim, log
-        self.last: tuple | None = None  # the first sample sets it silently: the log holds changes only
-        self.t_moving = time.monotonic()
-        self.still_since: dict[str, float | None] = {"robot": None, "table": None}
-
-    def sample(self) -> dict:
-        st = self.sim.device_state()
-        key = (st["robot_moving"], st["table_moving"], st["table_state"])
-        for dev in ("robot", "table"):
-            if st[f"{dev}_moving"]:
-                self.still_since[dev] = None
-                self.t_moving = time.monotonic()
-            elif self.still_since[dev] is None:
-                self.still_since[dev] = st["t"]
-        if self.last is None:
-            self.last = key
-        elif key != self.last:
-            self.last = key
-            with contextlib.suppress(Exception):
-                self.log("sim_truth", t=st["t"], robot_moving=key[0], table_moving=key[1], table_state=key[2],
-                         robot_stop=self.sim.robot_stop())
-        return {**st, "robot_still_since": self.still_since["robot"], "table_still_since": self.still_since["table"]}
-
-    def still_for(self) -> float:
-        return time.monotonic() - self.t_moving
+def _log_quietly(log, name: str, fields: dict) -> None:
+    """``log(name, **fields)``; a record that cannot take it does not stop the simulated lab."""
+    with contextlib.suppress(Exception):
+        log(name, **fields)
 
 
 def sim_server_main(lab_root: str, spec: dict, conn, run_dir: str | None = None) -> None:
@@ -708,6 +681,7 @@ def sim_server_main(lab_root: str, spec: dict, conn, run_dir: str | None = None)
     them and the record keeps the ground truth of when they did."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    from ..sim.lab import TruthLogger
     from .simlab import LiveSimLab
 
     record = None
@@ -739,7 +713,9 @@ def sim_server_main(lab_root: str, spec: dict, conn, run_dir: str | None = None)
         with served as sim:
             conn.send(("ready", sim.endpoints()))
             sim.warm_up()
-            truth = _TruthLog(sim, log)
+            # the record holds changes only, each with the robot's latest stop ramp (labctl.sim.lab.TruthLogger)
+            truth = TruthLogger(sim.sim, lambda line: _log_quietly(log, "sim_truth", line), first_line=False,
+                                ramp_is_change=False)
             orphaned = None
             while True:
                 state = truth.sample()

@@ -1,11 +1,14 @@
-"""The simulated lab assembled for a run: emulators, drivers, world, trajectories.
+"""The simulated lab as the runtimes serve it, and trajectories.
 
-* :class:`SimBench` — virtual time: the GRBL and robot emulators behind the real drivers on
-  in-process ports (bytes in the real protocols, paced at the driver files' baud rate on the
-  virtual clock), and the world that reads the table and flange poses from the emulators.
-* :class:`LiveSimLab` — real time, for ``labctl run``: the same emulators on pseudo-terminals
-  paced at the baud rate, and a frame server rendering both cameras from the world.
-* :func:`trajectory_program` — where the table starts and the G-code it runs for a trajectory.
+The lab itself is built by :meth:`labctl.sim.lab.SimLab.build`; this module holds what belongs to
+the runtimes around it:
+
+* :class:`LiveSimLab` — real time, for ``labctl run``: the emulators on pseudo-terminals paced at
+  the baud rate, and a frame server rendering both cameras from the world;
+  :class:`ServedLab` — the same for ``labctl sim serve``, cameras as MJPEG streams;
+* :class:`Conveyor` — the simulator moving the table by itself;
+* :func:`trajectory_program` — where the table starts (``run.trajectory_start_mm``) and the G-code
+  it runs for a trajectory.
 """
 
 from __future__ import annotations
@@ -13,6 +16,7 @@ from __future__ import annotations
 import contextlib
 import os
 import time
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -20,27 +24,20 @@ from ..config import Lab
 from ..drivers.programs import program
 from ..errors import UserInputError
 
-#: where the table's carriage starts for each trajectory (mm, machine coordinates) — the object
-#: then crosses the fixed camera's field while the run takes place
-TRAJECTORY_STARTS = {"line": (150.0, 200.0), "arc": (200.0, 200.0), "circle": (200.0, 200.0),
-                     "zigzag": (150.0, 170.0)}
-
-
-def table_config(lab: Lab):
-    """The lab's table, or (no table: parts on a conveyor) the default table the simulator moves them on."""
-    from ..config import TableConfig
-
-    return lab.table if lab.table is not None else TableConfig()
+if TYPE_CHECKING:
+    from ..sim.lab import Ports
 
 
 def trajectory_program(name: str, speed_mm_s: float, lab: Lab) -> tuple[tuple[float, float], list[str]]:
     """``(start_xy, gcode_lines)`` of a named trajectory, or of a G-code file (started at the centre).
 
     ``external`` (labctl does not drive the motion): where the simulator's conveyor starts, and no lines."""
+    from ..sim.lab import table_config  # light: the simulator's modules are imported only when it is built
+
+    starts = lab.config.run.trajectory_start_mm
     if name == "external":
-        return TRAJECTORY_STARTS["line"], []
-    if name in TRAJECTORY_STARTS:
-        start = TRAJECTORY_STARTS[name]
+        return starts.line, []
+    if (start := starts.get(name)) is not None:
         return start, program(name, speed_mm_s, start=start, travel_mm=table_config(lab).travel_mm)
     from ..drivers.programs import load_gcode
 
@@ -63,49 +60,6 @@ def _sim_object(lab: Lab, spec: dict, rng: np.random.Generator):
     name = spec.get("object_name") or names[int(rng.integers(len(names)))]
     obj = SimObject.from_library(library[name])
     return name, obj, random_placement(obj, rng)
-
-
-class SimBench:
-    """The simulated devices on one virtual clock, behind the real drivers."""
-
-    def __init__(self, lab: Lab, clock, start_xy=(150.0, 200.0)):
-        from ..drivers.grbl import GrblTable
-        from ..drivers.robot import SerialRobot
-        from ..sim.emulators.grbl import GrblEmulator
-        from ..sim.emulators.link import EmulatorPort
-        from ..sim.emulators.robot import RobotEmulator
-        from ..sim.world import home_flange_pose
-
-        self.lab, self.clock = lab, clock
-        t = lab.table
-        self.grbl = GrblEmulator(clock.now, travel_mm=t.travel_mm, max_feed_mm_min=t.max_feed_mm_min,
-                                 accel_mm_s2=t.accel_mm_s2, start_mm=(start_xy[0], start_xy[1], 0.0))
-        self.robot_emu = RobotEmulator(clock.now, lab.robot, start_pose=home_flange_pose(lab))
-        self.table = GrblTable.from_config(t, serial_port=EmulatorPort(self.grbl, clock.now, t.baud, sleep=clock.sleep),
-                                           clock=clock.now, sleep=clock.sleep)
-        self.robot = SerialRobot.from_config(
-            lab.robot, serial_port=EmulatorPort(self.robot_emu, clock.now, lab.robot.baud, sleep=clock.sleep),
-            clock=clock.now, sleep=clock.sleep)
-        self.table.open()
-        self.robot.open()
-
-    def world(self, obj, placement):
-        """The simulated world of this lab with ``obj`` at ``placement``, moving with the emulated table and robot."""
-        from ..sim.world import SimWorld
-
-        return SimWorld.from_lab(self.lab, obj=obj, placement=placement, table_position=self.grbl.position_at,
-                                 flange_pose_at=self.robot_emu.flange_pose_at)
-
-    def advance(self, t: float) -> None:
-        """Advance both emulators to time ``t`` (s)."""
-        self.grbl.advance(t)
-        self.robot_emu.advance(t)
-
-    def stop(self) -> list[dict]:
-        """Stop and confirm both devices; every outcome returned (labctl.runtime.stopping)."""
-        from .stopping import stop_devices
-
-        return stop_devices({"robot": self.robot, "table": self.table})
 
 
 class Conveyor:
@@ -157,14 +111,6 @@ class Conveyor:
             self.started_at = t
 
 
-def _locked(lock, fn):
-    def call(*args):
-        with lock:
-            return fn(*args)
-
-    return call
-
-
 class LiveSimLab:
     """The simulated lab in real time: emulators on ptys, cameras behind a frame server."""
 
@@ -191,13 +137,10 @@ class LiveSimLab:
         return self
 
     def _start_world(self) -> dict:
-        """The world, both emulators on ptys (real clock) and both (opened) sim cameras, by role."""
-        from ..sim.camera import SimCamera
+        """The simulated lab on a real clock (:meth:`labctl.sim.lab.SimLab.build`: both emulators on ptys,
+        the world, both sim cameras, opened), by camera role; the conveyor if the simulator moves the parts."""
         from ..sim.clock import RealClock
-        from ..sim.emulators.grbl import GrblEmulator
-        from ..sim.emulators.pty import run_on_pty
-        from ..sim.emulators.robot import RobotEmulator
-        from ..sim.world import home_flange_pose
+        from ..sim.lab import SimLab, table_config
 
         lab = self.lab
         rng = np.random.default_rng(self.spec.get("seed", 0))
@@ -208,23 +151,12 @@ class LiveSimLab:
         self.origin = time.monotonic()
         clock = RealClock()
         clock._origin = self.origin
-        t = table_config(lab)
-        self.grbl = GrblEmulator(clock.now, travel_mm=t.travel_mm, max_feed_mm_min=t.max_feed_mm_min,
-                                 accel_mm_s2=t.accel_mm_s2, start_mm=(start[0], start[1], 0.0))
-        self.robot_emu = RobotEmulator(clock.now, lab.robot, start_pose=home_flange_pose(lab))
-        baud = self.spec.get("baud")
-        self.table_pty = run_on_pty(self.grbl, baud or t.baud, clock=clock.now)
-        self._stack.callback(self.table_pty.stop)
-        self.robot_pty = run_on_pty(self.robot_emu, baud or lab.robot.baud, clock=clock.now)
-        self._stack.callback(self.robot_pty.stop)
-        # the cameras see what the served controllers do: positions read from the emulators, under their locks
-        self.world = self._make_world(
-            obj, placement, table_position=_locked(self.table_pty.lock, self.grbl.position_at),
-            flange_pose_at=_locked(self.robot_pty.lock, self.robot_emu.flange_pose_at))
-        seed = int(self.spec.get("seed", 0))
-        cams = {role: SimCamera(self.world, role, clock, fps=self.spec.get("fps") or getattr(lab, f"{role}_camera").fps,
-                                seed=seed)
-                for role in ("fixed", "mobile")}
+        self.sim = sim = SimLab.build(lab, clock, ports=self._ports(), scene=self._scene(obj, placement),
+                                      seed=int(self.spec.get("seed", 0)), baud=self.spec.get("baud"),
+                                      table_start_mm=start, fps=self.spec.get("fps"))
+        self._stack.callback(sim.close)
+        self.grbl, self.robot_emu, self.world = sim.grbl, sim.robot_emu, sim.world
+        cams = dict(sim.cameras)
         for cam in cams.values():
             cam.open()
         self._cams = dict(cams)
@@ -236,9 +168,9 @@ class LiveSimLab:
             # parts on a conveyor labctl does not drive: the simulator runs the table itself
             # the conveyor is the simulator's own: it clears GRBL's power-up alarm itself ($X)
             lines = ["$X"] + program(self.spec.get("conveyor") or "line", self.spec["speed_mm_s"], start=start,
-                                     travel_mm=t.travel_mm, rapid_to_start=False)
+                                     travel_mm=table_config(lab).travel_mm, rapid_to_start=False)
             delay = float(self.spec.get("conveyor_delay_s", 1.0))
-            self.conveyor = Conveyor(self.grbl, self.table_pty.lock, lines, delay)
+            self.conveyor = Conveyor(self.grbl, sim.ptys["table"].lock, lines, delay)
             cams["fixed"] = self.conveyor.watch(cams["fixed"])
         return cams
 
@@ -249,40 +181,26 @@ class LiveSimLab:
             with cam._lock:
                 cam.render_frame(0)
 
-    def _make_world(self, obj, placement, *, table_position, flange_pose_at):
-        from ..sim.world import SimWorld
+    def _ports(self) -> Ports:
+        """The emulators' ports: ptys (the served lab can bridge them to TCP)."""
+        return "pty"
 
-        return SimWorld.from_lab(self.lab, obj=obj, placement=placement, table_position=table_position,
-                                 flange_pose_at=flange_pose_at)
+    def _scene(self, obj, placement):
+        from ..sim.lab import Scene
+
+        return Scene(obj, placement)
 
     def __exit__(self, *exc) -> None:
         self._stack.close()
 
     def endpoints(self) -> dict:
         """Where the workers reach the lab: table and robot pty paths, the run clock's origin, the frame server."""
-        return {"table": self.table_pty.path, "robot": self.robot_pty.path, "origin": self.origin,
+        return {**self.sim.endpoints(), "origin": self.origin,
                 "frame_server": (self.server.address, self.server.authkey)}
 
     def truth(self) -> dict:
         """The ground truth for the result: the object placed."""
         return {"true_identity": self.object_name}
-
-    def device_state(self) -> dict:
-        """Whether the emulated robot and table are moving now, and the table's GRBL state."""
-        with self.robot_pty.lock:
-            robot_moving = bool(self.robot_emu.moving)
-        with self.table_pty.lock:
-            self.grbl.advance(self.clock.now())
-            table_moving, table_state = bool(self.grbl.moving), self.grbl.state_word
-        return {"t": self.clock.now(), "robot_moving": robot_moving, "table_moving": table_moving,
-                "table_state": table_state}
-
-    def robot_stop(self) -> list[float] | None:
-        """``[start, end]`` (s, this lab's clock) of the robot controller's latest stop ramp — the braking
-        that follows a received ``STOP`` (or the controller's own watchdog): None before any."""
-        with self.robot_pty.lock:
-            stops = [(s.t0, s.t1) for s in self.robot_emu.segments if s.seg_id == -1]
-        return list(stops[-1]) if stops else None
 
 
 class ServedLab(LiveSimLab):
@@ -304,15 +222,16 @@ class ServedLab(LiveSimLab):
     ser2net is stopped and restarted (a link dropped mid-run, issue 12 Build 7).
     """
 
-    def _make_world(self, obj, placement, *, table_position, flange_pose_at):
+    def _ports(self) -> Ports:
+        """TCP ports as ser2net would serve them with ``spec["tcp"]``, else ptys."""
+        return "tcp" if self.spec.get("tcp") else "pty"
+
+    def _scene(self, obj, placement):
         from ..calibration.run import lab_target
-        from ..sim.rigs import target_world
+        from ..sim.lab import Scene
 
         self.target = lab_target(self.lab.calibration_dir)
-        world = target_world(self.lab, self.target, table_position=table_position, flange_pose_at=flange_pose_at,
-                             obj=obj, placement=placement)
-        world.calibration = self.spec.get("scene") == "calibration"
-        return world
+        return Scene(obj, placement, target=self.target, calibration=self.spec.get("scene") == "calibration")
 
     def set_scene(self, params: dict) -> dict:
         """The control endpoint ``/control/scene``: with ``calibration`` (1/0, yes/no, true/false,
@@ -377,7 +296,7 @@ class ServedLab(LiveSimLab):
         if up is not None and not up and not bridge.set_up(False):
             raise RuntimeError(f"the {device} bridge did not stop")
         if reset:
-            dev, emu = (self.table_pty, self.grbl) if device == "table" else (self.robot_pty, self.robot_emu)
+            dev, emu = self.sim.ptys[device], self.sim.emulator(device)
             with dev.lock:
                 emu.power_cycle()
             self.resets[device] += 1
@@ -388,19 +307,12 @@ class ServedLab(LiveSimLab):
 
     def __enter__(self) -> ServedLab:
         from ..sim.mjpeg import MjpegServer
-        from ..sim.tcpserial import TcpSerialBridge
 
         try:
             cams = self._start_world()
-            self.ports = {"table": self.table_pty.path, "robot": self.robot_pty.path}
-            self.bridges: dict = {}
+            self.ports = self.sim.endpoints()
+            self.bridges = self.sim.bridges
             self.resets = {"table": 0, "robot": 0}
-            if self.spec.get("tcp"):
-                for role in ("table", "robot"):
-                    bridge = TcpSerialBridge(self.ports[role])
-                    self._stack.callback(bridge.stop)
-                    self.ports[role] = bridge.url
-                    self.bridges[role] = bridge
             self.mjpeg = MjpegServer(cams, self.clock.now, port=int(self.spec.get("http_port") or 0),
                                      quality=int(self.spec.get("jpeg_quality") or 90),
                                      controls={"scene": self.set_scene, "link": self.set_link}).start()
@@ -416,21 +328,30 @@ class ServedLab(LiveSimLab):
                 "fixed_camera": self.mjpeg.url("fixed"), "mobile_camera": self.mjpeg.url("mobile"),
                 "scene_control": self.mjpeg.control_url("scene"), "link_control": self.mjpeg.control_url("link")}
 
-    def log_truth(self, path, period_s: float = 0.01) -> TruthLogger:
-        """Start logging the served devices' motion to ``path`` (:class:`TruthLogger`); stopped on exit."""
-        logger = TruthLogger(self, path, period_s).start()
-        self._stack.callback(logger.stop)
+    def log_truth(self, path, period_s: float = 0.01):
+        """Start logging the served devices' motion to ``path`` as JSON lines every ``period_s``
+        (:class:`labctl.sim.lab.TruthLogger` into a :class:`labctl.sim.lab.TruthFile`); stopped on exit.
+        Returns the logger."""
+        from ..sim.lab import TruthFile, TruthLogger
+
+        sink = TruthFile(path, self.origin)
+        logger = TruthLogger(self.sim, sink.write, period_s=period_s).start()
+
+        def stop() -> None:
+            logger.stop()
+            sink.close(logger)
+
+        self._stack.callback(stop)
         return logger
 
     def check_alive(self) -> None:
         """Raise if an emulator's thread died (the served lab would silently stop answering)."""
-        for role, dev in (("table", self.table_pty), ("robot", self.robot_pty)):
-            if not dev._thread.is_alive():
-                raise RuntimeError(f"the {role} emulator stopped: {dev.errors[-1] if dev.errors else 'unknown'}")
+        self.sim.check_alive()
 
     def truth(self) -> dict:
         """The served world's ground truth (mm, rad; 4×4 poses ``T_<to>_<from>``), for checks."""
         from ..sim import truth
+        from ..sim.lab import table_config
 
         lab = self.lab
         return {
@@ -451,85 +372,6 @@ class ServedLab(LiveSimLab):
             "scene": self.spec.get("scene") or "object",
             "calibration_target": self.target.kind,
         }
-
-
-class TruthLogger:
-    """The served world's ground truth of motion as JSON lines (``sim serve --truth-log FILE``, issue 13).
-
-    A thread samples the emulators themselves — not any driver or labctl process — every
-    ``period_s`` (default 10 ms) and appends one line per change, plus a first line when it starts:
-    ``{"mono": s, "t": s, "robot_moving": bool, "table_moving": bool, "table_state": GRBL state,
-    "robot_stop": [start, end] | null}``. ``mono`` is CLOCK_MONOTONIC (``time.monotonic()``, shared
-    by every process on the host, so a run's record converts it with its own ``origin``); ``t`` is
-    the served lab's clock; ``robot_stop`` is the latest stop ramp on CLOCK_MONOTONIC (when the
-    controller began braking and when it is at rest). Each line is one ``os.write`` on an
-    ``O_APPEND`` descriptor: a reader never sees half a line except the one being written.
-    Resolution: the sampling period, plus the sample's own time under load (``period_s`` bounds it
-    only on an idle machine; ``mono`` is taken after the sample, so a change is never early); the
-    last line, written on exit, gives the longest gap between samples.
-    """
-
-    def __init__(self, lab: LiveSimLab, path, period_s: float = 0.01):
-        import threading
-
-        self.lab, self.period_s = lab, float(period_s)
-        self._fd = os.open(os.fspath(path), os.O_WRONLY | os.O_CREAT | os.O_APPEND | getattr(os, "O_CLOEXEC", 0),
-                           0o666)
-        self._halt = threading.Event()
-        self._thread = threading.Thread(target=self._loop, name="truth-log", daemon=True)
-        self.lines = 0
-        self.samples = 0
-        self.max_gap_s = 0.0  # the longest time between two samples (the log's real resolution)
-        self.gaps_over_20ms = 0
-
-    def start(self) -> TruthLogger:
-        """Start sampling in a daemon thread; returns self."""
-        self._thread.start()
-        return self
-
-    def sample(self) -> dict:
-        """The served devices' state now: monotonic time (s), robot/table moving, GRBL state, and the
-        robot's stop ramp [start, end] (monotonic s) if one ran."""
-        st = self.lab.device_state()
-        ramp = self.lab.robot_stop()
-        origin = self.lab.origin
-        return {"mono": round(st["t"] + origin, 4), "t": round(st["t"], 4), "robot_moving": st["robot_moving"],
-                "table_moving": st["table_moving"], "table_state": st["table_state"],
-                "robot_stop": None if ramp is None else [round(ramp[0] + origin, 4), round(ramp[1] + origin, 4)]}
-
-    def _write(self, line: dict) -> None:
-        import json
-
-        os.write(self._fd, (json.dumps(line) + "\n").encode())
-        self.lines += 1
-
-    def _loop(self) -> None:
-        last_key, last_t = None, None
-        while not self._halt.is_set():
-            line = self.sample()
-            key = (line["robot_moving"], line["table_moving"], line["table_state"], line["robot_stop"])
-            if last_t is not None:
-                self.max_gap_s = max(self.max_gap_s, line["mono"] - last_t)
-                self.gaps_over_20ms += line["mono"] - last_t > 0.02
-            last_t = line["mono"]
-            self.samples += 1
-            if key != last_key:
-                last_key = key
-                self._write(line)
-            self._halt.wait(self.period_s)
-
-    def stop(self) -> None:
-        """Stop sampling; the last line says how well the log kept its period: ``{"mono", "end": true,
-        "samples", "max_gap_s", "gaps_over_20ms"}`` (no ``robot_moving``: readers of motion skip it)."""
-        import contextlib
-        import time
-
-        self._halt.set()
-        self._thread.join(timeout=2.0)
-        with contextlib.suppress(OSError):
-            self._write({"mono": round(time.monotonic(), 4), "end": True, "samples": self.samples,
-                         "max_gap_s": round(self.max_gap_s, 4), "gaps_over_20ms": self.gaps_over_20ms})
-        os.close(self._fd)
 
 
 def write_served_lab(lab: Lab, out, served: ServedLab, *, force: bool = False):

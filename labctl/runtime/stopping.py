@@ -295,7 +295,7 @@ def still_after(events: list[dict], t_stop: float) -> dict[str, float]:
     ground truth saw each device come to rest for good: ``{"robot": s, "table": s}``, 0 if it was
     already still. ``events`` are ``sim_truth`` transitions (``t``, ``robot_moving``,
     ``table_moving``; others ignored), from the live simulated lab's record or a served lab's truth
-    log (:class:`labctl.runtime.simlab.TruthLogger`) put on the run's clock. The robot counts as
+    log (:class:`labctl.sim.lab.TruthLogger`) put on the run's clock. The robot counts as
     still only when its controller's stop ramp has ended (the flange at rest), not when ``STOP``
     arrived. Also, where the truth carries the robot's stop ramps (``robot_stop`` = [start, end]):
     ``robot_stop_received_s``, from ``t_stop`` to the first ramp that began after it, and

@@ -76,8 +76,10 @@ def simulate_run(lab: Lab, ctx: RunContext, spec: TrialSpec, record=None, *, hea
     the results are the same).
     """
     from ..sim.clock import VirtualClock
+    from ..sim.lab import Scene, SimLab
     from ..sim.world import SimObject, random_placement
-    from .simlab import SimBench, trajectory_program
+    from .simlab import trajectory_program
+    from .stopping import stop_devices
 
     rng = np.random.default_rng(spec.seed)
     name = choose_object(ctx, spec, rng)
@@ -85,16 +87,17 @@ def simulate_run(lab: Lab, ctx: RunContext, spec: TrialSpec, record=None, *, hea
     placement = random_placement(sim_obj, rng)
     start_xy, program = trajectory_program(spec.trajectory, spec.speed_mm_s, lab)
     clock = VirtualClock()
-    bench = SimBench(lab, clock, start_xy)  # opening the drivers takes virtual time (banner, queries)
-    world = bench.world(sim_obj, placement)
-    rest = bench.robot.ensure_ready()  # as the live run does when it opens the robot, before its start
+    sim = SimLab.build(lab, clock, scene=Scene(sim_obj, placement), table_start_mm=start_xy)
+    sim.open()  # opening the drivers takes virtual time (banner, queries)
+    world = sim.world
+    rest = sim.robot.ensure_ready()  # as the live run does when it opens the robot, before its start
     t0 = clock.now()
 
     log = record.event if record is not None else (lambda *a, **k: None)
     save = record.save_image if record is not None else None
     meter = LinkMeter()
     outbox: list[m.Message] = []
-    predictor = PredictorPlanner(ctx, bench.robot, outbox.append, log, t_start=t0, clock=clock.now,
+    predictor = PredictorPlanner(ctx, sim.robot, outbox.append, log, t_start=t0, clock=clock.now,
                                  profile=spec.profile, rest=rest, shared_clock=True,
                                  family=None if lab.table is None else spec.trajectory)
     seq = {"mobile": 0}
@@ -106,16 +109,16 @@ def simulate_run(lab: Lab, ctx: RunContext, spec: TrialSpec, record=None, *, hea
         # take a frame period, which the honest bound counts too (tti_bound)
         seq["mobile"] += 1
         t = clock.now()
-        bench.advance(t)
+        sim.advance(t)
         image = world.render("mobile", t, rng).image
-        bench.advance(clock.advance(mobile_period))
+        sim.advance(clock.advance(mobile_period))
         return Frame(image, t, seq["mobile"])
 
     recognizer = Recognizer(ctx, grab_mobile, log, save)
     log("truth", t=t0, object=name, placement=world.truth(t0).to_dict()["placement"], seed=spec.seed)
     from ..decisions.predictor import ProgramProgress
 
-    progress = ProgramProgress(bench.table.start_program(program), log)  # pumped by the loop, never waited on
+    progress = ProgramProgress(sim.table.start_program(program), log)  # pumped by the loop, never waited on
 
     dt = 1.0 / ctx.lab.config.run.fps
     catch_up = ctx.lab.config.run.catch_up_frames
@@ -142,10 +145,10 @@ def simulate_run(lab: Lab, ctx: RunContext, spec: TrialSpec, record=None, *, hea
             # advanced past the arrival, so it is advanced to the arrival first (+0.1 ms: the reply
             # gives the arrival to 1 µs, rounded either way).
             clock.sleep_until(predictor.t1c + 1e-4)
-            bench.advance(clock.now())
-            bench.robot.poll()
+            sim.advance(clock.now())
+            sim.robot.poll()
             clock.sleep_until(wake)
-            bench.advance(wake)
+            sim.advance(wake)
             progress.pump(wake)
             predictor.tick(wake)
             deliver()
@@ -157,12 +160,12 @@ def simulate_run(lab: Lab, ctx: RunContext, spec: TrialSpec, record=None, *, hea
             newest = int(math.floor((t - grid0) / dt + 1e-9))
             times = [grid0 + k * dt for k in range(max(n + 1, newest - catch_up + 1), newest + 1)]
             n = newest
-        bench.advance(t)
+        sim.advance(t)
         progress.pump(t)
         if t >= next_beat:  # both workers' heartbeats, carried like the real ones
             for role in ("predictor", "recognizer"):
                 meter.carry(m.Heartbeat(role=role, seq=fixed_seq % 65536, t=t))
-            bench.robot.heartbeat()
+            sim.robot.heartbeat()
             next_beat = t + heartbeat_s
         frames = []
         for tk in times:
@@ -177,7 +180,7 @@ def simulate_run(lab: Lab, ctx: RunContext, spec: TrialSpec, record=None, *, hea
         if t - t0 > ctx.lab.config.run.timeout_s + 5:
             predictor.fail(t, "virtual run exceeded its time-out")
     t_end = clock.now()
-    bench.stop()
+    stop_devices(sim.drivers())
     result = predictor.result(t_end)
     truth = world.truth(t_end)
     result.update({

@@ -78,53 +78,35 @@ def target_world(lab, target, *, table_position, flange_pose_at, supersample: in
 class SimCalibrationLab:
     """The simulated lab for ``labctl calibrate``, in one process on a virtual clock.
 
-    The GRBL and robot emulators behind the real drivers (bytes in the real protocols on
-    in-process ports, paced at the driver files' baud rates), both simulated cameras rendering a
-    world in which the calibration target rides the table's carriage and the mobile camera the
-    robot's flange. :meth:`place_target` is the simulator's hook for the procedure's prompt
+    :meth:`labctl.sim.lab.SimLab.build` with the target on the carriage: the GRBL and robot
+    emulators behind the real drivers (bytes in the real protocols on in-process ports, paced at
+    the driver files' baud rates), both simulated cameras rendering a world in which the
+    calibration target rides the table's carriage and the mobile camera the robot's flange.
+    :meth:`place_target` is the simulator's hook for the procedure's prompt
     (:class:`labctl.calibration.procedure.Prompt`): it puts the target on the requested spacer.
     ``truth()`` is the ground truth the calibration is checked against (:mod:`.truth`, from the
     driver files; the calibration code never sees it).
     """
 
     def __init__(self, lab, target, seed: int = 0):
-        from ..drivers.grbl import GrblTable
-        from ..drivers.robot import SerialRobot
-        from .camera import SimCamera
         from .clock import VirtualClock
-        from .emulators.grbl import GrblEmulator
-        from .emulators.link import EmulatorPort
-        from .emulators.robot import RobotEmulator
-        from .world import home_flange_pose
+        from .lab import Scene, SimLab
 
         self.lab, self.target = lab, target
-        self.clock = clock = VirtualClock(0.0)
-        t = lab.table
-        self.grbl = GrblEmulator(clock.now, travel_mm=t.travel_mm, max_feed_mm_min=t.max_feed_mm_min,
-                                 accel_mm_s2=t.accel_mm_s2, start_mm=(t.travel_mm[0] / 2, t.travel_mm[1] / 2, 0.0))
-        self.robot_emu = RobotEmulator(clock.now, lab.robot, start_pose=home_flange_pose(lab))
-        self.table = GrblTable.from_config(t, serial_port=EmulatorPort(self.grbl, clock.now, t.baud, sleep=clock.sleep),
-                                           clock=clock.now, sleep=clock.sleep)
-        self.robot = SerialRobot.from_config(
-            lab.robot, serial_port=EmulatorPort(self.robot_emu, clock.now, lab.robot.baud, sleep=clock.sleep),
-            clock=clock.now, sleep=clock.sleep)
-        self.world = target_world(lab, target, table_position=self.grbl.position_at,
-                                  flange_pose_at=self.robot_emu.flange_pose_at)
-        self.cameras = {role: SimCamera(self.world, role, clock, fps=getattr(lab, f"{role}_camera").fps, seed=seed)
-                        for role in ("fixed", "mobile")}
+        self.sim = sim = SimLab.build(lab, VirtualClock(0.0), scene=Scene(target=target), seed=seed)
+        self.clock, self.grbl, self.robot_emu = sim.clock, sim.grbl, sim.robot_emu
+        self.table, self.robot, self.world, self.cameras = sim.table, sim.robot, sim.world, sim.cameras
         self.prompts: list[float] = []
 
     def open(self) -> None:
         """Open every device and home the table (GRBL powers up locked until homed, as a lab is
         homed before it is calibrated; homing takes virtual time only)."""
-        for dev in (self.table, self.robot, *self.cameras.values()):
-            dev.open()
+        self.sim.open()
         self.table.home()
 
     def close(self) -> None:
         """Close every device of the rig."""
-        for dev in (*self.cameras.values(), self.robot, self.table):
-            dev.close()
+        self.sim.close()
 
     def place_target(self, spacer_mm: float, index: int, count: int) -> None:
         """The prompt's simulator hook: the target is now on a ``spacer_mm`` spacer."""
