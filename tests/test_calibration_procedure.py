@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 import pytest
 import yaml
+from fakes import StillRobot
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -332,7 +333,7 @@ def test_target_mounted_off_centre_and_turned_still_registers_the_table(tmp_path
     assert he["rotation_deg"] < 0.2 and he["translation_mm"] < 1.0
 
 
-class _StopsShortRobot:
+class _StopsShortRobot(StillRobot):
     """A robot (the Robot interface plus the dialect's ``clear``) whose controller's watchdog cuts the
     first ``trips`` segments short halfway, latching E40 until CLEAR, as on an overloaded host."""
 

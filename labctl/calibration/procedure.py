@@ -262,7 +262,7 @@ class _Robot:
 
     A move ends only when the controller reports the segment done *at the commanded pose*. If it
     stopped short — its watchdog brought it to rest because a request came late, as happens on
-    an overloaded host — and the driver can ``clear()`` the latched fault, the move is commanded
+    an overloaded host — the latched fault is cleared (``Robot.clear``) and the move is commanded
     again from where it stopped, up to ``motion.robot_retries`` times per move (counted in
     ``recovered``); otherwise it is a DeviceError. The target does not move meanwhile, so an
     image is only ever taken at a planned pose."""
@@ -284,7 +284,7 @@ class _Robot:
                 why = str(exc)
             if why is None:
                 return T_rep
-            if attempt == self.motion.robot_retries or not hasattr(robot, "clear"):
+            if attempt == self.motion.robot_retries:
                 raise DeviceError(f"robot: segment {self.seg} did not reach its pose ({why})")
             robot.clear()
             self.recovered.append(f"segment {self.seg}: {why}")

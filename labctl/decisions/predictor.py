@@ -29,7 +29,7 @@ from ..drivers.interfaces import Frame, Robot, RobotStatus
 from ..errors import DeviceError
 from ..geometry import make_T, matrix_to_rotvec, rotvec_to_matrix
 from ..planning import Interception, camera_placement_trajectory, plan_interception, rest_to_rest_times
-from ..planning.ruckig_interception import plan_interception_ruckig, ruckig_limits
+from ..planning.ruckig_interception import RuckigTrajectory, plan_interception_ruckig, ruckig_limits
 from ..planning.ruckig_profile import controller_limits
 from ..planning.targets import prediction_margin_mm, standard_view_path, view_holds_marker, viewing_distance_with_margin
 from ..planning.tti_bound import Leg, identity_bound
@@ -172,8 +172,7 @@ class PredictorPlanner:
             self.rest_T = np.asarray(rest.T_base_flange, dtype=float).copy()
         self.t1c: float | None = None  # the controller's arrival time of the segment under way (its clock)
         # the segment profile (run.profile): ruckig only if the controller lists it (dialect 1.2)
-        choose = getattr(robot, "choose_profile", None)
-        self.profile = choose(profile or cfg.run.profile) if choose is not None else "quintic"
+        self.profile = robot.choose_profile(profile or cfg.run.profile)
         self.jerk = ruckig_limits(ctx.lab.robot, cfg.run.robot_stop_budget_s)  # what ruckig segments carry
         self.jerk_ctrl = controller_limits(ctx.lab.robot)  # the controller's own: not sent
 
@@ -236,7 +235,7 @@ class PredictorPlanner:
                            end.state(end.t1)[0])
         self.segment_id += 1
         now = self._now(now)
-        ruckig = getattr(end, "profile", "quintic") == "ruckig"
+        ruckig = isinstance(end, RuckigTrajectory)
         kw = {"profile": "ruckig", "limits": end.limits.wire(end.base)} if ruckig else {}  # the controller re-runs
         duration = math.ceil((end.t1 - end.t0) * 1000.0 - 1e-6) / 1000.0  # whole ms, never shorter than planned
         t0c, t1c = self.robot.segment(T_end, duration, self.segment_id, replace=True, **kw)
@@ -283,7 +282,7 @@ class PredictorPlanner:
         horizon = self.cfg.run.plan_horizon_s
         if self.profile == "ruckig":
             traj = self.plan.trajectory if self.plan is not None else None
-            w = traj.angular_velocity(t0 - self.plan_shift) if hasattr(traj, "angular_velocity") else None
+            w = traj.angular_velocity(t0 - self.plan_shift) if isinstance(traj, RuckigTrajectory) else None
             plan = plan_interception_ruckig(state, t0, target, self.ctx.limits, horizon, R0=R, w0=w, jerk=self.jerk,
                                             base=self.jerk_ctrl)
             if plan.reachable:
@@ -444,10 +443,9 @@ class PredictorPlanner:
         The controller's ``@DONE <id>`` of the segment under way says it stands at the commanded end
         pose: read without waiting, no round trip. A controller that sends no ``@DONE`` (or one lost on
         the line) is asked with STATUS, from the planned arrival on (still moving: wait, up to 1 s)."""
-        done = getattr(self.robot, "done_ids", None)
-        if done is not None and hasattr(self.robot, "poll") and self.T_end is not None:
+        if self.T_end is not None:
             self.robot.poll()
-            if self.segment_id in done:
+            if self.segment_id in self.robot.done_ids:
                 self.rest_T = np.asarray(self.T_end, dtype=float).copy()
                 return self.rest_T
             # @DONE leaves the controller at the arrival and is ~10 bytes on the line: wait for it a few
@@ -455,7 +453,7 @@ class PredictorPlanner:
             if now < self.plan.t_hit + self.plan_shift + self._done_grace_s:
                 return None
         st = self.robot.status()
-        latched = getattr(self.robot, "latched", None)
+        latched = self.robot.latched
         if latched:  # its watchdog or a STOP cut the move: an image from where it stood would be a wrong view
             self.fail(now, f"the robot controller stopped the robot ({latched}) before it reached the view")
             return None
@@ -792,7 +790,7 @@ class ProgramProgress:
         prog = self.program
         if prog.active:
             prog.pump(0.0)
-        elif hasattr(prog.table, "watch"):
+        else:
             prog.table.watch()
         if prog.acked != self._logged_acked and (now - self._t_logged >= self.every_s or prog.done):
             self.log("table_progress", t=now, **prog.progress())

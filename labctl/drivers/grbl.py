@@ -34,6 +34,10 @@ from .grbl_protocol import (
 from .interfaces import OpenClose, Table, TableStatus
 from .serial_link import DeviceTimeout, LinkError, LinkLost, ProtocolError, SerialLink
 
+if TYPE_CHECKING:
+    from ..config import TableConfig
+    from .interfaces import Program
+
 log = logging.getLogger(__name__)
 log.addHandler(logging.NullHandler())  # warnings go to the record/-v, not stray stderr lines
 
@@ -286,15 +290,16 @@ class GrblTable(OpenClose):
         self.while_reconnecting: Callable[[], None] | None = None
 
     @classmethod
-    def from_config(cls, cfg, **kw) -> GrblTable:
+    def from_config(cls, cfg: TableConfig, **kw) -> GrblTable:
         """From a :class:`labctl.config.TableConfig` (port, baud, timeout, reset_on_open, status_hz,
         stall_reports, homing_timeout_s, reconnect_s, stop_confirm_s). A ``port=None`` keyword keeps the
         configured port."""
         port = kw.pop("port", None) or cfg.port
         baud = kw.pop("baud", None) or cfg.baud
-        for name in ("stall_reports", "homing_timeout_s", "reconnect_s", "stop_confirm_s"):
-            if hasattr(cfg, name):
-                kw.setdefault(name, getattr(cfg, name))
+        kw.setdefault("stall_reports", cfg.stall_reports)
+        kw.setdefault("homing_timeout_s", cfg.homing_timeout_s)
+        kw.setdefault("reconnect_s", cfg.reconnect_s)
+        kw.setdefault("stop_confirm_s", cfg.stop_confirm_s)
         return cls(port, baud, timeout_s=cfg.timeout_s, reset_on_open=cfg.reset_on_open,
                    status_hz=cfg.status_hz, **kw)
 
@@ -878,3 +883,4 @@ def _alarm_advice(code: int | None) -> str:
 
 if TYPE_CHECKING:  # mypy (.ci/run) fails here when GrblTable drifts from the Table protocol
     _table_protocol: type[Table] = GrblTable
+    _program_protocol: type[Program] = ProgramStream

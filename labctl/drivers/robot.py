@@ -35,6 +35,9 @@ from .interfaces import OpenClose, Robot, RobotStatus
 from .robot_protocol import ERROR_CODES, MAX_SEQ, RobotReply, fmt_num, format_request, parse_reply
 from .serial_link import DeviceTimeout, LinkError, LinkLost, SerialLink
 
+if TYPE_CHECKING:
+    from ..config import RobotConfig
+
 log = logging.getLogger(__name__)
 
 HOST_DIALECT = "1.2"  # the highest dialect version this driver speaks (1.2: the ruckig profile)
@@ -91,10 +94,10 @@ class SerialRobot(OpenClose):
         self._latched: str | None = None  # the fault the host itself latched (STOP) and has not cleared
 
     @classmethod
-    def from_config(cls, cfg, **kw) -> SerialRobot:
+    def from_config(cls, cfg: RobotConfig, **kw) -> SerialRobot:
         """From a :class:`labctl.config.RobotConfig`; ``port``/``baud`` in ``kw`` override it only when not None."""
         port, baud = kw.pop("port", None), kw.pop("baud", None)
-        kw.setdefault("reconnect_s", getattr(cfg, "reconnect_s", 0.0))
+        kw.setdefault("reconnect_s", cfg.reconnect_s)
         return cls(port or cfg.port, baud or cfg.baud, timeout_s=cfg.timeout_s,
                    heartbeat_s=cfg.heartbeat_s, **kw)
 

@@ -562,7 +562,7 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
         from .stopping import summary
 
         if code != 0:  # a supervisor confirms the stop itself and says so; a lone worker says it here
-            ctl.send("error", reason if getattr(ctl, "supervised", True) else f"{reason}; {summary(outcomes)}",
+            ctl.send("error", reason if ctl.supervised else f"{reason}; {summary(outcomes)}",
                      report_code)
         ctl.send("stopped", outcomes)
         if record is not None:

@@ -414,12 +414,8 @@ class MarkerTracker:
             process_noise=cfg.process_noise,
             measurement_noise_mm=cfg.measurement_noise_mm,
             gate_sigma=cfg.gate_sigma,
+            curve_prior=cfg.curve_prior_for(family),
         )
-        for name in ("curvature_noise", "maneuver_noise", "imm_switch_prob", "curve_prior", "refit_window_s"):
-            if hasattr(cfg, name):
-                kw[name] = getattr(cfg, name)
-        if hasattr(cfg, "curve_prior_for"):
-            kw["curve_prior"] = cfg.curve_prior_for(family)
         kw.update(overrides)
         return cls(**kw)
 

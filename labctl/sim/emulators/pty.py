@@ -23,7 +23,8 @@ Hook = Callable[[float, bytes], bytes]
 
 
 class PtyDevice:
-    """An emulator served on a pty by a background thread. ``stop()`` ends it and closes the pty."""
+    """An emulator (``receive(data, t=)``, ``advance(t)``, ``read_output()``) served on a pty by a background
+    thread. ``stop()`` ends it and closes the pty."""
 
     def __init__(self, emulator, baud: int | None, clock: Callable[[], float] = time.monotonic,
                  on_inbound: Hook | None = None, on_outbound: Hook | None = None, tick_s: float = 0.002):
@@ -103,8 +104,7 @@ class PtyDevice:
                             b = self.on_inbound(t, b)
                         if b:
                             self.emulator.receive(b, t=t)
-                    if hasattr(self.emulator, "advance"):
-                        self.emulator.advance(now)
+                    self.emulator.advance(now)
                     out = self.emulator.read_output()
                     if out and self.on_outbound is not None:
                         out = self.on_outbound(now, out)
