@@ -321,8 +321,7 @@ def test_target_mounted_off_centre_and_turned_still_registers_the_table(tmp_path
     sim = SimCalibrationLab(lab, target, seed=3)
     sim.open()
     try:
-        devs = Devices(sim.table, sim.robot, sim.cameras["fixed"], sim.cameras["mobile"], sim.clock.sleep,
-                       sim.clock.now)
+        devs = Devices(sim.table, sim.robot, sim.cameras["fixed"], sim.cameras["mobile"], sim.clock)
         rep = run_lab_calibration(root / "calibration", devs, sim, target, nominal_for(lab), truth=Truth(**sim.truth()))
     finally:
         sim.close()
@@ -372,11 +371,10 @@ def test_a_move_the_watchdog_cut_short_is_commanded_again_or_fails_never_grabs_o
     from labctl.calibration.procedure import Devices, Motion, _Robot
     from labctl.errors import DeviceError
     from labctl.geometry import make_T
+    from labctl.sim.clock import VirtualClock
 
     robot = _StopsShortRobot(trips)
-    t = [0.0]
-    devs = Devices(table=None, robot=robot, fixed=None, mobile=None, sleep=lambda s: t.__setitem__(0, t[0] + s),
-                   now=lambda: t[0])
+    devs = Devices(table=None, robot=robot, fixed=None, mobile=None, clock=VirtualClock())
     mover = _Robot(devs, Motion(robot_retries=5))
     goal = make_T(None, [300.0, -200.0, 900.0])
     if ok:

@@ -33,6 +33,7 @@ from ..planning.ruckig_interception import RuckigTrajectory, plan_interception_r
 from ..planning.ruckig_profile import controller_limits
 from ..planning.targets import prediction_margin_mm, standard_view_path, view_holds_marker, viewing_distance_with_margin
 from ..planning.tti_bound import Leg, identity_bound
+from ..timebase import wire_time_s
 from ..tracking.tracker import MarkerTracker, position_from_frames
 from ..vision import detect_markers, detect_markers_windowed, red_blob_centroid
 from . import messages as m
@@ -155,7 +156,7 @@ class PredictorPlanner:
         self.failure: str | None = None
         self.robot_path: list[tuple[float, list[float]]] = []
         # a segment command is ~100 bytes: at 9600 bps it reaches the controller ~0.1 s after it is sent
-        self.latency_s = 100 * 10.0 / ctx.lab.robot.baud
+        self.latency_s = wire_time_s(100, ctx.lab.robot.baud)
         self.plan_shift = 0.0  # controller time − plan time of the segment being executed
         self.t_robot_log = -math.inf
         self.min_quintic_s = 0.0  # sum over legs of the paper's quintic rest-to-rest time (the old bound)
@@ -474,13 +475,13 @@ class PredictorPlanner:
         as soon as the robot stands still. None when no arrival is awaited."""
         if self.finished or self.plan is None or self.pending is not None or self.t1c is None:
             return None
-        return self.t1c + 16 * 10.0 / self.ctx.lab.robot.baud
+        return self.t1c + wire_time_s(16, self.ctx.lab.robot.baud)
 
     @property
     def _done_grace_s(self) -> float:
         """How long (s) after the planned arrival an ``@DONE`` may still be on its way: its ~16 bytes on
         the robot's line plus three fixed-camera frame periods (the ticks that read it)."""
-        return 16 * 10.0 / self.ctx.lab.robot.baud + 3.0 / self.cfg.run.fps
+        return wire_time_s(16, self.ctx.lab.robot.baud) + 3.0 / self.cfg.run.fps
 
     def _end_leg(self, T_flange: np.ndarray) -> None:
         """Close the leg under way at the rest pose ``T_flange`` where its image is taken (for the bound)."""

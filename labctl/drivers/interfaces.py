@@ -13,6 +13,8 @@ from typing import Protocol, Self, runtime_checkable
 
 import numpy as np
 
+from ..timebase import Clock
+
 
 class OpenClose(ABC):
     """``with device:`` opens the device and closes it again (every device has ``open``/``close``)."""
@@ -109,6 +111,11 @@ class Table(Protocol):
     #: called while the driver waits to reconnect a dropped link: the caller's keep-alive (other devices)
     while_reconnecting: Callable[[], None] | None
 
+    @property
+    def clock(self) -> Clock:
+        """The clock the driver's timeouts and waits run on (the virtual clock in the simulated lab)."""
+        ...
+
 
 @runtime_checkable
 class Program(Protocol):
@@ -198,3 +205,8 @@ class Robot(Protocol):
 
     #: called while the driver waits to reconnect a dropped link: the caller's keep-alive (other devices)
     while_reconnecting: Callable[[], None] | None
+
+    @property
+    def clock(self) -> Clock:
+        """The clock the driver's timeouts and waits run on (the virtual clock in the simulated lab)."""
+        ...

@@ -39,7 +39,7 @@ def open_device(role: str, lab, *, port: str | None = None, baud: int | None = N
             emu = GrblEmulator(clock, travel_mm=cfg.travel_mm, max_feed_mm_min=cfg.max_feed_mm_min,
                                accel_mm_s2=cfg.accel_mm_s2)
             dev = GrblTable.from_config(cfg, serial_port=EmulatorPort(emu, clock, baud or cfg.baud, name="sim://table"),
-                                        clock=clock, sleep=clock.sleep)
+                                        clock=clock)
             dev.emulator = emu
             return dev
         return GrblTable.from_config(cfg, port=port or cfg.port, baud=baud or cfg.baud)
@@ -55,7 +55,7 @@ def open_device(role: str, lab, *, port: str | None = None, baud: int | None = N
             clock = VirtualClock()
             emu = RobotEmulator(clock, cfg)
             dev = SerialRobot.from_config(cfg, serial_port=EmulatorPort(emu, clock, baud or cfg.baud, name="sim://robot"),
-                                          clock=clock, sleep=clock.sleep)
+                                          clock=clock)
             dev.emulator = emu
             return dev
         return SerialRobot.from_config(cfg, port=port or cfg.port, baud=baud or cfg.baud)

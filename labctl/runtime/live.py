@@ -32,7 +32,9 @@ from pathlib import Path
 
 from ..config import load_lab
 from ..decisions import messages as m
+from ..drivers.clock import RealClock
 from ..errors import DeviceError, LabctlError
+from ..timebase import wire_time_s
 
 # forkserver: each process still starts from a clean interpreter (no inherited threads or ports),
 # but the heavy imports (scipy.stats via filterpy, trimesh, OpenCV) are paid once, in the server,
@@ -115,10 +117,6 @@ def _endpoints(args: WorkerArgs, ctl, timeout_s: float = 60.0) -> WorkerArgs:
                                        frame_server=ep.get("frame_server"), origin=ep["origin"],
                                        await_endpoints=False, shared_clock=True)
     raise PeerLost(f"the simulated lab's ports did not come within {timeout_s:g} s")
-
-
-def _now(origin: float) -> float:
-    return time.monotonic() - origin
 
 
 EXIT_INTERRUPTED = 130  # SIGINT (Ctrl-C)
@@ -372,7 +370,7 @@ def _camera(args: WorkerArgs, lab, role: str):
 
         return FrameClient(args.frame_server[0], role, args.frame_server[1])
     origin = args.origin
-    return open_device(f"{role}_camera", lab, clock=lambda: time.monotonic() - origin)
+    return open_device(f"{role}_camera", lab, clock=RealClock(origin=origin).now)
 
 
 def _fixed_camera(args: WorkerArgs, lab):
@@ -404,12 +402,13 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
     table = robot = camera = link = planner = None
     code, reason, report_code = 0, "run finished", None
     alive = {"hello": False, "t_link": 0.0}
+    run_clock = RealClock(origin=args.origin)  # the run's clock: s since the origin all its processes share
 
     def keep_alive(robot_too: bool = True) -> None:
         """While a device's link is being reconnected (the loop waits): feed the robot's watchdog
         (unless its link is the one down), and beat to the peer and the supervisor, so the
         reconnect window, not their silence limits, decides how the run ends."""
-        now = _now(args.origin)
+        now = run_clock.now()
         if robot_too and robot is not None and robot.link.is_open:
             robot.maybe_heartbeat()
         if alive["hello"] and now - alive["t_link"] >= hl.heartbeat_s:
@@ -435,6 +434,7 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
         link = open_link(hl, "predictor", local_end=link_end, authkey=_authkey(args, lab),
                          on_refused=lambda line: log("link_refused", line=line))
         args = _endpoints(args, ctl)
+        run_clock = RealClock(origin=args.origin)
         log("run_clock", role="predictor", origin=args.origin)  # the origin every ``t`` of the record is on
         marks["endpoints"] = time.time()
         # the sim lab's ports when it serves them, else the driver files' (None keeps the file's port);
@@ -460,7 +460,7 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
             marks["table_unlocked"] = time.time()
             robot_checked.wait()  # the robot's limits first: a run that cannot go on moves nothing
             if robot_ok.is_set():
-                _to_start(table, args.spec["trajectory"], log, lambda: _now(args.origin), status=st)
+                _to_start(table, args.spec["trajectory"], log, run_clock.now, status=st)
             marks["table_ready"] = time.time()
 
         # The table's connection (board reset, banner, sync, $I, unlock: ~1 s of 9600-bps round trips)
@@ -485,8 +485,8 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
         if table is not None:
             table.while_reconnecting = keep_alive
         robot.while_reconnecting = lambda: keep_alive(robot_too=False)
-        now = _now(args.origin)
-        planner = PredictorPlanner(ctx, robot, link.send, log, t_start=now, clock=lambda: _now(args.origin),
+        now = run_clock.now()
+        planner = PredictorPlanner(ctx, robot, link.send, log, t_start=now, clock=run_clock.now,
                                    rest=robot_rest, shared_clock=args.shared_clock,
                                    family=None if table is None else args.spec["trajectory"])
         progress = None
@@ -503,7 +503,7 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
         t_beat, hello = 0.0, False
         while not planner.finished:
             if progress is not None:
-                progress.pump(_now(args.origin))
+                progress.pump(run_clock.now())
             # once tracking, also the frames exposed while the loop was busy (a robot command's round trip);
             # before, the newest only, as the virtual run (docs/notes/planning.md, "Frames caught up")
             catch_up = lab.config.run.catch_up_frames if planner.t_first_seen is not None else 1
@@ -520,10 +520,10 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
                     raise PeerLost(f"the recognizer stopped: {msg.reason}")
                 if not isinstance(msg, m.Heartbeat | m.Hello):
                     if plausible(msg, ctx):
-                        planner.on_message(msg, _now(args.origin))
+                        planner.on_message(msg, run_clock.now())
                     else:
-                        log("message_dropped", t=_now(args.origin), message=repr(msg)[:200])
-            now = _now(args.origin)
+                        log("message_dropped", t=run_clock.now(), message=repr(msg)[:200])
+            now = run_clock.now()
             planner.tick(now)
             if not hello:  # the first message starts the peer's dead_after_s clock: only once the loop runs
                 link.send(m.Hello(role="predictor", pid=os.getpid()))
@@ -539,14 +539,14 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
             ctl.beat(now, {"stage": planner.stage, "estimate": est, "views": planner.views_used,
                            "link": {"sent": link.bytes_sent, "received": link.bytes_received},
                            "robot": planner.robot_path[-1][1] if planner.robot_path else None})
-        result = planner.result(_now(args.origin))
+        result = planner.result(run_clock.now())
         result["startup_wall"] = marks
         link.send(m.Stop(reason="run finished"))
-        result["link"] = {**link.stats(), "baud": hl.baud, "duration_s": _now(args.origin) - planner.t_start}
+        result["link"] = {**link.stats(), "baud": hl.baud, "duration_s": run_clock.now() - planner.t_start}
         result["link"]["max_peer_gap_s"] = round(peer.max_gap_s, 3)
         if hl.transport == "serial":
-            bits = 10.0 * max(link.bytes_sent, link.bytes_received)  # full duplex: the busier direction
-            result["link"]["utilisation"] = bits / hl.baud / max(result["link"]["duration_s"], 1e-9)
+            busy = wire_time_s(max(link.bytes_sent, link.bytes_received), hl.baud)  # full duplex: the busier direction
+            result["link"]["utilisation"] = busy / max(result["link"]["duration_s"], 1e-9)
         ctl.send("result", result)
     except BaseException as exc:  # every way out, SIGTERM and Ctrl-C included, ends in the stop below
         code, reason = _exit_reason("predictor", exc)
@@ -557,7 +557,7 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
     finally:
         starting.shutdown(wait=False, cancel_futures=True)
         outcomes = _release(log, "predictor", reason, stop={"robot": robot, "table": table},
-                            close=(camera, robot, table), link=link, tell_peer=code != 0, t=_now(args.origin),
+                            close=(camera, robot, table), link=link, tell_peer=code != 0, t=run_clock.now(),
                             clear_robot=code == 0 and planner is not None and planner.finished)
         from .stopping import summary
 
@@ -605,11 +605,13 @@ def recognizer_main(args: WorkerArgs, link_end, control) -> int:
     _log_to_record(record, "recognizer")
     camera = link = None
     code, reason, report_code = 0, "run finished", None
+    run_clock = RealClock(origin=args.origin)  # the run's clock: s since the origin all its processes share
     try:
         ctx = RunContext.load(lab)
         link = open_link(hl, "recognizer", local_end=link_end, authkey=_authkey(args, lab),
                          on_refused=lambda line: log("link_refused", line=line))
         args = _endpoints(args, ctl)
+        run_clock = RealClock(origin=args.origin)
         log("run_clock", role="recognizer", origin=args.origin)
         camera = _mobile_camera(args, lab)
         camera.open()
@@ -619,7 +621,7 @@ def recognizer_main(args: WorkerArgs, link_end, control) -> int:
         t_beat = 0.0
         while True:
             msg = link.recv(timeout=0.05)
-            now = _now(args.origin)
+            now = run_clock.now()
             if msg is not None:
                 peer.heard()
             if isinstance(msg, m.Stop):
@@ -628,7 +630,7 @@ def recognizer_main(args: WorkerArgs, link_end, control) -> int:
             if msg is not None and not isinstance(msg, m.Heartbeat | m.Hello):
                 for reply in recognizer.handle(msg):
                     link.send(reply)
-            now = _now(args.origin)
+            now = run_clock.now()
             if now - t_beat >= hl.heartbeat_s:
                 link.send(m.Heartbeat(role="recognizer", seq=int(now * 10) % 65536, t=now))
                 t_beat = now
@@ -644,7 +646,7 @@ def recognizer_main(args: WorkerArgs, link_end, control) -> int:
                 log("worker_error", role="recognizer", error=reason, traceback=traceback.format_exc())
     finally:
         _release(log, "recognizer", reason, stop={}, close=(camera,), link=link, tell_peer=code != 0,
-                 t=_now(args.origin))
+                 t=run_clock.now())
         if code != 0:
             ctl.send("error", reason, report_code)
         if record is not None:

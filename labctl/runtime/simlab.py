@@ -82,11 +82,11 @@ class SimBench:
         self.grbl = GrblEmulator(clock.now, travel_mm=t.travel_mm, max_feed_mm_min=t.max_feed_mm_min,
                                  accel_mm_s2=t.accel_mm_s2, start_mm=(start_xy[0], start_xy[1], 0.0))
         self.robot_emu = RobotEmulator(clock.now, lab.robot, start_pose=home_flange_pose(lab))
-        self.table = GrblTable.from_config(t, serial_port=EmulatorPort(self.grbl, clock.now, t.baud, sleep=clock.sleep),
-                                           clock=clock.now, sleep=clock.sleep)
+        self.table = GrblTable.from_config(t, serial_port=EmulatorPort(self.grbl, clock, t.baud),
+                                           clock=clock)
         self.robot = SerialRobot.from_config(
-            lab.robot, serial_port=EmulatorPort(self.robot_emu, clock.now, lab.robot.baud, sleep=clock.sleep),
-            clock=clock.now, sleep=clock.sleep)
+            lab.robot, serial_port=EmulatorPort(self.robot_emu, clock, lab.robot.baud),
+            clock=clock)
         self.table.open()
         self.robot.open()
 
@@ -207,8 +207,7 @@ class LiveSimLab:
         start = self.spec.get("table_start_mm") or trajectory_program(
             self.spec["trajectory"], self.spec["speed_mm_s"], lab)[0]
         self.origin = time.monotonic()
-        clock = RealClock()
-        clock._origin = self.origin
+        clock = RealClock(origin=self.origin)
         t = table_config(lab)
         self.grbl = GrblEmulator(clock.now, travel_mm=t.travel_mm, max_feed_mm_min=t.max_feed_mm_min,
                                  accel_mm_s2=t.accel_mm_s2, start_mm=(start[0], start[1], 0.0))

@@ -75,7 +75,7 @@ def stop_robot(robot, brake_limit_s: float = ROBOT_BRAKE_LIMIT_S) -> dict:
             robot.emergency_stop()
         except Exception as exc2:  # noqa: BLE001
             out["error"] += f"; emergency stop: {_err(exc2)}"
-    sleep = getattr(getattr(robot, "link", None), "sleep", time.sleep)
+    sleep = robot.clock.sleep  # the simulated lab's virtual clock, or wall time
     try:
         polls = max(1, int(brake_limit_s / 0.05))
         for i in range(polls):

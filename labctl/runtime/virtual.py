@@ -21,6 +21,7 @@ from ..decisions.context import RunContext
 from ..decisions.predictor import PredictorPlanner
 from ..decisions.recognizer import Recognizer
 from ..drivers.interfaces import Frame
+from ..timebase import wire_time_s
 
 
 @dataclass(frozen=True)
@@ -53,7 +54,7 @@ class LinkMeter:
         """Bytes and messages by type, the total, and the link utilisation at ``baud`` over ``duration_s`` (s)."""
         total = sum(self.bytes.values())
         return {"bytes": dict(self.bytes), "messages": dict(self.count), "total_bytes": total,
-                "utilisation": total * 10.0 / baud / duration_s if duration_s > 0 else 0.0}
+                "utilisation": wire_time_s(total, baud) / duration_s if duration_s > 0 else 0.0}
 
 
 def choose_object(ctx: RunContext, spec: TrialSpec, rng: np.random.Generator) -> str:

@@ -101,11 +101,11 @@ class SimCalibrationLab:
         self.grbl = GrblEmulator(clock.now, travel_mm=t.travel_mm, max_feed_mm_min=t.max_feed_mm_min,
                                  accel_mm_s2=t.accel_mm_s2, start_mm=(t.travel_mm[0] / 2, t.travel_mm[1] / 2, 0.0))
         self.robot_emu = RobotEmulator(clock.now, lab.robot, start_pose=home_flange_pose(lab))
-        self.table = GrblTable.from_config(t, serial_port=EmulatorPort(self.grbl, clock.now, t.baud, sleep=clock.sleep),
-                                           clock=clock.now, sleep=clock.sleep)
+        self.table = GrblTable.from_config(t, serial_port=EmulatorPort(self.grbl, clock, t.baud),
+                                           clock=clock)
         self.robot = SerialRobot.from_config(
-            lab.robot, serial_port=EmulatorPort(self.robot_emu, clock.now, lab.robot.baud, sleep=clock.sleep),
-            clock=clock.now, sleep=clock.sleep)
+            lab.robot, serial_port=EmulatorPort(self.robot_emu, clock, lab.robot.baud),
+            clock=clock)
         self.world = target_world(lab, target, table_position=self.grbl.position_at,
                                   flange_pose_at=self.robot_emu.flange_pose_at)
         self.cameras = {role: SimCamera(self.world, role, clock, fps=getattr(lab, f"{role}_camera").fps, seed=seed)

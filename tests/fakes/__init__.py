@@ -16,6 +16,7 @@ import time
 from dataclasses import dataclass, field
 
 from labctl.config import RobotConfig
+from labctl.drivers.clock import MONOTONIC
 from labctl.sim.emulators.grbl import GrblEmulator
 from labctl.sim.emulators.pty import PtyDevice
 from labctl.sim.emulators.robot import RobotEmulator
@@ -172,6 +173,7 @@ class StillRobot:
     done_ids: tuple = ()
     latched = None
     while_reconnecting = None
+    clock = MONOTONIC
 
     def open(self):
         pass

@@ -17,6 +17,8 @@ import tty
 from collections import deque
 from collections.abc import Callable
 
+from ...timebase import wire_time_s
+
 log = logging.getLogger(__name__)
 
 Hook = Callable[[float, bytes], bytes]
@@ -34,7 +36,7 @@ class PtyDevice:
         self.on_inbound = on_inbound
         self.on_outbound = on_outbound
         self.tick_s = tick_s
-        self.byte_s = 10.0 / baud if baud else 0.0
+        self.byte_s = wire_time_s(1, baud) if baud else 0.0
         self.lock = threading.RLock()
         self.errors: list[BaseException] = []
         self.bytes_in = 0
