@@ -19,6 +19,7 @@ from labctl.library.placement import Marker
 from labctl.library.views import perturbed_view_pose, resting_pose_for_view, standard_view_pose
 from labctl.sim.effects import CameraEffects
 from labctl.sim.render import MarkerDisc, Mesh, TableSurface, render
+from labctl.vision import MarkerThresholds
 from labctl.vision.shape import ShapeFeatures
 
 STANDOFF = 800.0
@@ -90,7 +91,7 @@ def test_the_default_tolerance_holds_under_the_realistic_camera():
         for _ in range(3):
             image, T_w_c, truth = _render_standard_view(cam, mesh, markers, m, rng, effects=fx)
             h = measure_marker_height(image, cam, T_w_c, (8.0, 6.4), standoff_mm=STANDOFF, response="srgb",
-                                      min_saturation=0.25)
+                                      thresholds=MarkerThresholds(min_saturation=0.25))
             if h is None:  # no trusted marker (flagged blurred): no height, no gate for this view
                 continue
             measured += 1

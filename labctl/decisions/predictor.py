@@ -37,7 +37,7 @@ from ..timebase import wire_time_s
 from ..tracking.tracker import MarkerTracker, position_from_frames
 from ..vision import detect_markers, detect_markers_windowed, red_blob_centroid
 from . import messages as m
-from .context import RunContext
+from .context import RunContext, marker_thresholds
 
 #: a robot at rest farther than this (mm) from the end of its segment did not run it to the end
 ARRIVAL_TOL_MM = 1.0
@@ -581,7 +581,7 @@ class PredictorPlanner:
         """Detect the marker in one fixed-camera frame and update the tracker; notice a lost marker."""
         now = frame.t
         cam_cfg = self.ctx.lab.fixed_camera
-        kw = dict(hue_range_deg=cam_cfg.marker_hue_deg, min_saturation=cam_cfg.marker_min_saturation)
+        kw = dict(thresholds=marker_thresholds(cam_cfg))
         pred_px = self._predicted_px(now) if self.tracker.initialized else None
         if pred_px is not None and not self.ctx.fixed_camera.contains(pred_px, margin=-5):
             self.fail(now, "the object left the fixed camera's field of view")

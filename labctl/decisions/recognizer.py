@@ -36,7 +36,7 @@ from ..vision import CirclePose, CirclePoseError, EllipseFitError, MarkerPoses, 
 from ..vision.duality import DEFAULT_K_SIGMA, DEFAULT_MIN_MARGIN_RAD, pose_pair_consistency, resolve_duality_detailed
 from ..vision.shape import ShapeError, features_from_image, silhouette_mask
 from . import messages as m
-from .context import RunContext
+from .context import RunContext, marker_thresholds
 
 #: after the common shift, a marker of the second image pairs with one of the first if their centres lie
 #: this close (mm, W); the two candidate centres of one marker differ by a few mm
@@ -129,8 +129,7 @@ class Recognizer:
         self.saw_top_marker = False  # did any initial image show a marker facing up?
         cam_cfg = ctx.lab.mobile_camera
         # frames are linearised by the camera's declared response before any sub-pixel work (issue 14)
-        self.detect_kw = dict(hue_range_deg=cam_cfg.marker_hue_deg, min_saturation=cam_cfg.marker_min_saturation,
-                              response=getattr(cam_cfg, "response", "linear"))
+        self.detect_kw = dict(thresholds=marker_thresholds(cam_cfg), response=cam_cfg.response)
 
     def handle(self, msg: m.Message) -> list[m.Message]:
         """Answer one message from the predictor: a capture request is taken, posed or matched; anything else gets no
