@@ -43,6 +43,13 @@ from .context import RunContext, marker_thresholds
 ARRIVAL_TOL_MM = 1.0
 #: fixed-camera positions kept for :func:`position_from_frames` (a minute at 30 frames/s)
 TRACK_HISTORY = 1800
+#: the initial view's azimuths tried, in order, about the side facing the robot's home (deg): the nearest side
+#: is the shortest reach, so the first reachable view is the one least far round the marker; the far side last
+INITIAL_AZIMUTH_STEPS_DEG = (0.0, 20.0, -20.0, 45.0, -45.0, 90.0, -90.0, 180.0)
+#: the second image steps up (``run.second_image_move: elevation``) only while the view stays at most this high
+#: (deg): straight above (90°) the azimuth no longer places the camera and image-up (world +z) lies along the
+#: optical axis; beyond it the step goes sideways round the marker instead
+MAX_STEP_UP_ELEVATION_DEG = 85.0
 
 STAGES = ("wait", "track", "intercept", "initial", "standard", "match", "done", "failed")
 
@@ -328,7 +335,7 @@ class PredictorPlanner:
         # "Frames caught up"), and the newest mean prediction is the best aim there is
         last = ""
         for margin in (True, False):
-            for delta in (0.0, 20.0, -20.0, 45.0, -45.0, 90.0, -90.0, 180.0):
+            for delta in INITIAL_AZIMUTH_STEPS_DEG:
                 az = self.azimuth_deg + delta
                 plan = self._plan(now, kind, self._initial_view_target(az, margin))
                 if plan.reachable:
@@ -537,7 +544,7 @@ class PredictorPlanner:
 
     def _step_for_second_image(self) -> None:
         """Move the viewpoint for the next marker image: ``run.second_image_elevation_deg`` up towards the top
-        (``run.second_image_move: elevation``, while the view stays ≤ 85° high), else
+        (``run.second_image_move: elevation``, while the view stays ≤ :data:`MAX_STEP_UP_ELEVATION_DEG` high), else
         ``run.second_image_azimuth_deg`` sideways round the marker (``azimuth``, the paper's). A marker facing
         up — the recogniser prefers one — has its two pose candidates in the vertical plane through the line
         of sight, so a step in that plane separates them most (duality margin 0.35 rad for 10° up against
@@ -545,7 +552,7 @@ class PredictorPlanner:
         run = self.cfg.run
         base = self.ctx.initial_angle_deg or self.cfg.viewing.initial_angle_deg
         up = run.second_image_elevation_deg
-        if run.second_image_move == "elevation" and base + self.elevation_step_deg + up <= 85.0:
+        if run.second_image_move == "elevation" and base + self.elevation_step_deg + up <= MAX_STEP_UP_ELEVATION_DEG:
             self.elevation_step_deg += up
         else:
             self.azimuth_deg += run.second_image_azimuth_deg
