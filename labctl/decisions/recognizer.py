@@ -16,6 +16,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import replace
+from typing import Any
 
 import numpy as np
 
@@ -136,7 +137,7 @@ class Recognizer:
         self.saw_top_marker = False  # did any initial image show a marker facing up?
         cam_cfg = ctx.lab.mobile_camera
         # frames are linearised by the camera's declared response before any sub-pixel work (issue 14)
-        self.detect_kw = dict(thresholds=marker_thresholds(cam_cfg), response=cam_cfg.response)
+        self.detect_kw: dict[str, Any] = dict(thresholds=marker_thresholds(cam_cfg), response=cam_cfg.response)
 
     def handle(self, msg: m.Message) -> list[m.Message]:
         """Answer one message from the predictor: a capture request is taken, posed or matched; anything else gets no
@@ -162,7 +163,8 @@ class Recognizer:
         # when more novel than every trusted marker or none is trusted, else spares (issue 14,
         # realistic-camera trials); the noise-aware duality test and the standard view's check still guard
         every = detect_markers(frame.image, include_suspect=True, **self.detect_kw)
-        for mk in (mk for mk in every if mk.trusted or set(mk.quality.flags) <= _LAST_RESORT_FLAGS):
+        for mk in (mk for mk in every
+                   if mk.trusted or (mk.quality is not None and set(mk.quality.flags) <= _LAST_RESORT_FLAGS)):
             best = None
             # an ellipse fixes a circle's distance only up to its radius: with several marker sizes in the
             # library (issue 15), take the size that puts the marker on the object, i.e. near the table
