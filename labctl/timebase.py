@@ -15,7 +15,7 @@ from typing import Protocol, runtime_checkable
 BITS_PER_BYTE = 10
 
 
-def wire_time_s(n_bytes: int, baud: int) -> float:
+def wire_time_s(n_bytes: int, baud: float) -> float:
     """Seconds to clock ``n_bytes`` over an 8N1 serial line at ``baud`` bit/s (10 bits per byte)."""
     return n_bytes * BITS_PER_BYTE / baud
 

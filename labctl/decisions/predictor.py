@@ -131,7 +131,7 @@ class PredictorPlanner:
     sets the tracker's curve prior (``tracking.family_prior``, issue 18); None when labctl does not drive
     the motion (``external``, no table) or the program is a G-code file."""
 
-    def __init__(self, ctx: RunContext, robot: Robot, send: Callable[[m.Message], None],
+    def __init__(self, ctx: RunContext, robot: Robot, send: Callable[[m.Message], object],
                  log: Callable[..., None], *, t_start: float = 0.0, clock: Callable[[], float] | None = None,
                  profile: str | None = None, rest: RobotStatus | None = None, shared_clock: bool = False,
                  family: str | None = None):

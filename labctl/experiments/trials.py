@@ -318,7 +318,7 @@ def summarize(results: list[dict]) -> dict:
     by_traj = {t: {"n": len(rs), "success_rate": sum(r["correct"] for r in rs) / len(rs),
                    "time_to_identity_s_median": _median([r["time_to_identity_s"] for r in rs if r["correct"]]),
                    "wait_s_median": _median([r["stages"].get("wait") for r in rs if r["correct"]])}
-               for t in sorted({r.get("trajectory") for r in results} - {None})
+               for t in sorted({r["trajectory"] for r in results if r.get("trajectory") is not None})
                for rs in [[r for r in results if r.get("trajectory") == t]]}
     return {
         "n": len(results),

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 import time
+from typing import Any
 
 from ..drivers.cameras import open_camera
 from ..errors import DeviceError, LabctlError
@@ -38,10 +39,8 @@ def open_device(role: str, lab, *, port: str | None = None, baud: int | None = N
             clock = VirtualClock()
             emu = GrblEmulator(clock, travel_mm=cfg.travel_mm, max_feed_mm_min=cfg.max_feed_mm_min,
                                accel_mm_s2=cfg.accel_mm_s2)
-            dev = GrblTable.from_config(cfg, serial_port=EmulatorPort(emu, clock, baud or cfg.baud, name="sim://table"),
-                                        clock=clock)
-            dev.emulator = emu
-            return dev
+            return GrblTable.from_config(cfg, serial_port=EmulatorPort(emu, clock, baud or cfg.baud, name="sim://table"),
+                                         clock=clock)
         return GrblTable.from_config(cfg, port=port or cfg.port, baud=baud or cfg.baud)
     if role == "robot":
         from ..drivers.robot import SerialRobot
@@ -53,11 +52,9 @@ def open_device(role: str, lab, *, port: str | None = None, baud: int | None = N
             from ..sim.emulators.robot import RobotEmulator
 
             clock = VirtualClock()
-            emu = RobotEmulator(clock, cfg)
-            dev = SerialRobot.from_config(cfg, serial_port=EmulatorPort(emu, clock, baud or cfg.baud, name="sim://robot"),
-                                          clock=clock)
-            dev.emulator = emu
-            return dev
+            robot_emu = RobotEmulator(clock, cfg)
+            return SerialRobot.from_config(cfg, serial_port=EmulatorPort(robot_emu, clock, baud or cfg.baud, name="sim://robot"),
+                                           clock=clock)
         return SerialRobot.from_config(cfg, port=port or cfg.port, baud=baud or cfg.baud)
     if role in ("fixed_camera", "mobile_camera", "fixed", "mobile"):
         role = role if role.endswith("_camera") else f"{role}_camera"
@@ -170,7 +167,7 @@ def _where(role: str, lab) -> tuple[str, str]:
 def check_device(role: str, lab) -> dict:
     """Open, identify and query one device: {role, kind, where, ok, verdict, identity, status, seconds}."""
     kind, where = _where(role, lab)
-    out = {"role": role, "kind": kind, "where": where, "ok": False, "identity": None, "status": None}
+    out: dict[str, Any] = {"role": role, "kind": kind, "where": where, "ok": False, "identity": None, "status": None}
     t0 = time.perf_counter()
     dev = None
     try:

@@ -26,9 +26,13 @@ import sys
 import threading
 import time
 import traceback
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
+from multiprocessing.connection import Connection
+from multiprocessing.process import BaseProcess
 from pathlib import Path
+from typing import Any, cast
 
 from ..config import load_lab
 from ..decisions import messages as m
@@ -412,6 +416,7 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
         if robot_too and robot is not None and robot.link.is_open:
             robot.maybe_heartbeat()
         if alive["hello"] and now - alive["t_link"] >= hl.heartbeat_s:
+            assert link is not None  # the peer said hello on it
             link.send(m.Heartbeat(role="predictor", seq=int(now * 10) % 65536, t=now))
             alive["t_link"] = now
         ctl.beat(now, {"stage": "reconnecting"})
@@ -454,6 +459,7 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
         def table_ready() -> None:
             # a simulated table's power-up lock may be released (the simulator knows where it is); a real
             # table in Alarm must be homed or unlocked by the operator first (its position may be lost)
+            assert table is not None  # submitted only with a table
             table.open()
             marks["table_connected"] = time.time()
             st = table.ensure_ready(unlock=lab.table.kind == "sim")
@@ -720,16 +726,17 @@ def sim_server_main(lab_root: str, spec: dict, conn, run_dir: str | None = None)
     # the record opens with the workers' own events: ground truth waits for the supervisor's "record"
     pending: list[tuple[str, dict]] = []
     live_log = record.event if record is not None else (lambda *a, **k: None)
+    logging_on = {"on": False}  # the supervisor said "record": ground truth goes to the record from then on
 
     def log(name, **fields):
-        if pending is not None and not getattr(log, "on", False):
+        if pending is not None and not logging_on["on"]:
             pending.append((name, fields))
             del pending[:-200]
         else:
             live_log(name, **fields)
 
     def start_logging():
-        log.on = True
+        logging_on["on"] = True
         for name, fields in pending:
             live_log(name, **fields)
         pending.clear()
@@ -822,7 +829,7 @@ class LiveRun:
     lab_root: Path
     spec: dict
     run_dir: Path | None = None
-    on_status: object = None  # callable(dict) for the live view
+    on_status: Callable[[dict], None] | None = None  # for the live view
 
     def run(self) -> dict:
         """Run the live run: load the lab, start the simulated lab (if any) and both workers, supervise them, and return
@@ -861,7 +868,7 @@ class LiveRun:
         from .transport import local_pair, pty_null_modem
 
         stack = contextlib.ExitStack()
-        procs: dict[str, mp.Process] = {}
+        procs: dict[str, BaseProcess] = {}
         controls = {}
         sim_conn = sim_proc = None
         endpoints = {}
@@ -878,7 +885,7 @@ class LiveRun:
                 _start_quietly(sim_proc)
                 child.close()
             a_end, b_end = local_pair() if lab.host_link.transport == "local" else (None, None)
-            extra = {"predictor": {}, "recognizer": {}}
+            extra: dict[str, dict[str, Any]] = {"predictor": {}, "recognizer": {}}
             if lab.host_link.transport == "tcp":  # both workers on this PC: a fresh key for this run alone
                 import secrets
 
@@ -895,8 +902,9 @@ class LiveRun:
             self._say("starting the workers")
             # the workers start at once, beside the simulated lab: they load the lab, calibration and
             # library meanwhile and wait for its ports before opening any device (issue 16, start-up)
-            base = dict(lab_root=str(lab.root), run_dir=str(self.run_dir) if self.run_dir else None,
+            base: dict[str, Any] = dict(lab_root=str(lab.root), run_dir=str(self.run_dir) if self.run_dir else None,
                         spec=self.spec, origin=origin, await_endpoints=sim_conn is not None)
+            p: BaseProcess
             for role, end in (("predictor", a_end), ("recognizer", b_end)):
                 parent, child = CTX.Pipe()
                 p = CTX.Process(target=_worker_process, name=f"labctl-{role}", daemon=True,
@@ -953,7 +961,7 @@ class LiveRun:
             if sim_proc is not None:
                 if sim_proc.is_alive():
                     with contextlib.suppress(OSError):
-                        sim_conn.send("stop")
+                        cast(Connection, sim_conn).send("stop")  # the simulated lab's pipe, with its process
                     sim_proc.join(timeout=3)
                 if sim_proc.is_alive():  # it ignores SIGTERM, like the hardware it stands for
                     sim_proc.kill()
@@ -1113,12 +1121,13 @@ class LiveRun:
                                          role, hung=True)
                 else:
                     stopped_since.pop(role, None)
-                if last_beat[role] is None:
+                beat = last_beat[role]
+                if beat is None:
                     if now - started > hl.start_timeout_s:
                         raise WorkerDied(f"the {role} worker did not start within {hl.start_timeout_s:g} s",
                                          role, hung=True)
-                elif now - last_beat[role] > hl.stall_after_s:
-                    raise WorkerDied(f"the {role} worker stopped answering ({now - last_beat[role]:.1f} s)",
+                elif now - beat > hl.stall_after_s:
+                    raise WorkerDied(f"the {role} worker stopped answering ({now - beat:.1f} s)",
                                      role, hung=True)
             time.sleep(0.02)
 

@@ -79,6 +79,7 @@ class SimBench:
 
         self.lab, self.clock = lab, clock
         t = lab.table
+        assert t is not None  # the simulated bench moves its parts on the lab's table
         self.grbl = GrblEmulator(clock.now, travel_mm=t.travel_mm, max_feed_mm_min=t.max_feed_mm_min,
                                  accel_mm_s2=t.accel_mm_s2, start_mm=(start_xy[0], start_xy[1], 0.0))
         self.robot_emu = RobotEmulator(clock.now, lab.robot, start_pose=home_flange_pose(lab))
@@ -363,6 +364,7 @@ class ServedLab(LiveSimLab):
         device = params.get("device")
         if device not in self.bridges:
             raise ValueError(f"device must be one of {', '.join(self.bridges)}, got {device!r}")
+        assert device is not None
 
         def flag(name: str) -> bool | None:
             if name not in params:
@@ -582,6 +584,7 @@ def write_served_lab(lab: Lab, out, served: ServedLab, *, force: bool = False):
         dump(tmp / "lab.yaml", dataclasses.asdict(config), "written by `labctl sim serve --lab-out`")
         real = "written by `labctl sim serve --lab-out`: real driver kinds on the served endpoints"
         if not no_table:
+            assert lab.table is not None
             table = dataclasses.replace(lab.table, kind="grbl", port=ep["table"], origin_w_mm=(0.0, 0.0, 0.0))
             dump(tmp / "drivers/table.yaml", dataclasses.asdict(table), real)
         robot = dataclasses.replace(lab.robot, kind="serial", port=ep["robot"])

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 
@@ -143,7 +144,7 @@ def simulate_run(lab: Lab, ctx: RunContext, spec: TrialSpec, record=None, *, hea
             # as the robot stands still), not at the next frame. The emulator sends it when it is
             # advanced past the arrival, so it is advanced to the arrival first (+0.1 ms: the reply
             # gives the arrival to 1 µs, rounded either way).
-            clock.sleep_until(predictor.t1c + 1e-4)
+            clock.sleep_until(cast(float, predictor.t1c) + 1e-4)  # set: an arrival is awaited
             bench.advance(clock.now())
             bench.robot.poll()
             clock.sleep_until(wake)

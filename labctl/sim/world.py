@@ -188,7 +188,7 @@ class SimWorld:
 
     def __init__(self, *, fixed: CameraRig, mobile: CameraRig, T_w_c1: np.ndarray, T_f_c2: np.ndarray,
                  T_w_b: np.ndarray | None = None, table_origin_w=(0.0, 0.0, 0.0),
-                 table_position: Callable[[float], Sequence[float]] | None = None,
+                 table_position: Callable[[float], Sequence[float] | np.ndarray] | None = None,
                  flange_pose_at: Callable[[float], np.ndarray] | None = None,
                  obj: SimObject | None = None, placement: Placement | None = None,
                  light_dir_w=DEFAULT_LIGHT_DIR_W, supersample: int = 3):
@@ -325,7 +325,7 @@ class SimWorld:
     # --- construction from a lab ------------------------------------------------------------
     @classmethod
     def from_lab(cls, lab, *, obj: SimObject | None = None, placement: Placement | None = None,
-                 table_position: Callable[[float], Sequence[float]] | None = None,
+                 table_position: Callable[[float], Sequence[float] | np.ndarray] | None = None,
                  flange_pose_at: Callable[[float], np.ndarray] | None = None,
                  exposure_s: float = 0.0, supersample: int = 3) -> SimWorld:
         """The world of a lab's driver files (their *sim* ground-truth fields, via :mod:`labctl.sim.truth`).
