@@ -196,7 +196,8 @@ def test_the_recogniser_sees_a_marker_facing_up_from_the_initial_viewpoint():
 
     lab = load_lab(sample_lab_path())
     cam = camera_model(lab.mobile_camera)
-    rec = Recognizer(SimpleNamespace(lab=lab, mobile_camera=cam), grab=None, log=lambda *a, **k: None)
+    rec = Recognizer(SimpleNamespace(lab=lab, mobile_camera=cam, marker_radii_mm=()), grab=None,
+                     log=lambda *a, **k: None)
     rng = np.random.default_rng(5)
     box_mesh, box_markers = _boxed((60.0, 50.0, 30.0), ("+z", "+x", "-y"))
     plate_mesh, plate_markers = _boxed((70.0, 40.0, 8.0), ("+z", "-z"))

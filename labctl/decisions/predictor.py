@@ -803,7 +803,7 @@ class PredictorPlanner:
         camera's frame time per image."""
         rc = self.ctx.lab.robot
         first = (self.t_first_seen - self.t_start) if self.t_first_seen is not None else 0.0
-        fps = float(getattr(self.ctx.lab.mobile_camera, "fps", 0.0) or 0.0)
+        fps = float(self.ctx.lab.mobile_camera.fps or 0.0)
         out = identity_bound(first, self.legs, self.n_images, 1.0 / fps if fps > 0 else 0.0,
                              v_max=float(rc.v_max_mm_s), a_max=float(rc.a_max_mm_s2),
                              w_max=math.radians(float(rc.w_max_deg_s)))  # each leg carries its own jerk limit

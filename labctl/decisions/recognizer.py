@@ -168,7 +168,7 @@ class Recognizer:
             best = None
             # an ellipse fixes a circle's distance only up to its radius: with several marker sizes in the
             # library (issue 15), take the size that puts the marker on the object, i.e. near the table
-            for r in getattr(self.ctx, "marker_radii_mm", ()) or (self.radius,):
+            for r in self.ctx.marker_radii_mm or (self.radius,):
                 try:
                     mp = marker_poses(mk, self.ctx.mobile_camera, r)
                 except (CirclePoseError, EllipseFitError, ValueError):
@@ -311,7 +311,7 @@ class Recognizer:
             return None, 0.0
         T_w_c2 = make_T(rotvec_to_matrix(msg.rotvec), msg.position)
         h = measure_marker_height(frame.image, self.ctx.mobile_camera, T_w_c2,
-                                  getattr(self.ctx, "marker_radii_mm", ()) or (self.radius,), z_table_mm=self.z_table,
+                                  self.ctx.marker_radii_mm or (self.radius,), z_table_mm=self.z_table,
                                   standoff_mm=self.ctx.lab.config.viewing.standoff_mm, **self.detect_kw)
         if h is None:
             return None, 0.0

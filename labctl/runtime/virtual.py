@@ -102,7 +102,7 @@ def simulate_run(lab: Lab, ctx: RunContext, spec: TrialSpec, record=None, *, hea
                                  family=None if lab.table is None else spec.trajectory)
     seq = {"mobile": 0}
 
-    mobile_period = 1.0 / float(getattr(lab.mobile_camera, "fps", 0.0) or 30.0)
+    mobile_period = 1.0 / float(lab.mobile_camera.fps or 30.0)
 
     def grab_mobile() -> Frame:
         # exposed now (the robot stands still), delivered one frame time later: exposure and read-out
