@@ -15,6 +15,7 @@ import pytest
 
 from labctl.calibration.procedure import Devices, Motion, Plan, capture, move_table
 from labctl.cli.calibrate import _confirm_stopped
+from labctl.drivers.clock import MONOTONIC
 from labctl.drivers.grbl import GrblTable
 from labctl.drivers.serial_link import DeviceTimeout
 from labctl.errors import DeviceError
@@ -68,7 +69,7 @@ class _NoPrompt:
 
 
 def _devs(table):
-    return Devices(table=table, robot=None, fixed=None, mobile=None, sleep=time.sleep, now=time.monotonic)
+    return Devices(table=table, robot=None, fixed=None, mobile=None, clock=MONOTONIC)
 
 
 def _start_long_move(t):

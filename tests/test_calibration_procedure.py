@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 import pytest
 import yaml
+from fakes import StillRobot
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -320,8 +321,7 @@ def test_target_mounted_off_centre_and_turned_still_registers_the_table(tmp_path
     sim = SimCalibrationLab(lab, target, seed=3)
     sim.open()
     try:
-        devs = Devices(sim.table, sim.robot, sim.cameras["fixed"], sim.cameras["mobile"], sim.clock.sleep,
-                       sim.clock.now)
+        devs = Devices(sim.table, sim.robot, sim.cameras["fixed"], sim.cameras["mobile"], sim.clock)
         rep = run_lab_calibration(root / "calibration", devs, sim, target, nominal_for(lab), truth=Truth(**sim.truth()))
     finally:
         sim.close()
@@ -332,7 +332,7 @@ def test_target_mounted_off_centre_and_turned_still_registers_the_table(tmp_path
     assert he["rotation_deg"] < 0.2 and he["translation_mm"] < 1.0
 
 
-class _StopsShortRobot:
+class _StopsShortRobot(StillRobot):
     """A robot (the Robot interface plus the dialect's ``clear``) whose controller's watchdog cuts the
     first ``trips`` segments short halfway, latching E40 until CLEAR, as on an overloaded host."""
 
@@ -371,11 +371,10 @@ def test_a_move_the_watchdog_cut_short_is_commanded_again_or_fails_never_grabs_o
     from labctl.calibration.procedure import Devices, Motion, _Robot
     from labctl.errors import DeviceError
     from labctl.geometry import make_T
+    from labctl.sim.clock import VirtualClock
 
     robot = _StopsShortRobot(trips)
-    t = [0.0]
-    devs = Devices(table=None, robot=robot, fixed=None, mobile=None, sleep=lambda s: t.__setitem__(0, t[0] + s),
-                   now=lambda: t[0])
+    devs = Devices(table=None, robot=robot, fixed=None, mobile=None, clock=VirtualClock())
     mover = _Robot(devs, Motion(robot_retries=5))
     goal = make_T(None, [300.0, -200.0, 900.0])
     if ok:

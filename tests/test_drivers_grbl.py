@@ -223,7 +223,7 @@ def test_trajectory_programs_run_on_the_emulator(name):
 
     clk = VirtualClock()
     emu = GrblEmulator(clk, strict=True)
-    table = GrblTable(serial_port=EmulatorPort(emu, clk, baud=9600), clock=clk, sleep=clk.sleep)
+    table = GrblTable(serial_port=EmulatorPort(emu, clk, baud=9600), clock=clk)
     table.open()
     lines = program(name, 40.0, start=(150.0, 200.0), length_mm=200.0)
     table.stream(lines)

@@ -19,6 +19,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from fakes import StillRobot
 from fault_harness import ALL_CASES, FULL, check_fault, events_of, inject, session_pids
 
 from labctl.runtime.stopping import still_after
@@ -71,10 +72,7 @@ def test_stop_outcomes_never_hide_a_failure():
     from labctl.drivers.interfaces import RobotStatus, TableStatus
     from labctl.runtime.stopping import stop_devices, summary
 
-    class BadRobot:
-        def emergency_stop(self):
-            pass
-
+    class BadRobot(StillRobot):
         def stop(self):
             raise TimeoutError("no reply to STOP")
 

@@ -7,8 +7,8 @@ import socket
 import threading
 import time
 
-import numpy as np
 import pytest
+from fakes import StillRobot
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -169,7 +169,7 @@ def test_tcp_framing_survives_garbage_frames(frames):
         link.close()
 
 
-class _RecordingRobot:
+class _RecordingRobot(StillRobot):
     """A robot that records every command that could move it."""
 
     def __init__(self):
@@ -179,13 +179,6 @@ class _RecordingRobot:
         self.moves.append(("segment", a))
         return (0.0, 1.0)
 
-    def stop(self):
-        pass
-
-    def status(self):
-        from labctl.drivers.interfaces import RobotStatus
-
-        return RobotStatus(T_base_flange=np.eye(4), moving=False, segment_id=0, t=0.0)
 
 
 @pytest.fixture(scope="module")

@@ -19,6 +19,7 @@ from labctl.library.placement import Marker
 from labctl.library.views import perturbed_view_pose, resting_pose_for_view, standard_view_pose
 from labctl.sim.effects import CameraEffects
 from labctl.sim.render import MarkerDisc, Mesh, TableSurface, render
+from labctl.vision import MarkerThresholds
 from labctl.vision.shape import ShapeFeatures
 
 STANDOFF = 800.0
@@ -90,7 +91,7 @@ def test_the_default_tolerance_holds_under_the_realistic_camera():
         for _ in range(3):
             image, T_w_c, truth = _render_standard_view(cam, mesh, markers, m, rng, effects=fx)
             h = measure_marker_height(image, cam, T_w_c, (8.0, 6.4), standoff_mm=STANDOFF, response="srgb",
-                                      min_saturation=0.25)
+                                      thresholds=MarkerThresholds(min_saturation=0.25))
             if h is None:  # no trusted marker (flagged blurred): no height, no gate for this view
                 continue
             measured += 1
@@ -195,7 +196,8 @@ def test_the_recogniser_sees_a_marker_facing_up_from_the_initial_viewpoint():
 
     lab = load_lab(sample_lab_path())
     cam = camera_model(lab.mobile_camera)
-    rec = Recognizer(SimpleNamespace(lab=lab, mobile_camera=cam), grab=None, log=lambda *a, **k: None)
+    rec = Recognizer(SimpleNamespace(lab=lab, mobile_camera=cam, marker_radii_mm=()), grab=None,
+                     log=lambda *a, **k: None)
     rng = np.random.default_rng(5)
     box_mesh, box_markers = _boxed((60.0, 50.0, 30.0), ("+z", "+x", "-y"))
     plate_mesh, plate_markers = _boxed((70.0, 40.0, 8.0), ("+z", "-z"))

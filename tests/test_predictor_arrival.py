@@ -8,6 +8,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from fakes import StillRobot
 
 from labctl.config import load_lab
 from labctl.decisions.context import RunContext
@@ -23,7 +24,7 @@ def ctx():
     return RunContext.load(load_lab(sample_lab_path()))
 
 
-class StubRobot:
+class StubRobot(StillRobot):
     """A controller that reports ``pose`` standing still, with ``latched`` fault and ``done`` segment ids."""
 
     def __init__(self, pose, latched=None, done=()):
@@ -33,9 +34,6 @@ class StubRobot:
     def status(self):
         self.status_calls += 1
         return RobotStatus(T_base_flange=self.pose, moving=False, segment_id=1, t=0.0)
-
-    def poll(self):
-        pass
 
     def stop(self):
         self.stops += 1

@@ -10,6 +10,7 @@ import pytest
 from filterpy.common import kinematic_kf
 from filterpy.kalman import KalmanFilter
 
+from labctl.config.lab import TrackingConfig
 from labctl.tracking import MarkerTracker, position_matrix
 
 
@@ -63,7 +64,8 @@ def test_tracker_passes_column_vectors_never_H_and_never_batches(model, monkeypa
 
     monkeypatch.setattr(KalmanFilter, "update", spy)
     monkeypatch.setattr(KalmanFilter, "batch_filter", lambda *a, **k: pytest.fail("batch_filter used"))
-    trk = MarkerTracker(model, process_noise=1.0, measurement_noise_mm=0.5)
+    # built from a TrackingConfig (the only source of the tracker's config defaults), with the noise this pin needs
+    trk = MarkerTracker(TrackingConfig(model=model, process_noise=1.0, measurement_noise_mm=0.5))
     for i in range(20):
         trk.update(i / 30, (i / 3.0, 1.0))
     assert calls and all(shape == (2, 1) and H is None for shape, H in calls)
@@ -77,7 +79,7 @@ def test_tracker_gives_the_same_answer_for_any_measurement_shape(model):
     zs = [(t * 10.0 + rng.normal(0, 0.5), 5.0 + rng.normal(0, 0.5)) for t in np.arange(0, 2, 1 / 30)]
     results = []
     for shape in shapes:
-        trk = MarkerTracker(model, process_noise=1.0, measurement_noise_mm=0.5)
+        trk = MarkerTracker(TrackingConfig(model=model, process_noise=1.0, measurement_noise_mm=0.5))
         for i, z in enumerate(zs):
             trk.update(i / 30, shape(np.array(z)))
         mean, cov = trk.predict(3.0)

@@ -7,7 +7,13 @@ import numpy as np
 import pytest
 
 from labctl.bench.synthetic_images import FACE_BGR, disc_coverage, issue_camera, render_disc
-from labctl.vision import MarkerImageError, detect_markers, detect_markers_windowed, marker_pose_candidates
+from labctl.vision import (
+    MarkerImageError,
+    MarkerThresholds,
+    detect_markers,
+    detect_markers_windowed,
+    marker_pose_candidates,
+)
 
 CAM = issue_camera()
 
@@ -66,7 +72,7 @@ def test_shading_and_colour_window():
     # a green marker is found only with a green hue window
     green = render_disc(CAM, center, normal, rng=rng, disc_bgr=(40, 190, 40))
     assert detect_markers(green) == []
-    g = detect_markers(green, hue_range_deg=(100, 140))
+    g = detect_markers(green, thresholds=MarkerThresholds(hue_range_deg=(100, 140)))
     assert len(g) == 1
     np.testing.assert_allclose(g[0].centroid, b[0].centroid, atol=0.1)
 

@@ -16,6 +16,7 @@ import pytest
 from labctl.bench import _vision_oracle as oracle
 from labctl.bench._vision_suite import run_case
 from labctl.vision import (
+    MarkerThresholds,
     find_markers,
     fit_ellipse,
     marker_poses,
@@ -337,7 +338,7 @@ def test_an_isotropic_camera_blur_is_not_taken_for_a_motion_smear(monkeypatch):
     from labctl.geometry import CameraModel
 
     img = cv2.imread(str(DATA / "vision_realistic_jpeg_side_marker.png"))
-    kw = dict(hue_range_deg=(-15.0, 15.0), min_saturation=0.25, response="srgb")
+    kw = dict(thresholds=MarkerThresholds(hue_range_deg=(-15.0, 15.0), min_saturation=0.25), response="srgb")
     (mk,) = find_markers(img, **kw).markers
     assert "blurred" in mk.quality.flags
     calls = []

@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 import time
 
+from ..timebase import wire_time_s
 from ._timing import median_time, row
 
 
@@ -44,7 +45,7 @@ def _stream_on_pty(lines: list[str], baud: int) -> dict:
     finally:
         dev.stop()
     n_bytes = sum(len(clean_line(x)) + 1 for x in lines)
-    return {"elapsed_s": elapsed, "bytes": n_bytes, "bound_s": n_bytes * 10.0 / baud, "status_reports": reports,
+    return {"elapsed_s": elapsed, "bytes": n_bytes, "bound_s": wire_time_s(n_bytes, baud), "status_reports": reports,
             "rx_overflows": emu.rx_overflows, "rx_high_water": emu.rx_high_water, "max_in_flight": in_flight}
 
 
@@ -56,14 +57,14 @@ def _stream_virtual(lines: list[str], baud: int) -> dict:
 
     clk = VirtualClock()
     emu = GrblEmulator(clk, homing=False, strict=True)
-    table = GrblTable(serial_port=EmulatorPort(emu, clk, baud=baud), clock=clk, sleep=clk.sleep, status_hz=5.0)
+    table = GrblTable(serial_port=EmulatorPort(emu, clk, baud=baud), clock=clk, status_hz=5.0)
     table.open()
     table.move_to(100.0, 100.0, 6000.0)
     w0 = time.perf_counter()
     t0 = clk.t
     table.stream(lines)
     n_bytes = sum(len(clean_line(x)) + 1 for x in lines)
-    return {"virtual_s": clk.t - t0, "wall_s": time.perf_counter() - w0, "bound_s": n_bytes * 10.0 / baud,
+    return {"virtual_s": clk.t - t0, "wall_s": time.perf_counter() - w0, "bound_s": wire_time_s(n_bytes, baud),
             "rx_overflows": emu.rx_overflows}
 
 

@@ -156,7 +156,8 @@ def run(quick: bool = False) -> dict:
         "messages": per_type,
         "typical_run": {"duration_s": RUN_S, "heartbeat_hz": 1 / cfg.heartbeat_s, "directions": utilisation},
         "largest_message": {"type": largest, **per_type[largest]},
-        "longest_possible_message": {"serial_bytes": bound, "serial_ms_at_9600": round(wire_time_s(bound) * 1e3, 2)},
+        "longest_possible_message": {"serial_bytes": bound,
+                                     "serial_ms_at_9600": round(wire_time_s(bound, BAUD) * 1e3, 2)},
         "worst_latency_behind_heartbeat_ms": worst_latency_ms,
         "paced_pty_check": measured,
     }

@@ -11,12 +11,12 @@ import cv2
 import numpy as np
 
 from ..vision.ellipse import Ellipse, EllipseFitError, ellipse_from_cv_box
-from ..vision.markers import red_mask
+from ..vision.markers import RED, MarkerThresholds, red_mask
 
 
-def opencv_marker_ellipse(image_bgr, *, hue_range_deg=(-15.0, 15.0), min_saturation: float = 0.45) -> Ellipse | None:
+def opencv_marker_ellipse(image_bgr, *, thresholds: MarkerThresholds = RED) -> Ellipse | None:
     """Ellipse (image pixels) of the largest red blob by findContours + fitEllipse, or None."""
-    mask = red_mask(image_bgr, hue_range_deg, min_saturation)
+    mask = red_mask(image_bgr, thresholds)
     contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
     if not contours:
         return None
@@ -29,10 +29,10 @@ def opencv_marker_ellipse(image_bgr, *, hue_range_deg=(-15.0, 15.0), min_saturat
         return None
 
 
-def centroid_inrange_moments(image_bgr, *, hue_range_deg=(-15.0, 15.0), min_saturation: float = 0.45):
+def centroid_inrange_moments(image_bgr, *, thresholds: MarkerThresholds = RED):
     """The simplest tracker front end: cv2.inRange on HSV + cv2.moments of the whole mask.
     Returns the (x, y) centroid of all red pixels, or None."""
-    mask = red_mask(image_bgr, hue_range_deg, min_saturation)
+    mask = red_mask(image_bgr, thresholds)
     m = cv2.moments(mask, binaryImage=True)
     if m["m00"] == 0:
         return None

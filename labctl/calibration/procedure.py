@@ -37,6 +37,7 @@ import numpy as np
 
 from ..errors import DeviceError
 from ..geometry import CameraModel, apply, invert, look_at, make_T, rotation_angle
+from ..timebase import Clock
 from .dots import DotError, circle_centroid_bias, detect_dots, identify
 from .handeye import MIN_AXIS_SPREAD_DEG, axis_spread_deg, pose_error, refine_hand_eye, target_in_base, tsai_lenz
 from .table import TableRegistration, fit_table_frame, pixel_to_plane
@@ -56,15 +57,14 @@ class Prompt(Protocol):
 @dataclass
 class Devices:
     """The opened devices the procedure uses (any may be None when its step is not run) and the
-    clock they run on: ``sleep(s)`` and ``now() -> s`` (real or the simulator's virtual clock)."""
+    clock they run on (a :class:`labctl.timebase.Clock`: wall time or the simulator's virtual clock)."""
 
     # drivers.interfaces' Table, Robot and Camera, or None (Any: calibration does not import drivers)
     table: Any
     robot: Any
     fixed: Any
     mobile: Any
-    sleep: Callable[[float], None]
-    now: Callable[[], float]
+    clock: Clock
 
 
 @dataclass(frozen=True)
@@ -233,7 +233,7 @@ def move_table(devs: Devices, xy, motion: Motion) -> None:
     """Rapid to machine coordinates ``xy`` (``G53``) and wait until GRBL reports Idle there."""
     x, y = float(xy[0]), float(xy[1])
     devs.table.stream(["G21G90", f"G53G0X{x:.3f}Y{y:.3f}"])
-    deadline = devs.now() + motion.table_timeout_s
+    deadline = devs.clock.now() + motion.table_timeout_s
     while True:
         st = devs.table.status()
         if st.state.startswith("Alarm") or st.state.startswith("Door"):
@@ -241,12 +241,12 @@ def move_table(devs: Devices, xy, motion: Motion) -> None:
         if st.state == "Idle" and abs(st.position[0] - x) <= motion.position_tol_mm \
                 and abs(st.position[1] - y) <= motion.position_tol_mm:
             return
-        if devs.now() > deadline:
+        if devs.clock.now() > deadline:
             raise DeviceError(f"table: not at {x:g}, {y:g} after {motion.table_timeout_s:g} s "
                               f"(state {st.state}, at {st.position[0]:.3f}, {st.position[1]:.3f})")
         if devs.robot is not None:
             devs.robot.heartbeat()
-        devs.sleep(motion.poll_s)
+        devs.clock.sleep(motion.poll_s)
 
 
 def segment_duration(T_from: np.ndarray, T_to: np.ndarray, motion: Motion) -> float:
@@ -263,7 +263,7 @@ class _Robot:
 
     A move ends only when the controller reports the segment done *at the commanded pose*. If it
     stopped short — its watchdog brought it to rest because a request came late, as happens on
-    an overloaded host — and the driver can ``clear()`` the latched fault, the move is commanded
+    an overloaded host — the latched fault is cleared (``Robot.clear``) and the move is commanded
     again from where it stopped, up to ``motion.robot_retries`` times per move (counted in
     ``recovered``); otherwise it is a DeviceError. The target does not move meanwhile, so an
     image is only ever taken at a planned pose."""
@@ -285,7 +285,7 @@ class _Robot:
                 why = str(exc)
             if why is None:
                 return T_rep
-            if attempt == self.motion.robot_retries or not hasattr(robot, "clear"):
+            if attempt == self.motion.robot_retries:
                 raise DeviceError(f"robot: segment {self.seg} did not reach its pose ({why})")
             robot.clear()
             self.recovered.append(f"segment {self.seg}: {why}")
@@ -296,17 +296,17 @@ class _Robot:
         here = robot.status().T_base_flange
         self.seg += 1
         robot.segment(T_b_f, segment_duration(here, T_b_f, self.motion), self.seg)
-        deadline = devs.now() + self.motion.robot_timeout_s
-        asked = devs.now()
+        deadline = devs.clock.now() + self.motion.robot_timeout_s
+        asked = devs.clock.now()
         while True:
             # requests start poll_s apart (not poll_s after the last reply): a status exchange takes
             # ~0.1 s at 9600 bps, and the controller's watchdog counts from one request to the next
-            devs.sleep(max(0.0, self.motion.poll_s - (devs.now() - asked)))
-            asked = devs.now()
+            devs.clock.sleep(max(0.0, self.motion.poll_s - (devs.clock.now() - asked)))
+            asked = devs.clock.now()
             st = robot.status()  # every request feeds the controller's watchdog
             if not st.moving and st.segment_id == self.seg:
                 return st.T_base_flange
-            if devs.now() > deadline:
+            if devs.clock.now() > deadline:
                 raise DeviceError(f"robot: segment {self.seg} not done after {self.motion.robot_timeout_s:g} s")
 
 
@@ -323,16 +323,16 @@ def _grab(devs: Devices, camera, motion: Motion) -> np.ndarray:
     """An image exposed after the devices came to rest: wait ``settle_s``, then grab until a frame's
     timestamp (the camera's exposure time on the devices' clock) is no older than the moment the
     motion ended — a network camera's pipeline may still hold frames exposed during the motion."""
-    at_rest = devs.now()
-    devs.sleep(motion.settle_s)
-    deadline = devs.now() + motion.fresh_frame_s
+    at_rest = devs.clock.now()
+    devs.clock.sleep(motion.settle_s)
+    deadline = devs.clock.now() + motion.fresh_frame_s
     while True:
         if devs.robot is not None:
             devs.robot.heartbeat()
         frame = camera.grab()
         if frame.t >= at_rest:
             return np.asarray(frame.image)
-        if devs.now() > deadline:
+        if devs.clock.now() > deadline:
             raise DeviceError(f"camera: no frame exposed after the motion ended within {motion.fresh_frame_s:g} s "
                               f"(newest exposed {at_rest - frame.t:.3f} s before); check its clock/latency_s")
 

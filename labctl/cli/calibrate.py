@@ -131,10 +131,10 @@ def _open_devices(lab, cameras: str, seed: int, target, prompt_command: str | No
     """(Devices, prompt, truth or None, closer) for ``lab``: the coupled in-process simulator when
     every device is simulated, else the real drivers (mixing the two cannot work: a simulated
     camera would not see a real table)."""
-    import time
 
     from ..calibration.procedure import Devices
     from ..calibration.run import Truth
+    from ..drivers.clock import MONOTONIC
     from ..errors import UserInputError
     from ..runtime.devices import check_robot_limits, check_table_settings, open_device
 
@@ -148,7 +148,7 @@ def _open_devices(lab, cameras: str, seed: int, target, prompt_command: str | No
         sim = SimCalibrationLab(lab, target, seed=seed)
         sim.open()
         devs = Devices(table=sim.table, robot=sim.robot if "robot" in roles else None, fixed=sim.cameras["fixed"],
-                       mobile=sim.cameras["mobile"], sleep=sim.clock.sleep, now=sim.clock.now)
+                       mobile=sim.cameras["mobile"], clock=sim.clock)
         return devs, sim, Truth(**sim.truth()), sim.close
     if any(k == "sim" for k in kinds.values()):
         raise UserInputError("calibration needs the devices all simulated or all real, not "
@@ -175,7 +175,7 @@ def _open_devices(lab, cameras: str, seed: int, target, prompt_command: str | No
                 dev.close()
 
     devs = Devices(table=opened["table"], robot=opened.get("robot"), fixed=opened.get("fixed_camera"),
-                   mobile=opened.get("mobile_camera"), sleep=time.sleep, now=time.monotonic)
+                   mobile=opened.get("mobile_camera"), clock=MONOTONIC)
     return devs, CommandPrompt(prompt_command) if prompt_command else TerminalPrompt(console), None, close
 
 

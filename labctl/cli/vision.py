@@ -55,7 +55,7 @@ def vision_pose(image: Path, image2: Path | None, radius_mm: float, camera_file:
     from ..errors import UserInputError
     from ..fsutil import atomic_write_bytes
     from ..geometry.camera_io import load_camera_file
-    from ..vision import ResponseError, parse_response
+    from ..vision import MarkerThresholds, ResponseError, parse_response
     from ..vision.duality import DEFAULT_MIN_MARGIN_RAD
     from ..vision.pose_images import ImagePoseError, annotate_posed, pose_images
 
@@ -78,7 +78,8 @@ def vision_pose(image: Path, image2: Path | None, radius_mm: float, camera_file:
     margin = DEFAULT_MIN_MARGIN_RAD if min_margin_deg is None else math.radians(min_margin_deg)
     try:
         posed = pose_images(images, camera, radius_mm, motion=motion, plane_normal=plane_normal or None,
-                            min_margin_rad=margin, hue_range_deg=tuple(hue_deg), min_saturation=min_saturation,
+                            min_margin_rad=margin,
+                            thresholds=MarkerThresholds(hue_range_deg=tuple(hue_deg), min_saturation=min_saturation),
                             response=resp)
     except ImagePoseError as exc:
         raise UserInputError(f"{paths[exc.index]}: {exc}") from None
@@ -151,7 +152,7 @@ def vision_learn_color(image: Path, role: str, nominal: float, dry_run: bool) ->
     the camera's driver file (marker_hue_deg, marker_min_saturation)."""
     from ..errors import LabctlError, UserInputError
     from ..fsutil import atomic_write_text
-    from ..vision import find_markers
+    from ..vision import MarkerThresholds, find_markers
     from ..vision.colour import ColourLearnError, learn_marker_colour
     from ._common import get_ctx
 
@@ -165,10 +166,12 @@ def vision_learn_color(image: Path, role: str, nominal: float, dry_run: bool) ->
     except ColourLearnError as exc:
         raise UserInputError(f"{image}: {exc}") from None
     lo, hi = learned["hue_range_deg"]
-    search = find_markers(img, hue_range_deg=(lo, hi), min_saturation=learned["min_saturation"],
+    search = find_markers(img, thresholds=MarkerThresholds(hue_range_deg=(lo, hi),
+                                                           min_saturation=learned["min_saturation"]),
                           response=cam_cfg.response)
-    before = find_markers(img, hue_range_deg=tuple(cam_cfg.marker_hue_deg),
-                          min_saturation=cam_cfg.marker_min_saturation, response=cam_cfg.response)
+    before = find_markers(img, thresholds=MarkerThresholds(hue_range_deg=tuple(cam_cfg.marker_hue_deg),
+                                                           min_saturation=cam_cfg.marker_min_saturation),
+                          response=cam_cfg.response)
     result = {"image": str(image), "driver_file": str(path), **learned,
               "markers_found": len(search.markers), "trusted": sum(m.trusted for m in search.markers),
               "markers_found_before": len(before.markers), "written": False}

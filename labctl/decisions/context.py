@@ -12,13 +12,20 @@ from pathlib import Path
 import numpy as np
 
 from ..calibration.store import Calibration, load_calibration
-from ..config import Lab
+from ..config import CameraConfig, Lab
 from ..errors import UserInputError
 from ..geometry import CameraModel, apply, invert
 from ..library.matching import LibraryIndex
 from ..library.storage import library_angle, load_library
 from ..planning import Limits
 from ..planning.limits import planning_limits
+from ..vision import MarkerThresholds
+
+
+def marker_thresholds(camera_cfg: CameraConfig) -> MarkerThresholds:
+    """The marker colour window of a camera, from its driver file (``marker_hue_deg``, ``marker_min_saturation``)."""
+    lo, hi = camera_cfg.marker_hue_deg
+    return MarkerThresholds(hue_range_deg=(lo, hi), min_saturation=camera_cfg.marker_min_saturation)
 
 
 @dataclass

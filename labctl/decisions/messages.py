@@ -41,6 +41,8 @@ class MessageError(LabctlError):
 
 ROLES: tuple[str, ...] = ("supervisor", "predictor", "recognizer")
 CAPTURE_KINDS: tuple[str, ...] = ("initial1", "initial2", "standard")
+#: what a captured image is for: the two initial images of a marker, or a standard view
+CaptureKind = Literal["initial1", "initial2", "standard"]
 MAX_TEXT_BYTES = 96  # Failure/Stop text, UTF-8: ~0.1 s at 9600 bps
 MAX_CANDIDATES = 32
 NO_MARKER = 0xFF  # Ambiguous.next_marker "no hint" on the wire
@@ -228,7 +230,7 @@ class CaptureRequest(_Msg):
     """
 
     view_id: int
-    kind: Literal["initial1", "initial2", "standard"]
+    kind: CaptureKind
     t_capture: float
     position: tuple[float, float, float]
     rotvec: tuple[float, float, float]
@@ -247,7 +249,7 @@ class CaptureRequest(_Msg):
         _set(self, "rotvec", rv)
 
     @classmethod
-    def from_pose(cls, view_id: int, kind: str, t_capture: float, T_w_c2: np.ndarray) -> CaptureRequest:
+    def from_pose(cls, view_id: int, kind: CaptureKind, t_capture: float, T_w_c2: np.ndarray) -> CaptureRequest:
         """Build from a 4×4 pose T_w_c2 (mobile camera C2 -> world W, mm)."""
         from ..geometry.transforms import matrix_to_rotvec
 
@@ -409,7 +411,8 @@ class Identity(_Msg):
         ids, rest = _unpack_ids(body[cls._FMT.size:], "Identity")
         if len(rest):
             raise MessageError(f"Identity: {len(rest)} trailing bytes")
-        return cls(*head, ids)
+        object_id, score, n_candidates = head
+        return cls(object_id, score, n_candidates, ids)
 
 
 @dataclass(frozen=True)
@@ -510,7 +513,7 @@ class Stop(_Msg):
 Message = (Hello | Heartbeat | CaptureRequest | FrameTaken | MarkerPose | StandardViewRequest | Identity
            | Ambiguous | Failure | Stop)
 
-MESSAGE_TYPES: dict[int, type] = {
+MESSAGE_TYPES: dict[int, type[_Msg]] = {
     cls.TAG: cls
     for cls in (Hello, Heartbeat, CaptureRequest, FrameTaken, MarkerPose, StandardViewRequest, Identity,
                 Ambiguous, Failure, Stop)

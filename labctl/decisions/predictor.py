@@ -22,6 +22,7 @@ import math
 from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import Any, cast
 
 import numpy as np
 
@@ -29,19 +30,28 @@ from ..drivers.interfaces import Frame, Robot, RobotStatus
 from ..errors import DeviceError
 from ..geometry import make_T, matrix_to_rotvec, rotvec_to_matrix
 from ..planning import Interception, camera_placement_trajectory, plan_interception, rest_to_rest_times
-from ..planning.ruckig_interception import plan_interception_ruckig, ruckig_limits
-from ..planning.ruckig_profile import controller_limits
+from ..planning.quintic import Trajectory
+from ..planning.ruckig_interception import RuckigTrajectory, plan_interception_ruckig, ruckig_limits
+from ..planning.ruckig_profile import JerkLimits, controller_limits
 from ..planning.targets import prediction_margin_mm, standard_view_path, view_holds_marker, viewing_distance_with_margin
 from ..planning.tti_bound import Leg, identity_bound
+from ..timebase import wire_time_s
 from ..tracking.tracker import MarkerTracker, position_from_frames
 from ..vision import detect_markers, detect_markers_windowed, red_blob_centroid
 from . import messages as m
-from .context import RunContext
+from .context import RunContext, marker_thresholds
 
 #: a robot at rest farther than this (mm) from the end of its segment did not run it to the end
 ARRIVAL_TOL_MM = 1.0
 #: fixed-camera positions kept for :func:`position_from_frames` (a minute at 30 frames/s)
 TRACK_HISTORY = 1800
+#: the initial view's azimuths tried, in order, about the side facing the robot's home (deg): the nearest side
+#: is the shortest reach, so the first reachable view is the one least far round the marker; the far side last
+INITIAL_AZIMUTH_STEPS_DEG = (0.0, 20.0, -20.0, 45.0, -45.0, 90.0, -90.0, 180.0)
+#: the second image steps up (``run.second_image_move: elevation``) only while the view stays at most this high
+#: (deg): straight above (90°) the azimuth no longer places the camera and image-up (world +z) lies along the
+#: optical axis; beyond it the step goes sideways round the marker instead
+MAX_STEP_UP_ELEVATION_DEG = 85.0
 
 STAGES = ("wait", "track", "intercept", "initial", "standard", "match", "done", "failed")
 
@@ -68,6 +78,24 @@ def _wire_pose(R: np.ndarray, p) -> np.ndarray:
     these ~20 bytes fewer a segment line are ~20 ms less before each leg starts at 9600 bps (issue 16)."""
     rv = np.round(matrix_to_rotvec(np.asarray(R, dtype=float)), 4)
     return make_T(rotvec_to_matrix(rv), np.round(np.asarray(p, dtype=float), 2))
+
+
+def _vec3(v) -> tuple[float, float, float]:
+    """A 3-vector as a tuple of floats (a leg's end points and start state, for the bound)."""
+    x, y, z = map(float, v)
+    return x, y, z
+
+
+def _t_hit(plan: Interception | None) -> float:
+    """The arrival time (s) of a reachable plan: the only kind the run keeps."""
+    assert plan is not None and plan.t_hit is not None
+    return plan.t_hit
+
+
+def _reached(plan: Interception | None) -> tuple[Trajectory | RuckigTrajectory, float]:
+    """The trajectory and arrival time (s) of a reachable plan: the only kind the run keeps and sends."""
+    assert plan is not None and plan.trajectory is not None and plan.t_hit is not None
+    return plan.trajectory, plan.t_hit
 
 
 class _RestAt:
@@ -103,7 +131,7 @@ class PredictorPlanner:
     sets the tracker's curve prior (``tracking.family_prior``, issue 18); None when labctl does not drive
     the motion (``external``, no table) or the program is a G-code file."""
 
-    def __init__(self, ctx: RunContext, robot: Robot, send: Callable[[m.Message], None],
+    def __init__(self, ctx: RunContext, robot: Robot, send: Callable[[m.Message], object],
                  log: Callable[..., None], *, t_start: float = 0.0, clock: Callable[[], float] | None = None,
                  profile: str | None = None, rest: RobotStatus | None = None, shared_clock: bool = False,
                  family: str | None = None):
@@ -132,7 +160,7 @@ class PredictorPlanner:
         self.t_last_seen: float | None = None
         self.last_px: np.ndarray | None = None
         self.plan: Interception | None = None
-        self.plan_kind: str | None = None  # "initial1", "initial2", "standard"
+        self.plan_kind: m.CaptureKind | None = None
         self.t_last_plan = -math.inf
         self.segment_id = 0
         self.view_id = 0
@@ -155,7 +183,7 @@ class PredictorPlanner:
         self.failure: str | None = None
         self.robot_path: list[tuple[float, list[float]]] = []
         # a segment command is ~100 bytes: at 9600 bps it reaches the controller ~0.1 s after it is sent
-        self.latency_s = 100 * 10.0 / ctx.lab.robot.baud
+        self.latency_s = wire_time_s(100, ctx.lab.robot.baud)
         self.plan_shift = 0.0  # controller time − plan time of the segment being executed
         self.t_robot_log = -math.inf
         self.min_quintic_s = 0.0  # sum over legs of the paper's quintic rest-to-rest time (the old bound)
@@ -172,8 +200,7 @@ class PredictorPlanner:
             self.rest_T = np.asarray(rest.T_base_flange, dtype=float).copy()
         self.t1c: float | None = None  # the controller's arrival time of the segment under way (its clock)
         # the segment profile (run.profile): ruckig only if the controller lists it (dialect 1.2)
-        choose = getattr(robot, "choose_profile", None)
-        self.profile = choose(profile or cfg.run.profile) if choose is not None else "quintic"
+        self.profile = robot.choose_profile(profile or cfg.run.profile)
         self.jerk = ruckig_limits(ctx.lab.robot, cfg.run.robot_stop_budget_s)  # what ruckig segments carry
         self.jerk_ctrl = controller_limits(ctx.lab.robot)  # the controller's own: not sent
 
@@ -231,13 +258,14 @@ class PredictorPlanner:
     def _send_segment(self, now: float, plan: Interception) -> None:
         """Command the plan's first segment; the controller splices it in from its own state on receipt,
         which is the plan's start time (now + the command's transmission time)."""
-        end = plan.trajectory.segments[0]
-        T_end = _wire_pose(end.orientation(end.t1) if end.rot_coeffs is not None else plan.target.rotation,
-                           end.state(end.t1)[0])
+        end = _reached(plan)[0].segments[0]
+        R_end = end.orientation(end.t1) if end.rot_coeffs is not None else cast(_RestAt, plan.target).rotation
+        T_end = _wire_pose(cast(np.ndarray, R_end), end.state(end.t1)[0])
         self.segment_id += 1
         now = self._now(now)
-        ruckig = getattr(end, "profile", "quintic") == "ruckig"
-        kw = {"profile": "ruckig", "limits": end.limits.wire(end.base)} if ruckig else {}  # the controller re-runs
+        ruckig = isinstance(end, RuckigTrajectory)
+        kw: dict[str, Any] = {"profile": "ruckig", "limits": cast(JerkLimits, cast(RuckigTrajectory, end).limits).wire(
+            cast(RuckigTrajectory, end).base)} if ruckig else {}  # the controller re-runs
         duration = math.ceil((end.t1 - end.t0) * 1000.0 - 1e-6) / 1000.0  # whole ms, never shorter than planned
         t0c, t1c = self.robot.segment(T_end, duration, self.segment_id, replace=True, **kw)
         # accepted (a refused splice raises, and the motion under way, its end and its leg stay as they were)
@@ -283,35 +311,37 @@ class PredictorPlanner:
         horizon = self.cfg.run.plan_horizon_s
         if self.profile == "ruckig":
             traj = self.plan.trajectory if self.plan is not None else None
-            w = traj.angular_velocity(t0 - self.plan_shift) if hasattr(traj, "angular_velocity") else None
+            w = traj.angular_velocity(t0 - self.plan_shift) if isinstance(traj, RuckigTrajectory) else None
             plan = plan_interception_ruckig(state, t0, target, self.ctx.limits, horizon, R0=R, w0=w, jerk=self.jerk,
                                             base=self.jerk_ctrl)
             if plan.reachable:
                 return plan
         return plan_interception(state, t0, target, self.ctx.limits, horizon_s=horizon, R0=R)
 
-    def _start_move(self, now: float, kind: str, plan: Interception) -> None:
-        seg0 = plan.trajectory.segments[0]
-        p0, v0, a0 = plan.trajectory.state(seg0.t0)  # the state the plan starts from: where the leg begins
-        R0 = plan.trajectory.orientation(seg0.t0)
+    def _start_move(self, now: float, kind: m.CaptureKind, plan: Interception) -> None:
+        traj, t_hit = _reached(plan)
+        seg0 = traj.segments[0]
+        p0, v0, a0 = traj.state(seg0.t0)  # the state the plan starts from: where the leg begins
+        R0 = traj.orientation(seg0.t0)
         self.leg_start = (kind, p0, v0, a0, R0)
         self.leg_jerk_limited = True  # until a segment of the leg is sent without the controller's jerk limit
         self.plan, self.plan_kind, self.t_last_plan = plan, kind, now
-        _, quintic = rest_to_rest_times(p0, plan.trajectory.state(plan.t_hit)[0],
+        _, quintic = rest_to_rest_times(p0, traj.state(t_hit)[0],
                                         self.ctx.lab.robot.v_max_mm_s, self.ctx.lab.robot.a_max_mm_s2)
         self.min_quintic_s += quintic
         self._send_segment(now, plan)
         self.log("plan", t=now, kind=kind, t_hit=plan.t_hit)
-        horizon = np.linspace(now, max(plan.t_hit, now + 1.0), 12)
+        horizon = np.linspace(now, max(t_hit, now + 1.0), 12)
         self.log("predict", t=now, path=self._marker_path()(horizon)[0])
 
     def _commit_margin_mm(self) -> float:
         """3-σ radius (mm) of the predicted marker position ``commit_horizon_s`` ahead (issue 18)."""
-        _, cov = self.tracker.predict(self.tracker.time + self.cfg.tracking.commit_horizon_s)
+        _, cov = self.tracker.predict(cast(float, self.tracker.time) + self.cfg.tracking.commit_horizon_s)
         return prediction_margin_mm(cov)
 
     def _ready_to_commit(self, now: float) -> bool:
         """Plan once the prediction is good enough for the interception, or after ``min_track_s``."""
+        assert self.t_first_seen is not None  # tracking
         if now - self.t_first_seen >= self.cfg.tracking.min_track_s:
             return True
         return self._commit_margin_mm() <= self.cfg.tracking.commit_margin_mm
@@ -322,13 +352,14 @@ class PredictorPlanner:
         home = np.asarray(self.ctx.lab.robot.home_mm)
         return math.degrees(math.atan2(home[1] - mp[1], home[0] - mp[0]))
 
-    def _plan_initial(self, now: float, kind: str) -> bool:
+    def _plan_initial(self, now: float, kind: m.CaptureKind) -> bool:
         # the margin-widened views first, then the nominal ones: while the table speeds up (0.5 s to 100 mm/s)
         # the manoeuvre mode's 3-σ margin puts every widened view out of reach (docs/notes/planning.md,
         # "Frames caught up"), and the newest mean prediction is the best aim there is
-        last = ""
+        last: str | None = ""
+        assert self.azimuth_deg is not None  # chosen on entering intercept
         for margin in (True, False):
-            for delta in (0.0, 20.0, -20.0, 45.0, -45.0, 90.0, -90.0, 180.0):
+            for delta in INITIAL_AZIMUTH_STEPS_DEG:
                 az = self.azimuth_deg + delta
                 plan = self._plan(now, kind, self._initial_view_target(az, margin))
                 if plan.reachable:
@@ -343,23 +374,26 @@ class PredictorPlanner:
         """Re-plan the unexecuted motion with the newest prediction (paper §4.3)."""
         run = self.cfg.run
         if self.plan is None or now - self.t_last_plan < run.replan_every_s \
-                or self.plan.t_hit - now < run.replan_until_s:
+                or _t_hit(self.plan) - now < run.replan_until_s:
             return
+        assert self.plan_kind is not None  # set with the plan
         if self.plan_kind == "standard":
             plan = self._plan(now, self.plan_kind, self._standard_target())
         else:  # the nominal view of the newest prediction, if the widened one is out of reach, beats the old aim
+            assert self.azimuth_deg is not None  # chosen on entering intercept
             plan = self._plan(now, self.plan_kind, self._initial_view_target(self.azimuth_deg))
             if not plan.reachable:
                 plan = self._plan(now, self.plan_kind, self._initial_view_target(self.azimuth_deg, margin=False))
         self.t_last_plan = now
         if not plan.reachable:
             return  # keep executing the current plan
-        if self.plan_kind != "standard" and run.initial_view_hold and plan.t_hit > self.plan.t_hit \
+        (old_traj, old_hit), (new_traj, new_hit) = _reached(self.plan), _reached(plan)
+        if self.plan_kind != "standard" and run.initial_view_hold and new_hit > old_hit \
                 and self._initial_view_holds():
             return  # a later arrival only to centre a marker the view under way already holds
-        old_end = self.plan.trajectory.state(self.plan.t_hit)[0]
-        new_end = plan.trajectory.state(plan.t_hit)[0]
-        if np.linalg.norm(new_end - old_end) > 0.5 or abs(plan.t_hit - self.plan.t_hit) > 0.02:
+        old_end = old_traj.state(old_hit)[0]
+        new_end = new_traj.state(new_hit)[0]
+        if np.linalg.norm(new_end - old_end) > 0.5 or abs(new_hit - old_hit) > 0.02:
             old, old_shift = self.plan, self.plan_shift
             self.plan = plan
             try:
@@ -376,7 +410,8 @@ class PredictorPlanner:
         by the table's measured motion up to the newest frame (:meth:`_table_since`), as for a spare marker
         (default: whether the marker being viewed is one); else by the newest path extended back to its images."""
         mp = self.marker_pose if mp is None else mp
-        t_ref = self.t_marker_pose if t_ref is None else t_ref
+        t_ref = cast(float, self.t_marker_pose if t_ref is None else t_ref)
+        assert mp is not None  # the marker being viewed, or the one given
         scale = self.ctx.displacement_scale(mp.center_w[2])
         if measured is None:
             measured = self.marker_is_spare
@@ -398,7 +433,7 @@ class PredictorPlanner:
         lead on GRBL's ramp and the extended leg's offset partly cancel (measured: with this for every view, 14
         of 30 zigzag trials at 100 mm/s were slower)."""
         frames = np.array(self.track_xy) if self.track_xy else np.zeros((0, 3))
-        times, xy, t_last = frames[:, 0], frames[:, 1:], self.tracker.time
+        times, xy, t_last = frames[:, 0], frames[:, 1:], cast(float, self.tracker.time)
         at_ref, at_last = position_from_frames(times, xy, t_ref), position_from_frames(times, xy, t_last)
         if at_ref is None or at_last is None:
             return None
@@ -419,7 +454,7 @@ class PredictorPlanner:
         arrival, by the newest prediction with its 3-σ margin? An initial image needs the marker in view, not
         centred; re-aiming at the centre each time the prediction moves lengthens the flight (the table's start
         ramp: docs/notes/planning.md, "Ninth round")."""
-        traj, t_hit = self.plan.trajectory, self.plan.t_hit
+        traj, t_hit = _reached(self.plan)
         R = traj.orientation(t_hit)
         if R is None:
             return False
@@ -444,22 +479,21 @@ class PredictorPlanner:
         The controller's ``@DONE <id>`` of the segment under way says it stands at the commanded end
         pose: read without waiting, no round trip. A controller that sends no ``@DONE`` (or one lost on
         the line) is asked with STATUS, from the planned arrival on (still moving: wait, up to 1 s)."""
-        done = getattr(self.robot, "done_ids", None)
-        if done is not None and hasattr(self.robot, "poll") and self.T_end is not None:
+        if self.T_end is not None:
             self.robot.poll()
-            if self.segment_id in done:
+            if self.segment_id in self.robot.done_ids:
                 self.rest_T = np.asarray(self.T_end, dtype=float).copy()
                 return self.rest_T
             # @DONE leaves the controller at the arrival and is ~10 bytes on the line: wait for it a few
             # frames rather than ask STATUS (a ~0.1 s round trip at 9600 bps that holds up the image)
-            if now < self.plan.t_hit + self.plan_shift + self._done_grace_s:
+            if now < _t_hit(self.plan) + self.plan_shift + self._done_grace_s:
                 return None
         st = self.robot.status()
-        latched = getattr(self.robot, "latched", None)
+        latched = self.robot.latched
         if latched:  # its watchdog or a STOP cut the move: an image from where it stood would be a wrong view
             self.fail(now, f"the robot controller stopped the robot ({latched}) before it reached the view")
             return None
-        if st.moving and now < self.plan.t_hit + self.plan_shift + 1.0:
+        if st.moving and now < _t_hit(self.plan) + self.plan_shift + 1.0:
             return None
         T = np.asarray(st.T_base_flange, dtype=float)
         if self.T_end is not None and np.linalg.norm(T[:3, 3] - self.T_end[:3, 3]) > ARRIVAL_TOL_MM:
@@ -476,26 +510,26 @@ class PredictorPlanner:
         as soon as the robot stands still. None when no arrival is awaited."""
         if self.finished or self.plan is None or self.pending is not None or self.t1c is None:
             return None
-        return self.t1c + 16 * 10.0 / self.ctx.lab.robot.baud
+        return self.t1c + wire_time_s(16, self.ctx.lab.robot.baud)
 
     @property
     def _done_grace_s(self) -> float:
         """How long (s) after the planned arrival an ``@DONE`` may still be on its way: its ~16 bytes on
         the robot's line plus three fixed-camera frame periods (the ticks that read it)."""
-        return 16 * 10.0 / self.ctx.lab.robot.baud + 3.0 / self.cfg.run.fps
+        return wire_time_s(16, self.ctx.lab.robot.baud) + 3.0 / self.cfg.run.fps
 
     def _end_leg(self, T_flange: np.ndarray) -> None:
         """Close the leg under way at the rest pose ``T_flange`` where its image is taken (for the bound)."""
         if self.leg_start is None:
             return
         kind, p0, v0, a0, R0 = self.leg_start
-        self.legs.append(Leg(kind, tuple(map(float, p0)), tuple(map(float, T_flange[:3, 3])), tuple(map(float, v0)),
-                             tuple(map(float, a0)), R0=R0, R1=T_flange[:3, :3].copy(),
+        self.legs.append(Leg(kind, _vec3(p0), _vec3(T_flange[:3, 3]), _vec3(v0), _vec3(a0), R0=R0,
+                             R1=T_flange[:3, :3].copy(),
                              j_max=self.jerk_ctrl.j_max if self.leg_jerk_limited else None))
         self.leg_start = None
 
     # -- capture ---------------------------------------------------------------------------------
-    def _request_capture(self, now: float, kind: str, T_w_f: np.ndarray) -> None:
+    def _request_capture(self, now: float, kind: m.CaptureKind, T_w_f: np.ndarray) -> None:
         """Ask the recognizer for an image now; the camera pose comes from the robot's reported flange."""
         T_w_c2 = T_w_f @ self.ctx.T_f_c2
         self.view_id += 1
@@ -538,7 +572,7 @@ class PredictorPlanner:
 
     def _step_for_second_image(self) -> None:
         """Move the viewpoint for the next marker image: ``run.second_image_elevation_deg`` up towards the top
-        (``run.second_image_move: elevation``, while the view stays ≤ 85° high), else
+        (``run.second_image_move: elevation``, while the view stays ≤ :data:`MAX_STEP_UP_ELEVATION_DEG` high), else
         ``run.second_image_azimuth_deg`` sideways round the marker (``azimuth``, the paper's). A marker facing
         up — the recogniser prefers one — has its two pose candidates in the vertical plane through the line
         of sight, so a step in that plane separates them most (duality margin 0.35 rad for 10° up against
@@ -546,9 +580,10 @@ class PredictorPlanner:
         run = self.cfg.run
         base = self.ctx.initial_angle_deg or self.cfg.viewing.initial_angle_deg
         up = run.second_image_elevation_deg
-        if run.second_image_move == "elevation" and base + self.elevation_step_deg + up <= 85.0:
+        if run.second_image_move == "elevation" and base + self.elevation_step_deg + up <= MAX_STEP_UP_ELEVATION_DEG:
             self.elevation_step_deg += up
         else:
+            assert self.azimuth_deg is not None  # chosen on entering intercept
             self.azimuth_deg += run.second_image_azimuth_deg
 
     def _next_marker(self, now: float) -> None:
@@ -557,6 +592,7 @@ class PredictorPlanner:
         if self.markers_tried >= self.cfg.run.max_viewpoints:
             self.fail(now, f"no marker gave a usable pose from {self.markers_tried} viewpoints")
             return
+        assert self.azimuth_deg is not None  # chosen on entering intercept
         self.azimuth_deg += self.cfg.run.next_viewpoint_deg
         self.elevation_step_deg = 0.0
         self.marker_pose = None
@@ -582,18 +618,19 @@ class PredictorPlanner:
         """Detect the marker in one fixed-camera frame and update the tracker; notice a lost marker."""
         now = frame.t
         cam_cfg = self.ctx.lab.fixed_camera
-        kw = dict(hue_range_deg=cam_cfg.marker_hue_deg, min_saturation=cam_cfg.marker_min_saturation)
+        thresholds = marker_thresholds(cam_cfg)
         pred_px = self._predicted_px(now) if self.tracker.initialized else None
         if pred_px is not None and not self.ctx.fixed_camera.contains(pred_px, margin=-5):
             self.fail(now, "the object left the fixed camera's field of view")
             return
-        if pred_px is not None and now - self.t_last_seen < 1.0:
+        if pred_px is not None and now - cast(float, self.t_last_seen) < 1.0:  # tracking: seen
             # the one-step-ahead window (§5.2); centroids only: the fixed camera needs no ellipse
-            markers = detect_markers_windowed(frame.image, pred_px, self.cfg.tracking.window_px, refine=False, **kw)
+            markers = detect_markers_windowed(frame.image, pred_px, self.cfg.tracking.window_px, refine=False,
+                                              thresholds=thresholds)
             if markers:
                 markers.sort(key=lambda mk: float(np.hypot(*(np.asarray(mk.centroid) - pred_px))))
         else:
-            markers = detect_markers(frame.image, refine=False, **kw)
+            markers = detect_markers(frame.image, refine=False, thresholds=thresholds)
             if markers and self.last_px is not None:
                 markers.sort(key=lambda mk: float(np.hypot(*(np.asarray(mk.centroid) - self.last_px))))
             elif markers:
@@ -601,7 +638,8 @@ class PredictorPlanner:
         if markers:
             px = np.asarray(markers[0].centroid, dtype=float)
         else:  # a marker seen edge-on is no ellipse, but its red pixels still locate the object (§5.2)
-            px = red_blob_centroid(frame.image, pred_px if pred_px is not None else self.last_px, **kw)
+            px = red_blob_centroid(frame.image, pred_px if pred_px is not None else self.last_px,
+                                   thresholds=thresholds)
         if px is not None:
             xy = self.ctx.fixed_pixel_to_plane(px)
             if self.tracker.update(now, xy):
@@ -706,7 +744,7 @@ class PredictorPlanner:
             self.t_robot_log = now
             self.log("robot", t=now, p=self._flange_state(now)[0][0], planned=True)
         if self.stage in ("intercept", "initial", "standard") and self.pending is None and self.plan is not None:
-            if now < self.plan.t_hit + self.plan_shift:
+            if now < _t_hit(self.plan) + self.plan_shift:
                 self._replan(now)
                 return
             T_flange = self._arrived(now)
@@ -716,6 +754,7 @@ class PredictorPlanner:
             self.robot_path.append((now, p.tolist()))
             self.log("robot", t=now, p=p)
             kind = self.plan_kind
+            assert kind is not None  # set with the plan
             self._end_leg(T_flange)
             self.plan = None
             if kind == "standard":
@@ -734,7 +773,7 @@ class PredictorPlanner:
         if self.stage_times.current is not None and self.stage_times.current not in ("done", "failed"):
             self.stage_times.enter(self.stage_times.current, now)
         ident = self.identity
-        t_id = (self.stage_times.started.get("done") - self.t_start) if ident is not None else None
+        t_id = (self.stage_times.started["done"] - self.t_start) if ident is not None else None
         lower = lower_q = parts = None
         if t_id is not None and self.t_first_seen is not None:
             parts = self.bound()
@@ -750,7 +789,8 @@ class PredictorPlanner:
             "lower_bound_quintic_s": lower_q,
             "ratio_to_bound": (t_id / lower) if lower else None,
             "bound": parts,
-            "time_from_first_sight_s": (t_id - (self.t_first_seen - self.t_start)) if parts else None,
+            "time_from_first_sight_s": (t_id - (cast(float, self.t_first_seen) - self.t_start))
+            if parts and t_id is not None else None,
             "views": self.views_used,
             "stages": {k: round(v, 4) for k, v in self.stage_times.durations.items()},
             "failure": self.failure,
@@ -763,7 +803,7 @@ class PredictorPlanner:
         camera's frame time per image."""
         rc = self.ctx.lab.robot
         first = (self.t_first_seen - self.t_start) if self.t_first_seen is not None else 0.0
-        fps = float(getattr(self.ctx.lab.mobile_camera, "fps", 0.0) or 0.0)
+        fps = float(self.ctx.lab.mobile_camera.fps or 0.0)
         out = identity_bound(first, self.legs, self.n_images, 1.0 / fps if fps > 0 else 0.0,
                              v_max=float(rc.v_max_mm_s), a_max=float(rc.a_max_mm_s2),
                              w_max=math.radians(float(rc.w_max_deg_s)))  # each leg carries its own jerk limit
@@ -792,7 +832,7 @@ class ProgramProgress:
         prog = self.program
         if prog.active:
             prog.pump(0.0)
-        elif hasattr(prog.table, "watch"):
+        else:
             prog.table.watch()
         if prog.acked != self._logged_acked and (now - self._t_logged >= self.every_s or prog.done):
             self.log("table_progress", t=now, **prog.progress())

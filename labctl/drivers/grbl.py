@@ -16,12 +16,13 @@ from __future__ import annotations
 
 import logging
 import re
-import time
 from collections import deque
 from collections.abc import Callable, Iterable
 from typing import TYPE_CHECKING
 
 from ..errors import DeviceError
+from ..timebase import Clock
+from .clock import MONOTONIC
 from .grbl_protocol import (
     ALARM_CODES,
     ERROR_CODES,
@@ -33,6 +34,10 @@ from .grbl_protocol import (
 )
 from .interfaces import OpenClose, Table, TableStatus
 from .serial_link import DeviceTimeout, LinkError, LinkLost, ProtocolError, SerialLink
+
+if TYPE_CHECKING:
+    from ..config import TableConfig
+    from .interfaces import Program
 
 log = logging.getLogger(__name__)
 log.addHandler(logging.NullHandler())  # warnings go to the record/-v, not stray stderr lines
@@ -129,7 +134,7 @@ class ProgramStream:
         self.sent = 0
         self.acked = 0
         self.error: DeviceError | None = None
-        now = table.clock()
+        now = table.clock.now()
         self.last_alive = self.last_progress = now
         self.idle_since: float | None = None  # GRBL reported Idle while lines waited for their reply
         self.t_start = now
@@ -160,7 +165,7 @@ class ProgramStream:
         idx, n = self.in_flight.popleft()
         self.used -= n
         self.acked += 1
-        self.last_progress = self.table.clock()
+        self.last_progress = self.table.clock.now()
         self.idle_since = None
         if msg.kind == "error" and self.error is None:
             self._fail(GrblError(msg.number, self.program[idx], idx, self.numbers[idx] if self.numbered else None))
@@ -200,7 +205,7 @@ class ProgramStream:
         except DeviceError as exc:
             self._fail(exc)
             raise
-        now = t.clock()
+        now = t.clock.now()
         if any(m.kind != "unknown" for m in msgs):
             self.last_alive = now
         for msg in msgs:
@@ -238,18 +243,18 @@ class GrblTable(OpenClose):
 
     def __init__(self, port: str | None = None, baud: int = 9600, *, timeout_s: float = 5.0,
                  reset_on_open: bool = True, status_hz: float = 5.0, boot_s: float = 2.5,
-                 serial_port=None, clock: Callable[[], float] = time.monotonic,
-                 sleep: Callable[[float], None] = time.sleep, rx_buffer: int = RX_BUFFER_SIZE,
+                 serial_port=None, clock: Clock = MONOTONIC,
+                 rx_buffer: int = RX_BUFFER_SIZE,
                  auto_unlock: bool = True, reset_if_silent: bool = False, stall_reports: int = 25,
                  homing_timeout_s: float = 120.0, reconnect_s: float = 0.0, max_messages: int = 200,
                  stop_confirm_s: float = 30.0, banner_wait_s: float = 3.0):
-        self.link = SerialLink(port, baud, timeout_s, port=serial_port, clock=clock, sleep=sleep,
+        self.link = SerialLink(port, baud, timeout_s, port=serial_port, clock=clock,
                                name=f"grbl@{port or getattr(serial_port, 'port', 'port')}")
         self.timeout_s = timeout_s
         self.reset_on_open = reset_on_open
         self.status_period = 1.0 / max(status_hz, 0.1)
         self.boot_s = boot_s
-        self.clock, self.sleep = clock, sleep
+        self.clock = clock
         self.rx_limit = rx_buffer - 1
         self.last_status: StatusReport | None = None
         self.last_status_t = -1e18
@@ -286,15 +291,16 @@ class GrblTable(OpenClose):
         self.while_reconnecting: Callable[[], None] | None = None
 
     @classmethod
-    def from_config(cls, cfg, **kw) -> GrblTable:
+    def from_config(cls, cfg: TableConfig, **kw) -> GrblTable:
         """From a :class:`labctl.config.TableConfig` (port, baud, timeout, reset_on_open, status_hz,
         stall_reports, homing_timeout_s, reconnect_s, stop_confirm_s). A ``port=None`` keyword keeps the
         configured port."""
         port = kw.pop("port", None) or cfg.port
         baud = kw.pop("baud", None) or cfg.baud
-        for name in ("stall_reports", "homing_timeout_s", "reconnect_s", "stop_confirm_s"):
-            if hasattr(cfg, name):
-                kw.setdefault(name, getattr(cfg, name))
+        kw.setdefault("stall_reports", cfg.stall_reports)
+        kw.setdefault("homing_timeout_s", cfg.homing_timeout_s)
+        kw.setdefault("reconnect_s", cfg.reconnect_s)
+        kw.setdefault("stop_confirm_s", cfg.stop_confirm_s)
         return cls(port, baud, timeout_s=cfg.timeout_s, reset_on_open=cfg.reset_on_open,
                    status_hz=cfg.status_hz, **kw)
 
@@ -319,16 +325,16 @@ class GrblTable(OpenClose):
         Never soft-resets on its own (unless ``reset_if_silent``): a controller locked by a
         critical alarm (ALARM:1/2) ignores ``?``, and a reset would discard what it shows."""
         window = self.boot_s if self.reset_on_open else min(self.boot_s, 1.0)
-        deadline = self.clock() + window
-        first_query = self.clock() + (0.3 if self.reset_on_open else 0.05)
+        deadline = self.clock.now() + window
+        first_query = self.clock.now() + (0.3 if self.reset_on_open else 0.05)
         next_query = first_query
         garbled = 0
-        while self.clock() < deadline:
+        while self.clock.now() < deadline:
             if self._recovering and self.while_reconnecting is not None:
                 self.while_reconnecting()  # the caller's keep-alive, also while the board boots
-            if self.clock() >= next_query:
+            if self.clock.now() >= next_query:
                 self._query()
-                next_query = self.clock() + 0.2
+                next_query = self.clock.now() + 0.2
             for msg in self._read(0.02, raise_alarm=False):
                 if msg.kind in ("banner", "status"):
                     self.connected_by = msg.kind
@@ -344,8 +350,8 @@ class GrblTable(OpenClose):
             raise DeviceTimeout(f"{self.link.name}: no GRBL banner and no status report within {window:g} s; {hint}")
         log.info("%s: no banner and no status report; trying a soft reset", self.link.name)
         self._write(b"\x18")
-        deadline = self.clock() + self.timeout_s
-        while self.clock() < deadline:
+        deadline = self.clock.now() + self.timeout_s
+        while self.clock.now() < deadline:
             for msg in self._read(0.05, raise_alarm=False):
                 if msg.kind in ("banner", "status"):
                     self.connected_by = "soft reset"
@@ -380,20 +386,20 @@ class GrblTable(OpenClose):
         """Terminate any half-line left in GRBL's buffer and drain stale replies. False if no reply
         came (GRBL locked by a critical alarm ignores lines until reset)."""
         self._write(b"\n")
-        deadline = self.clock() + min(self.timeout_s, 1.5)
+        deadline = self.clock.now() + min(self.timeout_s, 1.5)
         got = False
-        while self.clock() < deadline and not got:
+        while self.clock.now() < deadline and not got:
             got = any(m.is_response for m in self._read(0.05, raise_alarm=False))
-        quiet_until = self.clock() + 0.1
-        while self.clock() < quiet_until:
+        quiet_until = self.clock.now() + 0.1
+        while self.clock.now() < quiet_until:
             if self._read(0.02, raise_alarm=False):
-                quiet_until = self.clock() + 0.1
+                quiet_until = self.clock.now() + 0.1
         return got
 
     # --- reading ----------------------------------------------------------------------------
     def _query(self) -> None:
         self._write(b"?")
-        self._last_query_t = self.clock()
+        self._last_query_t = self.clock.now()
 
     def _handle(self, msg: GrblMessage) -> None:
         if msg.kind == "status":
@@ -401,7 +407,7 @@ class GrblTable(OpenClose):
             if st.wco is not None:
                 self._wco = st.wco
             self._track_stall(st)
-            self.last_status, self.last_status_t = st, self.clock()
+            self.last_status, self.last_status_t = st, self.clock.now()
             self.status_reports += 1
         elif msg.is_response:
             if self.program is not None and self.program.in_flight:
@@ -460,7 +466,7 @@ class GrblTable(OpenClose):
         if self.reconnect_s <= 0 or self._recovering:
             raise exc
         self._recovering = True
-        t0 = self.clock()
+        t0 = self.clock.now()
         prog, self.program = self.program, None
         # once the link was given up for lost, one quick try (the stop path after a LinkLost must not
         # wait a whole window per command it sends)
@@ -472,7 +478,7 @@ class GrblTable(OpenClose):
         try:
             while True:
                 try:  # the whole window the first time (its message names it), what is left after that
-                    self.link.reconnect(window if first else max(0.0, deadline - self.clock()),
+                    self.link.reconnect(window if first else max(0.0, deadline - self.clock.now()),
                                         idle=self.while_reconnecting)
                     first = False
                 except LinkLost:
@@ -488,14 +494,14 @@ class GrblTable(OpenClose):
                 except (DeviceTimeout, LinkError) as silent:
                     # the port is back but the board still boots (a reset: GRBL answers nothing for ~2 s), or
                     # the port dropped again: try again within the same window
-                    if self.clock() >= deadline:
+                    if self.clock.now() >= deadline:
                         self.link_lost = True
                         raise LinkLost(f"{self.link.name}: the port came back but GRBL did not answer within "
                                        f"{window:g} s ({silent})") from silent
                     log.info("%s: the port is back, GRBL not yet; trying again", self.link.name)
             self.link_lost = False
             st = self.status()
-            dt = self.clock() - t0
+            dt = self.clock.now() - t0
             if base_state(st.state) == "Alarm":
                 raise GrblAlarm(self.session_alarm, f"after the link came back ({dt:.1f} s; the controller reset or "
                                                     "alarmed): the position may be lost; home or unlock before moving")
@@ -541,7 +547,7 @@ class GrblTable(OpenClose):
             raise self._stall_error()
 
     def _maybe_poll(self) -> None:
-        if self.clock() - self._last_query_t >= self.status_period:
+        if self.clock.now() - self._last_query_t >= self.status_period:
             self._query()
 
     def _program_ended(self, prog: ProgramStream) -> None:
@@ -559,7 +565,7 @@ class GrblTable(OpenClose):
             self._wco = None
         self._write((line + "\n").encode("ascii"))
         got: list[GrblMessage] = []
-        deadline = self.clock() + timeout_s
+        deadline = self.clock.now() + timeout_s
         while True:
             for msg in self._read(0.02):
                 if msg.is_response and msg.fields.get("orphan"):
@@ -573,10 +579,10 @@ class GrblTable(OpenClose):
                 if msg.kind != "status":
                     got.append(msg)
                 elif msg.report.state in BUSY and msg.report.state != "Hold":
-                    deadline = max(deadline, self.clock() + timeout_s)  # busy, not silent
+                    deadline = max(deadline, self.clock.now() + timeout_s)  # busy, not silent
             if self.stalled:
                 raise self._stall_error()
-            if self.clock() > deadline:
+            if self.clock.now() > deadline:
                 raise DeviceTimeout(f"{self.link.name}: no reply to {line!r} within {timeout_s:g} s")
             self._maybe_poll()
 
@@ -590,11 +596,11 @@ class GrblTable(OpenClose):
         if self.locked and self.session_alarm in (1, 2):
             raise GrblAlarm(self.session_alarm, _alarm_advice(self.session_alarm))
         if (max_age_s is not None and self.last_status is not None and self._wco is not None
-                and self.clock() - self.last_status_t <= max_age_s):
+                and self.clock.now() - self.last_status_t <= max_age_s):
             return self._table_status()
-        wait = self._last_query_t + self.status_period - self.clock()
+        wait = self._last_query_t + self.status_period - self.clock.now()
         if 0 < wait < self.status_period and self.last_status_t >= self._last_query_t:
-            self.sleep(wait)  # bounded polling rate
+            self.clock.sleep(wait)  # bounded polling rate
         self._next_report(self.status_period)
         if self._wco is None:
             n = 0
@@ -607,17 +613,17 @@ class GrblTable(OpenClose):
 
     def _next_report(self, pace_s: float) -> None:
         before = self.status_reports
-        deadline = self.clock() + self.timeout_s
+        deadline = self.clock.now() + self.timeout_s
         self._query()
-        next_query = self.clock() + max(pace_s, 0.25)
+        next_query = self.clock.now() + max(pace_s, 0.25)
         while self.status_reports == before:
-            if self.clock() > deadline:
+            if self.clock.now() > deadline:
                 hint = " (locked by a critical alarm? `labctl table reset`)" if self.locked else ""
                 raise DeviceTimeout(f"{self.link.name}: no status report within {self.timeout_s:g} s{hint}")
             self._read(0.01, raise_alarm=False)
-            if self.clock() >= next_query and self.status_reports == before:
+            if self.clock.now() >= next_query and self.status_reports == before:
                 self._query()  # a '?' may be lost on a noisy line
-                next_query = self.clock() + max(pace_s, 0.25)
+                next_query = self.clock.now() + max(pace_s, 0.25)
 
     def _report(self) -> StatusReport:
         """The last status report; ProtocolError when none has arrived yet."""
@@ -671,7 +677,7 @@ class GrblTable(OpenClose):
             raise TableBusy(f"{self.link.name}: a program is streaming")
         timeout_s = self.homing_timeout_s if timeout_s is None else timeout_s
         self._write(b"$H\n")
-        t0 = self.clock()
+        t0 = self.clock.now()
         next_report = t0 + progress_every_s
         while True:
             for msg in self._read(0.05):  # ALARM:N raises GrblAlarm
@@ -683,7 +689,7 @@ class GrblTable(OpenClose):
                     raise GrblError(msg.number, "$H")
                 if msg.kind == "banner":
                     raise GrblReset(f"{self.link.name}: controller reset while homing")
-            now = self.clock()
+            now = self.clock.now()
             if now - t0 > timeout_s:
                 raise DeviceTimeout(f"{self.link.name}: homing not finished after {timeout_s:g} s "
                                     "(raise the table's homing_timeout_s or pass --timeout)")
@@ -750,14 +756,14 @@ class GrblTable(OpenClose):
         TableStall if it reports Run without moving for ``stall_reports`` reports."""
         timeout_s = self.timeout_s if timeout_s is None else timeout_s
         self.stream(["G4P0"])
-        deadline = self.clock() + timeout_s
+        deadline = self.clock.now() + timeout_s
         while True:
             st = self.status()
             if st.state == "Idle":
                 return st
             if self.stalled:
                 raise self._stall_error()
-            if self.clock() > deadline:
+            if self.clock.now() > deadline:
                 raise DeviceTimeout(f"{self.link.name}: table not idle after {timeout_s:g} s (state {st.state})")
 
     def move_to(self, x: float, y: float, feed_mm_min: float | None = None, z: float | None = None) -> TableStatus:
@@ -792,12 +798,12 @@ class GrblTable(OpenClose):
         if self.program is not None:
             self._program_ended(self.program)
         self._write(b"\x18")
-        t0 = self.clock()
+        t0 = self.clock.now()
         deadline = t0 + (self.timeout_s if timeout_s is None else timeout_s)
         next_query = t0 + self.banner_wait_s
         asked = False
         self.reset_confirmed_by = ""
-        while self.clock() < deadline:
+        while self.clock.now() < deadline:
             for msg in self._read(0.05, raise_alarm=False):
                 if msg.kind == "banner":
                     self._read(0.05, raise_alarm=False)  # the rest of the banner burst ([MSG:…])
@@ -807,7 +813,7 @@ class GrblTable(OpenClose):
                     state = base_state(msg.report.state)
                     if state in ("Idle", "Alarm", "Check"):
                         log.warning("%s: no banner %.1f s after a soft reset, but GRBL reports %s: taken as "
-                                    "reset", self.link.name, self.clock() - t0, msg.report.state)
+                                    "reset", self.link.name, self.clock.now() - t0, msg.report.state)
                         self._after_reset("status")
                         return
                     if state in BUSY:  # asked after the 0x18 and still holding/running: it never arrived
@@ -815,11 +821,11 @@ class GrblTable(OpenClose):
                                     self.link.name, msg.report.state)
                         self._write(b"\x18")
                         asked = False
-                        next_query = self.clock() + self.banner_wait_s
-            if self.clock() >= next_query:
+                        next_query = self.clock.now() + self.banner_wait_s
+            if self.clock.now() >= next_query:
                 self._query()
                 asked = True
-                next_query = self.clock() + 0.25
+                next_query = self.clock.now() + 0.25
         raise DeviceTimeout(f"{self.link.name}: no banner and no status report within "
                             f"{deadline - t0:g} s after a soft reset")
 
@@ -842,11 +848,11 @@ class GrblTable(OpenClose):
         to give up on early. Returns the confirmed status (Idle, or Alarm); DeviceError if it still
         reports motion afterwards."""
         self.feed_hold()
-        t0 = self.clock()
+        t0 = self.clock.now()
         try:
             n = 0
             last_pos, last_change = None, t0
-            while self.clock() - t0 < max_hold_s and not self.locked:  # a locked GRBL has already stopped
+            while self.clock.now() - t0 < max_hold_s and not self.locked:  # a locked GRBL has already stopped
                 try:
                     self._next_report(0.05)
                 except DeviceTimeout:
@@ -859,8 +865,8 @@ class GrblTable(OpenClose):
                     break
                 pos = st.mpos if st.mpos is not None else st.wpos
                 if pos != last_pos:
-                    last_pos, last_change = pos, self.clock()
-                elif self.clock() - last_change > 1.0:
+                    last_pos, last_change = pos, self.clock.now()
+                elif self.clock.now() - last_change > 1.0:
                     break
         finally:
             self.reset(timeout_s=max(self.timeout_s, self.stop_confirm_s))
@@ -878,3 +884,4 @@ def _alarm_advice(code: int | None) -> str:
 
 if TYPE_CHECKING:  # mypy (.ci/run) fails here when GrblTable drifts from the Table protocol
     _table_protocol: type[Table] = GrblTable
+    _program_protocol: type[Program] = ProgramStream

@@ -7,11 +7,13 @@ Units: mm, s, rad. Poses are 4×4 ``T_<to>_<from>``.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from collections.abc import Iterable
+from collections.abc import Callable, Collection, Iterable
 from dataclasses import dataclass, field
 from typing import Protocol, Self, runtime_checkable
 
 import numpy as np
+
+from ..timebase import Clock
 
 
 class OpenClose(ABC):
@@ -94,6 +96,53 @@ class Table(Protocol):
         """Stop motion now and discard the rest of the program (feed hold then reset); returns the
         confirmed status afterwards."""
         ...
+    def ensure_ready(self, unlock: bool | None = None) -> TableStatus:
+        """A status before a job, with an Alarm unlocked only if ``unlock`` says so; raises if it is not ready."""
+        ...
+    def start_program(self, lines: Iterable[str], line_numbers: Iterable[int] | None = None) -> Program:
+        """Start streaming a G-code program without waiting: the caller pumps the returned :class:`Program`."""
+        ...
+    def watch(self) -> None:
+        """Read status at its rate without waiting (a dropped link is noticed while the table runs a program)."""
+    def wait_idle(self, timeout_s: float | None = None) -> TableStatus:
+        """Wait until the table is Idle; returns that status."""
+        ...
+
+    #: called while the driver waits to reconnect a dropped link: the caller's keep-alive (other devices)
+    while_reconnecting: Callable[[], None] | None
+
+    @property
+    def clock(self) -> Clock:
+        """The clock the driver's timeouts and waits run on (the virtual clock in the simulated lab)."""
+        ...
+
+
+@runtime_checkable
+class Program(Protocol):
+    """A G-code program being streamed to the table, pumped by the run loop (:meth:`Table.start_program`)."""
+
+    @property
+    def table(self) -> Table:
+        """The table it runs on."""
+        ...
+    @property
+    def active(self) -> bool:
+        """Lines are still to be sent or acknowledged."""
+        ...
+    @property
+    def done(self) -> bool:
+        """Every line was acknowledged."""
+        ...
+    @property
+    def acked(self) -> int:
+        """Lines acknowledged so far."""
+        ...
+    def pump(self, timeout_s: float = 0.0) -> bool:
+        """Send what fits in the controller's buffer and read its replies (waiting up to ``timeout_s``)."""
+        ...
+    def progress(self) -> dict:
+        """Lines acknowledged and total, as plain data for the record."""
+        ...
 
 
 @dataclass(frozen=True)
@@ -114,10 +163,37 @@ class Robot(Protocol):
         """Connect to the controller and negotiate the dialect (docs/protocols/robot.md)."""
     def close(self) -> None:
         """Release the port (stop motion first with :meth:`stop`)."""
-    def segment(self, T_base_flange: np.ndarray, duration_s: float, segment_id: int) -> tuple[float, float]:
-        """Queue a timed task-space segment ending at ``T_base_flange`` (controller interpolates a quintic);
-        returns its (t0, t1) on the controller's clock, s."""
+    def segment(self, T_base_flange: np.ndarray, duration_s: float, segment_id: int, *,
+                end_velocity_mm_s: np.ndarray | None = None, end_omega_rad_s: np.ndarray | None = None,
+                replace: bool = False, profile: str | None = None,
+                end_acceleration_mm_s2: np.ndarray | None = None,
+                limits: dict | None = None) -> tuple[float, float]:
+        """Queue (``replace``: start now, dropping the queue) a timed task-space segment ending at
+        ``T_base_flange``, with the controller's ``quintic`` or (dialect 1.2) ``ruckig`` ``profile`` under
+        its own ``limits``; returns its (t0, t1) on the controller's clock, s (NaN when it does not say)."""
         ...
+    def choose_profile(self, wanted: str) -> str:
+        """The segment profile to plan with: ``wanted`` if the controller runs it, else ``quintic``."""
+        ...
+    def poll(self) -> None:
+        """Collect the asynchronous reports (``@DONE``) received so far, without waiting."""
+    @property
+    def done_ids(self) -> Collection[int]:
+        """Ids of the segments the controller reported done (``@DONE``), newest last."""
+        ...
+    @property
+    def latched(self) -> str | None:
+        """The fault the controller reported latched (``stopped``, ``watchdog``) at the last status, or None."""
+        ...
+    def clear(self) -> None:
+        """Clear a latched fault so the controller accepts motion again."""
+    def emergency_stop(self) -> None:
+        """Best effort: send STOP without waiting for its reply; never raises."""
+    def ensure_ready(self) -> RobotStatus:
+        """A status before a job; raises if the controller holds a latched fault."""
+        ...
+    def maybe_heartbeat(self) -> None:
+        """A heartbeat if none was sent for the heartbeat period."""
     def stop(self) -> None:
         """Brake to rest with the controller's stop ramp, dropping queued segments."""
     def status(self) -> RobotStatus:
@@ -126,3 +202,11 @@ class Robot(Protocol):
         """Move to the home pose."""
     def heartbeat(self) -> None:
         """Tell the controller the host is alive (its watchdog stops the robot when heartbeats stop)."""
+
+    #: called while the driver waits to reconnect a dropped link: the caller's keep-alive (other devices)
+    while_reconnecting: Callable[[], None] | None
+
+    @property
+    def clock(self) -> Clock:
+        """The clock the driver's timeouts and waits run on (the virtual clock in the simulated lab)."""
+        ...

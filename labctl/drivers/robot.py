@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import logging
 import re
-import time
 from collections import deque
 from collections.abc import Callable
 from typing import TYPE_CHECKING
@@ -31,9 +30,14 @@ import numpy as np
 
 from ..errors import DeviceError
 from ..geometry import make_T, matrix_to_rotvec, rotvec_to_matrix
+from ..timebase import Clock
+from .clock import MONOTONIC
 from .interfaces import OpenClose, Robot, RobotStatus
 from .robot_protocol import ERROR_CODES, MAX_SEQ, RobotReply, fmt_num, format_request, parse_reply
 from .serial_link import DeviceTimeout, LinkError, LinkLost, SerialLink
+
+if TYPE_CHECKING:
+    from ..config import RobotConfig
 
 log = logging.getLogger(__name__)
 
@@ -63,9 +67,9 @@ class SerialRobot(OpenClose):
     """:class:`labctl.drivers.interfaces.Robot` over a serial port or pyserial URL."""
 
     def __init__(self, port: str | None = None, baud: int = 9600, *, timeout_s: float = 2.0,
-                 heartbeat_s: float = 0.2, serial_port=None, clock: Callable[[], float] = time.monotonic,
-                 sleep: Callable[[float], None] = time.sleep, retries: int = 1, reconnect_s: float = 0.0):
-        self.link = SerialLink(port, baud, timeout_s, port=serial_port, clock=clock, sleep=sleep,
+                 heartbeat_s: float = 0.2, serial_port=None, clock: Clock = MONOTONIC,
+                 retries: int = 1, reconnect_s: float = 0.0):
+        self.link = SerialLink(port, baud, timeout_s, port=serial_port, clock=clock,
                                name=f"robot@{port or getattr(serial_port, 'port', 'port')}")
         self.timeout_s = timeout_s
         self.heartbeat_s = heartbeat_s
@@ -91,10 +95,10 @@ class SerialRobot(OpenClose):
         self._latched: str | None = None  # the fault the host itself latched (STOP) and has not cleared
 
     @classmethod
-    def from_config(cls, cfg, **kw) -> SerialRobot:
+    def from_config(cls, cfg: RobotConfig, **kw) -> SerialRobot:
         """From a :class:`labctl.config.RobotConfig`; ``port``/``baud`` in ``kw`` override it only when not None."""
         port, baud = kw.pop("port", None), kw.pop("baud", None)
-        kw.setdefault("reconnect_s", getattr(cfg, "reconnect_s", 0.0))
+        kw.setdefault("reconnect_s", cfg.reconnect_s)
         return cls(port or cfg.port, baud or cfg.baud, timeout_s=cfg.timeout_s,
                    heartbeat_s=cfg.heartbeat_s, **kw)
 
@@ -189,7 +193,7 @@ class SerialRobot(OpenClose):
                 self._recover(exc, command)  # raises unless `command` may safely be sent again
                 recovered, attempt = True, attempt - 1
                 continue
-            self._last_sent = self.clock()
+            self._last_sent = self.clock.now()
             msg = parse_reply(got)
             if not msg.ok and msg.code == 5:  # damaged on the way: send it again
                 last_exc = RobotError(5, msg.text, command)
@@ -218,7 +222,7 @@ class SerialRobot(OpenClose):
         if self.reconnect_s <= 0 or self._recovering:
             raise exc
         self._recovering = True
-        t0 = self.clock()
+        t0 = self.clock.now()
         window = 0.0 if self.link_lost else self.reconnect_s
         if not self.link_lost:
             log.warning("%s: link dropped (%s); reconnecting for up to %g s", self.link.name, exc, window)
@@ -235,7 +239,7 @@ class SerialRobot(OpenClose):
             self.negotiate()
             st = self.status()
             fault = self._latched
-            dt = self.clock() - t0
+            dt = self.clock.now() - t0
             lost = None
             if sum(f == "boot" for f in self.faults) > boots:
                 lost = "the controller restarted (@BOOT)"
@@ -368,7 +372,7 @@ class SerialRobot(OpenClose):
 
     def maybe_heartbeat(self) -> None:
         """Send HB if nothing was sent for ``heartbeat_s``."""
-        if self.clock() - self._last_sent >= self.heartbeat_s:
+        if self.clock.now() - self._last_sent >= self.heartbeat_s:
             self.heartbeat()
 
     def limits(self) -> dict:
@@ -419,11 +423,11 @@ class SerialRobot(OpenClose):
 
     def wait_done(self, segment_id: int, timeout_s: float) -> None:
         """Wait for ``@DONE segment_id`` (heartbeating meanwhile); RobotFault if the watchdog tripped."""
-        deadline = self.clock() + timeout_s
+        deadline = self.clock.now() + timeout_s
         while segment_id not in self.done_ids:
             if self.faults:
                 raise RobotFault(f"{self.link.name}: robot stopped by its controller ({self.faults[-1]})")
-            if self.clock() > deadline:
+            if self.clock.now() > deadline:
                 raise DeviceTimeout(f"{self.link.name}: segment {segment_id} not done within {timeout_s:g} s")
             for line in self._lines(min(self.heartbeat_s / 2, 0.05)):
                 self._on_async(line)

@@ -12,17 +12,18 @@ the ``socket://``, ``rfc2217://``, ``spy://`` and ``loop://`` URLs all work. It 
 * a DEBUG log of every byte, with timestamps, on the ``labctl.drivers.serial_link`` logger.
 
 Single-threaded and polled: the caller drives it, which keeps it deterministic in virtual time
-(pass ``clock``/``sleep`` of the virtual clock and a ready ``port`` such as
+(pass the virtual clock (a :class:`labctl.timebase.Clock`) and a ready ``port`` such as
 :class:`labctl.sim.emulators.link.EmulatorPort`).
 """
 
 from __future__ import annotations
 
 import logging
-import time
 from collections.abc import Callable
 
 from ..errors import DeviceError
+from ..timebase import Clock, wire_time_s
+from .clock import MONOTONIC
 from .interfaces import OpenClose
 
 log = logging.getLogger(__name__)
@@ -50,7 +51,7 @@ class SerialLink(OpenClose):
 
 
     def __init__(self, url: str | None = None, baud: int = 9600, timeout_s: float = 2.0, *, port=None,
-                 clock: Callable[[], float] = time.monotonic, sleep: Callable[[float], None] = time.sleep,
+                 clock: Clock = MONOTONIC,
                  name: str = "", pace_baud: int | None = None, eol: bytes = b"\n", poll_s: float = 0.005,
                  serial_kwargs: dict | None = None):
         if url is None and port is None:
@@ -59,7 +60,6 @@ class SerialLink(OpenClose):
         self.baud = baud
         self.timeout_s = timeout_s
         self.clock = clock
-        self.sleep = sleep
         self.name = name or (url or getattr(port, "port", "port"))
         self.pace_baud = pace_baud
         self.eol = eol
@@ -100,7 +100,7 @@ class SerialLink(OpenClose):
             except (serial.SerialException, OSError, ValueError) as exc:
                 raise LinkError(f"cannot open {self.url}: {exc}") from exc
         self._buf.clear()
-        log.debug("%s open t=%.6f", self.name, self.clock())
+        log.debug("%s open t=%.6f", self.name, self.clock.now())
 
     def close(self) -> None:
         """Close the port; a close that fails is logged, not raised."""
@@ -111,7 +111,7 @@ class SerialLink(OpenClose):
                 log.debug("%s close failed", self.name, exc_info=True)
         if self._given_port is None:
             self.port = None
-        log.debug("%s closed t=%.6f", self.name, self.clock())
+        log.debug("%s closed t=%.6f", self.name, self.clock.now())
 
     def reconnect(self, window_s: float = 5.0, backoff_s: float = 0.1, max_backoff_s: float = 2.0,
                   idle: Callable[[], None] | None = None, idle_every_s: float = 0.05) -> int:
@@ -121,7 +121,7 @@ class SerialLink(OpenClose):
         open attempt (``window_s`` 0: exactly one attempt). ``idle`` is called at least every
         ``idle_every_s`` while waiting between tries: the caller's keep-alive (other devices'
         watchdogs, its own heartbeats), which a blocking wait would otherwise starve."""
-        t0 = self.clock()
+        t0 = self.clock.now()
         pause = backoff_s
         attempts = 0
         last: Exception | None = None
@@ -130,19 +130,19 @@ class SerialLink(OpenClose):
             attempts += 1
             try:
                 self.open()
-                log.info("%s reconnected after %d attempts (%.2f s)", self.name, attempts, self.clock() - t0)
+                log.info("%s reconnected after %d attempts (%.2f s)", self.name, attempts, self.clock.now() - t0)
                 return attempts
             except LinkError as exc:
                 last = exc
-            remaining = window_s - (self.clock() - t0)
+            remaining = window_s - (self.clock.now() - t0)
             if remaining <= 0:
                 raise LinkLost(f"{self.name}: the link dropped and did not come back within {window_s:g} s "
                                f"({attempts} attempts; last: {last})")
-            wake = self.clock() + min(pause, remaining)
-            while (left := wake - self.clock()) > 0:
+            wake = self.clock.now() + min(pause, remaining)
+            while (left := wake - self.clock.now()) > 0:
                 if idle is not None:
                     idle()
-                self.sleep(min(left, idle_every_s) if idle is not None else left)
+                self.clock.sleep(min(left, idle_every_s) if idle is not None else left)
             pause = min(pause * 2.0, max_backoff_s)
 
     # --- bytes ------------------------------------------------------------------------------
@@ -151,17 +151,17 @@ class SerialLink(OpenClose):
         if not self.is_open:
             raise LinkError(f"{self.name}: port is not open")
         if self.pace_baud:
-            wait = self._next_write_t - self.clock()
+            wait = self._next_write_t - self.clock.now()
             if wait > 0:
-                self.sleep(wait)
-            self._next_write_t = max(self._next_write_t, self.clock()) + len(data) * 10.0 / self.pace_baud
+                self.clock.sleep(wait)
+            self._next_write_t = max(self._next_write_t, self.clock.now()) + wire_time_s(len(data), self.pace_baud)
         try:
             self.port.write(data)
         except Exception as exc:
             raise LinkError(f"{self.name}: write failed: {exc}") from exc
         self.bytes_out += len(data)
         if log.isEnabledFor(logging.DEBUG):
-            log.debug("%s tx t=%.6f %r", self.name, self.clock(), bytes(data))
+            log.debug("%s tx t=%.6f %r", self.name, self.clock.now(), bytes(data))
 
     def _read_available(self) -> bytes:
         try:
@@ -177,12 +177,12 @@ class SerialLink(OpenClose):
         if data:
             self.bytes_in += len(data)
             if log.isEnabledFor(logging.DEBUG):
-                log.debug("%s rx t=%.6f %r", self.name, self.clock(), bytes(data))
+                log.debug("%s rx t=%.6f %r", self.name, self.clock.now(), bytes(data))
         return data
 
     def poll(self, timeout_s: float = 0.0) -> bool:
         """Read whatever has arrived, waiting up to ``timeout_s`` for the first byte. True if any came."""
-        deadline = self.clock() + timeout_s
+        deadline = self.clock.now() + timeout_s
         while True:
             data = self._read_available()
             if data:
@@ -193,10 +193,10 @@ class SerialLink(OpenClose):
                     del self._buf[:cut]
                     self.bytes_discarded += cut
                 return True
-            now = self.clock()
+            now = self.clock.now()
             if now >= deadline:
                 return False
-            self.sleep(min(self.poll_s, deadline - now))
+            self.clock.sleep(min(self.poll_s, deadline - now))
 
     def discard_input(self) -> bytes:
         """Drop everything received so far (and not yet read as lines)."""
@@ -217,12 +217,12 @@ class SerialLink(OpenClose):
     def readline(self, timeout_s: float | None = None) -> str | None:
         """The next complete line (without its end), or None after ``timeout_s``."""
         timeout_s = self.timeout_s if timeout_s is None else timeout_s
-        deadline = self.clock() + timeout_s
+        deadline = self.clock.now() + timeout_s
         while True:
             line = self._pop_line()
             if line is not None:
                 return line
-            remaining = deadline - self.clock()
+            remaining = deadline - self.clock.now()
             if remaining <= 0:  # read what has arrived even with no time to wait (timeout 0: non-blocking)
                 return self._pop_line() if self.poll(0.0) else None
             self.poll(remaining)
@@ -251,9 +251,9 @@ class SerialLink(OpenClose):
         timeout_s = self.timeout_s if timeout_s is None else timeout_s
         if line is not None:
             self.send_line(line)
-        deadline = self.clock() + timeout_s
+        deadline = self.clock.now() + timeout_s
         while True:
-            remaining = deadline - self.clock()
+            remaining = deadline - self.clock.now()
             got = self.readline(max(remaining, 0.0))
             if got is None:
                 raise DeviceTimeout(f"{self.name}: no reply to {line!r} within {timeout_s:g} s")

@@ -220,7 +220,7 @@ class Sweep:
         write_sweep_report(self.path, summary)
 
 
-def run_sweep(lab, *, n: int, trajectory: str, speeds: Sequence[float], objects: Sequence[str] | None,
+def run_sweep(lab, *, n: int, trajectory: str | Sequence[str], speeds: Sequence[float], objects: Sequence[str] | None,
               seed: int = 0, record: bool = True, n_jobs: int = 1, scheduler: str | None = None,
               profiles: Sequence[str | None] = (None,),
               resume: Path | None = None, on_result: Callable[[dict, int, int], None] | None = None) -> dict:
@@ -318,7 +318,7 @@ def summarize(results: list[dict]) -> dict:
     by_traj = {t: {"n": len(rs), "success_rate": sum(r["correct"] for r in rs) / len(rs),
                    "time_to_identity_s_median": _median([r["time_to_identity_s"] for r in rs if r["correct"]]),
                    "wait_s_median": _median([r["stages"].get("wait") for r in rs if r["correct"]])}
-               for t in sorted({r.get("trajectory") for r in results} - {None})
+               for t in sorted({r["trajectory"] for r in results if r.get("trajectory") is not None})
                for rs in [[r for r in results if r.get("trajectory") == t]]}
     return {
         "n": len(results),

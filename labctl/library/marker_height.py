@@ -58,7 +58,7 @@ def measure_marker_height(image: np.ndarray, camera, T_w_c: np.ndarray, radii_mm
     ``radii_mm`` the marker radii the library uses: an ellipse fixes a circle's distance only up
     to its radius, so the radius whose distance lies nearest ``standoff_mm`` is taken (sizes are
     ≥ 1.25× apart, the stand-off is held to a few %; without a stand-off, the first radius).
-    ``detect_kw`` go to :func:`labctl.vision.detect_markers` (hue window, saturation, response).
+    ``detect_kw`` go to :func:`labctl.vision.detect_markers` (colour ``thresholds``, response).
     None when no trusted marker is found or its pose cannot be solved.
     """
     markers = detect_markers(image, **detect_kw)

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 import time
+from typing import Any
 
 from ..drivers.cameras import open_camera
 from ..errors import DeviceError, LabctlError
@@ -168,7 +169,7 @@ def _where(role: str, lab) -> tuple[str, str]:
 def check_device(role: str, lab) -> dict:
     """Open, identify and query one device: {role, kind, where, ok, verdict, identity, status, seconds}."""
     kind, where = _where(role, lab)
-    out = {"role": role, "kind": kind, "where": where, "ok": False, "identity": None, "status": None}
+    out: dict[str, Any] = {"role": role, "kind": kind, "where": where, "ok": False, "identity": None, "status": None}
     t0 = time.perf_counter()
     dev = None
     try:

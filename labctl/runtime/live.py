@@ -26,13 +26,19 @@ import sys
 import threading
 import time
 import traceback
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
+from multiprocessing.connection import Connection
+from multiprocessing.process import BaseProcess
 from pathlib import Path
+from typing import Any, cast
 
 from ..config import load_lab
 from ..decisions import messages as m
+from ..drivers.clock import RealClock
 from ..errors import DeviceError, LabctlError
+from ..timebase import wire_time_s
 
 # forkserver: each process still starts from a clean interpreter (no inherited threads or ports),
 # but the heavy imports (scipy.stats via filterpy, trimesh, OpenCV) are paid once, in the server,
@@ -115,10 +121,6 @@ def _endpoints(args: WorkerArgs, ctl, timeout_s: float = 60.0) -> WorkerArgs:
                                        frame_server=ep.get("frame_server"), origin=ep["origin"],
                                        await_endpoints=False, shared_clock=True)
     raise PeerLost(f"the simulated lab's ports did not come within {timeout_s:g} s")
-
-
-def _now(origin: float) -> float:
-    return time.monotonic() - origin
 
 
 EXIT_INTERRUPTED = 130  # SIGINT (Ctrl-C)
@@ -372,7 +374,7 @@ def _camera(args: WorkerArgs, lab, role: str):
 
         return FrameClient(args.frame_server[0], role, args.frame_server[1])
     origin = args.origin
-    return open_device(f"{role}_camera", lab, clock=lambda: time.monotonic() - origin)
+    return open_device(f"{role}_camera", lab, clock=RealClock(origin=origin).now)
 
 
 def _fixed_camera(args: WorkerArgs, lab):
@@ -404,15 +406,17 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
     table = robot = camera = link = planner = None
     code, reason, report_code = 0, "run finished", None
     alive = {"hello": False, "t_link": 0.0}
+    run_clock = RealClock(origin=args.origin)  # the run's clock: s since the origin all its processes share
 
     def keep_alive(robot_too: bool = True) -> None:
         """While a device's link is being reconnected (the loop waits): feed the robot's watchdog
         (unless its link is the one down), and beat to the peer and the supervisor, so the
         reconnect window, not their silence limits, decides how the run ends."""
-        now = _now(args.origin)
+        now = run_clock.now()
         if robot_too and robot is not None and robot.link.is_open:
             robot.maybe_heartbeat()
         if alive["hello"] and now - alive["t_link"] >= hl.heartbeat_s:
+            assert link is not None  # the peer said hello on it
             link.send(m.Heartbeat(role="predictor", seq=int(now * 10) % 65536, t=now))
             alive["t_link"] = now
         ctl.beat(now, {"stage": "reconnecting"})
@@ -435,6 +439,7 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
         link = open_link(hl, "predictor", local_end=link_end, authkey=_authkey(args, lab),
                          on_refused=lambda line: log("link_refused", line=line))
         args = _endpoints(args, ctl)
+        run_clock = RealClock(origin=args.origin)
         log("run_clock", role="predictor", origin=args.origin)  # the origin every ``t`` of the record is on
         marks["endpoints"] = time.time()
         # the sim lab's ports when it serves them, else the driver files' (None keeps the file's port);
@@ -454,6 +459,7 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
         def table_ready() -> None:
             # a simulated table's power-up lock may be released (the simulator knows where it is); a real
             # table in Alarm must be homed or unlocked by the operator first (its position may be lost)
+            assert table is not None  # submitted only with a table
             table.open()
             marks["table_connected"] = time.time()
             st = table.ensure_ready(unlock=lab.table.kind == "sim")
@@ -461,7 +467,7 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
             robot_checked.wait()  # the robot's limits first: a run that cannot go on moves nothing
             if robot_ok.is_set():
                 _to_start(table, lab.config.run.trajectory_start_mm.get(args.spec["trajectory"]), log,
-                          lambda: _now(args.origin), status=st)
+                          run_clock.now, status=st)
             marks["table_ready"] = time.time()
 
         # The table's connection (board reset, banner, sync, $I, unlock: ~1 s of 9600-bps round trips)
@@ -486,8 +492,8 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
         if table is not None:
             table.while_reconnecting = keep_alive
         robot.while_reconnecting = lambda: keep_alive(robot_too=False)
-        now = _now(args.origin)
-        planner = PredictorPlanner(ctx, robot, link.send, log, t_start=now, clock=lambda: _now(args.origin),
+        now = run_clock.now()
+        planner = PredictorPlanner(ctx, robot, link.send, log, t_start=now, clock=run_clock.now,
                                    rest=robot_rest, shared_clock=args.shared_clock,
                                    family=None if table is None else args.spec["trajectory"])
         progress = None
@@ -504,7 +510,7 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
         t_beat, hello = 0.0, False
         while not planner.finished:
             if progress is not None:
-                progress.pump(_now(args.origin))
+                progress.pump(run_clock.now())
             # once tracking, also the frames exposed while the loop was busy (a robot command's round trip);
             # before, the newest only, as the virtual run (docs/notes/planning.md, "Frames caught up")
             catch_up = lab.config.run.catch_up_frames if planner.t_first_seen is not None else 1
@@ -521,10 +527,10 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
                     raise PeerLost(f"the recognizer stopped: {msg.reason}")
                 if not isinstance(msg, m.Heartbeat | m.Hello):
                     if plausible(msg, ctx):
-                        planner.on_message(msg, _now(args.origin))
+                        planner.on_message(msg, run_clock.now())
                     else:
-                        log("message_dropped", t=_now(args.origin), message=repr(msg)[:200])
-            now = _now(args.origin)
+                        log("message_dropped", t=run_clock.now(), message=repr(msg)[:200])
+            now = run_clock.now()
             planner.tick(now)
             if not hello:  # the first message starts the peer's dead_after_s clock: only once the loop runs
                 link.send(m.Hello(role="predictor", pid=os.getpid()))
@@ -540,14 +546,14 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
             ctl.beat(now, {"stage": planner.stage, "estimate": est, "views": planner.views_used,
                            "link": {"sent": link.bytes_sent, "received": link.bytes_received},
                            "robot": planner.robot_path[-1][1] if planner.robot_path else None})
-        result = planner.result(_now(args.origin))
+        result = planner.result(run_clock.now())
         result["startup_wall"] = marks
         link.send(m.Stop(reason="run finished"))
-        result["link"] = {**link.stats(), "baud": hl.baud, "duration_s": _now(args.origin) - planner.t_start}
+        result["link"] = {**link.stats(), "baud": hl.baud, "duration_s": run_clock.now() - planner.t_start}
         result["link"]["max_peer_gap_s"] = round(peer.max_gap_s, 3)
         if hl.transport == "serial":
-            bits = 10.0 * max(link.bytes_sent, link.bytes_received)  # full duplex: the busier direction
-            result["link"]["utilisation"] = bits / hl.baud / max(result["link"]["duration_s"], 1e-9)
+            busy = wire_time_s(max(link.bytes_sent, link.bytes_received), hl.baud)  # full duplex: the busier direction
+            result["link"]["utilisation"] = busy / max(result["link"]["duration_s"], 1e-9)
         ctl.send("result", result)
     except BaseException as exc:  # every way out, SIGTERM and Ctrl-C included, ends in the stop below
         code, reason = _exit_reason("predictor", exc)
@@ -558,12 +564,12 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
     finally:
         starting.shutdown(wait=False, cancel_futures=True)
         outcomes = _release(log, "predictor", reason, stop={"robot": robot, "table": table},
-                            close=(camera, robot, table), link=link, tell_peer=code != 0, t=_now(args.origin),
+                            close=(camera, robot, table), link=link, tell_peer=code != 0, t=run_clock.now(),
                             clear_robot=code == 0 and planner is not None and planner.finished)
         from .stopping import summary
 
         if code != 0:  # a supervisor confirms the stop itself and says so; a lone worker says it here
-            ctl.send("error", reason if getattr(ctl, "supervised", True) else f"{reason}; {summary(outcomes)}",
+            ctl.send("error", reason if ctl.supervised else f"{reason}; {summary(outcomes)}",
                      report_code)
         ctl.send("stopped", outcomes)
         if record is not None:
@@ -604,11 +610,13 @@ def recognizer_main(args: WorkerArgs, link_end, control) -> int:
     _log_to_record(record, "recognizer")
     camera = link = None
     code, reason, report_code = 0, "run finished", None
+    run_clock = RealClock(origin=args.origin)  # the run's clock: s since the origin all its processes share
     try:
         ctx = RunContext.load(lab)
         link = open_link(hl, "recognizer", local_end=link_end, authkey=_authkey(args, lab),
                          on_refused=lambda line: log("link_refused", line=line))
         args = _endpoints(args, ctl)
+        run_clock = RealClock(origin=args.origin)
         log("run_clock", role="recognizer", origin=args.origin)
         camera = _mobile_camera(args, lab)
         camera.open()
@@ -618,7 +626,7 @@ def recognizer_main(args: WorkerArgs, link_end, control) -> int:
         t_beat = 0.0
         while True:
             msg = link.recv(timeout=0.05)
-            now = _now(args.origin)
+            now = run_clock.now()
             if msg is not None:
                 peer.heard()
             if isinstance(msg, m.Stop):
@@ -627,7 +635,7 @@ def recognizer_main(args: WorkerArgs, link_end, control) -> int:
             if msg is not None and not isinstance(msg, m.Heartbeat | m.Hello):
                 for reply in recognizer.handle(msg):
                     link.send(reply)
-            now = _now(args.origin)
+            now = run_clock.now()
             if now - t_beat >= hl.heartbeat_s:
                 link.send(m.Heartbeat(role="recognizer", seq=int(now * 10) % 65536, t=now))
                 t_beat = now
@@ -643,7 +651,7 @@ def recognizer_main(args: WorkerArgs, link_end, control) -> int:
                 log("worker_error", role="recognizer", error=reason, traceback=traceback.format_exc())
     finally:
         _release(log, "recognizer", reason, stop={}, close=(camera,), link=link, tell_peer=code != 0,
-                 t=_now(args.origin))
+                 t=run_clock.now())
         if code != 0:
             ctl.send("error", reason, report_code)
         if record is not None:
@@ -692,16 +700,17 @@ def sim_server_main(lab_root: str, spec: dict, conn, run_dir: str | None = None)
     # the record opens with the workers' own events: ground truth waits for the supervisor's "record"
     pending: list[tuple[str, dict]] = []
     live_log = record.event if record is not None else (lambda *a, **k: None)
+    logging_on = {"on": False}  # the supervisor said "record": ground truth goes to the record from then on
 
     def log(name, **fields):
-        if pending is not None and not getattr(log, "on", False):
+        if pending is not None and not logging_on["on"]:
             pending.append((name, fields))
             del pending[:-200]
         else:
             live_log(name, **fields)
 
     def start_logging():
-        log.on = True
+        logging_on["on"] = True
         for name, fields in pending:
             live_log(name, **fields)
         pending.clear()
@@ -796,7 +805,7 @@ class LiveRun:
     lab_root: Path
     spec: dict
     run_dir: Path | None = None
-    on_status: object = None  # callable(dict) for the live view
+    on_status: Callable[[dict], None] | None = None  # for the live view
 
     def run(self) -> dict:
         """Run the live run: load the lab, start the simulated lab (if any) and both workers, supervise them, and return
@@ -835,7 +844,7 @@ class LiveRun:
         from .transport import local_pair, pty_null_modem
 
         stack = contextlib.ExitStack()
-        procs: dict[str, mp.Process] = {}
+        procs: dict[str, BaseProcess] = {}
         controls = {}
         sim_conn = sim_proc = None
         endpoints = {}
@@ -852,7 +861,7 @@ class LiveRun:
                 _start_quietly(sim_proc)
                 child.close()
             a_end, b_end = local_pair() if lab.host_link.transport == "local" else (None, None)
-            extra = {"predictor": {}, "recognizer": {}}
+            extra: dict[str, dict[str, Any]] = {"predictor": {}, "recognizer": {}}
             if lab.host_link.transport == "tcp":  # both workers on this PC: a fresh key for this run alone
                 import secrets
 
@@ -869,8 +878,9 @@ class LiveRun:
             self._say("starting the workers")
             # the workers start at once, beside the simulated lab: they load the lab, calibration and
             # library meanwhile and wait for its ports before opening any device (issue 16, start-up)
-            base = dict(lab_root=str(lab.root), run_dir=str(self.run_dir) if self.run_dir else None,
+            base: dict[str, Any] = dict(lab_root=str(lab.root), run_dir=str(self.run_dir) if self.run_dir else None,
                         spec=self.spec, origin=origin, await_endpoints=sim_conn is not None)
+            p: BaseProcess
             for role, end in (("predictor", a_end), ("recognizer", b_end)):
                 parent, child = CTX.Pipe()
                 p = CTX.Process(target=_worker_process, name=f"labctl-{role}", daemon=True,
@@ -927,7 +937,7 @@ class LiveRun:
             if sim_proc is not None:
                 if sim_proc.is_alive():
                     with contextlib.suppress(OSError):
-                        sim_conn.send("stop")
+                        cast(Connection, sim_conn).send("stop")  # the simulated lab's pipe, with its process
                     sim_proc.join(timeout=3)
                 if sim_proc.is_alive():  # it ignores SIGTERM, like the hardware it stands for
                     sim_proc.kill()
@@ -1087,12 +1097,13 @@ class LiveRun:
                                          role, hung=True)
                 else:
                     stopped_since.pop(role, None)
-                if last_beat[role] is None:
+                beat = last_beat[role]
+                if beat is None:
                     if now - started > hl.start_timeout_s:
                         raise WorkerDied(f"the {role} worker did not start within {hl.start_timeout_s:g} s",
                                          role, hung=True)
-                elif now - last_beat[role] > hl.stall_after_s:
-                    raise WorkerDied(f"the {role} worker stopped answering ({now - last_beat[role]:.1f} s)",
+                elif now - beat > hl.stall_after_s:
+                    raise WorkerDied(f"the {role} worker stopped answering ({now - beat:.1f} s)",
                                      role, hung=True)
             time.sleep(0.02)
 

@@ -149,8 +149,7 @@ class LiveSimLab:
         start = self.spec.get("table_start_mm") or trajectory_program(
             self.spec["trajectory"], self.spec["speed_mm_s"], lab)[0]
         self.origin = time.monotonic()
-        clock = RealClock()
-        clock._origin = self.origin
+        clock = RealClock(origin=self.origin)
         self.sim = sim = SimLab.build(lab, clock, ports=self._ports(), scene=self._scene(obj, placement),
                                       seed=int(self.spec.get("seed", 0)), baud=self.spec.get("baud"),
                                       table_start_mm=start, fps=self.spec.get("fps"))
@@ -282,6 +281,7 @@ class ServedLab(LiveSimLab):
         device = params.get("device")
         if device not in self.bridges:
             raise ValueError(f"device must be one of {', '.join(self.bridges)}, got {device!r}")
+        assert device is not None
 
         def flag(name: str) -> bool | None:
             if name not in params:
@@ -424,6 +424,7 @@ def write_served_lab(lab: Lab, out, served: ServedLab, *, force: bool = False):
         dump(tmp / "lab.yaml", dataclasses.asdict(config), "written by `labctl sim serve --lab-out`")
         real = "written by `labctl sim serve --lab-out`: real driver kinds on the served endpoints"
         if not no_table:
+            assert lab.table is not None
             table = dataclasses.replace(lab.table, kind="grbl", port=ep["table"], origin_w_mm=(0.0, 0.0, 0.0))
             dump(tmp / "drivers/table.yaml", dataclasses.asdict(table), real)
         robot = dataclasses.replace(lab.robot, kind="serial", port=ep["robot"])

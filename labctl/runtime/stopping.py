@@ -24,6 +24,7 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Mapping
+from typing import Any
 
 #: GRBL states in which no axis moves (a reset during motion leaves ``Alarm``)
 TABLE_STILL_STATES = ("Idle", "Alarm", "Hold:0", "Sleep", "Door:0", "Check")
@@ -35,7 +36,7 @@ def _err(exc: BaseException) -> str:
 
 def stop_table(table) -> dict:
     """Feed hold, soft reset (``GrblTable.stop``), then one status read: the table's outcome."""
-    out = {"device": "table", "stopped": False, "confirmed": False, "state": None, "error": None}
+    out: dict[str, Any] = {"device": "table", "stopped": False, "confirmed": False, "state": None, "error": None}
     try:
         table.stop()
         out["stopped"] = True
@@ -65,7 +66,7 @@ ROBOT_BRAKE_LIMIT_S = 3.0
 def stop_robot(robot, brake_limit_s: float = ROBOT_BRAKE_LIMIT_S) -> dict:
     """The robot's ``STOP`` (acknowledged), then ``STATUS`` reads until it reports no motion (it
     brakes on its own profile) or ``brake_limit_s`` passes: the robot's outcome."""
-    out = {"device": "robot", "stopped": False, "confirmed": False, "state": None, "error": None}
+    out: dict[str, Any] = {"device": "robot", "stopped": False, "confirmed": False, "state": None, "error": None}
     try:
         robot.stop()
         out["stopped"] = True
@@ -75,7 +76,7 @@ def stop_robot(robot, brake_limit_s: float = ROBOT_BRAKE_LIMIT_S) -> dict:
             robot.emergency_stop()
         except Exception as exc2:  # noqa: BLE001
             out["error"] += f"; emergency stop: {_err(exc2)}"
-    sleep = getattr(getattr(robot, "link", None), "sleep", time.sleep)
+    sleep = robot.clock.sleep  # the simulated lab's virtual clock, or wall time
     try:
         polls = max(1, int(brake_limit_s / 0.05))
         for i in range(polls):
@@ -106,7 +107,7 @@ def clear_own_stop(robot, outcome: dict) -> None:
         outcome["error"] = f"clear: {_err(exc)}"
 
 
-def stop_devices(devices: Mapping[str, object]) -> list[dict]:
+def stop_devices(devices: Mapping[str, Any]) -> list[dict]:
     """Stop and confirm each open device (``{"robot": r, "table": t}``; ``None`` entries skipped).
 
     First every device gets its immediate stop, without waiting for any reply (GRBL feed hold, the
@@ -215,7 +216,7 @@ def send_stop_bytes(lab, endpoints: Mapping, timeout_s: float = 0.3, fds: Mappin
     fds = fds or {}
 
     def send(name: str, port: str, baud: int) -> None:
-        out = {"device": name, "stopped": False, "confirmed": False, "state": None, "error": None}
+        out: dict[str, Any] = {"device": name, "stopped": False, "confirmed": False, "state": None, "error": None}
         results[name] = out
         if name in fds:
             try:
@@ -266,6 +267,7 @@ def confirm_stopped(lab, endpoints: Mapping) -> list[dict]:
                         "error": "no port configured"})
             continue
         t0 = time.monotonic()
+        dev: GrblTable | SerialRobot
         try:
             if name == "table":
                 dev = GrblTable.from_config(lab.table, port=port, baud=baud)

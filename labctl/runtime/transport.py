@@ -52,6 +52,7 @@ from dataclasses import dataclass
 
 from ..decisions.messages import Message, MessageError, decode, encode
 from ..errors import DeviceError
+from ..timebase import BITS_PER_BYTE, wire_time_s
 
 log = logging.getLogger("labctl.link")
 
@@ -64,7 +65,6 @@ __all__ = [
 
 LogHook = Callable[[str, Message, int], None]
 
-BITS_PER_BYTE = 10  # RS-232 8N1: start bit, 8 data bits, stop bit
 SERIAL_OVERHEAD = 5  # leading 00, COBS code byte, 2 CRC bytes, trailing 00
 MAX_SERIAL_PAYLOAD = 252  # message + CRC within one 254-byte COBS block
 TCP_HEADER = struct.Struct(">H")
@@ -157,11 +157,6 @@ def authenticate(sock: socket.socket, key: bytes, *, server: bool, timeout_s: fl
     finally:
         with contextlib.suppress(OSError):
             sock.settimeout(None)
-
-
-def wire_time_s(nbytes: int, baud: int = 9600) -> float:
-    """Seconds to clock ``nbytes`` over an 8N1 serial line at ``baud`` (10 bits per byte)."""
-    return nbytes * BITS_PER_BYTE / baud
 
 
 # ---- serial framing: pure functions -------------------------------------------------------------

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 
@@ -21,6 +22,7 @@ from ..decisions.context import RunContext
 from ..decisions.predictor import PredictorPlanner
 from ..decisions.recognizer import Recognizer
 from ..drivers.interfaces import Frame
+from ..timebase import wire_time_s
 
 
 @dataclass(frozen=True)
@@ -53,7 +55,7 @@ class LinkMeter:
         """Bytes and messages by type, the total, and the link utilisation at ``baud`` over ``duration_s`` (s)."""
         total = sum(self.bytes.values())
         return {"bytes": dict(self.bytes), "messages": dict(self.count), "total_bytes": total,
-                "utilisation": total * 10.0 / baud / duration_s if duration_s > 0 else 0.0}
+                "utilisation": wire_time_s(total, baud) / duration_s if duration_s > 0 else 0.0}
 
 
 def choose_object(ctx: RunContext, spec: TrialSpec, rng: np.random.Generator) -> str:
@@ -102,7 +104,7 @@ def simulate_run(lab: Lab, ctx: RunContext, spec: TrialSpec, record=None, *, hea
                                  family=None if lab.table is None else spec.trajectory)
     seq = {"mobile": 0}
 
-    mobile_period = 1.0 / float(getattr(lab.mobile_camera, "fps", 0.0) or 30.0)
+    mobile_period = 1.0 / float(lab.mobile_camera.fps or 30.0)
 
     def grab_mobile() -> Frame:
         # exposed now (the robot stands still), delivered one frame time later: exposure and read-out
@@ -144,7 +146,7 @@ def simulate_run(lab: Lab, ctx: RunContext, spec: TrialSpec, record=None, *, hea
             # as the robot stands still), not at the next frame. The emulator sends it when it is
             # advanced past the arrival, so it is advanced to the arrival first (+0.1 ms: the reply
             # gives the arrival to 1 µs, rounded either way).
-            clock.sleep_until(predictor.t1c + 1e-4)
+            clock.sleep_until(cast(float, predictor.t1c) + 1e-4)  # set: an arrival is awaited
             sim.advance(clock.now())
             sim.robot.poll()
             clock.sleep_until(wake)

@@ -1,4 +1,5 @@
-"""Clocks for the simulated lab: virtual time (trials, tests) and real time (live runs).
+"""Clocks for the simulated lab: virtual time (trials, tests) and real time (live runs; ``RealClock`` lives in
+:mod:`labctl.drivers.clock`); both implement the :class:`labctl.timebase.Clock` protocol.
 
 Both have the same interface: ``now()`` in seconds, ``sleep(dt)``, ``sleep_until(t)``, and are
 callable (``clock()`` is ``clock.now()``), so they can be handed to anything that wants a
@@ -9,11 +10,11 @@ from __future__ import annotations
 
 import math
 import threading
-import time
 
+from ..drivers.clock import RealClock
+from ..timebase import Clock, ClockError
 
-class ClockError(ValueError):
-    """A clock asked to go backwards or by a non-finite amount."""
+__all__ = ["Clock", "ClockError", "RealClock", "VirtualClock"]
 
 
 class VirtualClock:
@@ -64,46 +65,3 @@ class VirtualClock:
     def is_virtual(self) -> bool:
         """True: time moves only when advanced."""
         return True
-
-
-class RealClock:
-    """Wall time (monotonic), reported as seconds since ``t0`` seconds before creation."""
-
-    def __init__(self, t0: float = 0.0):
-        self._origin = time.monotonic() - float(t0)
-
-    def now(self) -> float:
-        """Seconds since the clock's origin (monotonic wall time)."""
-        return time.monotonic() - self._origin
-
-    __call__ = now
-
-    def advance(self, dt: float) -> float:
-        """Real time cannot be pushed: this waits ``dt`` seconds (same contract as the virtual clock)."""
-        self.sleep(dt)
-        return self.now()
-
-    def sleep(self, dt: float) -> None:
-        """Sleep ``dt`` seconds of wall time (≤ 0: no-op); NaN or infinite raises ClockError."""
-        if not math.isfinite(dt):
-            raise ClockError(f"cannot sleep {dt} s")
-        if dt > 0:
-            time.sleep(dt)
-
-    def sleep_until(self, t: float) -> None:
-        """Sleep until the clock reads ``t`` (s); a NaN or infinite ``t`` raises ClockError."""
-        if not math.isfinite(t):
-            raise ClockError(f"cannot sleep until {t}")
-        while True:
-            remaining = t - self.now()
-            if remaining <= 0:
-                return
-            time.sleep(remaining)
-
-    @property
-    def is_virtual(self) -> bool:
-        """False: wall time."""
-        return False
-
-
-Clock = VirtualClock | RealClock

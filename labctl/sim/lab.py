@@ -160,14 +160,12 @@ class SimLab:
 
             def port(role):
                 emu, rate = emulators[role]
-                return EmulatorPort(emu, clock.now, baud or rate, sleep=clock.sleep, name=f"sim://{role}")
+                return EmulatorPort(emu, clock, baud or rate, name=f"sim://{role}")
 
             if "table" in emulators:
-                self.table = GrblTable.from_config(table_config(self.lab), serial_port=port("table"), clock=clock.now,
-                                                   sleep=clock.sleep)
+                self.table = GrblTable.from_config(table_config(self.lab), serial_port=port("table"), clock=clock)
             if "robot" in emulators:
-                self.robot = SerialRobot.from_config(self.lab.robot, serial_port=port("robot"), clock=clock.now,
-                                                     sleep=clock.sleep)
+                self.robot = SerialRobot.from_config(self.lab.robot, serial_port=port("robot"), clock=clock)
             return
         from .emulators.pty import run_on_pty
 

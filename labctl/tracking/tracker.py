@@ -39,7 +39,7 @@ frames may be dropped).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Literal, Protocol, cast
 
 import numpy as np
 from filterpy.kalman import IMMEstimator, KalmanFilter
@@ -125,6 +125,35 @@ def _stop_profiles(tau, r1, r2) -> tuple[np.ndarray, ...]:
         up = np.where(sig <= 0, 0.0, np.where(sig < r2, sig * sig / (2 * r2), sig - 0.5 * r2))
         up_rate = np.where(sig <= 0, 0.0, np.where(sig < r2, sig / r2, 1.0))
     return down, down_rate, up, up_rate
+
+
+class TrackingSettings(Protocol):
+    """What the tracker reads of its config (:class:`labctl.config.lab.TrackingConfig`, the one source of these
+    settings' defaults; tracking imports nothing of labctl, so it names the fields it reads)."""
+
+    @property
+    def model(self) -> str:
+        """``cv``, ``ct``, ``ca`` or ``imm``."""
+        ...
+
+    @property
+    def process_noise(self) -> float:
+        """Square root of the quiet modes' white-acceleration density (mm/s^1.5)."""
+        ...
+
+    @property
+    def measurement_noise_mm(self) -> float:
+        """The centroid's standard deviation per axis on the table plane (mm)."""
+        ...
+
+    @property
+    def gate_sigma(self) -> float:
+        """Mahalanobis distance beyond which a measurement is rejected."""
+        ...
+
+    def curve_prior_for(self, family: str | None) -> float:
+        """The IMM's prior probability of a curve for motion of ``family`` (None: family-blind)."""
+        ...
 
 
 @dataclass(frozen=True)
@@ -305,6 +334,10 @@ def _cubature(x: np.ndarray, P: np.ndarray, fn) -> tuple[np.ndarray, np.ndarray]
 class MarkerTracker:
     """Track one marker centroid on the table plane and predict it at any future time.
 
+    Built from the lab's tracking config ``cfg`` (``MarkerTracker(cfg, family=…)``; its model, noises, gate and
+    curve prior have their defaults only there); a keyword overrides one of them, and the tracker's own
+    settings below, which no lab tunes, have their defaults here.
+
     ``model``: ``"cv"``, ``"ct"``, ``"imm"`` or ``"ca"`` (see the module doc). ``process_noise``
     is the square root of the white-acceleration density (mm/s^1.5) of the quiet CV and CT
     modes; ``curvature_noise`` that of the CT curvature's random walk (mm⁻¹/s^0.5);
@@ -326,17 +359,19 @@ class MarkerTracker:
 
     def __init__(
         self,
-        model: ModelName = "imm",
-        process_noise: float = 0.05,
-        measurement_noise_mm: float = 0.7,
-        gate_sigma: float = 4.0,
+        cfg: TrackingSettings,
         *,
+        family: str | None = None,
+        model: str | None = None,
+        process_noise: float | None = None,
+        measurement_noise_mm: float | None = None,
+        gate_sigma: float | None = None,
+        curve_prior: float | None = None,
         curvature_noise: float = 1e-5,
         maneuver_noise: float = 3.0,
         jerk_noise: float = 2.0,
         imm_switch_prob: float = 1e-6,
         maneuver_exit_prob: float = 0.3,
-        curve_prior: float = 0.05,
         init_speed_sigma: float = 150.0,
         init_curvature_sigma: float = 1 / 80,
         init_accel_sigma: float = 50.0,
@@ -346,6 +381,13 @@ class MarkerTracker:
         refit_window_s: float = 10.0,
         stop_accel_mm_s2: float | None = None,
     ) -> None:
+        # the lab's settings come from its config (lab.yaml ``tracking:``), the only place they have defaults;
+        # a keyword given here overrides one (tests, benches)
+        model = cfg.model if model is None else model
+        process_noise = cfg.process_noise if process_noise is None else process_noise
+        measurement_noise_mm = cfg.measurement_noise_mm if measurement_noise_mm is None else measurement_noise_mm
+        gate_sigma = cfg.gate_sigma if gate_sigma is None else gate_sigma
+        curve_prior = cfg.curve_prior_for(family) if curve_prior is None else curve_prior
         if model not in MODELS:
             raise TrackingError(f"unknown tracking model {model!r} (expected {', '.join(MODELS)})")
         for name, value in (
@@ -368,7 +410,7 @@ class MarkerTracker:
                             ("curve_prior", curve_prior)):
             if not 0.0 < value < 1.0:
                 raise TrackingError(f"{name} must be in (0, 1), got {value!r}")
-        self.model = model
+        self.model = cast(ModelName, model)  # checked against MODELS above
         self.gate_sigma = float(gate_sigma)
         self.max_misses = int(max_misses)
         self._corner_window = float(corner_window_s)
@@ -401,27 +443,16 @@ class MarkerTracker:
         return self._init_sigmas[1]
 
     @classmethod
-    def from_config(cls, cfg, family: str | None = None, **overrides) -> MarkerTracker:
-        """Build from a :class:`labctl.config.lab.TrackingConfig` (model, noises, gate, curve prior).
+    def from_config(cls, cfg: TrackingSettings, family: str | None = None, **overrides) -> MarkerTracker:
+        """Build from a :class:`labctl.config.lab.TrackingConfig` (model, noises, gate, curve prior): the same as
+        ``MarkerTracker(cfg, family=family, **overrides)``.
 
         ``family``: the trajectory family of the program labctl drives the table along (``line``,
         ``arc``, ``circle``, ``zigzag``; paper §5.1), which sets the IMM's curve prior from
         ``tracking.family_prior``; None, ``external`` or an unknown name (motion labctl does not
         drive, a G-code file) keeps the family-blind ``tracking.curve_prior``.
         """
-        kw = dict(
-            model=cfg.model,
-            process_noise=cfg.process_noise,
-            measurement_noise_mm=cfg.measurement_noise_mm,
-            gate_sigma=cfg.gate_sigma,
-        )
-        for name in ("curvature_noise", "maneuver_noise", "imm_switch_prob", "curve_prior", "refit_window_s"):
-            if hasattr(cfg, name):
-                kw[name] = getattr(cfg, name)
-        if hasattr(cfg, "curve_prior_for"):
-            kw["curve_prior"] = cfg.curve_prior_for(family)
-        kw.update(overrides)
-        return cls(**kw)
+        return cls(cfg, family=family, **overrides)
 
     # -- state -------------------------------------------------------------------------------
 

@@ -18,6 +18,7 @@ from .markers import (
     MarkerImageError,
     MarkerQuality,
     MarkerSearch,
+    MarkerThresholds,
     detect_markers,
     detect_markers_windowed,
     find_markers,
@@ -29,7 +30,7 @@ from .response import Response, ResponseError, parse_response
 
 __all__ = [
     "CirclePose", "CirclePoseError", "DualityResult", "Ellipse", "EllipseFitError", "Marker", "MarkerImageError",
-    "MarkerPoses", "MarkerQuality", "MarkerSearch", "marker_poses", "resolve_duality_noise_aware",
+    "MarkerPoses", "MarkerQuality", "MarkerSearch", "MarkerThresholds", "marker_poses", "resolve_duality_noise_aware",
     "Response", "ResponseError", "find_markers", "parse_response", "why_no_marker",
     "circle_poses", "detect_markers", "detect_markers_windowed", "ellipse_from_cv_box", "fit_ellipse",
     "marker_pose_candidates",

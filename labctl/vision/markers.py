@@ -100,6 +100,21 @@ def _as_bgr(image) -> np.ndarray:
 
 
 @lru_cache(maxsize=32)
+@dataclass(frozen=True)
+class MarkerThresholds:
+    """The marker colour's HSV window, the one place its keywords live: hue (degrees, may straddle 0°, e.g.
+    (−15, 15) for red), minimum saturation and minimum value (0–1). A camera's own come from its driver file
+    (``marker_hue_deg``, ``marker_min_saturation``)."""
+
+    hue_range_deg: tuple[float, float] = (-15.0, 15.0)
+    min_saturation: float = 0.45
+    min_value: float = 0.15
+
+
+#: red markers under the lab's lights (the detector's defaults)
+RED = MarkerThresholds()
+
+
 def _hsv_ranges(hue_range_deg: tuple[float, float], min_saturation: float, min_value: float):
     """(cvtColor code, [(lower, upper) inRange bounds]) for an HSV colour window; cached, since
     the same window is used frame after frame."""
@@ -133,12 +148,11 @@ def _red_mask(img: np.ndarray, hue_range_deg, min_saturation: float, min_value: 
     return mask
 
 
-def red_mask(image_bgr: np.ndarray, hue_range_deg=(-15.0, 15.0), min_saturation: float = 0.45,
-             min_value: float = 0.15) -> np.ndarray:
-    """Binary mask (uint8 0/255) of pixels whose HSV hue lies in ``hue_range_deg`` (degrees,
+def red_mask(image_bgr: np.ndarray, thresholds: MarkerThresholds = RED) -> np.ndarray:
+    """Binary mask (uint8 0/255) of pixels whose HSV hue lies in ``thresholds.hue_range_deg`` (degrees,
     may straddle 0°, e.g. (−15, 15) for red), saturation ≥ ``min_saturation`` and value ≥
     ``min_value`` (both 0–1). Hue and saturation do not change under shading."""
-    return _red_mask(_as_bgr(image_bgr), hue_range_deg, min_saturation, min_value)
+    return _red_mask(_as_bgr(image_bgr), thresholds.hue_range_deg, thresholds.min_saturation, thresholds.min_value)
 
 
 @dataclass(frozen=True)
@@ -702,10 +716,10 @@ def _hue_distance(h: np.ndarray, lo: float, hi: float) -> np.ndarray:
     return np.maximum(d - half, 0.0)
 
 
-def why_no_marker(image_bgr, *, hue_range_deg=(-15.0, 15.0), min_saturation: float = 0.45,
-                  min_value: float = 0.15, min_area_px: int = 12) -> str:
+def why_no_marker(image_bgr, *, thresholds: MarkerThresholds = RED, min_area_px: int = 12) -> str:
     """One sentence on why an image holds no pixels of the marker colour window: too dark, too
     pale (saturation), or no pixels in the hue window with the nearest saturated hue seen."""
+    hue_range_deg, min_saturation, min_value = thresholds.hue_range_deg, thresholds.min_saturation, thresholds.min_value
     img = _as_bgr(image_bgr)[::2, ::2]  # every 4th pixel is plenty for a diagnosis
     hsv = cv2.cvtColor(img, cv2.COLOR_BGR2HSV_FULL).reshape(-1, 3).astype(np.float32)
     h, s, v = hsv[:, 0] * (360.0 / 256.0), hsv[:, 1] / 255.0, hsv[:, 2] / 255.0
@@ -744,14 +758,13 @@ def why_no_marker(image_bgr, *, hue_range_deg=(-15.0, 15.0), min_saturation: flo
             "(`labctl vision learn-color` measures the window)")
 
 
-def find_markers(image_bgr, *, hue_range_deg=(-15.0, 15.0), min_saturation: float = 0.45,
-                 min_value: float = 0.15, window=None, min_area_px: int = 12, keep_border: bool = False,
-                 max_fit_rms_px: float = 1.5, max_markers: int = 32, response="linear",
+def find_markers(image_bgr, *, thresholds: MarkerThresholds = RED, window=None, min_area_px: int = 12,
+                 keep_border: bool = False, max_fit_rms_px: float = 1.5, max_markers: int = 32, response="linear",
                  min_axis_ratio: float = 0.2, max_residual_rel: float = 0.12) -> MarkerSearch:
     """Find circular markers of the configured colour in a BGR image, with each one's quality
     and, when none is found, the reason (paper §3.1 and §4.1's marker thresholding).
 
-    1. **Colour threshold** in HSV (``hue_range_deg``, may straddle 0°; ``min_saturation``,
+    1. **Colour threshold** in HSV (``thresholds``: ``hue_range_deg``, may straddle 0°; ``min_saturation``,
        ``min_value`` 0–1): shading scales R, G, B together and leaves hue and saturation alone.
     2. **Blobs** are the external contours of the mask, i.e. of the *hole-filled* mask, so a
        highlight or a speck inside a marker does not cut it. Blobs smaller than
@@ -791,12 +804,12 @@ def find_markers(image_bgr, *, hue_range_deg=(-15.0, 15.0), min_saturation: floa
         return MarkerSearch([], [], "the search window is outside the image")
     ox, oy, x1, y1 = clipped
     sub = img[oy:y1, ox:x1]
-    kw = dict(hue_range_deg=hue_range_deg, min_saturation=min_saturation, min_value=min_value)
+    hue_range_deg, min_saturation, min_value = thresholds.hue_range_deg, thresholds.min_saturation, thresholds.min_value
     mask = _red_mask(sub, hue_range_deg, min_saturation, min_value)
     sh, sw = mask.shape
     bx, by, bw, bh = cv2.boundingRect(mask)
     if bw == 0 or bh == 0:
-        return MarkerSearch([], [], why_no_marker(sub, min_area_px=min_area_px, **kw))
+        return MarkerSearch([], [], why_no_marker(sub, thresholds=thresholds, min_area_px=min_area_px))
 
     def linear_crop(y0, y1, x0, x1):
         return resp.linearise(src[y0:y1, x0:x1])
@@ -879,9 +892,8 @@ def _merge_searches(found, rejected, found2, rejected2):
     return out, rejected2 if only_second else rejected
 
 
-def detect_markers(image_bgr, *, hue_range_deg=(-15.0, 15.0), min_saturation: float = 0.45,
-                   min_value: float = 0.15, window=None, min_area_px: int = 12, keep_border: bool = False,
-                   max_fit_rms_px: float = 1.5, max_markers: int = 32, refine: bool = True,
+def detect_markers(image_bgr, *, thresholds: MarkerThresholds = RED, window=None, min_area_px: int = 12,
+                   keep_border: bool = False, max_fit_rms_px: float = 1.5, max_markers: int = 32, refine: bool = True,
                    response="linear", include_suspect: bool = False) -> list[Marker]:
     """The trusted markers of :func:`find_markers` (sorted by decreasing area, possibly empty);
     with ``include_suspect`` also those carrying a quality flag (partial, rough, …), and with
@@ -892,8 +904,8 @@ def detect_markers(image_bgr, *, hue_range_deg=(-15.0, 15.0), min_saturation: fl
     quality. Raises :class:`MarkerImageError` only for an array that is not an image.
     """
     if refine:
-        every = find_markers(image_bgr, hue_range_deg=hue_range_deg, min_saturation=min_saturation,
-                             min_value=min_value, window=window, min_area_px=min_area_px, keep_border=keep_border,
+        every = find_markers(image_bgr, thresholds=thresholds, window=window, min_area_px=min_area_px,
+                             keep_border=keep_border,
                              max_fit_rms_px=max_fit_rms_px, max_markers=max_markers, response=response).markers
         if include_suspect:
             return every
@@ -906,7 +918,7 @@ def detect_markers(image_bgr, *, hue_range_deg=(-15.0, 15.0), min_saturation: fl
         return []
     ox, oy, x1, y1 = clipped
     sub = img[oy:y1, ox:x1]
-    mask = _red_mask(sub, hue_range_deg, min_saturation, min_value)
+    mask = _red_mask(sub, thresholds.hue_range_deg, thresholds.min_saturation, thresholds.min_value)
     sh, sw = mask.shape
     # label only the bounding box of all red pixels: labelling costs per pixel, markers are small
     bx, by, bw, bh = cv2.boundingRect(mask)
@@ -958,15 +970,15 @@ def detect_markers_windowed(image_bgr, predicted_xy, half_size_px: float, **kw) 
     return detect_markers(image_bgr, **kw)
 
 
-def red_blob_centroid(image, near_px=None, *, hue_range_deg=(-15.0, 15.0), min_saturation: float = 0.45,
-                      min_area_px: int = 4, max_jump_px: float = 60.0):
+def red_blob_centroid(image, near_px=None, *, thresholds: MarkerThresholds = RED, min_area_px: int = 4,
+                      max_jump_px: float = 60.0):
     """Centroid (px, image x right / y down) of the red blob nearest ``near_px`` (or the largest when
     ``near_px`` is None), or None when no blob of ``min_area_px`` is within ``max_jump_px`` of it.
 
     The paper's fixed-camera front end (§5.2): a red filter, then the blob's centroid. Used when
     no blob passes as an ellipse — a marker on a vertical face is a thin sliver from overhead.
     """
-    mask = red_mask(image, hue_range_deg, min_saturation)
+    mask = red_mask(image, thresholds)
     n, _, stats, centroids = cv2.connectedComponentsWithStats(mask, connectivity=8)
     ok = [i for i in range(1, n) if stats[i, cv2.CC_STAT_AREA] >= min_area_px]
     if not ok:

@@ -18,7 +18,7 @@ from .annotate import annotate_marker, circle_centre_pixel
 from .circle_pose import CirclePoseError, MarkerPoses, marker_poses
 from .duality import DEFAULT_MIN_MARGIN_RAD, DualityResult, resolve_duality_noise_aware
 from .ellipse import EllipseFitError
-from .markers import Marker, find_markers
+from .markers import RED, Marker, MarkerThresholds, find_markers
 from .response import Response
 
 __all__ = ["ImagePoseError", "PosedImages", "annotate_posed", "pose_images"]
@@ -52,8 +52,7 @@ class PosedImages:
 
 def pose_images(images: list[np.ndarray], camera, radius_mm: float, *, motion: str = "translation",
                 plane_normal=None, min_margin_rad: float = DEFAULT_MIN_MARGIN_RAD,
-                hue_range_deg: tuple[float, float] = (-15.0, 15.0), min_saturation: float = 0.45,
-                response: Response | str = "linear") -> PosedImages:
+                thresholds: MarkerThresholds = RED, response: Response | str = "linear") -> PosedImages:
     """Detect, fit and pose every marker of each BGR image (``camera``: a :class:`~labctl.geometry.Camera`,
     marker radius ``radius_mm``); with two images, resolve the duality of their one marker under
     ``motion`` ("translation", or "planar" with ``plane_normal`` in C). Raises :class:`ImagePoseError`
@@ -68,8 +67,7 @@ def pose_images(images: list[np.ndarray], camera, radius_mm: float, *, motion: s
         if img.shape[1] != camera.width or img.shape[0] != camera.height:
             raise ImagePoseError(i, f"image is {img.shape[1]}×{img.shape[0]}, camera file says "
                                     f"{camera.width}×{camera.height}")
-        search = find_markers(img, hue_range_deg=tuple(hue_range_deg), min_saturation=min_saturation,
-                              response=response)
+        search = find_markers(img, thresholds=thresholds, response=response)
         if not search.markers:
             raise ImagePoseError(i, f"no marker found: {search.reason}")
         if len(images) == 2 and len(search.markers) > 1:

@@ -16,6 +16,7 @@ import time
 from dataclasses import dataclass, field
 
 from labctl.config import RobotConfig
+from labctl.drivers.clock import MONOTONIC
 from labctl.sim.emulators.grbl import GrblEmulator
 from labctl.sim.emulators.pty import PtyDevice
 from labctl.sim.emulators.robot import RobotEmulator
@@ -163,17 +164,68 @@ def run_cli(capsys, *args) -> tuple[int, str, str]:
     return code, out, err
 
 
-class SegmentRobot:
+class StillRobot:
+    """The whole :class:`labctl.drivers.interfaces.Robot` protocol for a controller that runs only the quintic
+    profile, reports no ``@DONE`` and no latched fault, and stands at ``pose`` (4×4; the identity unless set):
+    the base of the tests' fake robots, which override what their test is about."""
+
+    pose = None
+    done_ids: tuple = ()
+    latched = None
+    while_reconnecting = None
+    clock = MONOTONIC
+
+    def open(self):
+        pass
+
+    def close(self):
+        pass
+
+    def status(self):
+        import numpy as np
+
+        from labctl.drivers.interfaces import RobotStatus
+
+        pose = np.eye(4) if self.pose is None else self.pose
+        return RobotStatus(T_base_flange=pose, moving=False, segment_id=0, t=0.0)
+
+    def segment(self, T_base_flange, duration_s, segment_id, **kw):
+        return float("nan"), float("nan")
+
+    def choose_profile(self, wanted):
+        return "quintic"
+
+    def poll(self):
+        pass
+
+    def clear(self):
+        pass
+
+    def stop(self):
+        pass
+
+    def emergency_stop(self):
+        pass
+
+    def ensure_ready(self):
+        return self.status()
+
+    def home(self):
+        pass
+
+    def heartbeat(self):
+        pass
+
+    def maybe_heartbeat(self):
+        pass
+
+
+class SegmentRobot(StillRobot):
     """A robot controller on its own clock that takes every segment and stands at ``pose`` (4×4) until then:
     for the predictor's planning, where no motion is wanted. ``segments``: (T_end, duration) as sent."""
 
     def __init__(self, pose):
         self.pose, self.segments = pose, []
-
-    def status(self):
-        from labctl.drivers.interfaces import RobotStatus
-
-        return RobotStatus(T_base_flange=self.pose, moving=False, segment_id=0, t=0.0)
 
     def segment(self, T_end, duration, seg_id, replace=True, **kw):
         import numpy as np

@@ -3,30 +3,30 @@
 ``EmulatorPort(emulator, clock, baud=None)`` behaves like ``serial.Serial`` for the calls the
 drivers make (``write``, ``read``, ``readline``, ``in_waiting``, ``timeout``,
 ``reset_input_buffer``, ``close``). With ``baud`` set, bytes travel at 10 bits per byte in
-both directions on the given clock. Blocking reads wait on ``sleep`` — pass the virtual clock's
-sleep (or a clock object with a ``sleep`` method) to run in virtual time.
+both directions on the given clock (a :class:`labctl.timebase.Clock`), and blocking reads sleep on it:
+pass the virtual clock to run in virtual time.
 """
 
 from __future__ import annotations
 
-import time
 from collections import deque
 from collections.abc import Callable
+
+from ...timebase import Clock, wire_time_s
 
 
 class EmulatorPort:
     """pyserial-like port to ``emulator`` (anything with ``receive(data, t)`` and ``read_output()``)."""
 
-    def __init__(self, emulator, clock: Callable[[], float], baud: int | None = None, timeout: float | None = 1.0,
-                 sleep: Callable[[float], None] | None = None, name: str = "emulator://"):
+    def __init__(self, emulator, clock: Clock, baud: int | None = None, timeout: float | None = 1.0,
+                 name: str = "emulator://"):
         self.emulator = emulator
         self.clock = clock
         self.baudrate = baud
         self.timeout = timeout
         self.write_timeout = None
         self.port = name
-        self._sleep = sleep or getattr(clock, "sleep", None) or time.sleep
-        self._byte_s = 10.0 / baud if baud else 0.0
+        self._byte_s = wire_time_s(1, baud) if baud else 0.0
         self._to_device: deque[tuple[float, int]] = deque()
         self._from_device: deque[tuple[float, int]] = deque()
         self._rx = bytearray()
@@ -38,7 +38,7 @@ class EmulatorPort:
 
     # --- plumbing ---------------------------------------------------------------------------
     def _pump(self) -> None:
-        now = self.clock()
+        now = self.clock.now()
         if self._byte_s == 0.0:
             out = self.emulator.read_output()
             self._rx += out
@@ -75,7 +75,7 @@ class EmulatorPort:
             self.emulator.receive(data)
             return len(data)
         self._pump()
-        now = self.clock()
+        now = self.clock.now()
         for b in data:
             self._t_in = max(self._t_in, now) + self._byte_s
             self._to_device.append((self._t_in, b))
@@ -84,7 +84,7 @@ class EmulatorPort:
     def flush(self) -> None:
         """Block until every written byte has reached the device."""
         while self._to_device:
-            self._sleep(max(self._to_device[-1][0] - self.clock(), 1e-4))
+            self.clock.sleep(max(self._to_device[-1][0] - self.clock.now(), 1e-4))
             self._pump()
 
     @property
@@ -99,10 +99,10 @@ class EmulatorPort:
         return len(self._to_device)
 
     def _wait(self, done: Callable[[], bool]) -> None:
-        deadline = None if self.timeout is None else self.clock() + self.timeout
+        deadline = None if self.timeout is None else self.clock.now() + self.timeout
         self._pump()
         while not done():
-            now = self.clock()
+            now = self.clock.now()
             if deadline is not None and now >= deadline:
                 return
             step = 1e-3
@@ -110,7 +110,7 @@ class EmulatorPort:
                 step = max(min(step, self._from_device[0][0] - now), 1e-5)
             if deadline is not None:
                 step = min(step, max(deadline - now, 1e-6))
-            self._sleep(step)
+            self.clock.sleep(step)
             self._pump()
 
     def read(self, size: int = 1) -> bytes:

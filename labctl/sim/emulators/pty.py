@@ -17,13 +17,16 @@ import tty
 from collections import deque
 from collections.abc import Callable
 
+from ...timebase import wire_time_s
+
 log = logging.getLogger(__name__)
 
 Hook = Callable[[float, bytes], bytes]
 
 
 class PtyDevice:
-    """An emulator served on a pty by a background thread. ``stop()`` ends it and closes the pty."""
+    """An emulator (``receive(data, t=)``, ``advance(t)``, ``read_output()``) served on a pty by a background
+    thread. ``stop()`` ends it and closes the pty."""
 
     def __init__(self, emulator, baud: int | None, clock: Callable[[], float] = time.monotonic,
                  on_inbound: Hook | None = None, on_outbound: Hook | None = None, tick_s: float = 0.002):
@@ -33,7 +36,7 @@ class PtyDevice:
         self.on_inbound = on_inbound
         self.on_outbound = on_outbound
         self.tick_s = tick_s
-        self.byte_s = 10.0 / baud if baud else 0.0
+        self.byte_s = wire_time_s(1, baud) if baud else 0.0
         self.lock = threading.RLock()
         self.errors: list[BaseException] = []
         self.bytes_in = 0
@@ -103,8 +106,7 @@ class PtyDevice:
                             b = self.on_inbound(t, b)
                         if b:
                             self.emulator.receive(b, t=t)
-                    if hasattr(self.emulator, "advance"):
-                        self.emulator.advance(now)
+                    self.emulator.advance(now)
                     out = self.emulator.read_output()
                     if out and self.on_outbound is not None:
                         out = self.on_outbound(now, out)
