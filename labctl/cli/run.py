@@ -67,8 +67,12 @@ def _print_result(console, result: dict, run_dir: Path | None) -> None:
 @click.option("--object", "object_name", default=None, help="Object to place (sim; default: random from the library).")
 @click.option("--seed", type=int, default=None, help="Seed of the simulated lab (default: random).")
 @click.option("--virtual", is_flag=True, help="Simulated lab in virtual time, one process (as fast as the CPU allows).")
+@click.option("--view", is_flag=True,
+              help="Serve a live view of the run on a local web page (its URL goes to stderr), with a Stop button.")
+@click.option("--view-port", type=click.IntRange(0, 65535), default=None,
+              help="The live view's port (default: lab.yaml view.port; 0: any free port).")
 @json_option
-def run_cmd(trajectory, speed, object_name, seed, virtual) -> int | None:
+def run_cmd(trajectory, speed, object_name, seed, virtual, view, view_port) -> int | None:
     """A live run: move the table, track, intercept, pose, standard view, identify."""
     import secrets
 
@@ -96,6 +100,7 @@ def run_cmd(trajectory, speed, object_name, seed, virtual) -> int | None:
     if virtual and spec["trajectory"] == "external":
         raise UserInputError("--virtual runs the table itself: --trajectory external needs a live run")
     record = RunRecord.create(lab.runs_dir, {"command": "run", "virtual": virtual, **spec})
+    page = _start_view(lab, record.path, view_port) if view else None
     try:
         if virtual:
             from ..runtime.virtual import TrialSpec, simulate_run
@@ -119,6 +124,9 @@ def run_cmd(trajectory, speed, object_name, seed, virtual) -> int | None:
         with contextlib.suppress(Exception):  # a report that cannot be drawn must not hide the error
             write_report(record.path)
         raise LabctlError(f"{exc} (record: {record.path})") from None
+    finally:
+        if page is not None:
+            page.close()
     if not virtual:  # command → first tracked frame, phase by phase (issue 16, live start-up)
         from ..runtime.live import process_start_wall, startup_seconds
 
@@ -131,6 +139,31 @@ def run_cmd(trajectory, speed, object_name, seed, virtual) -> int | None:
     if not result.get("identity"):
         return 1
     return None
+
+
+def _stop_like_ctrl_c() -> None:
+    """SIGINT to this process's main thread: the live view's Stop takes Ctrl-C's path (the supervisor stops and
+    confirms both devices), from whichever thread the page's request came in on."""
+    import signal
+    import threading
+
+    signal.pthread_kill(threading.main_thread().ident, signal.SIGINT)
+
+
+def _start_view(lab, run_dir: Path, port: int | None):
+    """Start the live view on ``run_dir`` (it reads only the record folder) and say its URL on stderr."""
+    from ..records.liveview import LiveViewError, LiveViewServer
+    from ..runtime.snapshot import LIVE_DIR
+
+    cfg = lab.config.view
+    (run_dir / LIVE_DIR).mkdir(exist_ok=True)  # asks the predictor for the fixed camera's snapshots
+    try:
+        page = LiveViewServer(run_dir, cfg.host, cfg.port if port is None else port, on_stop=_stop_like_ctrl_c,
+                              poll_s=cfg.poll_s).start()
+    except LiveViewError as exc:
+        raise UserInputError(str(exc)) from None
+    click.echo(f"live view: {page.url}", err=True)
+    return page
 
 
 def _run_live(c, lab, spec, record) -> dict:
