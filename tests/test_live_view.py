@@ -179,7 +179,7 @@ def _browser(tmp_path):
     opts.binary_location = chromium
     for flag in ("--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
                  "--disable-background-networking", "--disable-component-update", "--disable-sync",
-                 "--window-size=1280,1000", f"--user-data-dir={tmp_path / 'chromium-profile'}"):
+                 "--window-size=1200,1050", f"--user-data-dir={tmp_path / 'chromium-profile'}"):
         opts.add_argument(flag)
     return webdriver.Chrome(service=Service(executable_path=driver), options=opts)
 
@@ -229,9 +229,12 @@ def test_live_view_in_chromium_follows_the_run_and_stop_stops_it(tmp_path):
         assert len(stages - {"starting"}) >= 2, stages  # the stage changed on the page (track → ... → initial)
         assert int(browser.find_element("id", "segment-count").text) >= 1
         shot = os.environ.get("LABCTL_LIVE_VIEW_SCREENSHOT")
-        if shot:  # the notes' picture (docs/notes/img/live_view.png)
+        if shot:  # the notes' picture (docs/notes/img/live_view.png), 256 colours to stay small
+            from PIL import Image
+
             time.sleep(0.3)
-            browser.save_screenshot(shot)
+            browser.save_screenshot(str(tmp_path / "shot.png"))
+            Image.open(tmp_path / "shot.png").convert("RGB").quantize(256).save(shot, optimize=True)
         browser.find_element("id", "stop").click()
         _until("the stop requested", lambda: browser.find_element("id", "stop").text in ("Stopping…", "Ended"), 5)
         out, err = p.communicate(timeout=60)
