@@ -100,7 +100,8 @@ def run_cmd(trajectory, speed, object_name, seed, virtual, view, view_port) -> i
     if virtual and spec["trajectory"] == "external":
         raise UserInputError("--virtual runs the table itself: --trajectory external needs a live run")
     record = RunRecord.create(lab.runs_dir, {"command": "run", "virtual": virtual, **spec})
-    page = _start_view(lab, record.path, view_port) if view else None
+    if view:  # served until the command ends, result and report included
+        click.get_current_context().call_on_close(_start_view(lab, record.path, view_port).close)
     try:
         if virtual:
             from ..runtime.virtual import TrialSpec, simulate_run
@@ -124,9 +125,6 @@ def run_cmd(trajectory, speed, object_name, seed, virtual, view, view_port) -> i
         with contextlib.suppress(Exception):  # a report that cannot be drawn must not hide the error
             write_report(record.path)
         raise LabctlError(f"{exc} (record: {record.path})") from None
-    finally:
-        if page is not None:
-            page.close()
     if not virtual:  # command → first tracked frame, phase by phase (issue 16, live start-up)
         from ..runtime.live import process_start_wall, startup_seconds
 

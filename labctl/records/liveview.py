@@ -19,6 +19,7 @@ import os
 import re
 import secrets
 import threading
+import time
 from collections.abc import Callable
 from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
@@ -247,6 +248,7 @@ class LiveViewServer:
         self.on_stop = on_stop
         self.poll_s = poll_s
         self.stop_requested = threading.Event()
+        self.polled = False  # a page asked for the state at least once
         self._lock = threading.Lock()
         try:
             self.httpd = ThreadingHTTPServer((host, port), _handler(self))
@@ -270,7 +272,10 @@ class LiveViewServer:
         return self
 
     def close(self) -> None:
-        """Stop serving and release the port."""
+        """Stop serving and release the port; a page that was polling gets two more polls first, so it
+        shows how the run ended."""
+        if self.polled:
+            time.sleep(2 * self.poll_s)
         if self._thread is not None:
             self.httpd.shutdown()
             self._thread.join(timeout=2)
@@ -280,6 +285,7 @@ class LiveViewServer:
         """The state the page polls (one reader at a time: the tail is not thread-safe)."""
         with self._lock:
             out = self.tail.snapshot()
+            self.polled = True
         out["stop"] = {"available": self.on_stop is not None, "requested": self.stop_requested.is_set()}
         out["poll_s"] = self.poll_s
         return out
