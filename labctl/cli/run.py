@@ -145,7 +145,9 @@ def _stop_like_ctrl_c() -> None:
     import signal
     import threading
 
-    signal.pthread_kill(threading.main_thread().ident, signal.SIGINT)
+    main = threading.main_thread().ident
+    if main is not None:
+        signal.pthread_kill(main, signal.SIGINT)
 
 
 def _start_view(lab, run_dir: Path, port: int | None):

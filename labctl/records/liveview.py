@@ -96,7 +96,8 @@ class RecordTail:
                 event = json.loads(line)
             except ValueError:
                 continue
-            fold = self._folders.get(event.get("event")) if isinstance(event, dict) else None
+            name = event.get("event") if isinstance(event, dict) else None
+            fold = self._folders.get(name) if isinstance(name, str) else None
             if fold is not None:
                 fold(spec(event["event"]), event)
                 n += 1
@@ -262,6 +263,7 @@ class LiveViewServer:
     def url(self) -> str:
         """The page's address, with this run's key."""
         host, port = self.httpd.server_address[:2]
+        host = host.decode() if isinstance(host, bytes) else host
         return f"http://{host}:{port}/?key={self.key}"
 
     def start(self) -> LiveViewServer:

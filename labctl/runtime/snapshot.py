@@ -36,7 +36,7 @@ class SnapshotCamera:
         self._width = int(width)
         self._clock = clock
         self._t_last = -float("inf")
-        self._pending = None
+        self._pending: tuple | None = None
         self._wake = threading.Condition()
         self._closed = False
         self.written = 0  # snapshots written (for tests and the notes)
