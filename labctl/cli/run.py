@@ -99,9 +99,11 @@ def run_cmd(trajectory, speed, object_name, seed, virtual, view, view_port) -> i
         raise UserInputError("--virtual needs the simulated lab (this lab's drivers point at hardware)")
     if virtual and spec["trajectory"] == "external":
         raise UserInputError("--virtual runs the table itself: --trajectory external needs a live run")
+    page = _bind_view(lab, view_port) if view else None  # a taken port: refused before the record is made
     record = RunRecord.create(lab.runs_dir, {"command": "run", "virtual": virtual, **spec})
-    if view:  # served until the command ends, result and report included
-        click.get_current_context().call_on_close(_start_view(lab, record.path, view_port).close)
+    if page is not None:  # served until the command ends, result and report included
+        _start_view(page, record.path)
+        click.get_current_context().call_on_close(page.close)
     try:
         if virtual:
             from ..runtime.virtual import TrialSpec, simulate_run
@@ -150,20 +152,25 @@ def _stop_like_ctrl_c() -> None:
         signal.pthread_kill(main, signal.SIGINT)
 
 
-def _start_view(lab, run_dir: Path, port: int | None):
-    """Start the live view on ``run_dir`` (it reads only the record folder) and say its URL on stderr."""
+def _bind_view(lab, port: int | None):
+    """The live view's server, its port taken (lab.yaml ``view:``; ``port`` overrides); not serving yet."""
     from ..records.liveview import LiveViewError, LiveViewServer
-    from ..runtime.snapshot import LIVE_DIR
 
     cfg = lab.config.view
-    (run_dir / LIVE_DIR).mkdir(exist_ok=True)  # asks the predictor for the fixed camera's snapshots
     try:
-        page = LiveViewServer(run_dir, cfg.host, cfg.port if port is None else port, on_stop=_stop_like_ctrl_c,
-                              poll_s=cfg.poll_s).start()
+        return LiveViewServer(None, cfg.host, cfg.port if port is None else port, on_stop=_stop_like_ctrl_c,
+                              poll_s=cfg.poll_s)
     except LiveViewError as exc:
         raise UserInputError(str(exc)) from None
+
+
+def _start_view(page, run_dir: Path) -> None:
+    """Serve the live view of ``run_dir`` (it reads only the record folder) and say its URL on stderr."""
+    from ..runtime.snapshot import LIVE_DIR
+
+    (run_dir / LIVE_DIR).mkdir(exist_ok=True)  # asks the predictor for the fixed camera's snapshots
+    page.follow(run_dir).start()
     click.echo(f"live view: {page.url}", err=True)
-    return page
 
 
 def _run_live(c, lab, spec, record) -> dict:

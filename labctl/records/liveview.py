@@ -240,11 +240,12 @@ def _append(points: list, item) -> None:
 class LiveViewServer:
     """The page, ``/api/state`` and the record's images, on ``host:port`` (0: a free port), in daemon threads.
 
-    ``on_stop`` runs (once) on ``POST /api/stop``; None: the page has no Stop."""
+    ``on_stop`` runs (once) on ``POST /api/stop``; None: the page has no Stop. ``folder`` may come later
+    (:meth:`follow`): the port is taken first, so a taken port is refused before a record is made."""
 
-    def __init__(self, folder: str | Path, host: str = "127.0.0.1", port: int = 0,
+    def __init__(self, folder: str | Path | None, host: str = "127.0.0.1", port: int = 0,
                  on_stop: Callable[[], None] | None = None, poll_s: float = 0.25):
-        self.tail = RecordTail(folder)
+        self.tail = RecordTail(folder) if folder is not None else None
         self.key = secrets.token_urlsafe(16)
         self.on_stop = on_stop
         self.poll_s = poll_s
@@ -266,8 +267,15 @@ class LiveViewServer:
         host = host.decode() if isinstance(host, bytes) else host
         return f"http://{host}:{port}/?key={self.key}"
 
+    def follow(self, folder: str | Path) -> LiveViewServer:
+        """Follow the record folder ``folder`` (before :meth:`start`); return self."""
+        self.tail = RecordTail(folder)
+        return self
+
     def start(self) -> LiveViewServer:
-        """Serve in a daemon thread; return self."""
+        """Serve in a daemon thread (a folder to follow must be set); return self."""
+        if self.tail is None:
+            raise LiveViewError("the live view has no record folder to follow")
         self._thread = threading.Thread(target=self.httpd.serve_forever, kwargs={"poll_interval": 0.2},
                                         name="labctl-live-view", daemon=True)
         self._thread.start()
@@ -285,6 +293,7 @@ class LiveViewServer:
 
     def state(self) -> dict:
         """The state the page polls (one reader at a time: the tail is not thread-safe)."""
+        assert self.tail is not None  # start() checked
         with self._lock:
             out = self.tail.snapshot()
             self.polled = True
@@ -344,7 +353,7 @@ def _handler(view: LiveViewServer):
                 self._send(HTTPStatus.OK, page_html().encode(), "text/html; charset=utf-8")
             elif url.path == "/api/state":
                 self._json(view.state())
-            elif url.path.startswith("/img/"):
+            elif url.path.startswith("/img/") and view.tail is not None:
                 name = url.path[len("/img/"):]
                 if name == "live/fixed.jpg":
                     path, ctype = view.tail.folder / LIVE_DIR / "fixed.jpg", "image/jpeg"
