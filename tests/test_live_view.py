@@ -257,3 +257,22 @@ def test_live_view_in_chromium_follows_the_run_and_stop_stops_it(tmp_path):
     assert lag["robot"] < 0.5 and lag["table"] < 0.5, lag
     assert (run_dir / LIVE_DIR / "fixed.jpg").is_file()
     assert run.result["identity"] is None and "interrupted" in run.result["failure"]
+
+
+def test_a_taken_port_is_refused_before_the_record_is_made(tmp_path):
+    import socket
+
+    from labctl.workspace import init_workspace
+
+    lab = init_workspace(tmp_path / "lab")
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        port = s.getsockname()[1]
+        p = subprocess.run([sys.executable, "-m", "labctl", "--lab", str(lab), "run", "--virtual", "--view",
+                            "--view-port", str(port), "--seed", "1"], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 2, p.stderr
+    assert p.stderr.strip().splitlines() == [
+        f"labctl: error: the live view cannot listen on 127.0.0.1:{port}: Address already in use "
+        "(another port: --view-port, 0 for any)"]
+    assert not (lab / "runs").is_dir() or not any((lab / "runs").iterdir())
