@@ -66,8 +66,12 @@ def _print_result(console, result: dict, run_dir: Path | None) -> None:
 @click.option("--object", "object_name", default=None, help="Object to place (sim; default: random from the library).")
 @click.option("--seed", type=int, default=None, help="Seed of the simulated lab (default: random).")
 @click.option("--virtual", is_flag=True, help="Simulated lab in virtual time, one process (as fast as the CPU allows).")
+@click.option("--view", is_flag=True,
+              help="Serve a live view of the run on a local web page (its URL goes to stderr), with a Stop button.")
+@click.option("--view-port", type=click.IntRange(0, 65535), default=None,
+              help="The live view's port (default: lab.yaml view.port; 0: any free port).")
 @json_option
-def run_cmd(trajectory, speed, object_name, seed, virtual) -> int | None:
+def run_cmd(trajectory, speed, object_name, seed, virtual, view, view_port) -> int | None:
     """A live run: move the table, track, intercept, pose, standard view, identify."""
     import secrets
 
@@ -94,7 +98,11 @@ def run_cmd(trajectory, speed, object_name, seed, virtual) -> int | None:
         raise UserInputError("--virtual needs the simulated lab (this lab's drivers point at hardware)")
     if virtual and spec["trajectory"] == "external":
         raise UserInputError("--virtual runs the table itself: --trajectory external needs a live run")
+    page = _bind_view(lab, view_port) if view else None  # a taken port: refused before the record is made
     record = RunRecord.create(lab.runs_dir, {"command": "run", "virtual": virtual, **spec})
+    if page is not None:  # served until the command ends, result and report included
+        _start_view(page, record.path)
+        click.get_current_context().call_on_close(page.close)
     try:
         if virtual:
             from ..runtime.virtual import TrialSpec, simulate_run
@@ -130,6 +138,38 @@ def run_cmd(trajectory, speed, object_name, seed, virtual) -> int | None:
     if not result.get("identity"):
         return 1
     return None
+
+
+def _stop_like_ctrl_c() -> None:
+    """SIGINT to this process's main thread: the live view's Stop takes Ctrl-C's path (the supervisor stops and
+    confirms both devices), from whichever thread the page's request came in on."""
+    import signal
+    import threading
+
+    main = threading.main_thread().ident
+    if main is not None:
+        signal.pthread_kill(main, signal.SIGINT)
+
+
+def _bind_view(lab, port: int | None):
+    """The live view's server, its port taken (lab.yaml ``view:``; ``port`` overrides); not serving yet."""
+    from ..records.liveview import LiveViewError, LiveViewServer
+
+    cfg = lab.config.view
+    try:
+        return LiveViewServer(None, cfg.host, cfg.port if port is None else port, on_stop=_stop_like_ctrl_c,
+                              poll_s=cfg.poll_s)
+    except LiveViewError as exc:
+        raise UserInputError(str(exc)) from None
+
+
+def _start_view(page, run_dir: Path) -> None:
+    """Serve the live view of ``run_dir`` (it reads only the record folder) and say its URL on stderr."""
+    from ..runtime.snapshot import LIVE_DIR
+
+    (run_dir / LIVE_DIR).mkdir(exist_ok=True)  # asks the predictor for the fixed camera's snapshots
+    page.follow(run_dir).start()
+    click.echo(f"live view: {page.url}", err=True)
 
 
 def _run_live(c, lab, spec, record) -> dict:

@@ -263,6 +263,20 @@ class SimConfig:
 
 
 @dataclass(frozen=True)
+class LiveViewConfig:
+    """The live view of a run (``labctl run --view``): where its page listens, and the fixed camera's snapshots.
+
+    The page reads only the run's record folder; the fixed camera's frames reach it as a downscaled JPEG
+    the predictor's process writes at most every ``fixed_snapshot_period_s`` (``live/fixed.jpg``)."""
+
+    host: str = "127.0.0.1"  # the page is for this PC; a wider address needs the printed key all the same
+    port: Annotated[int, Range(ge=0, le=65535)] = 8765  # 0: any free port
+    poll_s: Positive = 0.25  # how often the page asks for news
+    fixed_snapshot_period_s: Annotated[float, Range(ge=0.5)] = 0.5  # at most 2 Hz, off the predictor's loop
+    fixed_snapshot_width: Annotated[int, Range(ge=32, le=1280)] = 320  # px, the snapshot's width
+
+
+@dataclass(frozen=True)
 class LabConfig:
     """The lab's ``lab.yaml``: name, driver files, marker, viewing, tracking, run and simulator settings."""
 
@@ -274,6 +288,7 @@ class LabConfig:
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
     run: RunConfig = field(default_factory=RunConfig)
     sim: SimConfig = field(default_factory=SimConfig)
+    view: LiveViewConfig = field(default_factory=LiveViewConfig)
 
 
 @dataclass(frozen=True)

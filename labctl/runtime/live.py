@@ -378,7 +378,11 @@ def _camera(args: WorkerArgs, lab, role: str):
 
 
 def _fixed_camera(args: WorkerArgs, lab):
-    return _camera(args, lab, "fixed")
+    from .snapshot import maybe_snapshots  # the live view's JPEG, when the record asks for one
+
+    view = lab.config.view
+    return maybe_snapshots(_camera(args, lab, "fixed"), args.run_dir, view.fixed_snapshot_period_s,
+                           view.fixed_snapshot_width)
 
 
 def _mobile_camera(args: WorkerArgs, lab):
