@@ -113,7 +113,8 @@ def _arm(arm_file: str, base: str | None, base_rpy: str | None):
 @click.option("--arm", "arm_file", required=True, type=click.Path(dir_okay=False, path_type=Path),
               help="Arm data file (e.g. drivers/arms/ur10e.yaml).")
 @click.option("--base", default=None, metavar="X,Y,Z", help="The arm's base in the world, mm (default: the file's).")
-@click.option("--base-rpy", default=None, metavar="R,P,Y", help="The base's roll, pitch, yaw, degrees (default: the file's).")
+@click.option("--base-rpy", default=None, metavar="R,P,Y",
+              help="The base's roll, pitch, yaw, degrees (default: the file's).")
 @json_option
 def feasibility_cmd(runs_dir: Path, arm_file: Path, base: str | None, base_rpy: str | None) -> None:
     """Could this arm have flown these runs? Every record's commanded motion, followed in joint space.

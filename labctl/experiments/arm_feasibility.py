@@ -190,9 +190,7 @@ def check_trial(arm, traj: Trajectory, q0, name: str, meta: dict, reach_cache: d
         if not res.ok:
             reason = f"{reason} ({near_singularity(arm, qs[-1] if len(qs) else q0)})"
         n = len(qs)
-        ratio = arm.joint_speed_ratio(np.vstack([np.asarray(q0)[None], qs]), np.concatenate([[traj.t[0]], traj.t[:n]])) \
-            if n else np.zeros(6)
-        ratio = [float(x) for x in ratio]
+        ratio = [float(x) for x in arm.joint_speed_ratio(qs, traj.t[:n])]  # poses[0] is the home pose, at q0
     return TrialFeasibility(name, meta.get("trajectory"), meta.get("speed_mm_s"), len(traj.targets), n_ok, followed,
                             reason, failed_kind, ratio, len(qs))
 

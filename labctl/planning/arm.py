@@ -187,7 +187,7 @@ class ArmModel:
         q = np.array(seed, float)
         model, data, fid, W = self._model, self._data, self._tool, self._W
         it = 0
-        for it in range(1, max_iter + 1):
+        for it in range(1, max_iter + 1):  # noqa: B007 — the count is reported
             pin.forwardKinematics(model, data, q)
             cur = pin.updateFramePlacement(model, data, fid)
             diff = cur.actInv(goal)
