@@ -248,3 +248,21 @@ def test_arm_file_errors_are_one_line(tmp_path):
     bad.write_text(text.replace("joint_speed_deg_s: [120.0,", "joint_speed_deg_s: [0.0,"))
     with pytest.raises(ConfigError, match="joint_speed_deg_s"):
         load_arm(bad)
+
+
+@settings(max_examples=80, deadline=None)
+@given(q=joints)
+def test_out_of_reach_never_refuses_a_reachable_pose(arm, q):
+    assert not arm.out_of_reach(ur_fk_mm(q))
+
+
+def test_out_of_reach_catches_far_and_axial_poses(arm):
+    far = np.eye(4)
+    far[:3, 3] = [1500.0, 0.0, 500.0]
+    assert arm.out_of_reach(far) and not arm.reachable(far)
+    axial = np.eye(4)  # tool up, the wrist point on the base axis
+    axial[:3, 3] = [0.0, 0.0, 900.0 + 116.55]
+    assert arm.out_of_reach(axial) and not arm.reachable(axial)
+    ur5 = ArmModel.from_config(load_arm(UR5E))
+    for q in np.random.default_rng(4).uniform(-math.pi, math.pi, (50, 6)):
+        assert not ur5.out_of_reach(ur5.fk(q))

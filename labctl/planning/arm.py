@@ -215,8 +215,31 @@ class ArmModel:
                 found.append(res.q)
         return sorted(found, key=lambda q: float(np.max(np.abs(q - self.home))))
 
+    @property
+    def ur_type(self) -> bool:
+        """The DH table has Universal Robots' pattern (parallel joints 2–4, wrist offsets d4 d5 d6)."""
+        ur_alpha = np.array([math.pi / 2, 0.0, 0.0, math.pi / 2, -math.pi / 2, 0.0])
+        return bool(np.allclose(self.alpha, ur_alpha) and np.allclose(self.a[[0, 3, 4, 5]], 0.0)
+                    and np.allclose(self.d[[1, 2]], 0.0) and np.allclose(self.offset, 0.0))
+
+    def out_of_reach(self, T_w_F) -> bool:
+        """Certainly unreachable, by a necessary condition on a UR-type arm's wrist point (DH frame 5's origin):
+        at least |d4| from the base axis, and within |a2| + |a3| + d5 of the shoulder. False when not sure
+        (or not a UR-type arm): only :meth:`reachable` decides."""
+        if not self.ur_type:
+            return False
+        T = invert(self.T_w_base) @ np.asarray(T_w_F, float) @ invert(self.T_flange_tool)
+        p = T[:3, 3] - self.d[5] * T[:3, 2]
+        r2 = float(p[0] ** 2 + p[1] ** 2)
+        if r2 < self.d[3] ** 2 * (1 - 1e-9):
+            return True
+        rho, h = math.sqrt(r2 - min(r2, self.d[3] ** 2)), float(p[2]) - self.d[0]
+        return math.hypot(rho, h) > abs(self.a[1]) + abs(self.a[2]) + abs(self.d[4]) + 1e-6
+
     def reachable(self, T_w_F, *, n_seeds: int = 24, rng=None) -> bool:
         """Some configuration within the joint limits reaches ``T_w_F``."""
+        if self.out_of_reach(T_w_F):
+            return False
         rng = np.random.default_rng(0) if rng is None else rng
         seeds = [self.home] + [rng.uniform(np.maximum(self.q_min, -math.pi), np.minimum(self.q_max, math.pi))
                                for _ in range(n_seeds - 1)]
