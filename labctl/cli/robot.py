@@ -143,3 +143,45 @@ def feasibility_cmd(runs_dir: Path, arm_file: Path, base: str | None, base_rpy: 
             con.print(f"  {n:4d}  over speed: {joint}")
 
     emit(summary, human)
+
+
+@robot_group.command("mount")
+@click.option("--arm", "arm_file", required=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="Arm data file (e.g. drivers/arms/ur10e.yaml).")
+@click.option("--runs", "runs_dir", default=None, type=click.Path(file_okay=False, path_type=Path),
+              help="Run records whose commanded views must be reached too (a trials sweep, a runs folder).")
+@click.option("--base", "bases", multiple=True, metavar="X,Y,Z",
+              help="Check this base (mm, upright; repeatable) instead of the grid round the table.")
+@click.option("--top", type=click.IntRange(min=1), default=10, show_default=True, help="Bases to list.")
+@json_option
+def mount_cmd(arm_file: Path, runs_dir: Path | None, bases: tuple[str, ...], top: int) -> None:
+    """Where to bolt the arm: which base positions reach every view the lab plans.
+
+    The views: the home pose, the calibration plan's robot stations and registration poses, and with
+    --runs every target those runs commanded. The bases: upright, on a grid round the table's travel
+    (or --base). Reaching every view is necessary, not sufficient: check the paths with
+    ``labctl robot feasibility``."""
+    from ..config.arm import load_arm
+    from ..experiments.arm_mount import default_grid, mount_search, planned_views
+
+    cfg = load_arm(arm_file)
+    lab = get_ctx().lab()
+    grid = [_triple(b, "--base") for b in bases] or default_grid(lab)
+    res = mount_search(cfg, planned_views(lab, runs_dir), grid)
+    if get_ctx().json:
+        emit(res)
+        return
+    summary = {k: v for k, v in res.items() if k != "ranked"}
+    summary["ranked"] = res["ranked"][:top]
+
+    def human(con) -> None:
+        views = ", ".join(f"{n} {k}" for k, n in res["views"].items())
+        con.print(f"{res['arm']}: {res['bases']} bases against {views} views; "
+                  f"{len(res['reach_all'])} reach every view")
+        for r in res["ranked"][:top]:
+            got = ", ".join(f"{k} {n}/{res['views'][k]}" for k, n in r["reached"].items())
+            con.print(f"  base {r['base_xyz_mm']} mm: {got}")
+        for p in res["problems"]:
+            con.print(f"  calibration not planned: {p}")
+
+    emit(summary, human)
