@@ -130,7 +130,24 @@ def solver_rtb():
     return solve
 
 
-SOLVERS = {"pinocchio": solver_pinocchio, "ikpy": solver_ikpy, "rtb": solver_rtb}
+def solver_labctl():
+    """labctl's own :class:`labctl.planning.arm.ArmModel` (Pinocchio underneath), on the sample lab's UR10e file."""
+    from pathlib import Path
+
+    from labctl.config.arm import load_arm
+    from labctl.planning.arm import ArmModel
+
+    arm = ArmModel.from_config(load_arm(Path(__file__).resolve().parents[1] / "drivers" / "arms" / "ur10e.yaml"))
+
+    def solve(T_goal, q0):
+        T = np.array(T_goal, float)
+        T[:3, 3] *= 1000.0
+        return arm.ik(T, q0).q
+
+    return solve
+
+
+SOLVERS = {"pinocchio": solver_pinocchio, "ikpy": solver_ikpy, "rtb": solver_rtb, "labctl": solver_labctl}
 
 
 def path_goals(q_start, rng):
@@ -193,7 +210,7 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--n", type=int, default=200)
     ap.add_argument("--paths", type=int, default=20)
-    ap.add_argument("--libs", default="pinocchio,ikpy,rtb")
+    ap.add_argument("--libs", default="pinocchio,ikpy,rtb,labctl")
     args = ap.parse_args()
     for name in args.libs.split(","):
         try:

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..errors import UserInputError
 from ..geometry import invert, make_T, matrix_to_rotvec, rot_x, rot_y, rot_z
 
 LENGTH_SCALE_MM = 1000.0  # rad ↔ mm weight of the IK error: 1 mrad of rotation counts as 1 mm
@@ -83,7 +84,10 @@ class ArmModel:
 
     def __init__(self, name: str, d_mm, a_mm, alpha_rad, *, offset_rad=None, q_min, q_max, qd_max, home,
                  T_w_base=None, T_flange_tool=None):
-        import pinocchio as pin
+        try:
+            import pinocchio as pin
+        except ImportError:
+            raise UserInputError("the arm model needs Pinocchio: pip install 'labctl[arm]'") from None
 
         self.name = name
         self.d = np.asarray(d_mm, float)
