@@ -253,6 +253,8 @@ def summarise(rows: list[TrialFeasibility], q0, arm, trajs: list[Trajectory]) ->
         "failures": dict(causes.most_common()),
         "over_speed": dict(fast.most_common()),
         "median_over_speed_ratio": float(np.median(over)) if over else None,
+        "peak_speed_ratio": [float(x) for x in np.max([r.speed_ratio for r in rows if r.followed], axis=0)]
+        if any(r.followed for r in rows) else None,  # per joint, over the trials followed
         "profiles": dict(Counter(p for tr in trajs for p in tr.profiles)),
         "max_end_error_s": max((tr.max_end_error_s for tr in trajs), default=0.0),
         "samples": int(sum(len(tr.t) for tr in trajs)),
