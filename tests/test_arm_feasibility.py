@@ -119,3 +119,26 @@ def test_feasibility_bad_inputs_are_one_line(sweep, capsys, tmp_path):
     code, _, err = run_cli(capsys, "--lab", str(lab_root), "robot", "feasibility", str(trials), "--arm",
                            str(tmp_path / "none.yaml"))
     assert code == 2 and "file not found" in err and err.strip().count("\n") == 0
+
+
+def test_mount_command_ranks_bases_by_the_views_they_reach(sweep, capsys):
+    lab_root, trials = sweep
+    code, out, err = run_cli(capsys, "--lab", str(lab_root), "--json", "robot", "mount", "--arm", str(UR10E),
+                             "--runs", str(trials), "--base", "0,0,0", "--base", "600,-200,350",
+                             "--base", "3000,0,0")
+    assert code == 0, err
+    res = json.loads(out)
+    assert res["views"]["home"] == 1 and res["views"]["calibration"] >= 10 and res["views"]["runs"] >= 3
+    assert res["bases"] == 3
+    first, second, third = res["ranked"]
+    assert first["base_xyz_mm"] == [600.0, -200.0, 350.0] and first["all"]
+    assert res["reach_all"] == [[600.0, -200.0, 350.0]]
+    # labctl's base frame misses calibration stations (one on the far side of the table, high ones)
+    assert second["base_xyz_mm"] == [0.0, 0.0, 0.0] and 0 < second["missed"] < res["views"]["calibration"]
+    assert third["reached"] == {"home": 0, "calibration": 0, "runs": 0}  # 3 m away
+
+
+def test_mount_command_bad_base_is_one_line(sweep, capsys):
+    lab_root, _ = sweep
+    code, _, err = run_cli(capsys, "--lab", str(lab_root), "robot", "mount", "--arm", str(UR10E), "--base", "1,2")
+    assert code == 2 and "--base: expected three numbers" in err and err.strip().count("\n") == 0
