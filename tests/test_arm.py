@@ -183,7 +183,7 @@ def test_ik_from_a_nearby_seed_returns_the_same_configuration(arm, q, dq):
     assert arm.configuration(res.q) == arm.configuration(q)
 
 
-@settings(max_examples=25, deadline=None)
+@settings(max_examples=60, deadline=None)
 @given(q=joints)
 def test_ik_finds_every_closed_form_solution_from_random_seeds(arm, q):
     if not _generic(q):
@@ -201,6 +201,18 @@ def test_ik_finds_every_closed_form_solution_from_random_seeds(arm, q):
         assert match, np.degrees(c)
         assert arm.configuration(match[0]) == arm.configuration(c)
     assert len({arm.configuration(s) for s in sols}) == len(closed)
+
+
+@settings(max_examples=60, deadline=None)
+@given(q=joints)
+def test_closed_form_solutions_are_the_published_ones(arm, q):
+    if not _generic(q):
+        return
+    mine = arm.closed_form(ur_fk_mm(q))
+    theirs = ur_ik_m(ur_fk_m(q))
+    assert len(mine) == len(theirs)
+    for c in theirs:
+        assert any(np.allclose(np.remainder(m - c + math.pi, 2 * math.pi) - math.pi, 0, atol=1e-7) for m in mine)
 
 
 def test_a_path_through_the_wrist_singularity_is_a_configuration_change(arm):

@@ -25,13 +25,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import UserInputError
-from ..geometry import invert, make_T, matrix_to_rotvec, rot_x, rot_y, rot_z
+from ..geometry import invert, make_T, rot_x, rot_y, rot_z
 
 LENGTH_SCALE_MM = 1000.0  # rad ↔ mm weight of the IK error: 1 mrad of rotation counts as 1 mm
 POS_TOL_MM = 1e-4
 ROT_TOL_RAD = 1e-7
 DAMPING = 1e-10  # λ² of the damped least squares, on the scaled (m, rad) error
-MAX_STEP_RAD = 0.5  # largest joint change of one iteration: keeps a far seed from flying off
+MAX_STEP_RAD = math.pi  # largest joint change of one iteration (smaller clamps cost convergence: notes)
 PATH_STEP_RAD = math.radians(5.0)  # a larger joint change between two path samples is a configuration jump
 
 
@@ -184,40 +184,103 @@ class ArmModel:
         """The configuration nearest ``seed`` that puts the commanded frame at ``T_w_F`` (damped least squares).
 
         From a nearby seed (the previous configuration of a path) this is the arm's own solution, with no
-        change of configuration; from a far seed it may find any of the up to eight."""
+        change of configuration; from a far seed it may find any of the up to eight. Each joint of the
+        result is the turn of it nearest the seed (the same pose: joints are 2π-periodic)."""
         pin = self._pin
         T = np.asarray(T_w_F, float)
         goal = pin.SE3(T[:3, :3], T[:3, 3])
         q = np.array(seed, float)
         model, data, fid, W = self._model, self._data, self._tool, self._W
         it = 0
-        for it in range(1, max_iter + 1):  # noqa: B007 — the count is reported
-            pin.forwardKinematics(model, data, q)
+        while True:
+            pin.computeJointJacobians(model, data, q)  # forward kinematics included
             cur = pin.updateFramePlacement(model, data, fid)
             diff = cur.actInv(goal)
             err = pin.log6(diff).vector
-            if np.linalg.norm(err[:3]) < POS_TOL_MM and np.linalg.norm(err[3:]) < ROT_TOL_RAD:
+            converged = bool(np.linalg.norm(err[:3]) < POS_TOL_MM and np.linalg.norm(err[3:]) < ROT_TOL_RAD)
+            if converged or it == max_iter:
                 break
-            J = W @ pin.Jlog6(diff) @ pin.computeFrameJacobian(model, data, q, fid, pin.LOCAL)
-            dq = J.T @ np.linalg.solve(J @ J.T + DAMPING * np.eye(6), W @ err)
+            it += 1
+            J = W @ pin.Jlog6(diff) @ pin.getFrameJacobian(model, data, fid, pin.LOCAL)
+            e = W @ err
+            # Levenberg–Marquardt with Sugihara's damping (½‖e‖² + a floor): wide steps far away, Newton near
+            dq = np.linalg.solve(J.T @ J + (0.5 * float(e @ e) + DAMPING) * np.eye(6), J.T @ e)
             big = float(np.max(np.abs(dq)))
             q = q + (dq * (MAX_STEP_RAD / big) if big > MAX_STEP_RAD else dq)
-        pos_err, rot_err = _pose_error(self.fk(q), T)
-        converged = pos_err < 10 * POS_TOL_MM and rot_err < 10 * ROT_TOL_RAD
+        pos_err = float(np.linalg.norm(cur.translation - goal.translation))
+        rot_err = float(np.linalg.norm(err[3:]))  # log6's angular part: the rotation angle left
+        seed = np.asarray(seed, float)
+        q = seed + np.remainder(q - seed + math.pi, 2 * math.pi) - math.pi  # the same pose, each joint nearest the seed
         return IKResult(q, converged, pos_err, rot_err, it, self.within_limits(q))
 
-    def ik_solutions(self, T_w_F, *, n_seeds: int = 24, rng=None) -> list[np.ndarray]:
-        """The distinct solutions within the joint limits found from ``home`` and ``n_seeds``−1 random seeds,
-        nearest ``home`` first (one per configuration branch and turn of each joint)."""
+    def closed_form(self, T_w_F) -> list[np.ndarray]:
+        """A UR-type arm's closed-form solutions (up to eight, joints in (−π, π], not limit-checked), each
+        verified by forward kinematics; ``[]`` for another arm. Joint 1 from the wrist point's azimuth,
+        joint 5 from the flange's offset along joint 1's axis, joint 6 from the flange's orientation, then
+        the planar 3R of joints 2–4 (the standard derivation for this geometry)."""
+        if not self.ur_type:
+            return []
+        d, a = self.d, self.a
+        T = invert(self.T_w_base) @ np.asarray(T_w_F, float) @ invert(self.T_flange_tool)
+        p5 = T[:3, 3] - d[5] * T[:3, 2]
+        r = math.hypot(p5[0], p5[1])
+        if r <= abs(d[3]):
+            return []
+        psi, phi = math.atan2(p5[1], p5[0]), math.acos(d[3] / r)
+        Ti = invert(T)
+        out = []
+        for q1 in (psi + phi + math.pi / 2, psi - phi + math.pi / 2):
+            s1, c1 = math.sin(q1), math.cos(q1)
+            c5 = (T[0, 3] * s1 - T[1, 3] * c1 - d[3]) / d[5]
+            if abs(c5) > 1.0:
+                continue
+            for q5 in (math.acos(c5), -math.acos(c5)):
+                s5 = math.sin(q5)
+                if abs(s5) < 1e-9:
+                    continue  # wrist singular: joints 4 and 6 undetermined
+                X, Y = Ti[:3, 0], Ti[:3, 1]
+                q6 = math.atan2((-X[1] * s1 + Y[1] * c1) / s5, (X[0] * s1 - Y[0] * c1) / s5)
+                T14 = invert(dh_transform(q1, d[0], a[0], self.alpha[0])) @ T @ invert(
+                    dh_transform(q5, d[4], a[4], self.alpha[4]) @ dh_transform(q6, d[5], a[5], self.alpha[5]))
+                p3 = T14 @ np.array([0.0, -d[3], 0.0, 1.0])
+                L = math.hypot(p3[0], p3[1])
+                c3 = (L * L - a[1] ** 2 - a[2] ** 2) / (2 * a[1] * a[2])
+                if abs(c3) > 1.0 or L < 1e-9:
+                    continue
+                for q3 in (math.acos(c3), -math.acos(c3)):
+                    q2 = -math.atan2(p3[1], -p3[0]) + math.asin(a[2] * math.sin(q3) / L)
+                    T13 = dh_transform(q2, d[1], a[1], self.alpha[1]) @ dh_transform(q3, d[2], a[2], self.alpha[2])
+                    T34 = invert(T13) @ T14
+                    q4 = math.atan2(T34[1, 0], T34[0, 0])
+                    q = np.array([math.remainder(x, 2 * math.pi) for x in (q1, q2, q3, q4, q5, q6)])
+                    if np.allclose(self.fk(q), T_w_F, atol=1e-6):
+                        out.append(q)
+        return out
+
+    def _seeds(self, T_w_F, n_seeds: int, rng) -> list[np.ndarray]:
+        """``home``, a UR-type arm's closed-form solutions (:meth:`closed_form`), then random seeds up to
+        ``n_seeds``; IK from each polishes it and applies the joint limits."""
         rng = np.random.default_rng(0) if rng is None else rng
-        seeds = [self.home] + [rng.uniform(np.maximum(self.q_min, -math.pi), np.minimum(self.q_max, math.pi))
-                               for _ in range(n_seeds - 1)]
+        seeds = [self.home, *self.closed_form(T_w_F)]
+        lo, hi = np.maximum(self.q_min, -math.pi), np.minimum(self.q_max, math.pi)
+        seeds += [rng.uniform(lo, hi) for _ in range(max(n_seeds - len(seeds), 0))]
+        return seeds
+
+    def ik_solutions(self, T_w_F, *, n_seeds: int = 24, rng=None) -> list[np.ndarray]:
+        """The distinct solutions within the joint limits found from the seeds of :meth:`_seeds`, nearest
+        ``home`` first (one per configuration branch and turn of each joint)."""
         found: list[np.ndarray] = []
-        for seed in seeds:
+        for seed in self._seeds(T_w_F, n_seeds, rng):
             res = self.ik(T_w_F, seed)
             if res.ok and not any(np.max(np.abs(res.q - f)) < 1e-5 for f in found):
                 found.append(res.q)
         return sorted(found, key=lambda q: float(np.max(np.abs(q - self.home))))
+
+    def reachable(self, T_w_F, *, n_seeds: int = 24, rng=None) -> bool:
+        """Some configuration within the joint limits reaches ``T_w_F`` (IK from the seeds of :meth:`_seeds`)."""
+        if self.out_of_reach(T_w_F):
+            return False
+        return any(self.ik(T_w_F, s).ok for s in self._seeds(T_w_F, n_seeds, rng))
 
     @property
     def ur_type(self) -> bool:
@@ -239,15 +302,6 @@ class ArmModel:
             return True
         rho, h = math.sqrt(r2 - min(r2, self.d[3] ** 2)), float(p[2]) - self.d[0]
         return math.hypot(rho, h) > abs(self.a[1]) + abs(self.a[2]) + abs(self.d[4]) + 1e-6
-
-    def reachable(self, T_w_F, *, n_seeds: int = 24, rng=None) -> bool:
-        """Some configuration within the joint limits reaches ``T_w_F``."""
-        if self.out_of_reach(T_w_F):
-            return False
-        rng = np.random.default_rng(0) if rng is None else rng
-        seeds = [self.home] + [rng.uniform(np.maximum(self.q_min, -math.pi), np.minimum(self.q_max, math.pi))
-                               for _ in range(n_seeds - 1)]
-        return any(self.ik(T_w_F, s).ok for s in seeds)
 
     # --- paths ------------------------------------------------------------------------------
     def follow(self, poses, q0, *, max_step_rad: float = PATH_STEP_RAD) -> PathFollow:
@@ -282,9 +336,3 @@ class ArmModel:
 def rot_z_T(theta: float) -> np.ndarray:
     """Rotation about z by ``theta`` as a 4×4 transform."""
     return make_T(rot_z(theta), np.zeros(3))
-
-
-def _pose_error(T: np.ndarray, T_goal: np.ndarray) -> tuple[float, float]:
-    """(position error mm, rotation angle rad) between two poses."""
-    angle = float(np.linalg.norm(matrix_to_rotvec(T[:3, :3].T @ T_goal[:3, :3])))
-    return float(np.linalg.norm(T[:3, 3] - T_goal[:3, 3])), angle
