@@ -142,3 +142,14 @@ def test_mount_command_bad_base_is_one_line(sweep, capsys):
     lab_root, _ = sweep
     code, _, err = run_cli(capsys, "--lab", str(lab_root), "robot", "mount", "--arm", str(UR10E), "--base", "1,2")
     assert code == 2 and "--base: expected three numbers" in err and err.strip().count("\n") == 0
+
+
+def test_mount_command_with_a_bad_target_file_is_one_line(sweep, capsys, tmp_path):
+    import shutil
+
+    lab_root, _ = sweep
+    lab = tmp_path / "lab"
+    shutil.copytree(lab_root, lab, ignore=shutil.ignore_patterns("runs"))
+    (lab / "calibration" / "target.yaml").write_text("kind: pyramid\n")
+    code, _, err = run_cli(capsys, "--lab", str(lab), "robot", "mount", "--arm", str(UR10E), "--base", "0,0,0")
+    assert code == 2 and "target.yaml" in err and err.strip().count("\n") == 0

@@ -181,7 +181,5 @@ def mount_cmd(arm_file: Path, runs_dir: Path | None, bases: tuple[str, ...], top
         for r in res["ranked"][:top]:
             got = ", ".join(f"{k} {n}/{res['views'][k]}" for k, n in r["reached"].items())
             con.print(f"  base {r['base_xyz_mm']} mm: {got}")
-        for p in res["problems"]:
-            con.print(f"  calibration not planned: {p}")
 
     emit(summary, human)

@@ -29,13 +29,14 @@ def planned_views(lab, runs_dir: Path | None = None) -> dict[str, list[np.ndarra
     from ..sim.world import home_flange_pose
 
     views: dict[str, list[np.ndarray]] = {"home": [home_flange_pose(lab)], "calibration": [], "runs": []}
-    try:
-        from ..calibration.run import lab_target, make_plan, nominal_for
+    from ..calibration.run import lab_target, make_plan, nominal_for
+    from ..calibration.target import TargetError
 
+    try:
         plan = make_plan(lab_target(lab.calibration_dir), nominal_for(lab), "all")
-        views["calibration"] = list(plan.stations) + [T for _, T in plan.registration]
-    except (OSError, ValueError) as exc:  # no target file: the lab has not planned a calibration
-        views["calibration_problem"] = [str(exc)]  # type: ignore[list-item]
+    except TargetError as exc:
+        raise UserInputError(str(exc)) from None
+    views["calibration"] = list(plan.stations) + [T for _, T in plan.registration]
     if runs_dir is not None:
         from .arm_feasibility import find_records, read_events
 
@@ -72,7 +73,7 @@ def mount_search(arm_cfg, views: dict[str, list[np.ndarray]], bases, log=None) -
     """Each base of ``bases`` ((x, y, z) mm, upright) against every view: how many of each group it reaches."""
     from ..planning.arm import ArmModel
 
-    groups = {k: v for k, v in views.items() if k in ("home", "calibration", "runs")}
+    groups = dict(views)
     n_views = sum(len(v) for v in groups.values())
     if n_views == 0:
         raise UserInputError("no views to reach")
@@ -86,5 +87,4 @@ def mount_search(arm_cfg, views: dict[str, list[np.ndarray]], bases, log=None) -
             log(f"base {base}: {sum(reached.values())} of {n_views}")
     rows.sort(key=lambda r: (r["missed"], abs(r["base_xyz_mm"][2]), np.hypot(*r["base_xyz_mm"][:2])))
     return {"arm": arm_cfg.name, "views": {k: len(v) for k, v in groups.items()}, "bases": len(rows),
-            "reach_all": [r["base_xyz_mm"] for r in rows if r["all"]], "ranked": rows,
-            "problems": list(views.get("calibration_problem", []))}
+            "reach_all": [r["base_xyz_mm"] for r in rows if r["all"]], "ranked": rows}
