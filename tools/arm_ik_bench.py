@@ -1,7 +1,7 @@
 """Kinematics libraries compared on a UR10e: IK solve time and robustness (docs/notes/robot.md, "Choosing the
 kinematics library").
 
-    python tools/arm_ik_bench.py [--n 200] [--libs pinocchio,ikpy,rtb]
+    python tools/arm_ik_bench.py [--n 200] [--paths 20] [--libs pinocchio,ikpy,rtb,labctl]
 
 Each library gets the same UR10e (Universal Robots' published standard DH table, metres inside this
 script because that is what the libraries expect) and the same problems:
@@ -14,6 +14,7 @@ script because that is what the libraries expect) and the same problems:
 
 A solve succeeds when the position error is under 1e-3 mm and the rotation error under 1e-5 rad, checked
 with the plain-numpy DH forward kinematics below, not the library's own.
+``labctl`` is labctl's own :class:`labctl.planning.arm.ArmModel` on the sample lab's UR10e file.
 ikpy and roboticstoolbox-python are not labctl dependencies: install them to compare.
 """
 
