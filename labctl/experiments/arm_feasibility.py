@@ -58,7 +58,6 @@ class TrialFeasibility:
     followed: bool
     reason: str | None
     failed_kind: str | None
-    failed_kind: str | None
     speed_ratio: list[float]
     n_samples: int
 
