@@ -1,4 +1,4 @@
-"""Paired comparison of the two methods of the vision degradation suite (issue 14).
+"""Paired comparison of the two methods of the vision degradation suite.
 
 Both methods see the same images (:func:`labctl.bench._vision_suite.run_case` with
 ``per_image=True``), so the difference of their p95 normal errors is measured with a paired

@@ -1,4 +1,4 @@
-"""The marker-vision degradation suite (issue 14): ours vs the plain OpenCV pipeline on images of
+"""The marker-vision degradation suite: ours vs the plain OpenCV pipeline on images of
 the independent renderer :mod:`labctl.bench._vision_oracle`, with exact ground truth.
 
 Each case renders ``n_pairs`` pairs of images of a 10 mm disc (640×480, f 1200–2500 px, range

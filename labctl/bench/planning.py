@@ -1,6 +1,6 @@
 """``labctl bench planning``: prediction accuracy against horizon, and interception planning speed.
 
-Paper §4.2–4.3. Part 1 (issue 18) runs the CV, CT, CA and IMM trackers on the lab's trajectory
+Paper §4.2–4.3. Part 1 runs the CV, CT, CA and IMM trackers on the lab's trajectory
 families (line, arc, circle, zigzag at 4, 12, 50, 100 mm/s, the lab's frame rate and measurement
 noise) — the IMM both told the cell's family (what a run does when labctl drives the table along
 that program) and family-blind (external motion) — and reports each one's 5-s prediction RMS and
@@ -52,7 +52,7 @@ AFTER_CORNER_S = (0.1, 0.2, 0.3, 0.5, 0.75, 1.0, 1.5, 2.0)
 # heavy-tailed runs the mean NEES swung by ±0.5-1.2 between seed sets against a ±0.5 band (docs/notes/planning.md)
 CONSISTENCY_RUNS = 256
 RUNS = 64  # Monte-Carlo runs per cell: at 16 the RMS ratio's run-to-run sd was ~12 %, heavy-tailed on lines
-# issue 18's acceptance: the 5-s prediction RMS over the bound after 2 s / 4 s of tracking, and from 0.5 s after a
+# the prediction acceptance: the 5-s prediction RMS over the bound after 2 s / 4 s of tracking, and from 0.5 s after a
 # zigzag corner on ("settles back under 1.5x within 0.5 s": it must stay there, so every listed instant to 2 s)
 ACCEPTANCE = {2.0: 1.2, 4.0: 1.3}
 CORNER_ACCEPTANCE = {0.5: 1.5, 0.75: 1.5, 1.0: 1.5, 1.5: 1.5, 2.0: 1.5}
@@ -97,14 +97,14 @@ def acceptance_summary(rows: list[dict]) -> dict:
 def _bound_table(quick: bool, models=None, *, runs: int | None = None, acceptance_only: bool = False,
                  with_ml: bool = True, families=None, corner_frames: float = 0.0,
                  drop_frames: float = 0.0, curvature_sigma: float | None = None) -> list[dict]:
-    """Each filter's 5-s prediction RMS and NEES against the bound, per family and speed (issue 18).
+    """Each filter's 5-s prediction RMS and NEES against the bound, per family and speed.
 
     The paths are :mod:`labctl.bench.track_bound`'s line, arc (r 200 mm), circle (r 80 mm) and
     zigzag (the lab program's 97° corner at 2 s) at 4, 12, 50, 100 mm/s with random headings,
     measured at the lab's frame rate (``run.fps``) with the tracker's ``measurement_noise_mm``
     per axis. "bound" is the Cramér-Rao bound; "ml" the ML fit of the true model on the same
     measurements (Monte Carlo, unless not ``with_ml``); the ratio is to the smaller of the two.
-    ``acceptance_only``: only the instants issue 18 accepts on. Beside the mean NEES and its 95 %
+    ``acceptance_only``: only the instants the prediction acceptance reads. Beside the mean NEES and its 95 %
     bounds for ``runs`` runs: ``nees_crb``, the same errors' NEES against the Cramér-Rao covariance
     (a filter whose covariance *were* the bound), and ``cov_to_crb``, the median trace(P) / trace(CRB).
     Where both NEES are low the errors fell below the bound (a prior, a discrete corner, a nonlinear
@@ -371,7 +371,7 @@ def run(quick: bool = False) -> dict:
     # the zigzag's corner half a frame off the grid, as a real one is (the bench's lies on a frame)
     table += _bound_table(quick, {BETWEEN_FRAMES: MODELS[INFORMED]}, acceptance_only=True, families=("zigzag",),
                           corner_frames=0.5)
-    # the corners as the lab's table drives them: it stands at the corner (a diagnostic, not issue 18's acceptance),
+    # the corners as the lab's table drives them: it stands at the corner (a diagnostic, not the acceptance),
     # the tracker told the table's acceleration (what tracking.stop_corners does in a run), and as the instant corner
     accel = {"stop_accel_mm_s2": TableConfig().accel_mm_s2}
     table += _bound_table(quick, {STOPPING: {**MODELS[INFORMED], **accel}, STOPPING_INSTANT: MODELS[INFORMED]},

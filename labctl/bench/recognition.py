@@ -1,12 +1,12 @@
-"""Recognition benchmark (issue 5, paper §3.4): standard-view identification rates and matching speed.
+"""Recognition benchmark (paper §3.4): standard-view identification rates and matching speed.
 
 Standard views are rendered by the simulated lab's renderer with a random in-plane rotation,
 ±3 % stand-off error, ±2° optical-axis misalignment and sensor noise (σ = 2 grey levels).
 
 * ``sample``: the sample lab's seven objects (its ``object_library/``); every view × trials.
 * ``generated``: a library of ≥ 30 random machined parts taught on the fly (same pipeline).
-* ``scale``: 100 random parts (boxes, plates, concave extrusions, stepped blocks, parts with holes;
-  issue 15) taught on the fly, one trial per view.
+* ``scale``: 100 random parts (boxes, plates, concave extrusions, stepped blocks, parts with holes)
+  taught on the fly, one trial per view.
 
 For each, the angle-of-sight matcher with the ambiguity threshold and extra standard views
 (:func:`labctl.library.matching.identify`), and three single-view minimum-distance rates in the

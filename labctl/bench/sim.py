@@ -1,4 +1,4 @@
-"""Simulated-lab benchmark (issue 8): frame rendering rate and virtual-time trial speed.
+"""Simulated-lab benchmark: frame rendering rate and virtual-time trial speed.
 
 * ``render fixed/<object>``: one 640×480 frame of the fixed camera C1 (1.8 m, 25 mm lens) seeing
   the object on the table: z-buffer, Tsai distortion, anti-aliased silhouettes, analytic markers,
@@ -16,7 +16,7 @@
   14, ``labctl.sim.effects``: shadow, highlights, texture, Bayer, sRGB, JPEG 80) against the same
   frames without, timed alternately in one loop (``ratio`` < 1: the effects' cost): the fixed
   camera's object window as trials render it, its full frame, and the mobile camera's frame.
-* ``one virtual trial``: whole ``simulate_run`` trials (issue 16), the fixed camera rendered only
+* ``one virtual trial``: whole ``simulate_run`` trials, the fixed camera rendered only
   in the object's window against full frames in the same run; simulated s per CPU s
   (``virtual_time_factor_cpu``, target ≥ 15) and whether the results are identical.
 """

@@ -26,7 +26,7 @@ Families (table-plane mm, s; Bar-Shalom, Li & Kirubarajan 2001, §11.7 for the t
   (its junction speed for the lab's 97° turn is ~2 mm/s at 200 mm/s², so taken as 0) and speeds up
   out of it at the table's acceleration ``a`` (known: the table's setting); t_c is when it stands at
   the corner; θ = (xc, yc, v1x, v1y, v2x, v2y, t_c, a), ``a`` not estimated. Not in :data:`FAMILIES`
-  (issue 18's acceptance is on the instant corner): a diagnostic of how far the lab's corners are from it.
+  (the prediction acceptance is on the instant corner): a diagnostic of how far the lab's corners are from it.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Trials benchmark (issue 16): a sweep on one worker process against the same sweep on all cores.
+"""Trials benchmark: a sweep on one worker process against the same sweep on all cores.
 
 * ``sweep N trials, 1 job``: the baseline, timed in the same run.
 * ``sweep N trials, J jobs``: the process pool (``labctl trials --jobs J``). ``ratio`` is the

@@ -1,6 +1,6 @@
 """``labctl bench vision``: marker detection, fit + pose and the ellipse fitters, timed against
 baselines in the same run (medians), on synthetic 640×480 images of the issue's test scene; and
-the degradation suite of issue 14 (:mod:`._vision_suite`: ours vs the plain OpenCV pipeline on
+the degradation suite (:mod:`._vision_suite`: ours vs the plain OpenCV pipeline on
 images of the independent renderer :mod:`._vision_oracle`), with its acceptance checks.
 
 The suite's size is ``LABCTL_BENCH_VISION_PAIRS`` image pairs per case (default 25; 3 with

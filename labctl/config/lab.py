@@ -30,11 +30,11 @@ class DriverFiles:
 
 @dataclass(frozen=True)
 class MarkerConfig:
-    """Marker size (mm) and the size ladder for faces too small for ``radius_mm`` (issue 15)."""
+    """Marker size (mm) and the size ladder for faces too small for ``radius_mm``."""
 
     radius_mm: Positive = 8.0
     # faces too small for radius_mm get smaller markers, radius_mm·size_ratio^k, down to the one whose
-    # face-on image at the initial viewing distance is min_image_diameter_px across (issue 15)
+    # face-on image at the initial viewing distance is min_image_diameter_px across
     min_image_diameter_px: Positive = 16.0
     size_ratio: Positive = 0.8
 
@@ -141,10 +141,10 @@ class TrackingConfig:
     window_px: PositiveInt = 48
     plane_height_mm: NonNegative = 30.0  # height of the plane the fixed camera's centroids are mapped onto
     min_track_s: Positive = 1.0  # plan the interception after tracking this long at the latest
-    commit_min_updates: PositiveInt = 3  # ... and never from fewer filter updates than this (issue 16)
+    commit_min_updates: PositiveInt = 3  # ... and never from fewer filter updates than this
     # ... or sooner, once the 3-sigma error at commit_horizon_s is this small: 40 mm still fits the central half
     # of the mobile camera's view at the initial distance (viewing_distance_with_margin), and the plan is
-    # re-planned as the filter converges (issue 16: 10 mm waited ~0.25 s longer for nothing measurable)
+    # re-planned as the filter converges (10 mm waited ~0.25 s longer for nothing measurable)
     commit_margin_mm: Positive = 40.0
     commit_horizon_s: Positive = 1.5  # about the interception's duration
 
@@ -170,7 +170,7 @@ class RunConfig:
     timeout_s: Positive = 90.0
     ambiguity_threshold: float | None = None  # None: the library's own default
     max_views: PositiveInt = 3
-    # marker-height gate (issue 15, labctl.library.marker_height): the standard view measures its marker's
+    # marker-height gate (labctl.library.marker_height): the standard view measures its marker's
     # height above the table; a shape candidate none of whose views can rest its marker within
     # height_gate_mm + height_gate_sigmas·σ + height_gate_depth_frac·(vertical distance to the marker) of it
     # is dropped (the height only narrows the shape's candidates). height_gate_mm: the library's own error
@@ -180,7 +180,7 @@ class RunConfig:
     height_gate_sigmas: NonNegative = 4.0
     height_gate_depth_frac: NonNegative = 0.008
     second_image_azimuth_deg: float = 25.0  # camera moves this far round the marker between the two images
-    # ... sideways round it (the paper's) or up towards the top, where an upward marker's standard view is (issue 16)
+    # ... sideways round it (the paper's) or up towards the top, where an upward marker's standard view is
     second_image_move: Literal["azimuth", "elevation"] = "azimuth"
     second_image_elevation_deg: Positive = 5.0  # the step up (on the 1 m sphere: twice the path of a step round)
     fps: Positive = 30.0
@@ -194,14 +194,14 @@ class RunConfig:
     plan_horizon_s: Positive = 15.0  # how far ahead an interception is searched for
     replan_every_s: Positive = 0.25  # re-plan with the newest prediction at most this often ...
     replan_until_s: NonNegative = 0.4  # ... and not in the last this-many seconds before arrival
-    # an initial view that already holds the marker in its central half is not re-aimed to arrive later (issue 18)
+    # an initial view that already holds the marker in its central half is not re-aimed to arrive later
     initial_view_hold: bool = True
     marker_lost_s: Positive = 2.0  # no fixed-camera sighting for this long: the marker is lost
     spare_novelty_deg: NonNegative = 20.0  # a spare marker facing within this of a viewed face is not worth a view
-    # which spare marker to view next: the one whose standard view is nearest, or the most novel face (issue 16)
+    # which spare marker to view next: the one whose standard view is nearest, or the most novel face
     spare_order: Literal["nearest", "novel"] = "nearest"
     # the robot must be able to brake to rest within this many seconds from any point of a planned move
-    # (issue 13: at rest within 0.5 s of a stop command): caps the planned speed at a_stop·budget (null: no cap)
+    # (at rest within 0.5 s of a stop command): caps the planned speed at a_stop·budget (null: no cap)
     robot_stop_budget_s: Positive | None = None
     # the robot's segment profile (docs/protocols/robot.md §5): ruckig's time-optimal jerk-limited segments
     # (dialect 1.2; a controller that does not list ruckig gets quintic), or the paper's quintic (faithful
@@ -215,7 +215,7 @@ SIM_CAMERA_PRESETS = ("none", "realistic")
 
 @dataclass(frozen=True)
 class SimCameraConfig:
-    """What the simulated cameras add to the clean render (issue 14; ``labctl.sim.effects``).
+    """What the simulated cameras add to the clean render (``labctl.sim.effects``).
 
     ``preset`` picks a combination (``realistic``: shadows 0.8, specular 0.12 at shininess 60,
     texture 1.5, Bayer bilinear, JPEG 80); any field set here overrides the preset's. The

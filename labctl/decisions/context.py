@@ -40,7 +40,7 @@ class RunContext:
     limits: Limits
     # the library's own initial viewing angle (library.yaml, paper §4.1), None: lab.yaml's
     initial_angle_deg: float | None = None
-    # marker radii used in the library, largest first (issue 15: small faces carry smaller markers)
+    # marker radii used in the library, largest first (small faces carry smaller markers)
     marker_radii_mm: tuple[float, ...] = ()
 
     @classmethod

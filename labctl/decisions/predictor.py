@@ -75,7 +75,7 @@ class StageTimes:
 def _wire_pose(R: np.ndarray, p) -> np.ndarray:
     """The 4×4 pose (W ← flange) as a segment command carries it: position rounded to 0.01 mm, rotation
     vector to 1e-4 rad (0.006°, 0.02 mm at a 200-mm stand-off). The controller prints six decimals;
-    these ~20 bytes fewer a segment line are ~20 ms less before each leg starts at 9600 bps (issue 16)."""
+    these ~20 bytes fewer a segment line are ~20 ms less before each leg starts at 9600 bps."""
     rv = np.round(matrix_to_rotvec(np.asarray(R, dtype=float)), 4)
     return make_T(rotvec_to_matrix(rv), np.round(np.asarray(p, dtype=float), 2))
 
@@ -126,9 +126,9 @@ class PredictorPlanner:
 
     ``rest``: the robot's status read when it was opened (``Robot.ensure_ready``), if any; a robot
     standing still there is where the first leg starts, so that leg needs no STATUS round trip
-    (~0.1 s at 9600 bps) on the way from first sight to the first command (issue 16). ``family``: the
+    (~0.1 s at 9600 bps) on the way from first sight to the first command. ``family``: the
     trajectory family of the table program this run drives (``line``/``arc``/``circle``/``zigzag``), which
-    sets the tracker's curve prior (``tracking.family_prior``, issue 18); None when labctl does not drive
+    sets the tracker's curve prior (``tracking.family_prior``); None when labctl does not drive
     the motion (``external``, no table) or the program is a G-code file."""
 
     def __init__(self, ctx: RunContext, robot: Robot, send: Callable[[m.Message], object],
@@ -290,7 +290,7 @@ class PredictorPlanner:
     # -- planning ----------------------------------------------------------------------------
     def _initial_view_target(self, azimuth_deg: float, margin: bool = True):
         """The initial view of the marker from ``azimuth_deg``; with ``margin``, far enough back that the
-        prediction's uncertainty stays well inside the view (issue 18), else at the nominal distance."""
+        prediction's uncertainty stays well inside the view, else at the nominal distance."""
         cam = self.ctx.mobile_camera
         distance = viewing_distance_with_margin(self.cfg.viewing.initial_distance_mm,
                                                 self._commit_margin_mm() if margin else 0.0,
@@ -335,7 +335,7 @@ class PredictorPlanner:
         self.log("predict", t=now, path=self._marker_path()(horizon)[0])
 
     def _commit_margin_mm(self) -> float:
-        """3-σ radius (mm) of the predicted marker position ``commit_horizon_s`` ahead (issue 18)."""
+        """3-σ radius (mm) of the predicted marker position ``commit_horizon_s`` ahead."""
         _, cov = self.tracker.predict(cast(float, self.tracker.time) + self.cfg.tracking.commit_horizon_s)
         return prediction_margin_mm(cov)
 
@@ -576,7 +576,7 @@ class PredictorPlanner:
         ``run.second_image_azimuth_deg`` sideways round the marker (``azimuth``, the paper's). A marker facing
         up — the recogniser prefers one — has its two pose candidates in the vertical plane through the line
         of sight, so a step in that plane separates them most (duality margin 0.35 rad for 10° up against
-        0.14 for 10° round, one trial), and it is the way to its standard view straight above (issue 16)."""
+        0.14 for 10° round, one trial), and it is the way to its standard view straight above."""
         run = self.cfg.run
         base = self.ctx.initial_angle_deg or self.cfg.viewing.initial_angle_deg
         up = run.second_image_elevation_deg
@@ -820,7 +820,7 @@ class ProgramProgress:
     ``every_s`` seconds and when the program is accepted; a fault raises the driver's error.
     Once GRBL has accepted the whole program the table is still watched (``watch``: status at
     its rate, read without waiting), so a link that drops while it runs the tail is noticed —
-    reconnected within ``reconnect_s`` or a typed error (issue 12, Build 7)."""
+    reconnected within ``reconnect_s`` or a typed error."""
 
     def __init__(self, program, log, every_s: float = 0.5):
         self.program, self.log, self.every_s = program, log, every_s

@@ -136,7 +136,7 @@ class Recognizer:
         self.n_initial_seen = 0  # initial images in which the object's markers were seen
         self.saw_top_marker = False  # did any initial image show a marker facing up?
         cam_cfg = ctx.lab.mobile_camera
-        # frames are linearised by the camera's declared response before any sub-pixel work (issue 14)
+        # frames are linearised by the camera's declared response before any sub-pixel work
         self.detect_kw: dict[str, Any] = dict(thresholds=marker_thresholds(cam_cfg), response=cam_cfg.response)
 
     def handle(self, msg: m.Message) -> list[m.Message]:
@@ -160,14 +160,14 @@ class Recognizer:
         out = []
         # markers flagged only as rough or blurred (small oblique markers in JPEG 4:2:0 frames: their
         # normals are ~1° off instead of ~0.3°) with a small normal σ are a last resort: preferred only
-        # when more novel than every trusted marker or none is trusted, else spares (issue 14,
-        # realistic-camera trials); the noise-aware duality test and the standard view's check still guard
+        # when more novel than every trusted marker or none is trusted, else spares (measured in realistic-camera
+        # trials, docs/notes/vision.md); the noise-aware duality test and the standard view's check still guard
         every = detect_markers(frame.image, include_suspect=True, **self.detect_kw)
         for mk in (mk for mk in every
                    if mk.trusted or (mk.quality is not None and set(mk.quality.flags) <= _LAST_RESORT_FLAGS)):
             best = None
             # an ellipse fixes a circle's distance only up to its radius: with several marker sizes in the
-            # library (issue 15), take the size that puts the marker on the object, i.e. near the table
+            # library, take the size that puts the marker on the object, i.e. near the table
             for r in self.ctx.marker_radii_mm or (self.radius,):
                 try:
                     mp = marker_poses(mk, self.ctx.mobile_camera, r)

@@ -1,4 +1,4 @@
-"""A soak of the live loop's long-lived parts in virtual time: is memory flat over an hour? (issue 13)
+"""A soak of the live loop's long-lived parts in virtual time: is memory flat over an hour?
 
 Everything that runs for the whole of a live run, with the vision taken out (it allocates per
 frame and frees per frame; the buffers that grow are elsewhere):

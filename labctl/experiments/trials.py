@@ -300,7 +300,7 @@ def summarize(results: list[dict]) -> dict:
     stage_medians = {k: _median([r["stages"].get(k) for r in results if r["correct"]]) for k in stages}
     link_util = [r["link"]["utilisation"] for r in results if "link" in r]
     by_profile = []
-    for prof in sorted({r.get("profile") or "" for r in results}):  # robot segment profiles (issue 16)
+    for prof in sorted({r.get("profile") or "" for r in results}):  # robot segment profiles
         rs = [r for r in results if (r.get("profile") or "") == prof]
         ok = [r for r in rs if r["correct"]]
         by_profile.append({"profile": prof or None, "n": len(rs), "success_rate": len(ok) / len(rs),

@@ -1,4 +1,4 @@
-"""The viewed marker's height above the table, measured in the standard view itself (issue 15).
+"""The viewed marker's height above the table, measured in the standard view itself.
 
 A standard view (paper §3.4) looks along the marker's normal from ``viewing.standoff_mm``: the
 marker is a near-circle of ~50 px at the image centre, the best-conditioned marker image of the

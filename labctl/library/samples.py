@@ -139,7 +139,7 @@ PART_KINDS = ("box", "plate", "concave", "stepped", "holed")
 
 
 def random_part(rng: np.random.Generator, kind: str | None = None) -> trimesh.Trimesh:
-    """A random machined part for the scale benchmark (issue 15), 5–120 mm, centred on its bounding box.
+    """A random machined part for the scale benchmark, 5–120 mm, centred on its bounding box.
 
     ``box`` 15–110 mm per side; ``plate`` 5–9 mm thick, 30–110 mm across; ``concave`` an extruded L, T,
     U or cross profile (:func:`random_object`'s shapes); ``stepped`` a block with 2–3 steps; ``holed``

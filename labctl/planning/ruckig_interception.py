@@ -1,4 +1,4 @@
-"""Interception with one ``ruckig`` segment (robot dialect 1.2; issue 16 part A; paper §4.3, jerk-limited).
+"""Interception with one ``ruckig`` segment (robot dialect 1.2; paper §4.3, jerk-limited).
 
 The problem of :func:`labctl.planning.interception.plan_interception` — the earliest ``t`` at
 which the robot, from its state at ``t0``, arrives on the target path G(t) with G's velocity and

@@ -1,4 +1,4 @@
-"""The ``ruckig`` segment profile of the robot dialect 1.2 (docs/protocols/robot.md §5; issue 16 part A).
+"""The ``ruckig`` segment profile of the robot dialect 1.2 (docs/protocols/robot.md §5).
 
 One segment is the time-optimal jerk-limited trajectory (ruckig, Berscheid & Kröger 2021) from
 the controller's current state to a target state, in six degrees of freedom: the flange position

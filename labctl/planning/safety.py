@@ -1,4 +1,4 @@
-"""The last gate before a segment leaves the planner (docs/architecture.md "Frames and units"; issue 6 "Safety").
+"""The last gate before a segment leaves the planner (docs/architecture.md "Frames and units").
 
 Every segment the planners return has passed :func:`check_segment`: its whole position range
 inside the workspace box, and its speed, acceleration (Euclidean norms) and rotation rate within
@@ -6,7 +6,7 @@ the limits. First rigorous upper bounds (dense samples plus the largest possible
 between samples, :meth:`QuinticSegment.limit_bounds`); where a bound touches a limit, the exact
 maxima from the polynomial's critical points decide. A violation is never missed.
 
-Stops stay inside (issue 19, docs/protocols/robot.md §Stopping): the robot controller brakes
+Stops stay inside (docs/protocols/robot.md §Stopping): the robot controller brakes
 each axis on its own at ``a_stop = a_max/√3`` (so ‖a‖ ≤ a_max while braking), so from a state
 (x, v) an axis comes to rest at ``x + v|v|/(2 a_stop)``. :func:`stop_envelope_range` gives the
 exact range of that rest point over a whole quintic; a segment is safe only if it lies in the

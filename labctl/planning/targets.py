@@ -158,7 +158,7 @@ def prediction_margin_mm(cov, n_sigma: float = 3.0) -> float:
 
     ``cov`` is the prediction's 2×2 table-plane covariance (mm², e.g. ``MarkerTracker.predict``):
     ``n_sigma · sqrt(λ_max)``. The planner commits to an interception only once this is small
-    at the arrival horizon, and sizes the initial view's margin with it (issue 18; paper §4.2-4.3).
+    at the arrival horizon, and sizes the initial view's margin with it (paper §4.2-4.3).
     """
     c = np.asarray(cov, dtype=float).reshape(2, 2)
     if not np.all(np.isfinite(c)):
@@ -171,7 +171,7 @@ def view_holds_marker(camera, T_w_c: np.ndarray, marker_w, margin_mm: float, fil
     """Whether a camera at ``T_w_c`` (4×4, W ← camera) sees the marker point ``marker_w`` (mm, W) inside the
     central ``fill`` of its image on each axis, with the prediction's ``margin_mm`` (its 3-σ radius on the table
     plane, projected at the marker's depth) to spare. ``camera``: a :class:`labctl.geometry.CameraModel`.
-    The rule :func:`viewing_distance_with_margin` sizes the initial view by, checked for one pose (issue 18).
+    The rule :func:`viewing_distance_with_margin` sizes the initial view by, checked for one pose.
     """
     p_c = np.linalg.inv(np.asarray(T_w_c, dtype=float)) @ np.append(np.asarray(marker_w, dtype=float), 1.0)
     if not p_c[2] > 0:

@@ -1,4 +1,4 @@
-"""An honest lower bound on a run's time to identity (issue 16, Build 3; paper §4.3, §5.3).
+"""An honest lower bound on a run's time to identity (paper §4.3, §5.3).
 
 No run can identify the object sooner than
 

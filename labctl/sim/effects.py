@@ -1,4 +1,4 @@
-"""Realistic-camera effects of the simulated lab (issue 14, Build 7): what a real camera and a
+"""Realistic-camera effects of the simulated lab: what a real camera and a
 real scene add to the clean render of :mod:`labctl.sim.render`.
 
 The renderer's grey levels are *linear* radiance (0–255 full scale). :class:`CameraEffects`

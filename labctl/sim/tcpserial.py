@@ -7,7 +7,7 @@ client is refused while one is connected (ser2net's default), and the tty stays 
 clients so the device keeps its state, as a controller behind a real ser2net does.
 
 :meth:`TcpSerialBridge.set_up` stops and restarts it as ser2net is stopped and restarted (a
-dropped link, issue 12 Build 7): down, the client's connection and the port close (connecting is
+dropped link): down, the client's connection and the port close (connecting is
 refused) and what the device sends is lost; up, the same port listens again.
 """
 

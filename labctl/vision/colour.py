@@ -1,4 +1,4 @@
-"""Learning the marker colour window from an image of the lab's own markers (issue 14, item 6).
+"""Learning the marker colour window from an image of the lab's own markers.
 
 The HSV window of :func:`labctl.vision.find_markers` (paper §4.1's marker thresholding) is
 policy that depends on the paint, the lighting and the camera's white balance. Given one image
