@@ -68,7 +68,7 @@ def _open_table(port: str | None, baud: int | None, timeout_s: float | None, *, 
     if not port:
         raise UserInputError("no table port: pass --port PORT (the lab's table is simulated; "
                              "`labctl sim serve` prints a port to use)")
-    kw = {name: getattr(cfg, name) for name in ("stall_reports", "homing_timeout_s", "stop_confirm_s")
+    kw = {name: getattr(cfg, name) for name in ("stall_reports", "homing_timeout_s", "stop_confirm_s", "reconnect_s")
           if hasattr(cfg, name)}
     return GrblTable(port, baud or cfg.baud, reset_on_open=cfg.reset_on_open, status_hz=cfg.status_hz,
                      timeout_s=timeout_s or cfg.timeout_s, auto_unlock=False, reset_if_silent=reset_if_silent, **kw)
