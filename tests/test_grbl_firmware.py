@@ -303,9 +303,10 @@ class OracleSilent(AssertionError):
 
 
 @pytest.mark.timeout(330)  # two scenarios of up to 6 + 90 + 2 × 30 s when the first oracle falls silent
-@pytest.mark.parametrize("sig,cmd", [(signal.SIGINT, "stream"), (signal.SIGTERM, "move")])
+@pytest.mark.parametrize("sig,cmd", [(signal.SIGINT, "stream"), (signal.SIGTERM, "move"), (signal.SIGHUP, "move")])
 def test_interrupt_stops_the_table(fw, tmp_path, sig, cmd):
-    """Ctrl-C / SIGTERM (twice) during `table stream|move`: hold, reset, status read back; exit 130, one line.
+    """Ctrl-C / SIGTERM / SIGHUP (twice) during `table stream|move`: hold, reset, status read back; exit 130,
+    one line. (SIGHUP, a closed terminal, used to end the command at once with the table still moving.)
 
     Twice in ~9 clean-clone CI runs (2026-11-30, `[2-stream]`) the simulator fell silent for good right after
     a stop the product had confirmed from the firmware's own report, so the independent read-back got nothing

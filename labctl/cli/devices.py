@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import contextlib
-import signal
 from pathlib import Path
 
 import click
@@ -78,21 +77,19 @@ def _open_table(port: str | None, baud: int | None, timeout_s: float | None, *, 
 def stops_table(table):
     """Stop the table on every exit that is not a normal return (README "Exit status"; issue 13).
 
-    Ctrl-C, SIGTERM, a device error or any other exception: feed hold, soft reset, status read
-    back (:meth:`GrblTable.stop`), while further signals are ignored; then one line, with exit
-    130 for an interrupt and the error's own code otherwise."""
+    Ctrl-C, SIGTERM, SIGHUP, a device error or any other exception: feed hold, soft reset, status
+    read back (:meth:`GrblTable.stop`), while further signals are ignored; then one line, with exit
+    130 for an interrupt (any of the three signals) and the error's own code otherwise."""
     from ..errors import LabctlError
-    from .signals import interrupt_once
+    from .signals import catch_stop_signals, ignore_stop_signals, restore_signals
 
-    old_term = signal.signal(signal.SIGTERM, interrupt_once)
-    old_int = signal.signal(signal.SIGINT, interrupt_once)
+    old = catch_stop_signals()
     try:
         yield
     except BaseException as exc:
         if isinstance(exc, SystemExit | GeneratorExit):
             raise
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
-        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        ignore_stop_signals()
         try:
             st = table.stop()
             p = st.position
@@ -109,8 +106,7 @@ def stops_table(table):
             err = LabctlError(f"{type(exc).__name__}: {exc}; {stopped}")
         raise err from None
     finally:
-        signal.signal(signal.SIGTERM, old_term)
-        signal.signal(signal.SIGINT, old_int)
+        restore_signals(old)
 
 
 def _status_dict(table, st) -> dict:
