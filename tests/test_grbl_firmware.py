@@ -531,3 +531,30 @@ def test_a_reset_in_motion_while_away_is_alarm3_and_nothing_moves(fw):
             t.ensure_ready()  # never unlocked silently, though a banner came after the reconnect
     status = fw.status()
     assert "Alarm" in status and f"MPos:{x:.3f}" in status
+
+
+def test_a_soft_limit_alarm_is_stopped_and_confirmed_not_cut_power(fw):
+    """Soft limits on: a move past the travel is GRBL's ALARM:2, and its critical-event lock begins only after
+    the alarm line, discarding a reset that came in between (the simulator's slow threads make that the usual
+    case). The stop must send the reset again on ``[MSG:Reset to continue]`` and confirm the table, instead of
+    waiting out stop_confirm_s and telling the user to cut its power while one more 0x18 would do."""
+    fw.fresh()
+    fw.to_machine_zero()
+    for k, v in {22: 1, 20: 1, 130: 200, 131: 200}.items():  # soft limits need homing enabled
+        fw.command(f"${k}={v}")
+    fw.raw(b"\x18", until="Grbl 1.1h", timeout_s=30)
+    fw.command("$X")
+    try:
+        p = subprocess.run([sys.executable, "-m", "labctl", "table", "move", "900", "0", "--feed", "6000",
+                            "--port", fw.path, "--baud", "115200", "--timeout", "15"], capture_output=True, text=True,
+                           timeout=120, env={**os.environ, "PYTHONPATH": str(REPO)})
+        lines = [x for x in p.stderr.splitlines() if x.strip()]
+        assert p.returncode == 3 and len(lines) == 1, p.stderr
+        assert "ALARM:2" in lines[0] and "confirmed Alarm" in lines[0] and "cut its power" not in lines[0], p.stderr
+        assert "<Alarm|MPos:0.000,0.000" in fw.status()  # answering again: out of the lock, nothing moved
+    finally:
+        fw.raw(b"\x18", until="Grbl 1.1h", timeout_s=30)
+        fw.command("$X")
+        for k, v in {20: 0, 22: 0}.items():
+            fw.command(f"${k}={v}")
+        fw.fresh()
