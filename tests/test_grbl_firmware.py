@@ -558,3 +558,33 @@ def test_a_soft_limit_alarm_is_stopped_and_confirmed_not_cut_power(fw):
         for k, v in {20: 0, 22: 0}.items():
             fw.command(f"${k}={v}")
         fw.fresh()
+
+
+def test_a_reset_in_motion_says_the_position_is_lost(fw):
+    """`table reset` during a move: GRBL's ALARM:3 (steps may be lost). The command still succeeds (the table
+    stopped), but says so in one line on stderr, with what to do, and ``position_lost`` in its output."""
+    fw.fresh()
+    fw.to_machine_zero()
+    fw.command("G53G1X150F1200")  # 30 s on the simulator's wall clock
+    deadline = time.monotonic() + 15
+    while "<Run" not in fw.status():
+        assert time.monotonic() < deadline, "the move never started"
+    try:
+        p = subprocess.run([sys.executable, "-m", "labctl", "--json", "table", "reset", "--port", fw.path, "--baud",
+                            "115200", "--timeout", "15"], capture_output=True, text=True, timeout=120,
+                           env={**os.environ, "PYTHONPATH": str(REPO)})
+        assert p.returncode == 0, p.stderr
+        d = json.loads(p.stdout)
+        lines = [x for x in p.stderr.splitlines() if x.strip()]
+        assert d["state"] == "Alarm" and d["position_lost"] is True
+        assert len(lines) == 1 and "ALARM:3" in lines[0] and "position is lost" in lines[0], p.stderr
+        assert "labctl table home" in lines[0]
+        assert "<Alarm" in fw.status()
+        # at rest, a reset loses nothing and says nothing
+        fw.command("$X")
+        p = subprocess.run([sys.executable, "-m", "labctl", "--json", "table", "reset", "--port", fw.path, "--baud",
+                            "115200", "--timeout", "15"], capture_output=True, text=True, timeout=120,
+                           env={**os.environ, "PYTHONPATH": str(REPO)})
+        assert p.returncode == 0 and json.loads(p.stdout)["position_lost"] is False and not p.stderr.strip(), p.stderr
+    finally:
+        fw.fresh()

@@ -166,12 +166,23 @@ def table_home(port, baud, timeout_s) -> None:
 @_timeout
 @json_option
 def table_reset(unlock, port, baud, timeout_s) -> None:
-    """Soft reset (Ctrl-X): stop at once and clear a locked alarm; then optionally unlock."""
+    """Soft reset (Ctrl-X): stop at once and clear a locked alarm; then optionally unlock.
+
+    A reset while the table moves stops it without deceleration: GRBL says ALARM:3 (position lost,
+    steps may have been skipped), and this is said on stderr in one line: home before moving."""
     with _open_table(port, baud, timeout_s, reset_if_silent=True) as table:
+        table.session_alarm = None  # only what this reset brings
         table.reset()
+        lost = table.session_alarm == 3
         if unlock and table.status().state == "Alarm":
             table.unlock()
-        d = _status_dict(table, table.status())
+        d = _status_dict(table, table.status()) | {"position_lost": lost}
+    if lost:
+        then = ("it was unlocked as asked, but its position is not to be trusted: home it (labctl table home)"
+                if unlock else "home it (labctl table home) before moving; `labctl table reset --unlock` only "
+                               "if you know where it stands")
+        click.echo(f"labctl: warning: the reset stopped the table in motion (GRBL ALARM:3): its position is lost; "
+                   f"{then}", err=True)
     emit(d, _print_status(d))
 
 
