@@ -170,7 +170,8 @@ def check_program(numbered: list[tuple[int, str]], where: str, *, travel_mm, max
     absolute position is refused, since where the table stands before it runs is not known here.
     A program with no motion is refused. ``numbered`` is :func:`load_gcode_numbered`'s output."""
     inch = relative = False
-    motion, feed = "0", None
+    motion: str | None = "0"
+    feed: float | None = None
     pos: list[float | None] = [None, None]
     moved = False
     for n, raw in numbered:
@@ -232,16 +233,17 @@ def check_program(numbered: list[tuple[int, str]], where: str, *, travel_mm, max
                 continue
             v = args[a] * scale
             if relative and not machine:
-                if pos[i] is None:
+                here = pos[i]
+                if here is None:
                     raise UserInputError(f"{where}:{n}: a relative move (G91) before the program set an absolute "
                                          f"{a}: where the table starts is not known before the run")
-                v += pos[i]
+                v += here
             target[i] = v
-        points = [tuple(target)]
+        points: list[tuple[float | None, float | None]] = [(target[0], target[1])]
         if motion in ("2", "3") and axes:
-            if None in start:
-                raise UserInputError(f"{where}:{n}: an arc before the program set absolute X and Y")
             x0, y0 = start
+            if x0 is None or y0 is None:
+                raise UserInputError(f"{where}:{n}: an arc before the program set absolute X and Y")
             x1 = target[0] if target[0] is not None else x0
             y1 = target[1] if target[1] is not None else y0
             if "R" in args:
@@ -260,11 +262,11 @@ def check_program(numbered: list[tuple[int, str]], where: str, *, travel_mm, max
             else:
                 cx, cy = x0 + args.get("I", 0.0) * scale, y0 + args.get("J", 0.0) * scale
                 full = abs(x1 - x0) < 1e-6 and abs(y1 - y0) < 1e-6
-            points = _arc_extremes(x0, y0, x1, y1, cx, cy, motion == "2", full)
+            points = list(_arc_extremes(x0, y0, x1, y1, cx, cy, motion == "2", full))
         for x, y in points:
-            for i, v in enumerate((x, y)):
-                if v is not None and not (-1e-6 <= v <= travel_mm[i] + 1e-6):
-                    raise UserInputError(f"{where}:{n}: the program reaches {'XY'[i]}{v:.3f} mm, outside the "
+            for i, c in enumerate((x, y)):
+                if c is not None and not (-1e-6 <= c <= travel_mm[i] + 1e-6):
+                    raise UserInputError(f"{where}:{n}: the program reaches {'XY'[i]}{c:.3f} mm, outside the "
                                          f"table's travel 0..{travel_mm[i]:g} mm")
         pos = target
         moved = moved or bool(axes)

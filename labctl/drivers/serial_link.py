@@ -119,6 +119,8 @@ class SerialLink(OpenClose):
         else:
             import serial
 
+            if self.url is None:  # the constructor takes a URL or a port
+                raise LinkError("a serial link needs a port path/URL or a port object")
             try:
                 self.port = open_port(self.url, write_timeout_s=self.timeout_s, baudrate=self.baud, timeout=0,
                                       **self.serial_kwargs)
