@@ -12,7 +12,7 @@ import click
 import numpy as np
 
 from ._common import emit, get_ctx, json_option
-from .signals import interrupt_once
+from .signals import catch_stop_signals, ignore_stop_signals, restore_signals
 
 
 def _human_report(rep: dict):
@@ -200,8 +200,6 @@ def calibrate_group(ctx: click.Context, camera: str, dry_run: bool, ros: bool, f
     registration. The same procedure runs on the simulated lab and on hardware."""
     if ctx.invoked_subcommand is not None:
         return
-    import signal
-
     from rich.progress import Progress
 
     from ..calibration.run import (
@@ -233,9 +231,8 @@ def calibrate_group(ctx: click.Context, camera: str, dry_run: bool, ros: bool, f
     given_truth = load_truth(truth_file) if truth_file is not None else None
     if plan.problems:
         raise UserInputError(f"the calibration plan does not fit the lab: {plan.problems[0]}")
-    # Ctrl-C and SIGTERM both end in the stop below, even if the parent started us ignoring SIGINT
-    old_term = signal.signal(signal.SIGTERM, interrupt_once)
-    old_int = signal.signal(signal.SIGINT, interrupt_once)
+    # Ctrl-C, SIGTERM and SIGHUP all end in the stop below, even if the parent started us ignoring SIGINT
+    old_signals = catch_stop_signals()
     devs = None
     close = None
     try:
@@ -248,8 +245,7 @@ def calibrate_group(ctx: click.Context, camera: str, dry_run: bool, ros: bool, f
                                       progress=lambda msg: bar.update(task, advance=1, description=msg))
     except BaseException as exc:
         # stop on every exit path; a second Ctrl-C/TERM must not cut the stop short
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
-        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        ignore_stop_signals()
         said = _confirm_stopped(devs) if devs is not None else "no device was opened"
         if close is not None:
             with contextlib.suppress(Exception):
@@ -259,8 +255,7 @@ def calibrate_group(ctx: click.Context, camera: str, dry_run: bool, ros: bool, f
             raise SystemExit(130) from None
         raise
     finally:
-        signal.signal(signal.SIGTERM, old_term)
-        signal.signal(signal.SIGINT, old_int)
+        restore_signals(old_signals)
     if close is not None:
         close()
     emit(rep, _human_report(rep))

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import contextlib
-import signal
 from pathlib import Path
 
 import click
@@ -71,28 +70,26 @@ def _open_table(port: str | None, baud: int | None, timeout_s: float | None, *, 
     return GrblTable(port, baud or cfg.baud, reset_on_open=cfg.reset_on_open, status_hz=cfg.status_hz,
                      timeout_s=timeout_s or cfg.timeout_s, auto_unlock=False, reset_if_silent=reset_if_silent,
                      stall_reports=cfg.stall_reports, homing_timeout_s=cfg.homing_timeout_s,
-                     stop_confirm_s=cfg.stop_confirm_s)
+                     stop_confirm_s=cfg.stop_confirm_s, reconnect_s=cfg.reconnect_s)
 
 
 @contextlib.contextmanager
 def stops_table(table):
     """Stop the table on every exit that is not a normal return (README "Exit status"; issue 13).
 
-    Ctrl-C, SIGTERM, a device error or any other exception: feed hold, soft reset, status read
-    back (:meth:`GrblTable.stop`), while further signals are ignored; then one line, with exit
-    130 for an interrupt and the error's own code otherwise."""
+    Ctrl-C, SIGTERM, SIGHUP, a device error or any other exception: feed hold, soft reset, status
+    read back (:meth:`GrblTable.stop`), while further signals are ignored; then one line, with exit
+    130 for an interrupt (any of the three signals) and the error's own code otherwise."""
     from ..errors import LabctlError
-    from .signals import interrupt_once
+    from .signals import catch_stop_signals, ignore_stop_signals, restore_signals
 
-    old_term = signal.signal(signal.SIGTERM, interrupt_once)
-    old_int = signal.signal(signal.SIGINT, interrupt_once)
+    old = catch_stop_signals()
     try:
         yield
     except BaseException as exc:
         if isinstance(exc, SystemExit | GeneratorExit):
             raise
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
-        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        ignore_stop_signals()
         try:
             st = table.stop()
             p = st.position
@@ -109,8 +106,7 @@ def stops_table(table):
             err = LabctlError(f"{type(exc).__name__}: {exc}; {stopped}")
         raise err from None
     finally:
-        signal.signal(signal.SIGTERM, old_term)
-        signal.signal(signal.SIGINT, old_int)
+        restore_signals(old)
 
 
 def _status_dict(table, st) -> dict:
@@ -170,12 +166,23 @@ def table_home(port, baud, timeout_s) -> None:
 @_timeout
 @json_option
 def table_reset(unlock, port, baud, timeout_s) -> None:
-    """Soft reset (Ctrl-X): stop at once and clear a locked alarm; then optionally unlock."""
+    """Soft reset (Ctrl-X): stop at once and clear a locked alarm; then optionally unlock.
+
+    A reset while the table moves stops it without deceleration: GRBL says ALARM:3 (position lost,
+    steps may have been skipped), and this is said on stderr in one line: home before moving."""
     with _open_table(port, baud, timeout_s, reset_if_silent=True) as table:
+        table.session_alarm = None  # only what this reset brings
         table.reset()
+        lost = table.session_alarm == 3
         if unlock and table.status().state == "Alarm":
             table.unlock()
-        d = _status_dict(table, table.status())
+        d = _status_dict(table, table.status()) | {"position_lost": lost}
+    if lost:
+        then = ("it was unlocked as asked, but its position is not to be trusted: home it (labctl table home)"
+                if unlock else "home it (labctl table home) before moving; `labctl table reset --unlock` only "
+                               "if you know where it stands")
+        click.echo(f"labctl: warning: the reset stopped the table in motion (GRBL ALARM:3): its position is lost; "
+                   f"{then}", err=True)
     emit(d, _print_status(d))
 
 

@@ -19,6 +19,10 @@ def _trajectory(value: str, lab=None) -> str:
     if value in TRAJECTORIES or value == "external":
         return value
     if Path(value).is_file():
+        if lab is not None and lab.table is not None:  # read and checked before any motion or record
+            from ..drivers.programs import load_trajectory
+
+            load_trajectory(value, travel_mm=lab.table.travel_mm, max_feed_mm_min=lab.table.max_feed_mm_min)
         return str(Path(value).resolve())
     raise UserInputError(f"--trajectory must be one of {', '.join(TRAJECTORIES)}, external or a G-code file; "
                          f"got {value!r}")

@@ -792,8 +792,9 @@ class GrblTable(OpenClose):
         the port, or a controller starved of CPU that answers late — '?' is asked every 0.25 s and a
         report of Idle, Alarm or Check confirms it too (a held or running GRBL with queued motion
         reports neither until the reset took effect); a report that still shows motion pending
-        means the 0x18 was lost, so it is sent again. DeviceTimeout after ``timeout_s`` (default:
-        the reply time-out) with neither.
+        means the 0x18 was lost, so it is sent again; so does GRBL's ``[MSG:Reset to continue]``
+        after the 0x18 (a critical alarm's lock, which drops a reset that came before it). DeviceTimeout
+        after ``timeout_s`` (default: the reply time-out) with neither.
         """
         if self.program is not None:
             self._program_ended(self.program)
@@ -805,6 +806,16 @@ class GrblTable(OpenClose):
         self.reset_confirmed_by = ""
         while self.clock.now() < deadline:
             for msg in self._read(0.05, raise_alarm=False):
+                if msg.kind == "msg" and msg.text == "Reset to continue":
+                    # a critical alarm (ALARM:1/2) locks GRBL only after it printed the alarm, and the
+                    # lock discards a reset that arrived in between: the lock's message after our 0x18
+                    # means it was lost, and only another one ends the lock
+                    log.warning("%s: GRBL locked after a critical alarm and dropped the soft reset; sending it "
+                                "again", self.link.name)
+                    self._write(b"\x18")
+                    asked = False
+                    next_query = self.clock.now() + self.banner_wait_s
+                    continue
                 if msg.kind == "banner":
                     self._read(0.05, raise_alarm=False)  # the rest of the banner burst ([MSG:…])
                     self._after_reset("banner")

@@ -46,6 +46,36 @@ class ProtocolError(DeviceError):
     """The device answered something the protocol does not allow (lost or garbled replies)."""
 
 
+def open_port(url: str, *, write_timeout_s: float | None, **kwargs):
+    """``serial.serial_for_url(url, **kwargs)``, opened, with every write bounded by ``write_timeout_s``
+    on every transport.
+
+    pyserial's ``rfc2217://`` client refuses a ``write_timeout`` (``NotImplementedError``), so there
+    the port is opened without one and its socket's own timeout is set to the bound instead (a
+    blocked send then raises, as a timed-out write does elsewhere). An RFC 2217 server that never
+    acknowledges a control-line change (ser2net on a pty does not: there is no DTR to set) fails
+    with a hint to add ``?ign_set_control`` to the URL. Raises what ``serial_for_url`` raises."""
+    import serial
+    import serial.rfc2217
+
+    port = serial.serial_for_url(url, do_not_open=True, **kwargs)
+    rfc2217 = isinstance(port, serial.rfc2217.Serial)
+    if not rfc2217:
+        port.write_timeout = write_timeout_s
+    try:
+        port.open()
+    except serial.SerialException as exc:
+        if rfc2217 and "'control'" in str(exc) and "ign_set_control" not in url:
+            raise serial.SerialException(
+                f"{exc}: the RFC 2217 server does not acknowledge control-line changes (ser2net on a pty "
+                f"does not); add ?ign_set_control to the URL") from exc
+        raise
+    sock = getattr(port, "_socket", None)
+    if rfc2217 and sock is not None and write_timeout_s:
+        sock.settimeout(write_timeout_s)  # its reader thread treats a timed-out recv as "nothing yet"
+    return port
+
+
 class SerialLink(OpenClose):
     """A polled line link over a pyserial port (or anything pyserial-like passed as ``port``)."""
 
@@ -94,9 +124,11 @@ class SerialLink(OpenClose):
         else:
             import serial
 
+            if self.url is None:  # the constructor takes a URL or a port
+                raise LinkError("a serial link needs a port path/URL or a port object")
             try:
-                self.port = serial.serial_for_url(self.url, baudrate=self.baud, timeout=0,
-                                                  write_timeout=self.timeout_s, **self.serial_kwargs)
+                self.port = open_port(self.url, write_timeout_s=self.timeout_s, baudrate=self.baud, timeout=0,
+                                      **self.serial_kwargs)
             except (serial.SerialException, OSError, ValueError) as exc:
                 raise LinkError(f"cannot open {self.url}: {exc}") from exc
         self._buf.clear()

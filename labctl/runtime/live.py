@@ -56,7 +56,22 @@ def warm_up() -> None:
     from multiprocessing import forkserver
 
     CTX.set_forkserver_preload(_PRELOAD)
-    forkserver.ensure_running()
+    if not _in_main_thread():
+        forkserver.ensure_running()
+        return
+    # The server is started ignoring the stop signals (kept across its exec). A signal to the whole
+    # process group (timeout, systemd, docker stop) would otherwise end it, and a dead server makes
+    # every process it started look exited (exit code 255) while the workers still stop their devices.
+    # It needs no signal: it exits by itself when this process does.
+    sigs = {signal.SIGINT, signal.SIGTERM, signal.SIGHUP}
+    old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, sigs)  # one arriving meanwhile waits, not lost
+    old = {sig: signal.signal(sig, signal.SIG_IGN) for sig in sigs}
+    try:
+        forkserver.ensure_running()
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
+        signal.pthread_sigmask(signal.SIG_SETMASK, old_mask)
 
 
 def process_start_wall() -> float | None:
@@ -107,8 +122,8 @@ def _endpoints(args: WorkerArgs, ctl, timeout_s: float = 60.0) -> WorkerArgs:
     deadline = time.monotonic() + timeout_s
     conn = ctl.conn
     while time.monotonic() < deadline:
-        if os.getppid() != ctl.ppid:
-            raise PeerLost("the supervisor is gone (parent process exited)")
+        if _process_gone(ctl.supervisor_pid):
+            raise PeerLost("the supervisor is gone (its process exited)")
         try:
             if not conn.poll(0.05):
                 continue
@@ -125,15 +140,30 @@ def _endpoints(args: WorkerArgs, ctl, timeout_s: float = 60.0) -> WorkerArgs:
 
 EXIT_INTERRUPTED = 130  # SIGINT (Ctrl-C)
 EXIT_TERMINATED = 143  # SIGTERM: 128 + 15, as a shell reports it
+EXIT_HANGUP = 129  # SIGHUP (the terminal closed, a session ended): 128 + 1
 EXIT_DEVICE = 3  # a device, the host link or the peer failed
 
 
 class Terminated(BaseException):
-    """SIGTERM, raised in the main thread as Python raises KeyboardInterrupt for SIGINT."""
+    """SIGTERM or SIGHUP, raised in the main thread as Python raises KeyboardInterrupt for SIGINT."""
+
+    def __init__(self, signum: int = signal.SIGTERM):
+        super().__init__(signum)
+        self.signum = signum
+
+    @property
+    def exit_code(self) -> int:
+        """128 + the signal's number, as a shell reports it: 143 for SIGTERM, 129 for SIGHUP."""
+        return EXIT_HANGUP if self.signum == signal.SIGHUP else EXIT_TERMINATED
+
+    @property
+    def what(self) -> str:
+        """How the run ended, in words."""
+        return "hung up (SIGHUP)" if self.signum == signal.SIGHUP else "terminated (SIGTERM)"
 
 
 def _raise_terminated(signum, frame):
-    raise Terminated()
+    raise Terminated(signum)
 
 
 class PeerLost(LabctlError):
@@ -147,21 +177,67 @@ def _in_main_thread() -> bool:
 
 
 def _shield() -> None:
-    """Ignore further SIGINT/SIGTERM: the stop path itself must run to its end."""
+    """Ignore further SIGINT/SIGTERM/SIGHUP: the stop path itself must run to its end."""
     if _in_main_thread():
-        for sig in (signal.SIGINT, signal.SIGTERM):
+        for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
             signal.signal(sig, signal.SIG_IGN)
+
+
+def _supervisor_pid() -> int:
+    """The pid of the process that created this one (the supervisor). Not ``os.getppid()``: under
+    forkserver the parent is the process server, which a signal to the whole process group ends
+    while the supervisor is still stopping and confirming the devices."""
+    parent = mp.parent_process()
+    return parent.pid if parent is not None and parent.pid is not None else os.getppid()
+
+
+def _process_gone(pid: int) -> bool:
+    """Whether process ``pid`` has exited (no such process, or a zombie waiting to be reaped)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    except PermissionError:
+        return False
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            return fh.read().rsplit(")", 1)[1].split()[0] in ("Z", "X")
+    except (OSError, IndexError):
+        return False
+
+
+def _alive(p) -> bool:
+    """Whether a child process still runs, by its pid. ``Process.is_alive()`` asks the process server,
+    and a server that died makes every process it started look exited while it still runs."""
+    return p.pid is not None and not _process_gone(p.pid)
+
+
+def _kill(p, sig: int = signal.SIGKILL) -> None:
+    """Send ``sig`` to a child by its pid (``Process.kill()`` does nothing once it thinks it exited)."""
+    if p.pid is not None:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(p.pid, sig)
+
+
+def _join(p, timeout_s: float) -> bool:
+    """Wait up to ``timeout_s`` for a child to exit, by its pid too; True once it has."""
+    deadline = time.monotonic() + timeout_s
+    p.join(timeout=timeout_s)
+    while _alive(p) and time.monotonic() < deadline:
+        time.sleep(0.02)
+    return not _alive(p)
 
 
 def _child_signals(supervised: bool) -> None:
     """A worker's signals. Under a supervisor SIGINT is ignored (Ctrl-C reaches the whole process
-    group; the supervisor alone answers it); SIGTERM raises :class:`Terminated` so the worker stops
+    group; the supervisor alone answers it); SIGTERM and SIGHUP raise :class:`Terminated` so the worker stops
     its own devices on the way out. Children start with both blocked (see :func:`_start_quietly`)."""
     if not _in_main_thread():
         return
     signal.signal(signal.SIGTERM, _raise_terminated)
+    signal.signal(signal.SIGHUP, _raise_terminated)
     signal.signal(signal.SIGINT, signal.SIG_IGN if supervised else signal.default_int_handler)
-    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM})
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM, signal.SIGHUP})
 
 
 def _start_quietly(proc) -> None:
@@ -227,7 +303,7 @@ class _Control:
         self.conn, self.role, self.seq = conn, role, 0
         self.t_last = 0.0
         self.dead_after_s = dead_after_s
-        self.ppid = os.getppid()
+        self.supervisor_pid = _supervisor_pid()
         self.t_supervisor: float | None = None
 
     def beat(self, now: float, status: dict | None = None, period: float = 0.1) -> None:
@@ -251,8 +327,8 @@ class _Control:
                     self.t_supervisor = time.monotonic()
         except (EOFError, OSError):
             return "the supervisor is gone (control pipe closed)"
-        if os.getppid() != self.ppid:
-            return "the supervisor is gone (parent process exited)"
+        if _process_gone(self.supervisor_pid):
+            return "the supervisor is gone (its process exited)"
         if self.t_supervisor is not None and time.monotonic() - self.t_supervisor > self.dead_after_s:
             return f"the supervisor went silent ({time.monotonic() - self.t_supervisor:.1f} s)"
         return None
@@ -318,7 +394,7 @@ def _exit_reason(role: str, exc: BaseException) -> tuple[int, str]:
     from .transport import LinkClosed
 
     if isinstance(exc, Terminated):
-        return EXIT_TERMINATED, f"{role}: terminated (SIGTERM)"
+        return exc.exit_code, f"{role}: {exc.what}"
     if isinstance(exc, KeyboardInterrupt):
         return EXIT_INTERRUPTED, f"{role}: interrupted"
     if isinstance(exc, PeerLost):
@@ -562,7 +638,7 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
     except BaseException as exc:  # every way out, SIGTERM and Ctrl-C included, ends in the stop below
         code, reason = _exit_reason("predictor", exc)
         report_code = _device_code(exc, code)
-        if code not in (EXIT_INTERRUPTED, EXIT_TERMINATED) and not isinstance(exc, PeerLost):
+        if code not in (EXIT_INTERRUPTED, EXIT_TERMINATED, EXIT_HANGUP) and not isinstance(exc, PeerLost):
             with contextlib.suppress(Exception):
                 log("worker_error", role="predictor", error=reason, traceback=traceback.format_exc())
     finally:
@@ -650,7 +726,7 @@ def recognizer_main(args: WorkerArgs, link_end, control) -> int:
     except BaseException as exc:
         code, reason = _exit_reason("recognizer", exc)
         report_code = _device_code(exc, code)
-        if code not in (EXIT_INTERRUPTED, EXIT_TERMINATED) and not isinstance(exc, PeerLost):
+        if code not in (EXIT_INTERRUPTED, EXIT_TERMINATED, EXIT_HANGUP) and not isinstance(exc, PeerLost):
             with contextlib.suppress(Exception):
                 log("worker_error", role="recognizer", error=reason, traceback=traceback.format_exc())
     finally:
@@ -688,11 +764,12 @@ def sim_server_main(lab_root: str, spec: dict, conn, run_dir: str | None = None)
 
     Answers the supervisor's ``"state?"`` (are the robot and table moving, since when still),
     ``"truth?"`` (the simulator's ground truth) and ``"stop"``. Like real hardware it ignores
-    SIGINT/SIGTERM aimed at the controller; if the supervisor vanishes it keeps simulating until
+    SIGINT/SIGTERM/SIGHUP aimed at the controller; if the supervisor vanishes it keeps simulating until
     the robot and table have been still for a second (at most 10 s), so that the workers can stop
     them and the record keeps the ground truth of when they did."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    signal.signal(signal.SIGHUP, signal.SIG_IGN)
     from ..sim.lab import TruthLogger
     from .simlab import LiveSimLab
 
@@ -719,7 +796,7 @@ def sim_server_main(lab_root: str, spec: dict, conn, run_dir: str | None = None)
             live_log(name, **fields)
         pending.clear()
 
-    ppid = os.getppid()
+    supervisor = _supervisor_pid()
     try:
         served = LiveSimLab(load_lab(lab_root), spec)
         served.warm_on_enter = False  # the first renders overlap the workers' device connections
@@ -742,7 +819,7 @@ def sim_server_main(lab_root: str, spec: dict, conn, run_dir: str | None = None)
                     continue
                 try:
                     if not conn.poll(0.02):
-                        if os.getppid() != ppid:
+                        if _process_gone(supervisor):
                             orphaned = time.monotonic()
                         continue
                     req = conn.recv()
@@ -816,9 +893,11 @@ class LiveRun:
         the predictor's result."""
         warm_up()
         lab = load_lab(self.lab_root)
-        old = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)} if _in_main_thread() else {}
+        old = ({sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
+               if _in_main_thread() else {})
         if _in_main_thread():
             signal.signal(signal.SIGTERM, _raise_terminated)
+            signal.signal(signal.SIGHUP, _raise_terminated)
             # Ctrl-C stops the run even if the parent started us ignoring SIGINT (`labctl run &` in a script)
             signal.signal(signal.SIGINT, signal.default_int_handler)
         handler = _log_to_record(self._record(), "supervisor")
@@ -930,22 +1009,21 @@ class LiveRun:
         finally:
             _shield()
             for p in procs.values():
-                if p.is_alive():
-                    p.terminate()
+                if _alive(p):
+                    _kill(p, signal.SIGTERM)
             for p in procs.values():
-                p.join(timeout=5)
-                if p.is_alive():
-                    p.kill()
-                    p.join(timeout=2)
+                if not _join(p, 5):
+                    _kill(p)
+                    _join(p, 2)
             stack.close()
             if sim_proc is not None:
-                if sim_proc.is_alive():
+                if _alive(sim_proc):
                     with contextlib.suppress(OSError):
                         cast(Connection, sim_conn).send("stop")  # the simulated lab's pipe, with its process
-                    sim_proc.join(timeout=3)
-                if sim_proc.is_alive():  # it ignores SIGTERM, like the hardware it stands for
-                    sim_proc.kill()
-                    sim_proc.join(timeout=2)
+                    _join(sim_proc, 3)
+                if _alive(sim_proc):  # it ignores SIGTERM, like the hardware it stands for
+                    _kill(sim_proc)
+                    _join(sim_proc, 2)
 
     _stop_fds: dict = field(default_factory=dict)
     _marks: dict = field(default_factory=dict)  # start-up phases, wall clock
@@ -965,8 +1043,8 @@ class LiveRun:
 
         def signal_workers():  # a live worker stops its own devices on SIGTERM; a hung one is killed
             for role, p in procs.items():
-                if p.is_alive():
-                    p.kill() if role == hung or _stopped(p.pid) else p.terminate()
+                if _alive(p):
+                    _kill(p, signal.SIGKILL if role == hung or _stopped(p.pid) else signal.SIGTERM)
 
         # A port without a stop line of our own (a network URL: a ser2net-style server takes one client,
         # the worker's) cannot take our stop bytes while a worker holds it: the workers' own stop comes first.
@@ -987,11 +1065,10 @@ class LiveRun:
                 after["still_after_s"] = time.monotonic() - t0
         signal_workers()
         deadline = time.monotonic() + 8.0
-        for p in procs.values():
-            p.join(timeout=max(0.0, deadline - time.monotonic()))
-            if p.is_alive():
-                p.kill()
-                p.join(timeout=2)
+        for p in procs.values():  # the ports are opened below only once no worker holds them
+            if not _join(p, max(0.0, deadline - time.monotonic())):
+                _kill(p)
+                _join(p, 2)
         if shared:  # the workers are gone and the ports free: the stop bytes now reach every device
             sent = send_stop_bytes(lab, endpoints, fds=self._stop_fds)
         worker_outcomes = {}
@@ -1005,7 +1082,7 @@ class LiveRun:
         if isinstance(exc, KeyboardInterrupt):
             cause, code, what = "interrupted", EXIT_INTERRUPTED, "interrupted (Ctrl-C)"
         elif isinstance(exc, Terminated):
-            cause, code, what = "terminated", EXIT_TERMINATED, "terminated (SIGTERM)"
+            cause, code, what = "terminated", exc.exit_code, exc.what
         else:
             cause, code, what = "worker", getattr(exc, "code", None) or 1, str(exc)
         if len(confirmed(outcomes)) < len(outcomes):

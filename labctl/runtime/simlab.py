@@ -39,13 +39,11 @@ def trajectory_program(name: str, speed_mm_s: float, lab: Lab) -> tuple[tuple[fl
         return starts.line, []
     if (start := starts.get(name)) is not None:
         return start, program(name, speed_mm_s, start=start, travel_mm=table_config(lab).travel_mm)
-    from ..drivers.programs import load_gcode
+    from ..drivers.programs import load_trajectory
 
-    try:
-        lines = load_gcode(name)
-    except OSError as exc:
-        raise UserInputError(f"cannot read G-code file {name}: {exc}") from None
-    travel = table_config(lab).travel_mm
+    table = table_config(lab)
+    lines = load_trajectory(name, travel_mm=table.travel_mm, max_feed_mm_min=table.max_feed_mm_min)
+    travel = table.travel_mm
     return (travel[0] / 2, travel[1] / 2), lines
 
 

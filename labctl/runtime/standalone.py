@@ -5,7 +5,7 @@ On two PCs (as in the paper, §5.1) each host runs one worker; they meet over TC
 line (``--link /dev/ttyS0``). Each host reads the same lab workspace (calibration, library).
 There is no supervisor process: each worker tracks the other's heartbeats and, after
 ``host_link.dead_after_s`` of silence, stops its own devices, confirms it and exits non-zero
-(3) saying why. Ctrl-C (exit 130) and SIGTERM (exit 143) stop the devices the same way.
+(3) saying why. Ctrl-C (exit 130), SIGTERM (exit 143) and SIGHUP (exit 129) stop the devices the same way.
 """
 
 from __future__ import annotations

@@ -30,6 +30,10 @@ from typing import Any
 TABLE_STILL_STATES = ("Idle", "Alarm", "Hold:0", "Sleep", "Door:0", "Check")
 
 
+#: how long pyserial's RFC 2217 client waits for the server to acknowledge each option it sets (s)
+RFC2217_NEGOTIATION_S = 3.0
+
+
 def _err(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {exc}"
 
@@ -209,6 +213,7 @@ def send_stop_bytes(lab, endpoints: Mapping, timeout_s: float = 0.3, fds: Mappin
     import serial
 
     from ..drivers.robot import STOP_LINE
+    from ..drivers.serial_link import open_port
 
     # "\n" first: ends any half-written line a killed worker left in the controller's buffer
     payloads = {"table": [b"!"], "robot": [b"\n" + STOP_LINE]}
@@ -227,7 +232,7 @@ def send_stop_bytes(lab, endpoints: Mapping, timeout_s: float = 0.3, fds: Mappin
             except OSError as exc:  # fall back to opening the port
                 out["error"] = f"stop bytes on the open line: {_err(exc)}"
         try:
-            with serial.serial_for_url(port, baudrate=baud, timeout=timeout_s, write_timeout=timeout_s) as s:
+            with open_port(port, write_timeout_s=timeout_s, baudrate=baud, timeout=timeout_s) as s:
                 for p in payloads[name]:
                     s.write(p)
                     s.flush()
@@ -244,8 +249,13 @@ def send_stop_bytes(lab, endpoints: Mapping, timeout_s: float = 0.3, fds: Mappin
         th = threading.Thread(target=send, args=(name, port, baud), daemon=True)
         th.start()
         threads.append(th)
+    # an RFC 2217 port negotiates its options before the first byte can go (about 0.6 s on loopback,
+    # each option waited for up to pyserial's 3 s): the bytes are worth that wait
+    rfc2217 = any((port or "").startswith("rfc2217://") for port, _ in _ports(lab, endpoints).values())
+    budget_s = timeout_s + 0.5 + (RFC2217_NEGOTIATION_S if rfc2217 else 0.0)
+    t_end = time.monotonic() + budget_s
     for th in threads:
-        th.join(timeout=timeout_s + 0.5)
+        th.join(timeout=max(0.0, t_end - time.monotonic()))
     for name in _ports(lab, endpoints):
         results.setdefault(name, {"device": name, "stopped": False, "confirmed": False, "state": None,
                                   "error": "stop bytes: the write did not return"})

@@ -604,9 +604,11 @@ class SerialHostLink(Link):
         """Open a pyserial port (device path or URL) at ``baud``, 8N1, no flow control."""
         import serial
 
+        from ..drivers.serial_link import open_port
+
         try:
-            port = serial.serial_for_url(url, baudrate=baud, bytesize=8, parity="N", stopbits=1,
-                                         timeout=cls.POLL_S, write_timeout=5.0)
+            port = open_port(url, write_timeout_s=5.0, baudrate=baud, bytesize=8, parity="N", stopbits=1,
+                             timeout=cls.POLL_S)
         except (serial.SerialException, ValueError, OSError) as exc:
             raise HostLinkError(f"cannot open serial port {url!r}: {exc}") from exc
         with contextlib.suppress(Exception):
