@@ -75,7 +75,7 @@ def _open_table(port: str | None, baud: int | None, timeout_s: float | None, *, 
 
 @contextlib.contextmanager
 def stops_table(table):
-    """Stop the table on every exit that is not a normal return (README "Exit status"; issue 13).
+    """Stop the table on every exit that is not a normal return (README "Exit status").
 
     Ctrl-C, SIGTERM, SIGHUP, a device error or any other exception: feed hold, soft reset, status
     read back (:meth:`GrblTable.stop`), while further signals are ignored; then one line, with exit

@@ -130,7 +130,7 @@ def run_cmd(trajectory, speed, object_name, seed, virtual, view, view_port) -> i
         with contextlib.suppress(Exception):  # a report that cannot be drawn must not hide the error
             write_report(record.path)
         raise LabctlError(f"{exc} (record: {record.path})") from None
-    if not virtual:  # command → first tracked frame, phase by phase (issue 16, live start-up)
+    if not virtual:  # command → first tracked frame, phase by phase
         from ..runtime.live import process_start_wall, startup_seconds
 
         result["startup_s"] = startup_seconds(result.pop("startup_wall", None) or {}, process_start_wall())

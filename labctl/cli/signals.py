@@ -1,4 +1,4 @@
-"""Signal handling for commands that must stop their devices on the way out (issue 13)."""
+"""Signal handling for commands that must stop their devices on the way out."""
 
 from __future__ import annotations
 

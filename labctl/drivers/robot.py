@@ -7,7 +7,7 @@ best-effort ``STOP`` before raising, and the controller's watchdog stops the rob
 heartbeats stop.
 
 With ``reconnect_s`` > 0 a dropped link (the port closes, ser2net restarts) is reopened with
-backoff for that long (issue 12, Build 7). On return the driver reads the controller's state
+backoff for that long. On return the driver reads the controller's state
 again — ``HELLO`` then ``STATUS`` (docs/protocols/robot.md §10: on every reconnect) — before
 anything else is sent, and never resends motion blindly: if the controller restarted
 (``@BOOT``), latched a fault (its watchdog tripped while the host could not talk), or stands

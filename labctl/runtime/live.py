@@ -43,11 +43,11 @@ from ..timebase import wire_time_s
 # forkserver: each process still starts from a clean interpreter (no inherited threads or ports),
 # but the heavy imports (scipy.stats via filterpy, trimesh, OpenCV) are paid once, in the server,
 # which :func:`warm_up` starts while the command is still loading the lab: the sim lab and both
-# workers then fork in milliseconds instead of importing for seconds each (issue 16, start-up).
+# workers then fork in milliseconds instead of importing for seconds each.
 CTX = mp.get_context("forkserver")
 # Not the predictor: its tracking imports filterpy → scipy.stats (~0.5 s CPU), which only the predictor
 # needs; it imports them after its fork, beside the simulated lab's set-up, instead of holding up the
-# lab's fork (issue 16, start-up)
+# lab's fork
 _PRELOAD = ["labctl.runtime.live", "labctl.decisions.recognizer", "labctl.runtime.simlab", "labctl.decisions.context"]
 
 
@@ -116,7 +116,7 @@ def _endpoints(args: WorkerArgs, ctl, timeout_s: float = 60.0) -> WorkerArgs:
     """``args`` with the simulated lab's ports, frame server and clock origin filled in, once the
     supervisor sends them (``("endpoints", dict)`` on the control pipe); unchanged if they came with
     ``args``. A worker forked early loads its lab, calibration and library while the simulated lab
-    starts (issue 16, live start-up), and opens no device before this returns."""
+    starts, and opens no device before this returns."""
     if not args.await_endpoints:
         return args
     deadline = time.monotonic() + timeout_s
@@ -501,7 +501,7 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
             alive["t_link"] = now
         ctl.beat(now, {"stage": "reconnecting"})
 
-    marks = {"predictor_started": time.time()}  # start-up phases, wall clock (issue 16: command → first tracked frame)
+    marks = {"predictor_started": time.time()}  # start-up phases, wall clock (command → first tracked frame)
 
     def load_context():
         # CPU: the planner's imports (tracking → filterpy → scipy.stats, ~0.5 s) and the calibration and
@@ -528,7 +528,7 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
         tcfg = lab.table
         if tcfg is not None and tcfg.kind == "sim":
             # the simulated board sits on a pty: opening it toggles no DTR, so nothing resets it and
-            # there is no boot to wait out before the first status query (0.3 s saved, issue 16)
+            # there is no boot to wait out before the first status query (0.3 s saved)
             tcfg = dataclasses.replace(tcfg, reset_on_open=False)
         table = None if external else GrblTable.from_config(tcfg, port=args.table_port)
         robot = SerialRobot.from_config(lab.robot, port=args.robot_port)
@@ -551,7 +551,7 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
             marks["table_ready"] = time.time()
 
         # The table's connection (board reset, banner, sync, $I, unlock: ~1 s of 9600-bps round trips)
-        # runs beside the robot's and the camera's, not before them (issue 16, live start-up). No
+        # runs beside the robot's and the camera's, not before them. No
         # keep-alive while opening: nothing moves yet, and the two threads must not share a port.
         table_job = starting.submit(table_ready) if table is not None else None
         try:
@@ -960,7 +960,7 @@ class LiveRun:
                     extra[role]["host_link"] = dataclasses.asdict(dataclasses.replace(lab.host_link, port=port))
             self._say("starting the workers")
             # the workers start at once, beside the simulated lab: they load the lab, calibration and
-            # library meanwhile and wait for its ports before opening any device (issue 16, start-up)
+            # library meanwhile and wait for its ports before opening any device
             base: dict[str, Any] = dict(lab_root=str(lab.root), run_dir=str(self.run_dir) if self.run_dir else None,
                         spec=self.spec, origin=origin, await_endpoints=sim_conn is not None)
             p: BaseProcess

@@ -114,7 +114,7 @@ class LiveSimLab:
 
     #: render each camera's first frame (seconds: it builds the scene) before serving; a live run's
     #: server sets this False and calls :meth:`warm_up` once it has said ready, so the first renders
-    #: overlap the workers' device connections instead of delaying them (issue 16, start-up)
+    #: overlap the workers' device connections instead of delaying them
     warm_on_enter = True
 
     def __init__(self, lab: Lab, spec: dict):
@@ -216,7 +216,7 @@ class ServedLab(LiveSimLab):
     ``POST /control/scene?calibration=1&spacer_mm=H`` (:meth:`set_scene`) switches between them and
     puts the target on a spacer — what a person does at a real lab when ``labctl calibrate`` prompts.
     With ``tcp``, ``/control/link`` (:meth:`set_link`) stops and restarts a device's bridge as
-    ser2net is stopped and restarted (a link dropped mid-run, issue 12 Build 7).
+    ser2net is stopped and restarted (a link dropped mid-run).
     """
 
     def _ports(self) -> Ports:
