@@ -312,7 +312,7 @@ def still_after(events: list[dict], t_stop: float) -> dict[str, float]:
     arrived. Also, where the truth carries the robot's stop ramps (``robot_stop`` = [start, end]):
     ``robot_stop_received_s``, from ``t_stop`` to the first ramp that began after it, and
     ``robot_braking_s``, that ramp's length. Raises ValueError if a device is still moving at the
-    end of the log (the fault table of docs/notes/hardware_path.md)."""
+    end of the log (the fault table of docs/notes/link_and_records.md)."""
     from ..records.events import spec
 
     truth_ev = spec("sim_truth")
