@@ -95,8 +95,12 @@ def main(argv: list[str] | None = None) -> None:
         sys.exit(130)
     except click.exceptions.Exit as exc:
         sys.exit(exc.exit_code)
+    except click.UsageError as exc:  # one line, as every expected failure, with where to look
+        cmd = exc.ctx.command_path if exc.ctx is not None else "labctl"
+        click.echo(f"labctl: error: {exc.format_message()} (see '{cmd} --help')", err=True)
+        sys.exit(exc.exit_code)
     except click.ClickException as exc:
-        exc.show()
+        click.echo(f"labctl: error: {exc.format_message()}", err=True)
         sys.exit(exc.exit_code)
     except (ConfigError, LabctlError, FileExistsError, FileNotFoundError) as exc:
         if verbose:
