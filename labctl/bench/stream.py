@@ -136,9 +136,7 @@ def _grbl_sim() -> Path | str:
 
 @contextmanager
 def _firmware(time_factor: float):
-    """The real firmware behind a 9600-bps paced pty, booted: yields (path, relay)."""
-    from ..sim.emulators.pty import run_on_pty
-
+    """The real firmware on its own pty, booted: yields a :class:`_Relay` to it."""
     here = _grbl_sim()
     assert isinstance(here, Path), here
     with tempfile.TemporaryDirectory(prefix="grbl-sim-") as out:
@@ -149,7 +147,7 @@ def _firmware(time_factor: float):
         proc = subprocess.Popen([sys.executable, str(here / "serve_pty.py"), "--exe", str(exe),
                                  "--time-factor", str(time_factor)], stdout=subprocess.PIPE,
                                 stderr=subprocess.DEVNULL, text=True, cwd=exe.parent)
-        relay = dev = None
+        relay = None
         try:
             relay = _Relay(proc.stdout.readline().strip())
             boot, deadline = b"", time.monotonic() + 30.0
@@ -158,11 +156,8 @@ def _firmware(time_factor: float):
                 time.sleep(0.01)
             if b"Grbl 1.1" not in boot:
                 raise RuntimeError("grbl-sim printed no banner within 30 s")
-            dev = run_on_pty(relay, BAUD)
-            yield dev.path, relay
+            yield relay
         finally:
-            if dev is not None:
-                dev.stop()
             if relay is not None:
                 relay.close()
             proc.terminate()
@@ -191,21 +186,36 @@ def _on_emulator(lines: list[str], repeats: int) -> list[dict]:
 
 
 def _on_firmware(lines: list[str], repeats: int, time_factor: float) -> list[dict]:
+    """Each repeat twice: on the 9600-bps wire, then on an unpaced one (the firmware's own pace: how
+    fast it takes these lines when the wire is no limit)."""
     from ..drivers.grbl import GrblTable
+    from ..sim.emulators.pty import run_on_pty
 
     k = time_factor
     settings = {100: STEPS_PER_MM, 101: STEPS_PER_MM, 110: FEED_MM_MIN / k, 111: FEED_MM_MIN / k,
                 120: ACCEL_MM_S2 / k / k, 121: ACCEL_MM_S2 / k / k, 10: 3}
+
+    def once(relay, baud: int | None, setup: bool) -> dict:
+        with run_on_pty(relay, baud) as dev, GrblTable(dev.path, BAUD, reset_on_open=False, status_hz=5.0,
+                                                       timeout_s=15.0) as table:
+            if setup:
+                for key, value in settings.items():
+                    table.command(f"${key}={value:g}")
+                table.ensure_ready(unlock=True)
+            table.command("G92X100Y100")  # the program's start, without moving
+            r = stream_once(table, lines)
+            table.wait_idle(timeout_s=300)
+        return r
+
     runs = []
-    with _firmware(time_factor) as (path, _):
-        with GrblTable(path, BAUD, reset_on_open=False, status_hz=5.0, timeout_s=15.0) as table:
-            for key, value in settings.items():
-                table.command(f"${key}={value:g}")
-            table.ensure_ready(unlock=True)
-            for _ in range(repeats):
-                table.command("G92X100Y100")  # the program's start, without moving
-                runs.append(stream_once(table, lines))
-                table.wait_idle(timeout_s=300)
+    with _firmware(time_factor) as relay:
+        for i in range(repeats):
+            paced = once(relay, BAUD, setup=i == 0)
+            own = once(relay, None, setup=False)
+            pace_bound = max(paced["bound_s"], own["stream_s"])
+            runs.append(paced | {"unpaced_s": own["stream_s"],
+                                 "unpaced_planner_full_share": own.get("planner_full_share"),
+                                 "pace_bound_s": pace_bound, "to_pace_bound": paced["stream_s"] / pace_bound})
     return runs
 
 
@@ -236,7 +246,8 @@ def run(quick: bool = False) -> dict:
                         full_share=round(m.get("full_share", 0.0), 3),
                         full_share_planner_room=_r(m.get("full_share_planner_room")),
                         planner_full_share=_r(m.get("planner_full_share")),
-                        firmware_rx_bytes=m.get("firmware_rx_median_bytes")))
+                        firmware_rx_bytes=m.get("firmware_rx_median_bytes"),
+                        unpaced_s=_r(m.get("unpaced_s")), to_pace_bound=_r(m.get("to_pace_bound"))))
     out["rows"] = rows
     return out
 
