@@ -138,6 +138,9 @@ class ProgramStream:
         self.last_alive = self.last_progress = now
         self.idle_since: float | None = None  # GRBL reported Idle while lines waited for their reply
         self.t_start = now
+        #: ``(clock, unacknowledged bytes)`` after every send and every reply, if the table's
+        #: ``record_fill`` is set: how full the sender kept GRBL's receive buffer (the benchmarks)
+        self.fill: list[tuple[float, int]] | None = [] if table.record_fill else None
 
     @property
     def total(self) -> int:
@@ -166,6 +169,8 @@ class ProgramStream:
         self.used -= n
         self.acked += 1
         self.last_progress = self.table.clock.now()
+        if self.fill is not None:
+            self.fill.append((self.last_progress, self.used))
         self.idle_since = None
         if msg.kind == "error" and self.error is None:
             self._fail(GrblError(msg.number, self.program[idx], idx, self.numbers[idx] if self.numbered else None))
@@ -189,6 +194,8 @@ class ProgramStream:
             self.used += len(data)
             t.max_in_flight = max(t.max_in_flight, self.used)
             self.sent += 1
+            if self.fill is not None:
+                self.fill.append((t.clock.now(), self.used))
 
     def pump(self, timeout_s: float = 0.0) -> bool:
         """Send what fits, read what came (waiting up to ``timeout_s``), poll status at its rate.
@@ -267,6 +274,7 @@ class GrblTable(OpenClose):
         self.connected_by = ""
         self.status_reports = 0
         self.max_in_flight = 0
+        self.record_fill = False  # each ProgramStream keeps its fill history (ProgramStream.fill)
         # auto_unlock: release the power-up homing lock with $X, but only after a boot banner this
         # session saw; an Alarm found on a controller that did not just boot is never cleared silently.
         self.auto_unlock = auto_unlock
