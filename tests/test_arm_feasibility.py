@@ -14,7 +14,7 @@ from labctl.config.arm import load_arm
 from labctl.experiments.arm_feasibility import Trajectory, check_trial, read_events, recover_trajectory
 from labctl.geometry import make_T, rot_x
 from labctl.planning.arm import ArmModel
-from tests.fakes import run_cli
+from fakes import run_cli
 
 pytestmark = pytest.mark.timeout(300)
 
