@@ -8,13 +8,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from fakes import run_cli
 
 from labctl.config import load_lab
 from labctl.config.arm import load_arm
 from labctl.experiments.arm_feasibility import Trajectory, check_trial, read_events, recover_trajectory
 from labctl.geometry import make_T, rot_x
 from labctl.planning.arm import ArmModel
-from fakes import run_cli
 
 pytestmark = pytest.mark.timeout(300)
 

@@ -26,3 +26,27 @@ def test_one_poll_reads_every_line_that_arrived_over_socket():
         finally:
             link.close()
     assert got == lines
+
+
+def test_a_failed_read_or_write_names_the_failure_once():
+    import serial
+
+    from labctl.drivers.serial_link import LinkError, SerialLink
+
+    class Broken:
+        is_open, timeout, in_waiting = True, 0, 1
+
+        def read(self, n):
+            raise serial.SerialException("read failed: [Errno 5] Input/output error")
+
+        def write(self, data):
+            raise serial.SerialException("write failed: [Errno 32] Broken pipe")
+
+    link = SerialLink(port=Broken(), name="table")
+    for act, verb in ((lambda: link.write(b"?"), "write"), (lambda: link.poll(0.0), "read")):
+        try:
+            act()
+        except LinkError as exc:
+            msg = str(exc)
+        assert msg.count(f"{verb} failed") == 1, msg
+        assert msg.startswith("table: ") and "Errno" in msg

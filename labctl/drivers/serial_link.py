@@ -34,6 +34,13 @@ class DeviceTimeout(DeviceError):
     """A device did not answer within its timeout."""
 
 
+def failed(verb: str, exc: BaseException) -> str:
+    """``"<verb> failed: <why>"``, once: pyserial's own messages often start with the same words."""
+    why = str(exc) or type(exc).__name__
+    prefix = f"{verb} failed"
+    return why if why.lower().startswith(prefix) else f"{prefix}: {why}"
+
+
 class LinkError(DeviceError):
     """The port could not be opened, or failed while in use."""
 
@@ -190,7 +197,7 @@ class SerialLink(OpenClose):
         try:
             self.port.write(data)
         except Exception as exc:
-            raise LinkError(f"{self.name}: write failed: {exc}") from exc
+            raise LinkError(f"{self.name}: {failed('write', exc)}") from exc
         self.bytes_out += len(data)
         if log.isEnabledFor(logging.DEBUG):
             log.debug("%s tx t=%.6f %r", self.name, self.clock.now(), bytes(data))
@@ -205,7 +212,7 @@ class SerialLink(OpenClose):
                 n = max(n, 4096)
             data = self.port.read(n) if n else b""
         except Exception as exc:
-            raise LinkError(f"{self.name}: read failed: {exc}") from exc
+            raise LinkError(f"{self.name}: {failed('read', exc)}") from exc
         if data:
             self.bytes_in += len(data)
             if log.isEnabledFor(logging.DEBUG):

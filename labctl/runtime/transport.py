@@ -51,6 +51,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 from ..decisions.messages import Message, MessageError, decode, encode
+from ..drivers.serial_link import failed
 from ..errors import DeviceError
 from ..timebase import BITS_PER_BYTE, wire_time_s
 
@@ -625,7 +626,7 @@ class SerialHostLink(Link):
         try:
             self._port.write(frame)
         except (serial.SerialException, OSError) as exc:
-            raise LinkClosed(f"serial link: write failed: {exc}") from exc
+            raise LinkClosed(f"serial link: {failed('write', exc)}") from exc
         return len(frame)
 
     def _next_payload(self, deadline):
@@ -639,7 +640,7 @@ class SerialHostLink(Link):
                     self._port.timeout = want
                 data = self._port.read(max(1, self._port.in_waiting))
             except (serial.SerialException, OSError) as exc:
-                raise LinkClosed(f"serial link: read failed: {exc}") from exc
+                raise LinkClosed(f"serial link: {failed('read', exc)}") from exc
             if data:
                 self.bytes_received += len(data)
                 self._ready.extend(self._deframer.feed(data))
