@@ -53,3 +53,13 @@ def test_table_errors_are_one_line_with_device_exit_code(capsys):
         assert code == 0 and json.loads(out)["state"] == "Idle"
     code, out, err = run(capsys, "table", "status")
     assert code == 2 and "--port" in err  # the sample lab's table is simulated: no port
+
+
+def test_reset_and_status_report_the_same_firmware_version(capsys):
+    with fake_grbl() as dev:
+        code, out, _ = run(capsys, "--json", "table", "status", "--port", dev.path, "--baud", "115200")
+        assert code == 0
+        status_version = json.loads(out)["version"]
+        code, out, _ = run(capsys, "--json", "table", "reset", "--port", dev.path, "--baud", "115200")
+        assert code == 0
+        assert json.loads(out)["version"] == status_version and status_version.startswith("1.1h.")

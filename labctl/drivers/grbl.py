@@ -434,7 +434,9 @@ class GrblTable(OpenClose):
             self._booted = True
             self._orphans = 0
             self._wco = None
-            self.info["version"] = msg.text
+            # the banner says "1.1h"; $I's "1.1h.20190830" (read once at connect) is the same and says more
+            if not str(self.info.get("version", "")).startswith(msg.text):
+                self.info["version"] = msg.text
         elif msg.kind == "msg":
             self.messages.append(msg.text)
             log.info("%s: [MSG:%s]", self.link.name, msg.text)
