@@ -285,3 +285,11 @@ def test_shipped_sample_library_meets_both_marker_requirements_by_brute_force():
         assert check_coverage(obj.mesh, Ts, obj.markers, view).min() >= 1, name
         assert check_overhead_coverage(obj.mesh, Ts, obj.markers, view).min() >= 1, name
         assert obj.info["placement"]["overhead"]["min_tracked_markers"] >= 1
+
+
+def test_a_binary_obj_is_refused_in_words_not_by_a_missing_module(tmp_path):
+    bad = tmp_path / "garbage.obj"
+    bad.write_bytes(bytes(range(256)) * 8)
+    with pytest.raises(ModelError) as exc:
+        load_model(bad)
+    assert "not a text OBJ" in str(exc.value) and "module" not in str(exc.value)

@@ -32,6 +32,12 @@ def load_model(path: Path | str) -> trimesh.Trimesh:
         raise ModelError(f"model file not found: {path}")
     if path.suffix.lower() not in (".stl", ".obj"):
         raise ModelError(f"unsupported model format {path.suffix!r}: use an STL or OBJ file in mm")
+    if path.suffix.lower() == ".obj":  # OBJ is text; trimesh guesses other encodings with an optional package
+        try:
+            path.read_bytes().decode("utf-8")
+        except UnicodeDecodeError as exc:
+            raise ModelError(f"cannot read model {path.name}: not a text OBJ file (byte {exc.start} is not "
+                             f"UTF-8); export it again as OBJ or STL") from None
     try:
         loaded = trimesh.load(path, force="mesh", process=True)
     except Exception as exc:  # trimesh raises many kinds on broken files
