@@ -27,13 +27,18 @@ def sample_lab_path() -> Path:
     raise FileNotFoundError("the sample lab is missing from this installation")
 
 
-def find_lab(start: Path | str | None = None) -> Path:
-    """The nearest folder at or above ``start`` (default: cwd) holding lab.yaml, else the sample lab."""
+def find_workspace(start: Path | str | None = None) -> Path | None:
+    """The nearest folder at or above ``start`` (default: cwd) holding lab.yaml, or None."""
     cur = Path(start or Path.cwd()).resolve()
     for d in (cur, *cur.parents):
         if (d / LAB_FILE).is_file():
             return d
-    return sample_lab_path()
+    return None
+
+
+def find_lab(start: Path | str | None = None) -> Path:
+    """The nearest folder at or above ``start`` (default: cwd) holding lab.yaml, else the sample lab."""
+    return find_workspace(start) or sample_lab_path()
 
 
 class InitPreset(TypedDict):

@@ -3,9 +3,11 @@ and commands that would write a calibration or a library entry refuse in one lin
 
 from __future__ import annotations
 
+import json
 import shutil
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -42,3 +44,24 @@ def test_teach_into_the_packaged_lab_is_refused(packaged, tmp_path):
     lines = p.stderr.strip().splitlines()
     assert len(lines) == 1 and "labctl init" in lines[0]
     assert sorted(p.name for p in (packaged / "object_library").iterdir()) == before
+
+
+def test_outside_any_workspace_records_go_to_the_user_folder_not_the_source_tree(tmp_path):
+    """An editable install's sample lab is its source tree: with no lab.yaml at or above the working
+    folder, a run's record goes to the per-user data folder and nothing is written into the tree."""
+    import os
+
+    env = {**os.environ, "XDG_DATA_HOME": str(tmp_path / "xdg")}
+    work = tmp_path / "elsewhere"
+    work.mkdir()
+    repo_runs = Path(__file__).resolve().parents[1] / "runs"
+    before = set(repo_runs.iterdir()) if repo_runs.is_dir() else set()
+    r = subprocess.run([sys.executable, "-m", "labctl", "--json", "run", "--virtual", "--trajectory", "line"],
+                       capture_output=True, text=True, cwd=work, env=env, timeout=300)
+    assert r.returncode in (0, 1), r.stderr
+    record = Path(json.loads(r.stdout)["record"])
+    assert record.parent == tmp_path / "xdg" / "labctl" / "runs"
+    assert (set(repo_runs.iterdir()) if repo_runs.is_dir() else set()) == before
+    t = subprocess.run([sys.executable, "-m", "labctl", "teach-object", "x", "--model", "nothing.stl"],
+                       capture_output=True, text=True, cwd=work, env=env, timeout=120)
+    assert t.returncode == 2 and "labctl init DIR" in t.stderr

@@ -31,9 +31,17 @@ class Ctx:
     def lab(self):
         """The resolved, validated :class:`labctl.config.Lab` (raises ConfigError)."""
         if self._lab is None:
-            from ..config import load_lab
+            import dataclasses
 
-            self._lab = load_lab(self.lab_root)
+            from ..config import load_lab
+            from ..workspace import find_workspace
+
+            lab = load_lab(self.lab_root)
+            if not self.lab_path and find_workspace() is None:
+                # no workspace here: the sample lab is read, never written, wherever labctl is installed
+                # from (an editable install's sample lab is its source tree)
+                lab = dataclasses.replace(lab, read_only=True)
+            self._lab = lab
         return self._lab
 
     def writable_lab(self, what: str):

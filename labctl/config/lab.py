@@ -305,6 +305,8 @@ class Lab:
     driver_paths: dict[str, Path]
     # the keys each file left out (its values are the code's defaults): "lab" for lab.yaml, else the role
     defaulted: dict[str, tuple[str, ...]] = field(default_factory=dict)
+    # the sample lab used because no workspace was found: read, never written (records go to the user's folder)
+    read_only: bool = False
 
     @property
     def calibration_dir(self) -> Path:
@@ -318,8 +320,9 @@ class Lab:
 
     @property
     def is_packaged(self) -> bool:
-        """True for the sample lab inside an installed labctl (never written to)."""
-        return self.root.name == "sample_lab" and (self.root.parent / "__init__.py").is_file()
+        """True for the sample lab inside an installed labctl, or used because no workspace was found
+        (never written to)."""
+        return self.read_only or (self.root.name == "sample_lab" and (self.root.parent / "__init__.py").is_file())
 
     @property
     def runs_dir(self) -> Path:
