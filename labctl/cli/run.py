@@ -53,8 +53,6 @@ def _print_result(console, result: dict, run_dir: Path | None) -> None:
         console.print(f"time to identity {result['time_to_identity_s']:.2f} s, "
                       f"{result['views']} standard view(s), stages: "
                       + ", ".join(f"{k} {v:.2f} s" for k, v in result.get("stages", {}).items()))
-    else:
-        console.print(f"[bold red]no identity[/]: {result.get('failure')}")
     first = (result.get("startup_s") or {}).get("first_tracked_frame")
     if first is not None:
         console.print(f"first tracked frame {first:.2f} s after the command")
@@ -140,6 +138,9 @@ def run_cmd(trajectory, speed, object_name, seed, virtual, view, view_port) -> i
         result["report"] = str(write_report(record.path))
     emit(result, lambda con: _print_result(con, result, record.path))
     if not result.get("identity"):
+        # the run's expected failure: one line on stderr, with where to look next
+        click.echo(f"labctl: error: no identity: {result.get('failure')} (next: labctl report {record.path.name})",
+                   err=True)
         return 1
     return None
 
