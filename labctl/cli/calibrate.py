@@ -44,6 +44,7 @@ def _human_report(rep: dict):
         c.print(f"{rep.get('images', 0)} images kept in {rep.get('captures')}")
         for f in rep.get("files", []):
             c.print(f"wrote {f}")
+        c.print("next: labctl run --trajectory line", highlight=False)
     return show
 
 

@@ -21,7 +21,9 @@ def init_cmd(directory: Path, force: bool, preset: str | None) -> None:
     from ..workspace import init_workspace
 
     dest = init_workspace(directory, force=force, preset=preset)
-    emit({"lab": str(dest)}, lambda c: c.print(f"[green]lab workspace written:[/] {dest}"))
+    nxt = f"labctl --lab {dest} devices"
+    emit({"lab": str(dest), "next": nxt},
+         lambda c: c.print(f"[green]lab workspace written:[/] {dest}\nnext: {nxt}", highlight=False))
 
 
 @click.group("lab")

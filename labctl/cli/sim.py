@@ -96,6 +96,8 @@ def sim_serve(baud, tcp, lab_out, force, seed, object_name, trajectory, conveyor
                 info["truth_log"] = str(truth_log)
             if lab_out is not None:
                 info["lab_out"] = str(write_served_lab(lab, lab_out, served, force=force))
+                # the served GRBL powers up in Alarm (homing on), as a real board does: home it first
+                info["next"] = f"labctl --lab {info['lab_out']} table home"
             info["object"] = served.object_name
 
             def human(c):
