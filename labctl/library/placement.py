@@ -42,8 +42,8 @@ Formulation used here:
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
 from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
 from typing import Protocol, cast
 
 import cv2
