@@ -59,7 +59,7 @@ def test_the_gate_never_excludes_a_sample_view_at_its_true_height():
 
 def test_an_index_without_poses_has_no_height_gate():
     f = _features()
-    lib = {"a": SimpleNamespace(views={0: SimpleNamespace(features=f)})}
+    lib = {"a": SimpleNamespace(views={0: SimpleNamespace(features=f)}, stable_poses=[])}
     index = LibraryIndex.from_library(lib)
     assert index.heights is None and height_gate(index, 1e3).all()
 
@@ -87,8 +87,8 @@ def test_a_look_alike_within_the_threshold_is_outvoted_by_repeated_views():
     other = ShapeFeatures(eccentricity=f.eccentricity, size_mm=f.size_mm, perimeter_mm=f.perimeter_mm,
                           chain_start=(0, 0), chain_code=f.chain_code, aos=f.aos + rng.normal(0, 0.1, f.aos.shape),
                           fd=f.fd, hu=f.hu)
-    lib = {"plate": SimpleNamespace(views={0: SimpleNamespace(features=f)}),
-           "look_alike": SimpleNamespace(views={0: SimpleNamespace(features=other)})}
+    lib = {"plate": SimpleNamespace(views={0: SimpleNamespace(features=f)}, stable_poses=[]),
+           "look_alike": SimpleNamespace(views={0: SimpleNamespace(features=other)}, stable_poses=[])}
     index = LibraryIndex.from_library(lib)
     first = match(f, index)
     assert first.ambiguous and first.scores["look_alike"] <= 0.15
@@ -104,8 +104,8 @@ def test_an_unusable_view_spends_a_view_and_refutes_no_hypothesis():
     from labctl.library.matching import UnusableView, identify, split_query
 
     f = _features()
-    lib = {"a": SimpleNamespace(views={0: SimpleNamespace(features=f)}),
-           "b": SimpleNamespace(views={0: SimpleNamespace(features=f)})}
+    lib = {"a": SimpleNamespace(views={0: SimpleNamespace(features=f)}, stable_poses=[]),
+           "b": SimpleNamespace(views={0: SimpleNamespace(features=f)}, stable_poses=[])}
     index = LibraryIndex.from_library(lib)
     res = identify(f, index, lambda h, j: UnusableView(), max_views=3)
     assert not res.resolved and sorted(res.candidates) == ["a", "b"] and res.views_used == 3

@@ -31,6 +31,19 @@ def lab_group() -> None:
     """Inspect the lab workspace."""
 
 
+def _kind_and_port(dev: object) -> tuple[str | None, str | None]:
+    """A driver file's kind (a host link's transport) and port, per config type (a camera has no port)."""
+    from ..config.devices import CameraConfig, HostLinkConfig, RobotConfig, TableConfig
+
+    if isinstance(dev, HostLinkConfig):
+        return dev.transport, dev.port
+    if isinstance(dev, (TableConfig, RobotConfig)):
+        return dev.kind, dev.port
+    if isinstance(dev, CameraConfig):
+        return dev.kind, None
+    return None, None
+
+
 def describe_lab(lab) -> dict:
     """The resolved lab as plain data: driver file per role, calibration and library entries."""
     from ..config import to_plain
@@ -39,10 +52,11 @@ def describe_lab(lab) -> dict:
     roles = {}
     for role, path in lab.driver_paths.items():
         dev = getattr(lab, role)
+        kind, port = _kind_and_port(dev)
         roles[role] = {
             "file": str(path),
-            "kind": getattr(dev, "kind", None) or getattr(dev, "transport", None),
-            "port": getattr(dev, "port", None),
+            "kind": kind,
+            "port": port,
             "config": to_plain(dev),
         }
     return {

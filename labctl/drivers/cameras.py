@@ -41,6 +41,9 @@ from ..errors import DeviceError
 from .interfaces import Camera, Frame, OpenClose
 from .serial_link import DeviceTimeout
 
+if TYPE_CHECKING:
+    from ..config import Lab
+
 log = logging.getLogger(__name__)
 
 _STAMP = re.compile(r"^(\d+(?:\.\d+)?)\.(png|jpg|jpeg|bmp|tif|tiff)$", re.IGNORECASE)
@@ -58,6 +61,9 @@ class CaptureSource(Protocol):
         ``(None, None)`` for a frame that could not be decoded. Raises ``OSError``/``CameraError``
         when the source ends."""
         ...
+
+    def interrupt(self) -> None:
+        """Unblock a :meth:`read` waiting in another thread (a no-op where a read returns on its own)."""
 
     def release(self) -> None:
         """Give the device back (close the file, socket or capture)."""
@@ -180,10 +186,9 @@ class GrabberCamera(OpenClose):
         self._stop.set()
         th, source = self._thread, self._source
         if th is not None:
-            interrupt = getattr(source, "interrupt", None)
-            if interrupt is not None:  # unblock a read waiting on the network
+            if source is not None:  # unblock a read waiting on the network
                 with contextlib.suppress(Exception):
-                    interrupt()
+                    source.interrupt()
             th.join(timeout=self.close_timeout_s)
             if th.is_alive():
                 log.warning("camera %s: the grabber is still blocked in a read; it releases the source when "
@@ -202,6 +207,9 @@ class _CvSource:
             raise CameraError("no frame from the capture device")
         ok, image = self.cap.retrieve()
         return (image if ok else None), None
+
+    def interrupt(self) -> None:
+        """Nothing to unblock: a capture device's read returns on its own (frame or timeout)."""
 
     def release(self) -> None:
         self.cap.release()
@@ -520,18 +528,18 @@ def save_stamped_frame(folder: str | Path, frame: Frame) -> Path:
     return path
 
 
-def open_camera(role: str, lab, **kw):
+def open_camera(role: str, lab: Lab, **kw):
     """The (unopened) camera for ``role`` (fixed_camera/mobile_camera, or fixed/mobile) of ``lab``."""
     role = role if role.endswith("_camera") else f"{role}_camera"
-    cfg = getattr(lab, role, None)
-    if cfg is None:
+    if role not in ("fixed_camera", "mobile_camera"):
         raise CameraError(f"the lab has no {role}")
+    cfg = lab.fixed_camera if role == "fixed_camera" else lab.mobile_camera
     if cfg.kind == "v4l2":
         return V4L2Camera.from_config(cfg, name=role, **kw)
     if cfg.kind == "stream":
         return StreamCamera.from_config(cfg, name=role, **kw)
     if cfg.kind == "replay":
-        return ReplayCamera.from_config(cfg, root=getattr(lab, "root", None), name=role, **kw)
+        return ReplayCamera.from_config(cfg, root=lab.root, name=role, **kw)
     if cfg.kind == "sim":
         raise CameraError(f"{role} is simulated: the simulated lab serves it (labctl.runtime.devices.open_device)")
     raise CameraError(f"{role}: unknown camera kind {cfg.kind!r}")

@@ -28,11 +28,12 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import cast
+from typing import Protocol, cast
 
 import numpy as np
 
 from ..vision.shape import ShapeFeatures, hu_distance
+from .placement import Marker
 
 ECC_GATE = 0.15
 SIZE_GATE = 0.12
@@ -158,10 +159,25 @@ class MatchResult:
         return bool(self.candidates)
 
 
-def marker_heights(obj, marker_id: int) -> np.ndarray:
+class PosedObject(Protocol):
+    """What the height gate reads of a library object (:class:`labctl.library.storage.LibraryObject`)."""
+
+    @property
+    def markers(self) -> Sequence[Marker]:
+        """The object's markers."""
+
+    @property
+    def stable_poses(self) -> Sequence[tuple[np.ndarray, float]]:
+        """Its stable resting poses: (T placing O on the table z = 0, probability); may be empty."""
+
+    def marker(self, marker_id: int) -> Marker:
+        """The marker with id ``marker_id`` (KeyError if none)."""
+
+
+def marker_heights(obj: PosedObject, marker_id: int) -> np.ndarray:
     """Heights (mm) above the table of marker ``marker_id``'s centre in each stable pose of ``obj``
     (a LibraryObject: its ``stable_poses`` place O on the table plane z = 0); empty if unknown."""
-    poses = getattr(obj, "stable_poses", None) or []
+    poses = obj.stable_poses
     try:
         c = np.asarray(obj.marker(marker_id).center, float)
     except (AttributeError, KeyError, StopIteration):
@@ -172,10 +188,10 @@ def marker_heights(obj, marker_id: int) -> np.ndarray:
 UP_NZ = 0.9  # a marker whose normal's z exceeds this faces up (within 25.8° of vertical)
 
 
-def _pose_normals(obj, marker_id: int) -> tuple[np.ndarray, np.ndarray]:
+def _pose_normals(obj: PosedObject, marker_id: int) -> tuple[np.ndarray, np.ndarray]:
     """(z of marker ``marker_id``'s normal in each stable pose of ``obj``, whether any marker of ``obj``
     faces up in that pose); empty arrays if unknown."""
-    poses = getattr(obj, "stable_poses", None) or []
+    poses = obj.stable_poses
     try:
         n = np.asarray(obj.marker(marker_id).normal, float)
         normals = np.array([np.asarray(mk.normal, float) for mk in obj.markers])

@@ -42,8 +42,9 @@ Formulation used here:
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
-from typing import cast
+from typing import Protocol, cast
 
 import cv2
 import numpy as np
@@ -524,21 +525,46 @@ def library_viewing_angle(curves: dict[str, dict], current_deg: float) -> tuple[
     return best, {n: round(at(c, best), 4) for n, c in curves.items()}
 
 
+class MarkerLadder(Protocol):
+    """The marker size ladder as lab.yaml ``marker`` gives it (``labctl.config.lab.MarkerConfig``)."""
+
+    @property
+    def radius_mm(self) -> float:
+        """The largest marker's radius (mm)."""
+
+    @property
+    def min_image_diameter_px(self) -> float:
+        """The smallest marker's face-on image diameter at the initial viewing distance (px)."""
+
+    @property
+    def size_ratio(self) -> float:
+        """The ratio of one marker size to the next larger."""
+
+
+class OverheadCamera(Protocol):
+    """What the placement reads of the fixed camera's config (``labctl.config.devices.CameraConfig``)."""
+
+    @property
+    def eye_w_mm(self) -> Sequence[float] | None:
+        """The camera's eye in the world frame (mm), or None (the paper's 1.8 m above the table)."""
+
+
 def viewing_geometry(lab, angle_deg: float | None = None):
     """The marker-placement viewing geometry of a lab: lab.yaml ``viewing`` and ``marker`` (the size
     ladder down to the smallest marker the mobile camera resolves at the initial viewing distance),
     the fixed camera's height and scale. ``angle_deg`` overrides the initial viewing angle (the
     library's own, :func:`labctl.library.storage.library_angle`)."""
     v = lab.config.viewing
-    mk = lab.config.marker
+    mk: MarkerLadder = lab.config.marker
     cam = lab.fixed_camera
+    overhead: OverheadCamera = cam
     height = 1800.0  # paper §5.2: the fixed camera 1.8 m above the table
-    if getattr(cam, "eye_w_mm", None) is not None:
-        height = float(cam.eye_w_mm[2]) - float(lab.table.origin_w_mm[2])
+    if overhead.eye_w_mm is not None:
+        height = float(overhead.eye_w_mm[2]) - float(lab.table.origin_w_mm[2])
     mob = lab.mobile_camera.lens
     fx_mobile = mob.f_mm / mob.dx_mm
-    r_min = min_marker_radius(fx_mobile, v.initial_distance_mm, getattr(mk, "min_image_diameter_px", 16.0))
-    radii = marker_radii(mk.radius_mm, min(r_min, mk.radius_mm), getattr(mk, "size_ratio", 0.8))
+    r_min = min_marker_radius(fx_mobile, v.initial_distance_mm, mk.min_image_diameter_px)
+    radii = marker_radii(mk.radius_mm, min(r_min, mk.radius_mm), mk.size_ratio)
     fixed_scale = cam.lens.f_mm / cam.lens.dx_mm / height
     return ViewingGeometry(angle_deg=v.initial_angle_deg if angle_deg is None else float(angle_deg),
                            distance_mm=v.initial_distance_mm, max_obliquity_deg=v.max_obliquity_deg,

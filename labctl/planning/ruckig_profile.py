@@ -38,7 +38,9 @@ the start). Units: mm, s, rad.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
@@ -106,12 +108,40 @@ class JerkLimits:
                           self.box_max, self.a_stop)
 
 
-def controller_limits(robot_cfg) -> JerkLimits:
+class ControllerLimitsConfig(Protocol):
+    """The robot limits :func:`controller_limits` reads (as :class:`labctl.config.devices.RobotConfig` has them)."""
+
+    @property
+    def workspace_min_mm(self) -> Sequence[float]:
+        """Lower corner of the workspace box (mm)."""
+
+    @property
+    def workspace_max_mm(self) -> Sequence[float]:
+        """Upper corner of the workspace box (mm)."""
+
+    @property
+    def v_max_mm_s(self) -> float:
+        """Speed limit (mm/s)."""
+
+    @property
+    def a_max_mm_s2(self) -> float:
+        """Acceleration limit (mm/s²)."""
+
+    @property
+    def w_max_deg_s(self) -> float:
+        """Angular speed limit (deg/s)."""
+
+    @property
+    def j_max_mm_s3(self) -> float | None:
+        """Jerk limit of ruckig segments (mm/s³); None: 20·a_max per second."""
+
+
+def controller_limits(robot_cfg: ControllerLimitsConfig) -> JerkLimits:
     """A controller's own ruckig limits from its :class:`labctl.config.devices.RobotConfig` (LIMITS fields 7–9,
     11, 12, 19): vmax, amax, ``j_max_mm_s3`` (default 20·amax per second), wmax, angular acceleration
     4·wmax per second (the reference's angular braking), a_stop = amax/√3 and the box."""
     a = float(robot_cfg.a_max_mm_s2)
-    j = getattr(robot_cfg, "j_max_mm_s3", None)
+    j = robot_cfg.j_max_mm_s3
     w = math.radians(float(robot_cfg.w_max_deg_s))
     return JerkLimits(float(robot_cfg.v_max_mm_s), a, float(j) if j else JERK_PER_ACCEL * a, w, ANGULAR_STOP_PER_S * w,
                       np.asarray(robot_cfg.workspace_min_mm, float), np.asarray(robot_cfg.workspace_max_mm, float),

@@ -16,7 +16,7 @@ from __future__ import annotations
 import contextlib
 import os
 import time
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -219,6 +219,10 @@ class ServedLab(LiveSimLab):
     ser2net is stopped and restarted (a link dropped mid-run).
     """
 
+    def __init__(self, lab: Lab, spec: dict):
+        super().__init__(lab, spec)
+        self.bridges: dict[str, Any] = {}  # the devices' TCP bridges, by role: filled on entry with ``tcp``
+
     def _ports(self) -> Ports:
         """TCP ports as ser2net would serve them with ``spec["tcp"]``, else ptys."""
         return "tcp" if self.spec.get("tcp") else "pty"
@@ -271,7 +275,7 @@ class ServedLab(LiveSimLab):
         an Arduino's GRBL). Without ``up`` it reports. Returns ``{device, up, drops, resets, t,
         t_wall}`` (served clock and wall clock, s). ValueError (400) for a bad parameter or without
         ``tcp``."""
-        if not getattr(self, "bridges", None):
+        if not self.bridges:
             raise ValueError("link control needs the devices on TCP ports (sim serve --tcp)")
         unknown = set(params) - {"device", "up", "reset"}
         if unknown:

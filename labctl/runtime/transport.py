@@ -50,6 +50,7 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
+from ..config.devices import HostLinkConfig
 from ..decisions.messages import Message, MessageError, decode, encode
 from ..drivers.serial_link import failed
 from ..errors import DeviceError
@@ -91,14 +92,14 @@ AUTH_CHALLENGE = 32
 AUTH_TIMEOUT_S = 5.0
 
 
-def link_key(cfg, lab_root=None) -> bytes | None:
+def link_key(cfg: HostLinkConfig, lab_root: str | os.PathLike[str] | None = None) -> bytes | None:
     """The host link's shared key: ``$LABCTL_LINK_KEY``, else the file named by ``cfg.key_file``
     (relative to the lab folder), else None. A key shorter than 16 bytes is refused."""
     from pathlib import Path
 
     raw = os.environ.get(KEY_ENV)
     where = f"${KEY_ENV}"
-    if not raw and getattr(cfg, "key_file", None):
+    if not raw and cfg.key_file:
         path = Path(cfg.key_file).expanduser()
         if not path.is_absolute() and lab_root is not None:
             path = Path(lab_root) / path
@@ -656,7 +657,7 @@ class SerialHostLink(Link):
 # ---- factory ------------------------------------------------------------------------------------
 
 
-def open_link(cfg, role: str, *, local_end: LocalLink | None = None, connect_timeout: float = 30.0,
+def open_link(cfg: HostLinkConfig, role: str, *, local_end: LocalLink | None = None, connect_timeout: float = 30.0,
               log_hook: LogHook | None = None, authkey: bytes | None = None,
               on_refused: Callable[[str], None] | None = None) -> Link:
     """Open this worker's end of the host link described by ``cfg`` (a ``HostLinkConfig``).
@@ -668,7 +669,7 @@ def open_link(cfg, role: str, *, local_end: LocalLink | None = None, connect_tim
     """
     if role not in ("predictor", "recognizer"):
         raise HostLinkError(f"link role must be 'predictor' or 'recognizer', not {role!r}")
-    kind = getattr(cfg, "transport", None)
+    kind = cfg.transport
     if kind == "local":
         if local_end is None:
             raise HostLinkError("the local host link is made by the supervisor (local_pair()); pass local_end")

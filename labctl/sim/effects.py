@@ -21,12 +21,16 @@ All functions are pure (numpy in, numpy out); units mm and grey levels.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import cast
+from typing import TYPE_CHECKING, cast
 
 import cv2
 import numpy as np
 
 from ..vision.response import Response, parse_response
+
+if TYPE_CHECKING:
+    from ..config import Lab
+    from ..config.devices import CameraConfig
 
 BAYER_CODES = {
     # RGGB sensor (R at even row, even column); OpenCV names the pattern by the second row
@@ -262,11 +266,10 @@ def expand_window(window: tuple[int, int, int, int], width: int, height: int) ->
 # ------------------------------------------------------------------------------------------
 # from the lab
 # ------------------------------------------------------------------------------------------
-def effects_from_lab(lab, camera_cfg) -> CameraEffects | None:
+def effects_from_lab(lab: Lab, camera_cfg: CameraConfig) -> CameraEffects | None:
     """The effects of a simulated camera: lab.yaml's ``sim.camera`` settings (preset + overrides,
     :class:`labctl.config.lab.SimCameraConfig`) and the camera driver file's ``response``
     (the curve vision linearises with). None when nothing is on."""
-    sim = getattr(getattr(lab, "config", None), "sim", None)
-    settings = sim.camera.settings() if sim is not None else {}
-    fx = CameraEffects(response=getattr(camera_cfg, "response", "linear"), **settings)
+    settings = lab.config.sim.camera.settings()
+    fx = CameraEffects(response=camera_cfg.response, **settings)
     return fx if fx.any else None

@@ -15,13 +15,17 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Self
+from typing import TYPE_CHECKING, Self
 
 import numpy as np
 
 from ..geometry import CameraModel, apply, invert, look_at, make_T, rot_z, rotate
 from .effects import CameraEffects
 from .render import DEFAULT_LIGHT_DIR_W, MarkerDisc, Mesh, RenderResult, TableSurface, render
+
+if TYPE_CHECKING:
+    from ..library.placement import Marker
+    from ..library.storage import LibraryObject
 
 CAMERA_ROLES = ("fixed", "mobile")
 
@@ -66,22 +70,22 @@ class SimObject:
             raise WorldError(f"{self.name}: no stable poses")
 
     @classmethod
-    def from_library(cls, obj) -> SimObject:
-        """Adapt a library object (anything with ``.name``, ``.mesh`` (trimesh), ``.markers``, ``.stable_poses``)."""
-        markers = [SimMarker(int(getattr(m, "id", i)), np.asarray(m.center, float), np.asarray(m.normal, float),
-                             float(m.radius)) for i, m in enumerate(obj.markers)]
+    def from_library(cls, obj: LibraryObject) -> SimObject:
+        """Adapt a library object (its ``.name``, ``.mesh`` (trimesh), ``.markers``, ``.stable_poses``)."""
+        markers = [SimMarker(int(m.id), np.asarray(m.center, float), np.asarray(m.normal, float),
+                             float(m.radius)) for m in obj.markers]
         poses = [(np.asarray(T, float), float(p)) for T, p in obj.stable_poses]
         return cls(obj.name, np.asarray(obj.mesh.vertices), np.asarray(obj.mesh.faces), markers, poses)
 
     @classmethod
-    def from_trimesh(cls, name: str, mesh, markers: Sequence = (), stable_poses=None) -> SimObject:
+    def from_trimesh(cls, name: str, mesh, markers: Sequence[SimMarker | Marker] = (), stable_poses=None) -> SimObject:
         """From a trimesh mesh (mm, O frame); stable poses computed by trimesh when not given."""
         if stable_poses is None:
             transforms, probs = mesh.compute_stable_poses()
             stable_poses = list(zip(transforms, probs))
         sim_markers = [m if isinstance(m, SimMarker) else
-                       SimMarker(int(getattr(m, "id", i)), np.asarray(m.center, float), np.asarray(m.normal, float),
-                                 float(m.radius)) for i, m in enumerate(markers)]
+                       SimMarker(int(m.id), np.asarray(m.center, float), np.asarray(m.normal, float),
+                                 float(m.radius)) for m in markers]
         return cls(name, np.asarray(mesh.vertices), np.asarray(mesh.faces), sim_markers,
                    [(np.asarray(T, float), float(p)) for T, p in stable_poses])
 

@@ -21,10 +21,15 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .ellipse import Ellipse, EllipseFitError, _fit, _null_vector3, _validate
+
+if TYPE_CHECKING:
+    from ..geometry import CameraModel
+    from .markers import Marker
 
 
 class CirclePoseError(ValueError):
@@ -273,14 +278,13 @@ class MarkerPoses:
                 "trusted": self.trusted, "flags": list(self.flags)}
 
 
-def _lens_sigma_point(boundary, weights, K, radius: float, base, sigma_px: float, camera):
+def _lens_sigma_point(boundary, weights, K, radius: float, base, sigma_px: float, camera: CameraModel):
     """Half the change (normal, centre) of each candidate when the boundary is bent by ±1σ of an
     unmodelled radial distortion: x → c + (x − c)(1 ± k r²), k = ``sigma_px`` / r_ref³ (px⁻², r_ref
     the image's half-diagonal, c the principal point), refitted and posed again. None when a bent
     boundary gives no pose (the caller counts that as a huge error)."""
     cx, cy = K[0][2], K[1][2]  # 0 when the boundary was already taken about the principal point
-    width = float(getattr(camera, "width", 0) or 2.0 * (cx + 0.5))
-    height = float(getattr(camera, "height", 0) or 2.0 * (cy + 0.5))
+    width, height = float(camera.width), float(camera.height)
     k = sigma_px / (0.5 * math.hypot(width, height)) ** 3
     rel = boundary - (cx, cy)
     r2 = np.square(rel).sum(axis=1)
@@ -302,7 +306,8 @@ def _lens_sigma_point(boundary, weights, K, radius: float, base, sigma_px: float
     return deltas
 
 
-def marker_poses(marker, camera, radius: float, *, lens_sigma_px: float | None = None) -> MarkerPoses:
+def marker_poses(marker: Marker, camera: CameraModel, radius: float, *,
+                 lens_sigma_px: float | None = None) -> MarkerPoses:
     """Both pose candidates of a marker (as :func:`marker_pose_candidates`) with their covariance.
 
     The ellipse's five parameters (centre, semi-axes, angle) get the covariance σ² (JᵀJ)⁻¹ of a
@@ -396,7 +401,7 @@ def marker_poses(marker, camera, radius: float, *, lens_sigma_px: float | None =
                 ccov[j] += np.outer(dc, dc)
     sig0, sig1 = (float(math.sqrt(max(np.trace(c), 0.0))) for c in ncov)
     sig = (sig0, sig1)
-    q = getattr(marker, "quality", None)
+    q = marker.quality
     flags = tuple(q.flags) if q is not None else ("no_quality",)
     if not max(sig) <= MAX_TRUSTED_NORMAL_SIGMA_RAD:  # e.g. a marker facing the camera: its tilt is ill-defined
         flags += ("uncertain_normal",)

@@ -28,7 +28,7 @@ import math
 import re
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, cast
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
@@ -49,6 +49,9 @@ from ...planning.quintic import _derivative, _norm_max, _poly_range
 from ...planning.rotation import right_jacobian
 from ...planning.ruckig_profile import JERK_PER_ACCEL, JerkLimits, RuckigPlan, check_ruckig, plan_ruckig
 from ...planning.safety import stop_envelope_range
+
+if TYPE_CHECKING:
+    from ...config import RobotConfig
 
 NAME = "labctl-robot"
 DIALECT = "1.2"
@@ -230,7 +233,7 @@ class RobotEmulator:
     name = NAME
     dialect = DIALECT
 
-    def __init__(self, clock: Callable[[], float], limits=None, *, queue_size: int = QUEUE_SIZE,
+    def __init__(self, clock: Callable[[], float], limits: RobotConfig | None = None, *, queue_size: int = QUEUE_SIZE,
                  start_pose: np.ndarray | None = None):
         from ...config import RobotConfig
 
@@ -243,7 +246,7 @@ class RobotEmulator:
         self.w_max = math.radians(cfg.w_max_deg_s)
         self.a_stop = self.a_max / math.sqrt(3.0)
         self.alpha_stop = ANGULAR_STOP_PER_S * self.w_max
-        j_max = getattr(cfg, "j_max_mm_s3", None)
+        j_max = cfg.j_max_mm_s3
         self.j_max = float(j_max) if j_max else JERK_PER_ACCEL * self.a_max  # ruckig profile: LIMITS field 19
         self.watchdog_s = float(cfg.watchdog_s)
         self.home_T = make_T(_rpy(*HOME_RPY), cfg.home_mm)
