@@ -12,7 +12,7 @@ import re
 import types
 import typing
 from pathlib import Path
-from typing import Annotated, Any, Literal, Union, get_args, get_origin
+from typing import Annotated, Any, Literal, Protocol, Union, get_args, get_origin, runtime_checkable
 
 import yaml
 
@@ -25,6 +25,16 @@ class ConfigError(Exception):
         where = f"{self.file}: {key}: " if key else f"{self.file}: "
         super().__init__(where + message)
 
+
+
+@runtime_checkable
+class Validated(Protocol):
+    """A config section with cross-field rules: ``validate()`` returns ``(key, message)`` for the first
+    problem, or None."""
+
+    def validate(self) -> tuple[str, str] | None:
+        """The first problem as ``(key, message)``, or None."""
+        ...
 
 def read_yaml(path: Path) -> Any:
     """Read a YAML file with ``yaml.safe_load``; errors become one-line ConfigErrors."""
@@ -186,9 +196,8 @@ def from_mapping(cls, data, file, key: str = ""):
         elif fld.default is dataclasses.MISSING and fld.default_factory is dataclasses.MISSING:
             raise ConfigError(file, prefix + name, f"missing required key ({_type_name(hints[name])})")
     obj = cls(**kwargs)
-    check = getattr(obj, "validate", None)
-    if check is not None:
-        problem = check()
+    if isinstance(obj, Validated):
+        problem = obj.validate()
         if problem:
             bad_key, message = problem
             raise ConfigError(file, prefix + bad_key, message)

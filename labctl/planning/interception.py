@@ -18,7 +18,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import lru_cache
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -31,6 +31,25 @@ if TYPE_CHECKING:
     from .ruckig_interception import RuckigTrajectory
 
 TargetFn = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]]
+
+
+@runtime_checkable
+class OrientedTarget(Protocol):
+    """A target G(t) that also fixes the end orientation (world ← commanded frame), as
+    :class:`labctl.planning.targets.TargetPath` does; a plain ``TargetFn`` leaves the orientation free."""
+
+    rotation: np.ndarray
+
+    def __call__(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Position, velocity and acceleration of the target at times ``t`` (s)."""
+        ...
+
+
+def end_rotation(G: TargetFn) -> np.ndarray | None:
+    """The orientation ``G`` asks to end in, or None for a target that fixes only a position."""
+    if isinstance(G, OrientedTarget) and G.rotation is not None:
+        return np.asarray(G.rotation, dtype=float)
+    return None
 
 _SAMPLES = 33
 _BASIS_T = np.ascontiguousarray(np.vstack(basis(np.linspace(0.0, 1.0, _SAMPLES))).T)  # (6, 3S): p, p', p''
@@ -178,8 +197,8 @@ def plan_interception(state0, t0: float, G: TargetFn, limits: Limits, horizon_s:
         return start
     p0, v0, a0 = start
     rot = None
-    rot_args = (None, None, None, None)
-    R1 = getattr(G, "rotation", None)
+    rot_args: tuple = (None, None, None, None)
+    R1 = end_rotation(G)
     if R0 is not None and R1 is not None:
         R0 = np.asarray(R0, dtype=float)
         w0 = np.zeros(3) if w0 is None else np.asarray(w0, dtype=float).reshape(3)

@@ -18,7 +18,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from .interception import Interception, TargetFn, _checked_start, _unreachable_reason
+from .interception import Interception, TargetFn, _checked_start, _unreachable_reason, end_rotation
 from .limits import Limits, stop_budget_caps
 from .ruckig_profile import JerkLimits, RuckigPlan, check_ruckig, controller_limits, plan_ruckig
 
@@ -106,8 +106,8 @@ def plan_interception_ruckig(state0, t0: float, G: TargetFn, limits: Limits, hor
     p0, v0, a0 = start
     R0 = np.eye(3) if R0 is None else np.asarray(R0, float)
     w0 = np.zeros(3) if w0 is None else np.asarray(w0, float).reshape(3)
-    R1 = getattr(G, "rotation", None)
-    R1 = R0 if R1 is None else np.asarray(R1, float)
+    R1 = end_rotation(G)
+    R1 = R0 if R1 is None else R1
     lim = (jerk if jerk is not None else JerkLimits.from_limits(limits)).rounded(base)
     check = base if base is not None else lim  # the controller checks against its own limits
     start = (p0, v0, a0, R0, w0)
