@@ -22,6 +22,8 @@ from typing import cast
 
 import numpy as np
 
+from ..timebase import wire_time_s  # a leaf: the one wire-time formula, no labctl code to trust
+
 VERSION_RE = re.compile(r"^\d+\.\d+$")
 IDEMPOTENT = {"STATUS", "LIMITS", "HB", "CLEAR"}
 
@@ -148,7 +150,7 @@ class Client:
             for i, ln in enumerate(self.pending):
                 if ln.text.split(" ", 1)[0] == f"${seq}":
                     del self.pending[i]
-                    wire = (sent_bytes + len(ln.raw) + 1) * 10.0 / self.baud
+                    wire = wire_time_s(sent_bytes + len(ln.raw) + 1, self.baud)
                     self.latencies.append(max(ln.t - t_sent - wire, 0.0))
                     return ln
             if time.monotonic() > deadline:
