@@ -63,11 +63,18 @@ def warm_up() -> None:
     # process group (timeout, systemd, docker stop) would otherwise end it, and a dead server makes
     # every process it started look exited (exit code 255) while the workers still stop their devices.
     # It needs no signal: it exits by itself when this process does.
-    sigs = {signal.SIGINT, signal.SIGTERM, signal.SIGHUP}
-    old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, sigs)  # one arriving meanwhile waits, not lost
+    with _ignoring({signal.SIGINT, signal.SIGTERM, signal.SIGHUP}):
+        forkserver.ensure_running()
+
+
+@contextlib.contextmanager
+def _ignoring(sigs: set[signal.Signals]):
+    """Ignore ``sigs`` meanwhile (a child started now inherits that); one arriving meanwhile is blocked,
+    so it waits and is delivered on the way out, not lost. Main thread only."""
+    old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, sigs)
     old = {sig: signal.signal(sig, signal.SIG_IGN) for sig in sigs}
     try:
-        forkserver.ensure_running()
+        yield
     finally:
         for sig, handler in old.items():
             signal.signal(sig, handler)
@@ -249,15 +256,8 @@ def _start_quietly(proc) -> None:
     if not _in_main_thread():
         proc.start()
         return
-    sigs = {signal.SIGINT, signal.SIGTERM}
-    old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, sigs)
-    old = {sig: signal.signal(sig, signal.SIG_IGN) for sig in sigs}
-    try:
+    with _ignoring({signal.SIGINT, signal.SIGTERM}):
         proc.start()
-    finally:
-        for sig, handler in old.items():
-            signal.signal(sig, handler)
-        signal.pthread_sigmask(signal.SIG_SETMASK, old_mask)
 
 
 class PeerWatch:
