@@ -167,7 +167,8 @@ class GrabberCamera(OpenClose):
         if not ok or self._latest is None:
             reason = getattr(self._source, "stall_reason", None)
             why = reason() if callable(reason) else None
-            raise DeviceTimeout(f"camera {self.name}: no frame within {self.timeout_s:g} s" + (f": {why}" if why else ""))
+            raise DeviceTimeout(f"camera {self.name}: no frame within {self.timeout_s:g} s"
+                                + (f": {why}" if why else ""))
         frames = [f for f in self._recent if f.seq > self._delivered][-max(1, int(max_frames)):] or [self._latest]
         self.dropped += max(0, frames[-1].seq - self._delivered - len(frames))
         self._delivered = max(self._delivered, frames[-1].seq)
@@ -324,7 +325,8 @@ class MjpegHttpSource:
             line = self._line(limit=256)
         except (OSError, CameraError) as exc:
             self._conn.close()
-            raise CameraError(f"{self.url} is not an MJPEG stream (Content-Type {ctype!r}, and no body: {exc})") from None
+            raise CameraError(f"{self.url} is not an MJPEG stream (Content-Type {ctype!r}, and no body: {exc})"
+                              ) from None
         if not (line.startswith(b"--") and len(line) > 2 and line[2:].strip()
                 and all(32 < c < 127 for c in line)):
             self._conn.close()
