@@ -12,8 +12,9 @@
 * :class:`V4L2Camera` — ``cv2.VideoCapture(device, cv2.CAP_V4L2)`` with resolution, fps and
   exposure from the camera's driver file.
 * :class:`StreamCamera` (``kind: stream``) — a network camera by URL: MJPEG over HTTP as
-  mjpg-streamer or ustreamer serve it (read with the standard library, frames decoded with
-  ``cv2.imdecode``, the parts' ``X-Timestamp`` header usable as the capture time), or any URL
+  mjpg-streamer, ustreamer or ffmpeg's ``-f mpjpeg`` serve it (read with the standard library,
+  chunked transfer undone, frames decoded with ``cv2.imdecode``, the parts' ``X-Timestamp``
+  header usable as the capture time), or any URL
   OpenCV's FFmpeg backend opens (RTSP; ``backend: opencv``).
 * :class:`ReplayCamera` serves a folder of images named by capture time (``<t_seconds>.png``,
   e.g. ``12.345678.png``), or listed in ``index.csv`` (``t,file`` rows); ``grab()`` returns the
