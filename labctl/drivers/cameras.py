@@ -12,8 +12,9 @@
 * :class:`V4L2Camera` — ``cv2.VideoCapture(device, cv2.CAP_V4L2)`` with resolution, fps and
   exposure from the camera's driver file.
 * :class:`StreamCamera` (``kind: stream``) — a network camera by URL: MJPEG over HTTP as
-  mjpg-streamer or ustreamer serve it (read with the standard library, frames decoded with
-  ``cv2.imdecode``, the parts' ``X-Timestamp`` header usable as the capture time), or any URL
+  mjpg-streamer, ustreamer or ffmpeg's ``-f mpjpeg`` serve it (read with the standard library,
+  chunked transfer undone, frames decoded with ``cv2.imdecode``, the parts' ``X-Timestamp``
+  header usable as the capture time), or any URL
   OpenCV's FFmpeg backend opens (RTSP; ``backend: opencv``).
 * :class:`ReplayCamera` serves a folder of images named by capture time (``<t_seconds>.png``,
   e.g. ``12.345678.png``), or listed in ``index.csv`` (``t,file`` rows); ``grab()`` returns the
@@ -165,7 +166,10 @@ class GrabberCamera(OpenClose):
         if self._error is not None:
             raise CameraError(f"camera {self.name}: {self._error}")
         if not ok or self._latest is None:
-            raise DeviceTimeout(f"camera {self.name}: no frame within {self.timeout_s:g} s")
+            reason = getattr(self._source, "stall_reason", None)
+            why = reason() if callable(reason) else None
+            raise DeviceTimeout(f"camera {self.name}: no frame within {self.timeout_s:g} s"
+                                + (f": {why}" if why else ""))
         frames = [f for f in self._recent if f.seq > self._delivered][-max(1, int(max_frames)):] or [self._latest]
         self.dropped += max(0, frames[-1].seq - self._delivered - len(frames))
         self._delivered = max(self._delivered, frames[-1].seq)
@@ -266,11 +270,19 @@ class V4L2Camera(GrabberCamera):
 class MjpegHttpSource:
     """An MJPEG-over-HTTP stream (``multipart/x-mixed-replace``) read with the standard library.
 
-    Each part's JPEG is decoded with ``cv2.imdecode``. ``use_header_time``: take a part's
-    ``X-Timestamp`` header (seconds on the server's wall clock, as mjpg-streamer and ustreamer
-    send it) as the capture time. Parts need a ``Content-Length`` (both servers send it); without
-    one the part runs to the next boundary.
+    The body is read through :class:`http.client.HTTPResponse`, which undoes ``Transfer-Encoding:
+    chunked`` (ffmpeg's HTTP server always sends it). Each part's JPEG is decoded with
+    ``cv2.imdecode``. ``use_header_time``: take a part's ``X-Timestamp`` header (seconds on the
+    server's wall clock, as mjpg-streamer and ustreamer send it) as the capture time. A part
+    without ``Content-Length`` runs to the next boundary. A response typed
+    ``application/octet-stream`` (ffmpeg's ``-f mpjpeg`` without ``-content_type``) is read when
+    its body opens with a boundary line; the boundary is then taken from that line. Parts that do
+    not decode are counted (``undecodable``); the first is logged, and once none has decoded for
+    ``timeout_s`` while parts keep coming, :meth:`read` raises with the likely cause.
     """
+
+    _MAX_HEADERS = 16384  # bytes of part headers before the framing is taken as broken
+    _MAX_PART = 64 << 20  # bytes of a part without Content-Length before the framing is taken as broken
 
     def __init__(self, url: str, timeout_s: float = 5.0, use_header_time: bool = True):
         import http.client
@@ -280,7 +292,11 @@ class MjpegHttpSource:
         if u.scheme not in ("http", "https") or not u.hostname:
             raise CameraError(f"not an http(s) URL: {url!r}")
         conn_cls = http.client.HTTPSConnection if u.scheme == "https" else http.client.HTTPConnection
-        self.url, self.use_header_time = url, use_header_time
+        self.url, self.use_header_time, self.timeout_s = url, use_header_time, timeout_s
+        self.undecodable = 0  # parts that did not decode as an image
+        self._bad_since: float | None = None  # monotonic time of the first undecodable part since the last good one
+        self._bad_first: bytes = b""
+        self._buf = bytearray()
         self._conn = conn_cls(u.hostname, u.port, timeout=timeout_s)
         try:
             self._conn.request("GET", (u.path or "/") + (f"?{u.query}" if u.query else ""))
@@ -288,24 +304,77 @@ class MjpegHttpSource:
         except (OSError, http.client.HTTPException) as exc:
             self._conn.close()
             raise CameraError(f"cannot open the stream {url}: {exc}") from None
+        self._resp = resp
+        self._sock = self._conn.sock
         ctype = resp.getheader("Content-Type", "")
         if resp.status != 200:
             self._conn.close()
             raise CameraError(f"the stream {url} answered HTTP {resp.status} {resp.reason}")
         m = re.search(r'boundary="?([^";]+)"?', ctype)
-        if "multipart" not in ctype or not m:
+        if "multipart" in ctype and m:
+            b = m.group(1).strip()
+            self._boundary = (b if b.startswith("--") else "--" + b).encode()
+        elif ctype.split(";")[0].strip().lower() == "application/octet-stream":
+            self._boundary = self._sniff_boundary(ctype)
+        else:
             self._conn.close()
             raise CameraError(f"{url} is not an MJPEG stream (Content-Type {ctype or 'missing'!r})")
-        b = m.group(1)
-        self._boundary = (b if b.startswith("--") else "--" + b).encode()
-        self._resp = resp
-        self._sock = self._conn.sock
 
-    def _line(self) -> bytes:
-        line = self._resp.fp.readline(65537)
-        if not line:
+    def _sniff_boundary(self, ctype: str) -> bytes:
+        # ffmpeg's mpjpeg muxer opens the body with "--<tag>\r\n" and then the first part's headers
+        try:
+            line = self._line(limit=256)
+        except (OSError, CameraError) as exc:
+            self._conn.close()
+            raise CameraError(f"{self.url} is not an MJPEG stream (Content-Type {ctype!r}, and no body: {exc})"
+                              ) from None
+        if not (line.startswith(b"--") and len(line) > 2 and line[2:].strip()
+                and all(32 < c < 127 for c in line)):
+            self._conn.close()
+            raise CameraError(f"{self.url} is not an MJPEG stream (Content-Type {ctype!r} and the body does not "
+                              f"open with a multipart boundary: {bytes(line[:40])!r}); serve it as "
+                              "multipart/x-mixed-replace (ffmpeg: -content_type 'multipart/x-mixed-replace;"
+                              "boundary=ffmpeg')")
+        self._buf[:0] = line + b"\r\n"  # read() finds it again as the first boundary
+        return bytes(line)
+
+    def _fill(self) -> None:
+        data = self._resp.read1(65536)  # de-chunked body bytes
+        if not data:
             raise CameraError(f"the stream {self.url} ended")
-        return line.rstrip(b"\r\n")
+        self._buf += data
+
+    def _line(self, limit: int = 65536) -> bytes:
+        while (i := self._buf.find(b"\n")) < 0:
+            if len(self._buf) > limit:
+                raise CameraError(f"the stream {self.url} sent a line longer than {limit} bytes: not MJPEG framing")
+            self._fill()
+        line = bytes(self._buf[:i]).rstrip(b"\r")
+        del self._buf[:i + 1]
+        return line
+
+    def _take(self, n: int) -> bytes:
+        while len(self._buf) < n:
+            try:
+                self._fill()
+            except CameraError:
+                raise CameraError(f"the stream {self.url} ended inside a frame") from None
+        data = bytes(self._buf[:n])
+        del self._buf[:n]
+        return data
+
+    def _until_boundary(self) -> bytes:
+        # a part without Content-Length: everything up to the CRLF before the next boundary line
+        mark = b"\r\n" + self._boundary
+        start = 0
+        while (i := self._buf.find(mark, start)) < 0:
+            if len(self._buf) > self._MAX_PART:
+                raise CameraError(f"the stream {self.url}: no boundary within {self._MAX_PART} bytes")
+            start = max(0, len(self._buf) - len(mark) + 1)
+            self._fill()
+        data = bytes(self._buf[:i])
+        del self._buf[:i + 2]  # the boundary line stays for the next read
+        return data
 
     def read(self) -> tuple[np.ndarray | None, float | None]:
         """The next JPEG part of the stream, decoded (BGR), with the capture time its headers carry (s), else None."""
@@ -314,25 +383,46 @@ class MjpegHttpSource:
         while self._line().strip() != self._boundary:  # skip to the next part
             pass
         headers = {}
+        size = 0
         while (line := self._line()):
+            size += len(line)
+            if size > self._MAX_HEADERS:
+                raise CameraError(f"the stream {self.url}: part headers longer than {self._MAX_HEADERS} bytes")
             k, _, v = line.decode("latin-1").partition(":")
             headers[k.strip().lower()] = v.strip()
-        if "content-length" in headers:
-            n = int(headers["content-length"])
-            data = self._resp.fp.read(n)
-            if len(data) < n:
-                raise CameraError(f"the stream {self.url} ended inside a frame")
-        else:
-            chunks = []
-            while (line := self._resp.fp.readline(1 << 20)) and line.rstrip(b"\r\n") != self._boundary:
-                chunks.append(line)
-            data = b"".join(chunks).rstrip(b"\r\n")
+        n = headers.get("content-length", "")
+        data = self._take(int(n)) if n.isdigit() else self._until_boundary()
         t_wall = None
         if self.use_header_time and "x-timestamp" in headers:
             with contextlib.suppress(ValueError):
                 t_wall = float(headers["x-timestamp"])
-        image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+        image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR) if data else None
+        if image is None:
+            self._undecodable(data)
+        else:
+            self._bad_since = None
         return image, t_wall
+
+    def _undecodable(self, data: bytes) -> None:
+        self.undecodable += 1
+        now = time.monotonic()
+        if self._bad_since is None:
+            self._bad_since, self._bad_first = now, data[:8]
+        if self.undecodable == 1:
+            log.warning("stream %s: a part of %d bytes does not decode as a JPEG (starts %r); such parts are "
+                        "skipped and counted", self.url, len(data), data[:8])
+        if now - self._bad_since >= self.timeout_s:
+            raise CameraError(self.stall_reason())
+
+    def stall_reason(self) -> str | None:
+        """Why no frame came lately, when parts arrived that did not decode (None if the last part decoded)."""
+        if self._bad_since is None:
+            return None
+        cause = ("the parts are not JPEGs (no SOI marker FF D8 at the start)" if not self._bad_first.startswith(
+            b"\xff\xd8") else "the JPEGs are truncated or corrupt (a proxy re-framing the body, or a wrong "
+            "Content-Length)")
+        return (f"no part of the stream {self.url} decoded as a JPEG for {time.monotonic() - self._bad_since:.1f} s "
+                f"({self.undecodable} undecodable parts; the first starts {self._bad_first!r}): {cause}")
 
     def interrupt(self) -> None:
         """Unblock a read from another thread (the grabber then leaves and releases the source)."""
