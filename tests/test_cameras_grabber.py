@@ -57,6 +57,9 @@ class FakeSource:
             self.interrupted = True
             self.cond.notify_all()
 
+    def stall_reason(self) -> str | None:
+        return None
+
     def release(self) -> None:
         self.released_during_read = self.in_read
         self.released = True

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import itertools
 import logging
-import shutil
 import socket
 import subprocess
 import threading
@@ -152,10 +151,9 @@ def _free_port() -> int:
 
 @pytest.fixture
 def ffmpeg_bin():
-    path = shutil.which("ffmpeg")
-    if path is None:
-        pytest.skip("ffmpeg is not installed (apt-get install ffmpeg): the real-ffmpeg MJPEG test needs it")
-    return path
+    from fakes import debian_tool
+
+    return debian_tool("ffmpeg")
 
 
 def test_the_real_ffmpeg_mpjpeg_stream_opens_through_a_stream_driver_file(tmp_path, ffmpeg_bin):

@@ -69,6 +69,9 @@ class CaptureSource(Protocol):
     def release(self) -> None:
         """Give the device back (close the file, socket or capture)."""
 
+    def stall_reason(self) -> str | None:
+        """Why no frame came lately, when the source knows (parts that do not decode); else None."""
+
 
 class GrabberCamera(OpenClose):
     """Latest-frame semantics over any :class:`CaptureSource` (see the module docstring).
@@ -166,8 +169,7 @@ class GrabberCamera(OpenClose):
         if self._error is not None:
             raise CameraError(f"camera {self.name}: {self._error}")
         if not ok or self._latest is None:
-            reason = getattr(self._source, "stall_reason", None)
-            why = reason() if callable(reason) else None
+            why = self._source.stall_reason() if self._source is not None else None
             raise DeviceTimeout(f"camera {self.name}: no frame within {self.timeout_s:g} s"
                                 + (f": {why}" if why else ""))
         frames = [f for f in self._recent if f.seq > self._delivered][-max(1, int(max_frames)):] or [self._latest]
@@ -217,6 +219,10 @@ class _CvSource:
 
     def release(self) -> None:
         self.cap.release()
+
+    def stall_reason(self) -> str | None:
+        """OpenCV does not say why no frame came."""
+        return None
 
 
 class V4L2Camera(GrabberCamera):

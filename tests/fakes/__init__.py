@@ -232,3 +232,32 @@ class SegmentRobot(StillRobot):
 
         self.segments.append((np.array(T_end), float(duration)))
         return float("nan"), float("nan")
+
+
+def debian_tool(binary: str, package: str | None = None) -> str:
+    """The path of ``binary``, installing Debian's ``package`` (default: the binary's name) with apt-get when
+    it is missing and this user is root; otherwise the test is skipped with the reason."""
+    import os
+    import shutil
+    import subprocess
+
+    import pytest
+
+    exe = shutil.which(binary) or next((p for p in (f"/usr/sbin/{binary}", f"/usr/bin/{binary}")
+                                        if os.path.isfile(p)), None)
+    if exe:
+        return exe
+    package = package or binary
+    if not hasattr(os, "geteuid") or os.geteuid() != 0 or not shutil.which("apt-get"):
+        pytest.skip(f"{binary} is not installed (Debian: apt-get install {package}) and this user cannot install it")
+    env = {**os.environ, "DEBIAN_FRONTEND": "noninteractive"}
+    done = subprocess.run(["apt-get", "install", "-y", "-q", package], capture_output=True, text=True, timeout=900,
+                          env=env)
+    if done.returncode != 0:  # a stale package index: refresh it once
+        subprocess.run(["apt-get", "update", "-q"], capture_output=True, timeout=600, env=env)
+        done = subprocess.run(["apt-get", "install", "-y", "-q", package], capture_output=True, text=True,
+                              timeout=900, env=env)
+    exe = shutil.which(binary)
+    if done.returncode != 0 or not exe:
+        pytest.skip(f"{package} could not be installed: {done.stderr.strip().splitlines()[-1:]}")
+    return exe
