@@ -103,11 +103,14 @@ class CommandPrompt:
             raise UserInputError(f"--prompt-command did not place the target on {spacer_mm:g} mm: {why}")
 
 
-def _confirm_stopped(devs, settle_s: float = 2.0) -> str:
+def _confirm_stopped(devs, settle_s: float = 2.0, *, latch_stays: bool = False) -> tuple[str, str | None]:
     """Stop the table (GRBL feed hold, then soft reset: ``Table.stop``) and the robot (``STOP``),
     then read both back until they report rest (bounded by ``settle_s`` on the devices' clock).
-    Returns what was confirmed, for the one line printed."""
-    parts = []
+    Returns what was confirmed, for the one line printed, and, if ``latch_stays`` (a controller that outlives
+    the command) and the robot's controller reports a fault latched, the phrase saying how to clear it."""
+    from ..runtime.stopping import latch_note
+
+    parts, latched = [], None
     table, robot = devs.table, devs.robot
     if table is not None:
         try:
@@ -125,7 +128,9 @@ def _confirm_stopped(devs, settle_s: float = 2.0) -> str:
             parts.append("robot stopped" if not st.moving else f"robot STILL MOVING after {settle_s:g} s")
         except Exception as exc:  # noqa: BLE001
             parts.append(f"robot stop NOT confirmed ({type(exc).__name__}: {exc})")
-    return ", ".join(parts) or "nothing was moving"
+        if latch_stays and (fault := getattr(robot, "latched", None)):
+            latched = latch_note(fault)
+    return ", ".join(parts) or "nothing was moving", latched
 
 
 def _open_devices(lab, cameras: str, seed: int, target, prompt_command: str | None = None, console=None):
@@ -160,7 +165,11 @@ def _open_devices(lab, cameras: str, seed: int, target, prompt_command: str | No
             dev = open_device(r, lab)
             dev.open()
             opened[r] = dev
-        # before anything moves: the target's positions and the robot's stations must be moves the devices accept
+        # before anything moves: a fault latched on the robot's controller (a STOP of an earlier command) would
+        # refuse the first station only after the table has moved the target through the fixed camera's positions
+        if "robot" in opened:
+            opened["robot"].ensure_ready()
+        # ... and the target's positions and the robot's stations must be moves the devices accept
         check_table_settings(opened["table"], lab)
         if "robot" in opened:
             check_robot_limits(opened["robot"], lab)
@@ -213,7 +222,7 @@ def calibrate_group(ctx: click.Context, camera: str, dry_run: bool, ros: bool, f
         steps_for,
     )
     from ..calibration.target import TargetError
-    from ..errors import UserInputError
+    from ..errors import LabctlError, UserInputError
 
     c = get_ctx()
     lab = c.lab()
@@ -247,13 +256,16 @@ def calibrate_group(ctx: click.Context, camera: str, dry_run: bool, ros: bool, f
     except BaseException as exc:
         # stop on every exit path; a second Ctrl-C/TERM must not cut the stop short
         ignore_stop_signals()
-        said = _confirm_stopped(devs) if devs is not None else "no device was opened"
+        said, latched = (_confirm_stopped(devs, latch_stays=lab.robot.kind != "sim") if devs is not None
+                         else ("no device was opened", None))
         if close is not None:
             with contextlib.suppress(Exception):
                 close()
         if isinstance(exc, KeyboardInterrupt):
-            click.echo(f"labctl: interrupted: {said}", err=True)
+            click.echo(f"labctl: interrupted: {said}" + (f"; {latched}" if latched else ""), err=True)
             raise SystemExit(130) from None
+        if latched and isinstance(exc, LabctlError):  # a refused prompt, a device fault: still one line
+            exc.args = (f"{exc}; {latched}",)
         raise
     finally:
         restore_signals(old_signals)
