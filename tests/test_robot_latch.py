@@ -80,3 +80,28 @@ def test_calibrate_refuses_a_latched_robot_before_the_table_moves_and_a_refused_
         assert "--prompt-command" in lines[0] and "'stopped' latched" in lines[0], lines
         assert lines[0].endswith("run `labctl robot clear`"), lines
         assert _table_at(lab) == (300.0, 250.0)
+
+
+@pytest.mark.parametrize("kind", ["serial", "sim"])
+def test_the_supervisors_stop_reports_the_latch_a_real_controller_keeps(kind):
+    """The run's last line after Ctrl-C/SIGTERM comes from the supervisor's own stop (``confirm_stopped``): on a
+    controller that outlives the run it says the STOP stays latched; a built-in simulated one ends with the run."""
+    import dataclasses
+
+    from fakes import fake_grbl
+
+    from labctl.config import load_lab
+    from labctl.runtime.stopping import confirm_stopped
+    from labctl.workspace import sample_lab_path
+
+    sample = load_lab(sample_lab_path())
+    with fake_robot() as robot_dev, fake_grbl() as table_dev:
+        lab = dataclasses.replace(sample, robot=dataclasses.replace(sample.robot, kind=kind, baud=115200),
+                                  table=dataclasses.replace(sample.table, kind="grbl", baud=115200))
+        outcomes = confirm_stopped(lab, {"robot": robot_dev.path, "table": table_dev.path})
+    line = summary(outcomes)
+    assert [o["device"] for o in outcomes if o["confirmed"]] == ["table", "robot"], outcomes
+    if kind == "serial":
+        assert "'stopped' latched" in line and line.endswith("`labctl robot clear`"), line
+    else:
+        assert "latched" not in line, line
