@@ -103,14 +103,11 @@ class CommandPrompt:
             raise UserInputError(f"--prompt-command did not place the target on {spacer_mm:g} mm: {why}")
 
 
-def _confirm_stopped(devs, settle_s: float = 2.0, *, latch_stays: bool = False) -> tuple[str, str | None]:
+def _confirm_stopped(devs, settle_s: float = 2.0) -> str:
     """Stop the table (GRBL feed hold, then soft reset: ``Table.stop``) and the robot (``STOP``),
     then read both back until they report rest (bounded by ``settle_s`` on the devices' clock).
-    Returns what was confirmed, for the one line printed, and, if ``latch_stays`` (a controller that outlives
-    the command) and the robot's controller reports a fault latched, the phrase saying how to clear it."""
-    from ..runtime.stopping import latch_note
-
-    parts, latched = [], None
+    Returns what was confirmed, for the one line printed."""
+    parts = []
     table, robot = devs.table, devs.robot
     if table is not None:
         try:
@@ -128,9 +125,17 @@ def _confirm_stopped(devs, settle_s: float = 2.0, *, latch_stays: bool = False) 
             parts.append("robot stopped" if not st.moving else f"robot STILL MOVING after {settle_s:g} s")
         except Exception as exc:  # noqa: BLE001
             parts.append(f"robot stop NOT confirmed ({type(exc).__name__}: {exc})")
-        if latch_stays and (fault := getattr(robot, "latched", None)):
-            latched = latch_note(fault)
-    return ", ".join(parts) or "nothing was moving", latched
+    return ", ".join(parts) or "nothing was moving"
+
+
+def _latch_left(devs, lab) -> str | None:
+    """After :func:`_confirm_stopped`: the phrase naming a fault the robot's controller reported latched at its
+    last status (its STOP), if that controller outlives the command (not the built-in simulated lab's)."""
+    from ..runtime.stopping import latch_note
+
+    robot = devs.robot if devs is not None else None
+    fault = getattr(robot, "latched", None) if robot is not None and lab.robot.kind != "sim" else None
+    return latch_note(fault) if fault else None
 
 
 def _open_devices(lab, cameras: str, seed: int, target, prompt_command: str | None = None, console=None):
@@ -256,8 +261,8 @@ def calibrate_group(ctx: click.Context, camera: str, dry_run: bool, ros: bool, f
     except BaseException as exc:
         # stop on every exit path; a second Ctrl-C/TERM must not cut the stop short
         ignore_stop_signals()
-        said, latched = (_confirm_stopped(devs, latch_stays=lab.robot.kind != "sim") if devs is not None
-                         else ("no device was opened", None))
+        said = _confirm_stopped(devs) if devs is not None else "no device was opened"
+        latched = _latch_left(devs, lab)
         if close is not None:
             with contextlib.suppress(Exception):
                 close()
