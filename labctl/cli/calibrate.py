@@ -119,9 +119,9 @@ def _confirm_stopped(devs, settle_s: float = 2.0) -> str:
     if robot is not None:
         try:
             robot.stop()
-            deadline = devs.now() + settle_s
-            while (st := robot.status()).moving and devs.now() < deadline:
-                devs.sleep(0.05)  # STOP brings the arm to rest with a short quintic
+            deadline = devs.clock.now() + settle_s
+            while (st := robot.status()).moving and devs.clock.now() < deadline:
+                devs.clock.sleep(0.05)  # STOP brings the arm to rest with a short quintic
             parts.append("robot stopped" if not st.moving else f"robot STILL MOVING after {settle_s:g} s")
         except Exception as exc:  # noqa: BLE001
             parts.append(f"robot stop NOT confirmed ({type(exc).__name__}: {exc})")
