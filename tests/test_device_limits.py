@@ -145,3 +145,38 @@ def test_driver_files_above_the_devices_are_named_and_a_run_moves_nothing(tmp_pa
         assert table.returncode == 0, table.stderr[-2000:]
         where = json.loads(table.stdout)
         assert where["state"] == "Idle" and (where["position"]["x"], where["position"]["y"]) == (300.0, 250.0), where
+
+
+def test_every_table_mismatch_is_named_on_one_line():
+    """Feed above $110 and $111, travel beyond $130: all three are named, not only the first."""
+    settings = {**GRBL, 110: 3000.0, 111: 4000.0, 130: 200.0}
+    problem = table_settings_problem(TABLE, settings)
+    assert problem is not None and "\n" not in problem and problem.count(" | ") == 2, problem
+    for part in ("$110", "at most 3000", "$111", "at most 4000", "$130", "600 mm in X", "at most 200"):
+        assert part in problem, (part, problem)
+    assert "$131" not in problem
+
+
+def test_every_robot_mismatch_is_named_on_one_line():
+    cfg = dataclasses.replace(CFG, v_max_mm_s=CONTROLLER["v_max_mm_s"] * 2, heartbeat_s=CFG.watchdog_s,
+                              workspace_max_mm=tuple(v + 10.0 for v in CFG.workspace_max_mm))
+    problem = robot_limits_problem(cfg, CONTROLLER)
+    assert problem is not None and "\n" not in problem and problem.count(" | ") == 2, problem
+    assert "v_max_mm_s: " in problem and "workspace_max_mm: " in problem and "heartbeat_s: " in problem
+
+
+def test_the_grbl_emulator_with_several_settings_below_the_file_is_refused_naming_each():
+    """The table driver against labctl's GRBL emulator whose $$ differ from the file in two places."""
+    from labctl.errors import DeviceError
+    from labctl.runtime.devices import check_table_settings, open_device
+
+    lab = load_lab(sample_lab_path())
+    table = open_device("table", lab)
+    table.emulator.settings.update({110: 3000.0, 130: 200.0})
+    with table:
+        with pytest.raises(DeviceError) as err:
+            check_table_settings(table, lab)
+    message = str(err.value)
+    assert "\n" not in message and message.count(" | ") == 1, message
+    assert "max_feed_mm_min: " in message and "$110" in message and "at most 3000" in message
+    assert "travel_mm: 600 mm in X" in message and "$130" in message and "at most 200" in message

@@ -216,6 +216,10 @@ def test_devices_reads_the_firmwares_settings_against_the_table_file(fw, labctl,
     assert f"at most {settings[130]:g}" in row["verdict"]
     code, row = table_row(travel_mm=[settings[130], settings[131]], max_feed_mm_min=settings[111] * 1.5)
     assert not row["ok"] and "max_feed_mm_min: " in row["verdict"] and "$110" in row["verdict"], row
+    # every mismatch at once, not only the first ($110 is checked before $130)
+    code, row = table_row(travel_mm=[settings[130] + 100.0, settings[131]], max_feed_mm_min=settings[110] * 1.5)
+    assert code == 3 and not row["ok"] and "\n" not in row["verdict"], row
+    assert all(s in row["verdict"] for s in ("$110", "$111", "$130", f"at most {settings[130]:g}")), row
     code, row = table_row(travel_mm=[settings[130], settings[131]], max_feed_mm_min=settings[110])
     assert row["ok"], row
     assert fw.status().split("|")[1] == before.split("|")[1]  # the same machine position: nothing moved

@@ -119,13 +119,23 @@ def _confirm_stopped(devs, settle_s: float = 2.0) -> str:
     if robot is not None:
         try:
             robot.stop()
-            deadline = devs.now() + settle_s
-            while (st := robot.status()).moving and devs.now() < deadline:
-                devs.sleep(0.05)  # STOP brings the arm to rest with a short quintic
+            deadline = devs.clock.now() + settle_s
+            while (st := robot.status()).moving and devs.clock.now() < deadline:
+                devs.clock.sleep(0.05)  # STOP brings the arm to rest with a short quintic
             parts.append("robot stopped" if not st.moving else f"robot STILL MOVING after {settle_s:g} s")
         except Exception as exc:  # noqa: BLE001
             parts.append(f"robot stop NOT confirmed ({type(exc).__name__}: {exc})")
     return ", ".join(parts) or "nothing was moving"
+
+
+def _latch_left(devs, lab) -> str | None:
+    """After :func:`_confirm_stopped`: the phrase naming a fault the robot's controller reported latched at its
+    last status (its STOP), if that controller outlives the command (not the built-in simulated lab's)."""
+    from ..runtime.stopping import latch_note
+
+    robot = devs.robot if devs is not None else None
+    fault = getattr(robot, "latched", None) if robot is not None and lab.robot.kind != "sim" else None
+    return latch_note(fault) if fault else None
 
 
 def _open_devices(lab, cameras: str, seed: int, target, prompt_command: str | None = None, console=None):
@@ -160,7 +170,11 @@ def _open_devices(lab, cameras: str, seed: int, target, prompt_command: str | No
             dev = open_device(r, lab)
             dev.open()
             opened[r] = dev
-        # before anything moves: the target's positions and the robot's stations must be moves the devices accept
+        # before anything moves: a fault latched on the robot's controller (a STOP of an earlier command) would
+        # refuse the first station only after the table has moved the target through the fixed camera's positions
+        if "robot" in opened:
+            opened["robot"].ensure_ready()
+        # ... and the target's positions and the robot's stations must be moves the devices accept
         check_table_settings(opened["table"], lab)
         if "robot" in opened:
             check_robot_limits(opened["robot"], lab)
@@ -213,7 +227,7 @@ def calibrate_group(ctx: click.Context, camera: str, dry_run: bool, ros: bool, f
         steps_for,
     )
     from ..calibration.target import TargetError
-    from ..errors import UserInputError
+    from ..errors import LabctlError, UserInputError
 
     c = get_ctx()
     lab = c.lab()
@@ -248,12 +262,15 @@ def calibrate_group(ctx: click.Context, camera: str, dry_run: bool, ros: bool, f
         # stop on every exit path; a second Ctrl-C/TERM must not cut the stop short
         ignore_stop_signals()
         said = _confirm_stopped(devs) if devs is not None else "no device was opened"
+        latched = _latch_left(devs, lab)
         if close is not None:
             with contextlib.suppress(Exception):
                 close()
         if isinstance(exc, KeyboardInterrupt):
-            click.echo(f"labctl: interrupted: {said}", err=True)
+            click.echo(f"labctl: interrupted: {said}" + (f"; {latched}" if latched else ""), err=True)
             raise SystemExit(130) from None
+        if latched and isinstance(exc, LabctlError):  # a refused prompt, a device fault: still one line
+            exc.args = (f"{exc}; {latched}",)
         raise
     finally:
         restore_signals(old_signals)

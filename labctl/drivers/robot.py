@@ -49,6 +49,9 @@ STOP_LINE = (format_request(0, "STOP") + "\n").encode("ascii")
 #: requests that command motion: never sent again after a dropped link (the controller may have taken them)
 MOTION_COMMANDS = frozenset({"SEG", "SEGNOW", "HOME"})
 
+#: what the operator runs to release a latched fault (E40 watchdog, E41 STOP), once the arm is checked
+CLEAR_HINT = "check the arm, then run `labctl robot clear`"
+
 
 class RobotError(DeviceError):
     """The controller refused a request (``E<code>``)."""
@@ -56,7 +59,8 @@ class RobotError(DeviceError):
     def __init__(self, code: int, message: str = "", command: str = ""):
         self.code = code
         super().__init__(f"robot E{code:02d} {message or ERROR_CODES.get(code, 'error')}"
-                         + (f" (for {command!r})" if command else ""))
+                         + (f" (for {command!r})" if command else "")
+                         + (f"; {CLEAR_HINT}" if code in (40, 41) else ""))
 
 
 class RobotFault(DeviceError):
@@ -418,7 +422,7 @@ class SerialRobot(OpenClose):
         st = self.status()
         if self._latched is not None:
             raise RobotFault(f"{self.link.name}: the controller holds a latched '{self._latched}' fault from an "
-                             "earlier stop; check the arm, then run `labctl robot clear`")
+                             f"earlier stop; {CLEAR_HINT}")
         return st
 
     def wait_done(self, segment_id: int, timeout_s: float) -> None:

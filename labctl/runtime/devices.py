@@ -71,7 +71,7 @@ def _sim_device(role: str, lab, baud: int | None = None):
 def robot_limits_problem(cfg, controller: dict) -> str | None:
     """Where the lab's robot driver file ``cfg`` (:class:`labctl.config.RobotConfig`) promises more than the
     controller's own ``LIMITS`` (``controller``, as :meth:`labctl.drivers.robot.SerialRobot.limits` returns them):
-    one line naming the file's key, or None.
+    one line naming the file's key for every mismatch, or None.
 
     The host plans every segment from the driver file (:func:`labctl.planning.ruckig_profile.controller_limits`:
     vmax, amax, wmax, jmax, the stop ramp's a_stop = amax/√3 and angular 4·wmax per second, the box), and the
@@ -93,20 +93,28 @@ def robot_limits_problem(cfg, controller: dict) -> str | None:
               ("a_max_mm_s2", host.a_stop, "a_stop_mm_s2", "a_stop (amax/√3)", "mm/s²", math.sqrt(3.0)),
               ("w_max_deg_s", math.degrees(host.alpha_max), "alpha_stop_deg_s2", "alpha_stop (4·wmax per second)",
                "deg/s²", 0.25)]
+    problems, named = [], set()
     for key, mine, field, name, unit, to_key in checks:
-        if field in controller and above(mine, theirs := float(controller[field])):
-            return (f"{key}: the host would plan with {name} {mine:g} {unit}, above the controller's {theirs:g} "
-                    f"(LIMITS), which refuses such moves; set {key} to at most {theirs * to_key:g}")
+        # the stop ramps follow from amax and wmax: one line per driver-file key
+        if key not in named and field in controller and above(mine, theirs := float(controller[field])):
+            named.add(key)
+            problems.append(f"{key}: the host would plan with {name} {mine:g} {unit}, above the controller's "
+                            f"{theirs:g} (LIMITS), which refuses such moves; set {key} to at most {theirs * to_key:g}")
     lo, hi = controller["workspace_min_mm"], controller["workspace_max_mm"]
     for key, mine, outside in (("workspace_min_mm", cfg.workspace_min_mm, lambda a, b: a < b - 1e-6),
                                ("workspace_max_mm", cfg.workspace_max_mm, lambda a, b: a > b + 1e-6)):
         if any(outside(float(a), float(b)) for a, b in zip(mine, lo if key.endswith("min_mm") else hi)):
-            return (f"{key}: {list(mine)} reaches outside the controller's box {list(lo)} .. {list(hi)} (LIMITS), "
-                    "which refuses moves there")
+            problems.append(f"{key}: {list(mine)} reaches outside the controller's box {list(lo)} .. {list(hi)} "
+                            "(LIMITS), which refuses moves there")
     if not cfg.heartbeat_s < float(controller["watchdog_s"]):
-        return (f"heartbeat_s: {cfg.heartbeat_s:g} s is not shorter than the controller's watchdog "
-                f"{float(controller['watchdog_s']):g} s (LIMITS), which would stop the arm between beats")
-    return None
+        problems.append(f"heartbeat_s: {cfg.heartbeat_s:g} s is not shorter than the controller's watchdog "
+                        f"{float(controller['watchdog_s']):g} s (LIMITS), which would stop the arm between beats")
+    return _joined(problems)
+
+
+def _joined(problems: list[str]) -> str | None:
+    """Every mismatch on one line (the verdict's), each starting with its driver-file key; None if none."""
+    return " | ".join(problems) or None
 
 
 def check_robot_limits(robot, lab) -> dict:
@@ -120,22 +128,23 @@ def check_robot_limits(robot, lab) -> dict:
 def table_settings_problem(cfg, settings: dict[int, float]) -> str | None:
     """Where the lab's table driver file ``cfg`` (:class:`labctl.config.TableConfig`) disagrees with GRBL's own
     settings (``$$``, as :meth:`labctl.drivers.grbl.GrblTable.settings` returns them): one line naming the file's
-    key, or None.
+    key for every mismatch, or None.
 
     labctl writes every program inside the file's ``travel_mm`` and bounds ``--speed`` by its ``max_feed_mm_min``;
     GRBL moves by its own: a travel beyond ``$130``/``$131`` trips soft limits (or reaches the end stops) mid-run,
     a feed above ``$110``/``$111`` is clamped without a word. (``accel_mm_s2`` is not checked: only the simulator
     and the off-by-default ``tracking.stop_corners`` read it.)"""
+    problems = []
     for axis, (rate, travel) in enumerate(((110, 130), (111, 131))):
         name = "XY"[axis]
         if rate in settings and cfg.max_feed_mm_min > settings[rate] * (1 + 1e-9):
-            return (f"max_feed_mm_min: {cfg.max_feed_mm_min:g} mm/min is above GRBL's ${rate} ({name} max rate) "
-                    f"{settings[rate]:g}, which clamps faster feeds; set at most {settings[rate]:g}")
+            problems.append(f"max_feed_mm_min: {cfg.max_feed_mm_min:g} mm/min is above GRBL's ${rate} ({name} max "
+                            f"rate) {settings[rate]:g}, which clamps faster feeds; set at most {settings[rate]:g}")
         if travel in settings and cfg.travel_mm[axis] > settings[travel] * (1 + 1e-9):
-            return (f"travel_mm: {cfg.travel_mm[axis]:g} mm in {name} is beyond GRBL's ${travel} ({name} max travel) "
-                    f"{settings[travel]:g}, where programs planned inside the file's travel would stop or collide; "
-                    f"set at most {settings[travel]:g}")
-    return None
+            problems.append(f"travel_mm: {cfg.travel_mm[axis]:g} mm in {name} is beyond GRBL's ${travel} ({name} max "
+                            f"travel) {settings[travel]:g}, where programs planned inside the file's travel would stop "
+                            f"or collide; set at most {settings[travel]:g}")
+    return _joined(problems)
 
 
 def check_table_settings(table, lab) -> dict[int, float]:

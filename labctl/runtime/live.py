@@ -753,10 +753,10 @@ def _worker_process(role: str, args: WorkerArgs, link_end, conn) -> None:
     sys.exit(code)
 
 
-def _log_quietly(log, name: str, fields: dict) -> None:
-    """``log(name, **fields)``; a record that cannot take it does not stop the simulated lab."""
+def _quietly(write: Callable[[], object]) -> None:
+    """``write()``; a record that cannot take it does not stop the simulated lab."""
     with contextlib.suppress(Exception):
-        log(name, **fields)
+        write()
 
 
 def sim_server_main(lab_root: str, spec: dict, conn, run_dir: str | None = None) -> None:
@@ -804,7 +804,7 @@ def sim_server_main(lab_root: str, spec: dict, conn, run_dir: str | None = None)
             conn.send(("ready", sim.endpoints()))
             sim.warm_up()
             # the record holds changes only, each with the robot's latest stop ramp (labctl.sim.lab.TruthLogger)
-            truth = TruthLogger(sim.sim, lambda line: _log_quietly(log, "sim_truth", line), first_line=False,
+            truth = TruthLogger(sim.sim, lambda line: _quietly(lambda: log("sim_truth", **line)), first_line=False,
                                 ramp_is_change=False)
             orphaned = None
             while True:

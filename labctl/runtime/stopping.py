@@ -173,7 +173,15 @@ def summary(outcomes: list[dict]) -> str:
         parts.append(" and ".join(ok) + " stopped (confirmed)")
     for o in bad:
         parts.append(f"{o['device']} NOT confirmed stopped ({o['error'] or 'no status'})")
+    parts += [latch_note(o["latched"]) for o in outcomes if o.get("latched")]
     return "; ".join(parts)
+
+
+def latch_note(fault: str) -> str:
+    """The phrase for a fault the stop left latched on the robot controller: what to run before the next job."""
+    from ..drivers.robot import CLEAR_HINT
+
+    return f"the robot controller holds its '{fault}' latched (the next run or calibration refuses): {CLEAR_HINT}"
 
 
 # ---- the supervisor's side: the ports, not the drivers --------------------------------------------
@@ -291,6 +299,8 @@ def confirm_stopped(lab, endpoints: Mapping) -> list[dict]:
             continue
         try:
             res = stop_table(dev) if name == "table" else stop_robot(dev)
+            if isinstance(dev, SerialRobot) and lab.robot.kind != "sim":  # a built-in simulated one ends with the run
+                res["latched"] = dev.latched
         finally:
             errs = close_all([dev])
         if errs:
