@@ -90,16 +90,25 @@ def program(name: str, speed_mm_s: float, start=(150.0, 200.0), *, length_mm: fl
     return lines
 
 
-def load_gcode_numbered(path: str | Path) -> list[tuple[int, str]]:
-    """``(file line number, line)`` for every line of a G-code file to stream (1-based numbers;
-    blank lines, ``%`` and comment-only lines dropped), so errors can name the file's line."""
-    p = Path(path)
+def _read_gcode(p: Path) -> bytes:
+    """A G-code file's bytes; UserInputError, one line, when it cannot be read."""
     try:
-        text = p.read_text(encoding="ascii")
+        return p.read_bytes()
     except FileNotFoundError:
         raise UserInputError(f"G-code file not found: {p}") from None
     except IsADirectoryError:
         raise UserInputError(f"{p} is a directory, not a G-code file") from None
+    except OSError as exc:
+        raise UserInputError(f"cannot read G-code file {p}: {exc.strerror or exc}") from None
+
+
+def load_gcode_numbered(path: str | Path, data: bytes | None = None) -> list[tuple[int, str]]:
+    """``(file line number, line)`` for every line of a G-code file to stream (1-based numbers;
+    blank lines, ``%`` and comment-only lines dropped), so errors can name the file's line.
+    ``data``: the file's bytes, when the caller has read them already."""
+    p = Path(path)
+    try:
+        text = (_read_gcode(p) if data is None else data).decode("ascii")
     except UnicodeDecodeError as exc:
         raise UserInputError(f"{p}: not an ASCII G-code file (byte {exc.start})") from None
     out = []
@@ -278,17 +287,10 @@ def load_trajectory(path: str | Path, *, travel_mm, max_feed_mm_min: float) -> l
     binary file, such as an STL model, is refused), GRBL's line length, the table's travel and feed
     limits (:func:`check_program`). UserInputError, one line, otherwise."""
     p = Path(path)
-    try:
-        data = p.read_bytes()
-    except FileNotFoundError:
-        raise UserInputError(f"G-code file not found: {p}") from None
-    except IsADirectoryError:
-        raise UserInputError(f"{p} is a directory, not a G-code file") from None
-    except OSError as exc:
-        raise UserInputError(f"cannot read G-code file {p}: {exc.strerror or exc}") from None
+    data = _read_gcode(p)
     bad = next((i for i, b in enumerate(data) if b == 0 or b > 127 or (b < 32 and b not in b"\t\r\n")), None)
     if bad is not None:
         raise UserInputError(f"{p} is not a G-code text file (binary data at byte {bad})")
-    numbered = load_gcode_numbered(p)
+    numbered = load_gcode_numbered(p, data)
     check_program(numbered, str(p), travel_mm=travel_mm, max_feed_mm_min=max_feed_mm_min)
     return [line for _, line in numbered]
