@@ -38,7 +38,7 @@ def test_init_then_lab_show_json(tmp_path):
     assert r.returncode == 0, r.stderr
     info = json.loads(r.stdout)
     assert info["lab"] == str(dest.resolve())
-    assert set(info["drivers"]) == {"table", "robot", "fixed_camera", "mobile_camera", "host_link"}
+    assert set(info["drivers"]) == {"table", "robot", "fixed_camera", "mobile_camera", "host_link", "arm"}
     assert info["drivers"]["table"]["file"] == str(dest.resolve() / "drivers" / "table.yaml")
     assert isinstance(info["calibration"], list) and isinstance(info["object_library"], list)
     # the global --json flag works as well as the per-command one

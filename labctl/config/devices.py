@@ -67,6 +67,11 @@ class RobotConfig:
     j_max_mm_s3: Positive | None = None  # jerk limit of ruckig segments (dialect 1.2); null: 20·a_max per second
     home_mm: tuple[float, float, float] = (300.0, -450.0, 900.0)
     reconnect_s: NonNegative = 0.0  # after the port drops, retry opening it (with backoff) for this long
+    # the arm's kinematic data file (drivers/arms/<arm>.yaml), relative to this file; null: a task-space box only
+    arm: str | None = None
+    # where that arm's base is bolted in the world (T_w_base, roll-pitch-yaw); null: the arm file's own mount
+    arm_base_xyz_mm: tuple[float, float, float] | None = None
+    arm_base_rpy_deg: tuple[float, float, float] | None = None
 
     def validate(self):
         """Cross-field check (port, workspace box, heartbeat < watchdog, home inside): ``(key, message)`` or None."""

@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
+from .arm import ArmConfig, load_arm
 from .devices import ROLE_TYPES, CameraConfig, HostLinkConfig, RobotConfig, TableConfig
 from .schema import ConfigError, NonNegative, Positive, PositiveInt, Range, defaulted_keys, from_mapping, read_yaml
 
@@ -303,6 +304,8 @@ class Lab:
     mobile_camera: CameraConfig
     host_link: HostLinkConfig
     driver_paths: dict[str, Path]
+    # the robot's arm (its driver file's ``arm:``), loaded and checked; None: a flange in a task-space box
+    arm: ArmConfig | None = None
     # the keys each file left out (its values are the code's defaults): "lab" for lab.yaml, else the role
     defaulted: dict[str, tuple[str, ...]] = field(default_factory=dict)
     # the sample lab used because no workspace was found: read, never written (records go to the user's folder)
@@ -397,4 +400,12 @@ def load_lab(root: Path | str) -> Lab:
         devices[role] = from_mapping(cls, raw, path)
         defaulted[role] = tuple(defaulted_keys(cls, raw))
         paths[role] = path
-    return Lab(root=root, config=config, driver_paths=paths, defaulted=defaulted, **devices)
+    arm = None
+    if devices["robot"].arm is not None:
+        arm_path = (paths["robot"].parent / devices["robot"].arm).resolve()
+        if not arm_path.is_file():
+            raise ConfigError(paths["robot"], "arm", f"arm file not found: {devices['robot'].arm}")
+        arm = load_arm(arm_path, base_xyz_mm=devices["robot"].arm_base_xyz_mm,
+                       base_rpy_deg=devices["robot"].arm_base_rpy_deg)
+        paths["arm"] = arm_path
+    return Lab(root=root, config=config, driver_paths=paths, defaulted=defaulted, arm=arm, **devices)
