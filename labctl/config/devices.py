@@ -72,6 +72,15 @@ class RobotConfig:
     # where that arm's base is bolted in the world (T_w_base, roll-pitch-yaw); null: the arm file's own mount
     arm_base_xyz_mm: tuple[float, float, float] | None = None
     arm_base_rpy_deg: tuple[float, float, float] | None = None
+    # how the reference controller (the simulated arm) keeps its arm out of trouble: margins round the
+    # shoulder (mm of the wrist point from the base-axis cylinder), elbow (|sin q3|) and wrist (|sin q5|)
+    # singularities, the joints' acceleration limits, and the interval its segment check samples at
+    arm_shoulder_margin_mm: NonNegative = 50.0
+    arm_elbow_margin: NonNegative = 0.05
+    arm_wrist_margin: NonNegative = 0.05
+    arm_joint_accel_deg_s2: tuple[Positive, Positive, Positive, Positive, Positive, Positive] = (
+        1500.0, 1500.0, 1500.0, 1500.0, 1500.0, 1500.0)
+    arm_check_dt_s: Positive = 0.004
 
     def validate(self):
         """Cross-field check (port, workspace box, heartbeat < watchdog, home inside): ``(key, message)`` or None."""

@@ -148,11 +148,12 @@ class Program(Protocol):
 @dataclass(frozen=True)
 class RobotStatus:
     """One status of the robot: flange pose in the base frame (4×4, mm), moving, last segment id, controller time
-    (s)."""
+    (s), and (dialect 1.3, a controller with an arm) the arm's six joint angles (rad), else None."""
     T_base_flange: np.ndarray  # 4×4
     moving: bool
     segment_id: int
     t: float = 0.0
+    joints_rad: tuple[float, float, float, float, float, float] | None = None
 
 
 @runtime_checkable

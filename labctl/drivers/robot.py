@@ -21,10 +21,11 @@ Only a request that moves nothing is sent again. If the link does not come back,
 from __future__ import annotations
 
 import logging
+import math
 import re
 from collections import deque
 from collections.abc import Callable
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, cast
 
 import numpy as np
 
@@ -41,7 +42,8 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-HOST_DIALECT = "1.2"  # the highest dialect version this driver speaks (1.2: the ruckig profile)
+HOST_DIALECT = "1.3"  # the highest dialect version this driver speaks (1.2: ruckig; 1.3: the arm's joints)
+ARM_REFUSALS = frozenset({30, 31, 32, 33, 34})  # 1.3: segments the controller's arm cannot fly
 
 # what a supervisor writes straight to the port in an emergency
 STOP_LINE = (format_request(0, "STOP") + "\n").encode("ascii")
@@ -60,7 +62,8 @@ class RobotError(DeviceError):
         self.code = code
         super().__init__(f"robot E{code:02d} {message or ERROR_CODES.get(code, 'error')}"
                          + (f" (for {command!r})" if command else "")
-                         + (f"; {CLEAR_HINT}" if code in (40, 41) else ""))
+                         + (f"; {CLEAR_HINT}" if code in (40, 41) else "")
+                         + ("; the arm cannot fly this segment, nothing moved" if code in ARM_REFUSALS else ""))
 
 
 class RobotFault(DeviceError):
@@ -87,6 +90,7 @@ class SerialRobot(OpenClose):
         self._commanded = False  # a segment or HOME was sent: a @BOOT from now on loses motion
         self.queue = 8
         self.profiles: tuple[str, ...] = ("quintic",)
+        self.arm: str | None = None  # the arm the controller names in a 1.3 HELLO (arm=), else None
         self._last_sent = -1e18
         self.reconnect_s = reconnect_s
         self.link_lost = False  # the link dropped and did not come back within reconnect_s
@@ -118,8 +122,8 @@ class SerialRobot(OpenClose):
             raise
 
     def negotiate(self) -> str:
-        """``HELLO 1.2``, or a plain ``HELLO`` if the controller refuses the argument (a strict 1.0
-        controller); sets ``dialect`` (the session version), ``queue`` and ``profiles``
+        """``HELLO 1.3``, or a plain ``HELLO`` if the controller refuses the argument (a strict 1.0
+        controller); sets ``dialect`` (the session version), ``queue``, ``profiles`` and ``arm``
         (docs/protocols/robot.md §1). Returns the session version."""
         try:
             reply = self.request("HELLO", HOST_DIALECT)
@@ -134,13 +138,20 @@ class SerialRobot(OpenClose):
         mine = tuple(int(x) for x in HOST_DIALECT.split("."))
         self.dialect = ".".join(map(str, min(theirs, mine)))
         self.profiles = ("quintic",)
+        self.arm = None
         for f in fields[2:]:
             key, _, value = f.partition("=")
             if key == "queue" and value.isdigit():
                 self.queue = int(value)
             elif key == "profiles" and value:
                 self.profiles = tuple(p.lower() for p in value.split(","))
+            elif key == "arm" and value and self.dialect_at_least("1.3"):
+                self.arm = value
         return self.dialect
+
+    def dialect_at_least(self, version: str) -> bool:
+        """The session speaks ``version`` (``major.minor``) or later."""
+        return tuple(int(x) for x in self.dialect.split(".")) >= tuple(int(x) for x in version.split("."))
 
     def close(self) -> None:
         """Close the port (heartbeats stop with it: the controller's watchdog stops a moving robot)."""
@@ -398,17 +409,23 @@ class SerialRobot(OpenClose):
 
     def status(self) -> RobotStatus:
         """Ask for a ``STATUS`` and parse it: flange pose in the base frame (mm), moving, segment id, controller time
-        (s); a new fault raises DeviceError."""
+        (s), in a 1.3 session with an arm its six joints (degrees on the wire, radians here)."""
         reply = self.request("STATUS")
         f = reply.floats(10)
         if f is None:
             raise DeviceError(f"{self.link.name}: malformed STATUS reply {reply.raw!r}")
+        joints = None
+        if self.arm is not None:  # 1.3: fields 12–17
+            q = RobotReply(reply.kind, reply.raw, fields=reply.fields[11:]).floats()
+            if q is None or len(q) != 6:
+                raise DeviceError(f"{self.link.name}: malformed STATUS reply (no six joint angles) {reply.raw!r}")
+            joints = cast("tuple[float, float, float, float, float, float]", tuple(math.radians(x) for x in q))
         fault = reply.fields[10] if len(reply.fields) > 10 else "none"
         if fault != "none" and fault not in self.faults:
             self.faults.append(fault)
         self._latched = None if fault == "none" else fault
         T = make_T(rotvec_to_matrix(np.array(f[3:6])), f[0:3])
-        return RobotStatus(T_base_flange=T, moving=bool(int(f[6])), segment_id=int(f[7]), t=f[9])
+        return RobotStatus(T_base_flange=T, moving=bool(int(f[6])), segment_id=int(f[7]), t=f[9], joints_rad=joints)
 
     @property
     def latched(self) -> str | None:

@@ -23,6 +23,7 @@ devices). :class:`TruthLogger` samples the emulators' motion — the ground trut
 from __future__ import annotations
 
 import contextlib
+import functools
 import os
 import threading
 import time
@@ -135,7 +136,7 @@ class SimLab:
                                         accel_mm_s2=t.accel_mm_s2, start_mm=(start[0], start[1], 0.0))
             if "robot" in devices:
                 pose = home_flange_pose(lab) if robot_start == "camera" else None
-                sim.robot_emu = RobotEmulator(clock.now, lab.robot, start_pose=pose)
+                sim.robot_emu = RobotEmulator(clock.now, lab.robot, start_pose=pose, arm=arm_servo(lab))
             sim._connect(ports, baud)
             if scene is not None:
                 sim._make_world(scene)
@@ -381,3 +382,17 @@ class TruthFile:
                                "max_gap_s": round(logger.max_gap_s, 4), "gaps_over_20ms": logger.gaps_over_20ms})
         finally:
             os.close(self._fd)
+
+
+@functools.lru_cache(maxsize=8)
+def _arm_servo(arm, robot):
+    from ..planning.arm import ArmModel
+    from .emulators.arm_servo import ArmPolicy, ArmServo
+
+    return ArmServo(ArmModel.from_config(arm), ArmPolicy.from_config(robot))
+
+
+def arm_servo(lab):
+    """The arm behind the simulated robot controller when the robot's driver file names one (``lab.arm``),
+    else None: built once per arm and policy (the sweep of a trials run builds many labs)."""
+    return None if lab.arm is None else _arm_servo(lab.arm, lab.robot)

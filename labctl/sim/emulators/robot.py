@@ -1,4 +1,4 @@
-"""The reference robot controller of docs/protocols/robot.md (dialect 1.2), on an injectable clock.
+"""The reference robot controller of docs/protocols/robot.md (dialect 1.2; 1.3 with an arm), on an injectable clock.
 
 Task-space segments are quintic polynomials (the paper's time-optimal task-space quintics,
 §4.2): position p(τ) per axis and orientation R(τ) = R0·exp([φ(τ)]×) with φ a quintic vector
@@ -11,7 +11,11 @@ every instant, peak speed and acceleration, and the peak *true* angular speed.
 Dialect 1.2 adds the ``ruckig`` profile: the time-optimal jerk-limited trajectory from the
 current state (p, v, a; R, ω) to the target, computed by the controller itself with ruckig
 (:mod:`labctl.planning.ruckig_profile`) and checked exactly by the same rules on each of its
-cubic intervals. STOP, the watchdog and the end of a segment that ends moving brake with that
+cubic intervals. Dialect 1.3: when the robot's driver file names an arm
+(:class:`labctl.sim.emulators.arm_servo.ArmServo`), the controller keeps its joint state, follows every
+accepted segment through inverse kinematics from its current configuration (an arm's Cartesian servo
+mode), refuses before moving a segment the arm cannot fly (E30–E34) and reports the joints in STATUS.
+STOP, the watchdog and the end of a segment that ends moving brake with that
 ramp, so the arm never leaves the box. ``STOP`` latches ``stopped`` and the watchdog
 ``watchdog`` until ``CLEAR``.
 Units: mm, s, rad.
@@ -49,15 +53,18 @@ from ...planning.quintic import _derivative, _norm_max, _poly_range
 from ...planning.rotation import right_jacobian
 from ...planning.ruckig_profile import JERK_PER_ACCEL, JerkLimits, RuckigPlan, check_ruckig, plan_ruckig
 from ...planning.safety import stop_envelope_range
+from .arm_servo import ArmServo, poses, sample_times
 
 if TYPE_CHECKING:
     from ...config import RobotConfig
 
 NAME = "labctl-robot"
 DIALECT = "1.2"
+ARM_DIALECT = "1.3"  # a controller with an arm: joints in STATUS, the arm's refusals E30–E34
 PROFILES = ("quintic", "ruckig")
 LIMIT_KEYS = ("vmax", "amax", "jmax", "wmax")  # a ruckig segment's own limits (1.2), at most the controller's
 PROFILES_BEFORE = {"1.0": ("quintic",), "1.1": ("quintic",)}  # what a session of an older version lists
+JOINT_DECIMALS = 4  # STATUS joints (1.3), degrees
 IDENT = f"{NAME} {DIALECT}"
 QUEUE_SIZE = 8
 MAX_DURATION_S = 60.0
@@ -139,6 +146,13 @@ class Segment:
     rot: np.ndarray  # 6×3 coefficients of φ in τ
     done_reported: bool = False
     commanded: bool = True  # a host's motion (SEG, SEGNOW, HOME), not a stop ramp
+    joints: tuple[np.ndarray, np.ndarray] | None = None  # the arm's (times, N×6 configurations) along it
+
+    def sampled(self, dt: float) -> tuple[np.ndarray, np.ndarray]:
+        """(controller times, N×4×4 poses) every ≤ ``dt`` seconds over the segment, ends included."""
+        ts = sample_times(self.t1 - self.t0, dt)
+        powers = ts[:, None] ** _K[None, :]
+        return self.t0 + ts, poses(powers @ self.pos, self.R0, powers @ self.rot)
 
     def position(self, t: float) -> np.ndarray:
         """Flange position (mm) at time t, clamped to the segment."""
@@ -166,6 +180,13 @@ class RuckigSegment:
     plan: RuckigPlan
     done_reported: bool = False
     commanded: bool = True
+    joints: tuple[np.ndarray, np.ndarray] | None = None  # the arm's (times, N×6 configurations) along it
+
+    def sampled(self, dt: float) -> tuple[np.ndarray, np.ndarray]:
+        """(controller times, N×4×4 poses) every ≤ ``dt`` seconds over the segment, ends included."""
+        ts = sample_times(self.t1 - self.t0, dt)
+        return self.t0 + ts, poses(_piecewise_values(self.plan.position, ts), self.plan.R0,
+                                   _piecewise_values(self.plan.rotation, ts))
 
     @property
     def R0(self) -> np.ndarray:
@@ -196,6 +217,12 @@ class StopRamp:
     seg_id: int = -1
     done_reported: bool = True
     commanded: bool = False
+    joints: tuple[np.ndarray, np.ndarray] | None = None
+
+    def sampled(self, dt: float) -> tuple[np.ndarray, np.ndarray]:
+        """(controller times, N×4×4 poses) every ≤ ``dt`` seconds over the ramp, ends included."""
+        ts = self.t0 + sample_times(self.t1 - self.t0, dt)
+        return ts, np.array([make_T(st[3], st[0]) for st in (self.state(t) for t in ts)])
 
     def __post_init__(self):
         self.t_axis = np.abs(self.v) / self.a_stop
@@ -234,7 +261,7 @@ class RobotEmulator:
     dialect = DIALECT
 
     def __init__(self, clock: Callable[[], float], limits: RobotConfig | None = None, *, queue_size: int = QUEUE_SIZE,
-                 start_pose: np.ndarray | None = None):
+                 start_pose: np.ndarray | None = None, arm: ArmServo | None = None):
         from ...config import RobotConfig
 
         cfg = limits if limits is not None else RobotConfig()
@@ -255,6 +282,12 @@ class RobotEmulator:
         T0 = self.home_T if start_pose is None else np.asarray(start_pose, float)
         self._rest_p = T0[:3, 3].copy()
         self._rest_R = T0[:3, :3].copy()
+        self.arm = arm
+        if arm is not None:
+            self.dialect = ARM_DIALECT
+            self._rest_q = arm.initial(T0)
+        self.arm_check_s = 0.0  # time spent in the arm's segment checks (s), and how many
+        self.arm_checks = 0
         self.segments: list = []  # scheduled and recent segments and ramps, in time order
         self.history_s = 600.0
         self.last_request_t = self.now
@@ -271,6 +304,8 @@ class RobotEmulator:
         """Controller reset: the brakes stop the arm where it is; queue, fault and line are lost."""
         self.advance(max(self.now, self.clock()))
         p, _, _, R, _ = self.state_at(self.now)
+        if self.arm is not None:
+            self._rest_q = self.joints_at(self.now)
         self.segments = []
         self._rest_p, self._rest_R = p, R
         self.fault = None
@@ -403,6 +438,39 @@ class RobotEmulator:
         p, _, _, R, _ = self.state_at(t)
         return make_T(R, p)
 
+    def joints_at(self, t: float) -> np.ndarray:
+        """The arm's configuration (6 joints, rad) at controller time ``t``: the segment's sampled joints
+        nearest ``t``, solved exactly at its pose there in the same branch (ValueError without an arm)."""
+        if self.arm is None:
+            raise ValueError("this controller has no arm")
+        seg = self._segment_at(t)
+        if seg is None or seg.joints is None:
+            first = self.segments[0] if self.segments else None
+            if seg is None and first is not None and first.joints is not None:
+                return first.joints[1][0].copy()
+            return self._rest_q.copy()
+        ts, qs = seg.joints
+        tc = min(max(t, seg.t0), seg.t1)
+        q_near = np.array([np.interp(tc, ts, qs[:, j]) for j in range(6)])
+        p, _, _, R, _ = seg.state(tc)
+        return self.arm.joints(make_T(R, p), q_near)
+
+    def _arm_check(self, seg, t0: float) -> int:
+        """0 if the arm can fly ``seg`` from its configuration at ``t0`` (its joints are then kept on the
+        segment), else its 1.3 refusal (:meth:`labctl.sim.emulators.arm_servo.ArmServo.check`)."""
+        if self.arm is None:
+            return 0
+        import time
+
+        start = time.perf_counter()
+        ts, Ts = seg.sampled(self.arm.policy.check_dt_s)
+        code, qs = self.arm.check(ts, Ts, self.joints_at(t0))
+        self.arm_check_s += time.perf_counter() - start
+        self.arm_checks += 1
+        if not code:
+            seg.joints = (ts, qs)
+        return code
+
     @property
     def segment_id(self) -> int:
         """Id of the running segment, else of the last one started (0 before any, and for HOME)."""
@@ -492,9 +560,14 @@ class RobotEmulator:
     def _stop_at(self, t: float) -> None:
         """Brake from the state at t (the documented stop ramp); the queue is discarded."""
         p, v, _, R, w = self.state_at(t)
+        q0 = self.joints_at(t) if self.arm is not None else None
         self._cut_at(t)
         if np.linalg.norm(v) > 0.0 or np.linalg.norm(w) > 0.0:
-            self.segments.append(self._make_ramp(t, p, v, R, w))
+            ramp = self._make_ramp(t, p, v, R, w)
+            if self.arm is not None:  # a stop is never refused: the arm follows the ramp as best it can
+                ts, Ts = ramp.sampled(self.arm.policy.check_dt_s)
+                ramp.joints = (ts, self.arm.check(ts, Ts, q0)[1])
+            self.segments.append(ramp)
 
     # --- commands ---------------------------------------------------------------------------
     def _reply(self, seq: int, fields: str = "") -> None:
@@ -537,8 +610,17 @@ class RobotEmulator:
         host = tuple(int(x) for x in req.args[0].split(".")) if req.args else (1, 0)
         mine = tuple(int(x) for x in self.dialect.split("."))
         self.session = ".".join(str(x) for x in min(host, mine))
-        self._reply(req.seq, f"{self.name} {self.session} queue={self.queue_size} "
-                             f"profiles={','.join(self._profiles())}")
+        fields = f"{self.name} {self.session} queue={self.queue_size}"
+        if self.session != "1.0":  # the 1.0 reply ends at queue= (docs/protocols/robot.md §1)
+            fields += f" profiles={','.join(self._profiles())}"
+        if self._arm_session:
+            fields += f" arm={self.arm.model.name}"  # type: ignore[union-attr]
+        self._reply(req.seq, fields)
+
+    @property
+    def _arm_session(self) -> bool:
+        """This session speaks 1.3 (the controller has an arm and the host speaks 1.3 or later)."""
+        return self.arm is not None and tuple(int(x) for x in self.session.split(".")) >= (1, 3)
 
     def _profiles(self) -> tuple[str, ...]:
         """The profiles of this session: ``ruckig`` from dialect 1.2 on."""
@@ -567,6 +649,8 @@ class RobotEmulator:
         home = [*self.home_T[:3, 3], *canonical_rotvec(matrix_to_rotvec(self.home_T[:3, :3]))]
         vals = [*self.box_min, *self.box_max, self.v_max, self.a_max, math.degrees(self.w_max), self.watchdog_s,
                 self.a_stop, math.degrees(self.alpha_stop), *home]
+        if self.session == "1.0":  # the 1.0 text's ten fields
+            vals = vals[:10]
         if self.session not in PROFILES_BEFORE:  # 1.2: field 19, the jerk limit of the ruckig profile
             vals.append(self.j_max)
         self._reply(req.seq, " ".join(fmt_num(v) for v in vals))
@@ -579,8 +663,11 @@ class RobotEmulator:
         moving = 1 if self._moving_at(self.now) else 0
         queued = sum(1 for s in self.segments if s.t0 > self.now and s.commanded)
         fault = self.fault or "none"
+        joints = ""
+        if self._arm_session:  # 1.3: the six joint angles, degrees
+            joints = " " + " ".join(fmt_fixed(math.degrees(q), JOINT_DECIMALS) for q in self.joints_at(self.now))
         self._reply(req.seq, " ".join(fmt_fixed(v) for v in (*p, *rv))
-                    + f" {moving} {self.segment_id} {queued} {fmt_fixed(self.now)} {fault}")
+                    + f" {moving} {self.segment_id} {queued} {fmt_fixed(self.now)} {fault}{joints}")
 
     def _fault_code(self) -> int:
         return 40 if self.fault == "watchdog" else 41
@@ -601,8 +688,8 @@ class RobotEmulator:
                 1.875 * theta / (0.5 * self.w_max))
         seg = self._plan(0, self.home_T[:3, 3], self.home_T[:3, :3], T, np.zeros(3), np.zeros(3), t0,
                          (p0, np.zeros(3), np.zeros(3), R0, np.zeros(3)))
-        code = self._check(seg, p0)
-        if code:  # cannot happen (a straight rest-to-rest move into the box); kept as the last gate
+        code = self._check(seg, p0) or self._arm_check(seg, t0)
+        if code:  # box: cannot happen (a straight rest-to-rest move into the box); the arm: it can
             self._error(req.seq, code)
             return
         self.segments.append(seg)
@@ -700,6 +787,8 @@ class RobotEmulator:
         else:
             seg = self._plan(seg_id, p1, R1, T, v1, w1, t0, start)
             code = self._check(seg, start[0])
+        if not code:
+            code = self._arm_check(seg, t0)
         if code:
             self._error(seq, code)
             return
@@ -714,6 +803,15 @@ class RobotEmulator:
         last = max(self.segments, key=lambda s: s.t1)
         p, v, a, R, w = last.state(last.t1)
         return p, v, (a if isinstance(last, RuckigSegment) else np.zeros(3)), R, w
+
+
+def _piecewise_values(pw, ts: np.ndarray) -> np.ndarray:
+    """Values (N×D) of a :class:`labctl.planning.ruckig_profile.Piecewise` at the times ``ts`` (s, clamped)."""
+    ts = np.clip(ts, 0.0, pw.duration)
+    k = np.clip(np.searchsorted(pw.breaks, ts, side="right") - 1, 0, len(pw.coeffs) - 1)
+    h = (ts - pw.breaks[k])[:, None]
+    c = pw.coeffs[k]
+    return c[:, 0] + h * (c[:, 1] + h * (c[:, 2] + h * c[:, 3]))
 
 
 def _rpy(rx: float, ry: float, rz: float) -> np.ndarray:
