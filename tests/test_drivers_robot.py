@@ -101,7 +101,8 @@ def test_driver_negotiates_down_to_a_1_0_controller(cls):
         robot.stop()  # 1.0: no latch, the next segment just runs
         robot.segment(make_T(rot_x(math.pi), [400.0, -400.0, 850.0]), 1.0, 2)
         robot.wait_done(2, timeout_s=5)
-        assert "a_stop_mm_s2" in robot.limits()  # the reference underneath still sends 18 fields
+        lim = robot.limits()  # a 1.0 session gets the 1.0 text's ten fields (docs/protocols/robot.md §9)
+        assert "a_stop_mm_s2" not in lim and lim["watchdog_s"] == 2.0
 
 
 def test_driver_speaks_1_2_stop_latches_until_clear():

@@ -32,12 +32,21 @@ def robot_group() -> None:
               help="Run only rules matching GLOB (repeatable), e.g. 'watchdog.*'.")
 @click.option("--timeout", "timeout_s", type=click.FloatRange(min=0.05), default=2.0, show_default=True,
               help="Seconds to wait for each reply.")
+@click.option("--arm", "arm_file", type=click.Path(dir_okay=False, exists=True, path_type=Path), default=None,
+              help="The arm's kinematics file (drivers/arms/*.yaml) for the 1.3 arm rules (default: the lab's "
+                   "robot.yaml arm, at its mount).")
 @json_option
-def conformance_cmd(port: str, baud: int, no_motion: bool, only: tuple[str, ...], timeout_s: float) -> int:
+def conformance_cmd(port: str, baud: int, no_motion: bool, only: tuple[str, ...], timeout_s: float,
+                    arm_file: Path | None) -> int:
     """Check a robot controller against docs/protocols/robot.md; PASS/FAIL per rule."""
-    from ..conformance.robot import CannotTalk, run_suite
+    import dataclasses
+
+    from ..config.arm import load_arm
+    from ..conformance.robot import ArmKinematics, CannotTalk, run_suite
 
     ctx = get_ctx()
+    arm_cfg = load_arm(arm_file) if arm_file is not None else ctx.lab().arm
+    arm = ArmKinematics.from_mapping(dataclasses.asdict(arm_cfg)) if arm_cfg is not None else None
 
     def show(res) -> None:
         if not ctx.json:
@@ -45,7 +54,8 @@ def conformance_cmd(port: str, baud: int, no_motion: bool, only: tuple[str, ...]
             sys.stdout.flush()
 
     try:
-        results = run_suite(port, baud, no_motion=no_motion, only=list(only), log=show, timeout_s=timeout_s)
+        results = run_suite(port, baud, no_motion=no_motion, only=list(only), log=show, timeout_s=timeout_s,
+                            arm=arm)
     except CannotTalk as exc:
         click.echo(f"labctl: error: robot controller on {port}: {exc}", err=True)
         return 3

@@ -1,9 +1,14 @@
-"""The robot dialect's conformance suite (docs/protocols/robot.md, dialect 1.2), run over a serial port.
+"""The robot dialect's conformance suite (docs/protocols/robot.md, dialect 1.3), run over a serial port.
 
 Written from the document, not from the reference controller: its own framing, its own checksum,
 its own quintic (a 6×6 solve) and its own stop-ramp arithmetic (dense samples), so it can judge
 the reference as well as a lab's bridge. Each rule is named as in the document; a rule yields
 PASS, FAIL (with what was seen) or SKIP (with why it could not be run here).
+
+The arm rules (1.3) judge a controller that names its arm (``arm=`` in HELLO) against that arm's
+published kinematics, given to the suite as plain numbers (:class:`ArmKinematics`, standard DH written out
+here by hand): the joints STATUS reports against the forward kinematics of the pose it reports, and one
+segment per refusal the arm must make (E30–E34), built from the joints it reports.
 
 Motion rules command real motion, near the home pose, at most a few hundred millimetres; some send
 segments a conforming controller must refuse (a broken one would run them), so keep the arm's
@@ -213,6 +218,80 @@ class Limits:
     j_max: float | None = None  # mm/s³, dialect 1.2 (the ruckig profile)
 
 
+def _rotvec_matrix(rv) -> np.ndarray:
+    """Rodrigues' formula: rotation vector (rad) to matrix."""
+    rv = np.asarray(rv, float)
+    th = float(np.linalg.norm(rv))
+    if th < 1e-15:
+        return np.eye(3)
+    k = rv / th
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + math.sin(th) * K + (1 - math.cos(th)) * (K @ K)
+
+
+def _matrix_rotvec(R: np.ndarray) -> np.ndarray:
+    """Rotation matrix to rotation vector (rad), angle in [0, π] (the eigenvector near π)."""
+    c = max(-1.0, min(1.0, (float(np.trace(R)) - 1) / 2))
+    th = math.acos(c)
+    if th < 1e-9:
+        return np.zeros(3)
+    if th > math.pi - 1e-6:
+        w, v = np.linalg.eigh((R + R.T) / 2)
+        axis = v[:, int(np.argmax(w))]
+        return axis * th
+    axis = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / (2 * math.sin(th))
+    return axis * th
+
+
+def _rpy_matrix(rpy_rad) -> np.ndarray:
+    """Rz(yaw)·Ry(pitch)·Rx(roll)."""
+    r, p, y = rpy_rad
+    cx, sx, cy, sy, cz, sz = math.cos(r), math.sin(r), math.cos(p), math.sin(p), math.cos(y), math.sin(y)
+    return np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]]) @ np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]]) \
+        @ np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
+
+
+@dataclass
+class ArmKinematics:
+    """An arm's published kinematics as the suite uses them: standard DH (``d``, ``a`` mm; ``alpha``,
+    ``offset`` rad), joint limits (rad), the base in the world ``T_w_base`` and labctl's flange in the arm's
+    flange ``T_flange_tool`` (4×4, mm). The controller's poses are ``T_w_F`` = T_w_base·DH(q)·T_flange_tool."""
+
+    name: str
+    d: np.ndarray
+    a: np.ndarray
+    alpha: np.ndarray
+    offset: np.ndarray
+    q_min: np.ndarray
+    q_max: np.ndarray
+    T_w_base: np.ndarray
+    T_flange_tool: np.ndarray
+
+    @classmethod
+    def from_mapping(cls, m: dict) -> ArmKinematics:
+        """From an arm file's keys (``drivers/arms/*.yaml``: mm and degrees)."""
+        r = lambda key, default=(0.0,) * 6: np.radians(np.asarray(m.get(key, default), float))  # noqa: E731
+
+        def pose(xyz, rpy) -> np.ndarray:
+            T = np.eye(4)
+            T[:3, :3] = _rpy_matrix(np.radians(np.asarray(m.get(rpy, (0.0, 0.0, 0.0)), float)))
+            T[:3, 3] = np.asarray(m.get(xyz, (0.0, 0.0, 0.0)), float)
+            return T
+
+        return cls(str(m["name"]), np.asarray(m["dh_d_mm"], float), np.asarray(m["dh_a_mm"], float),
+                   r("dh_alpha_deg"), r("dh_offset_deg"), r("joint_min_deg"), r("joint_max_deg"),
+                   pose("base_xyz_mm", "base_rpy_deg"), pose("tool_xyz_mm", "tool_rpy_deg"))
+
+    def fk(self, q) -> np.ndarray:
+        """``T_w_F`` at joints ``q`` (rad): the product of Rz(θ+offset)·Tz(d)·Tx(a)·Rx(α)."""
+        T = self.T_w_base.copy()
+        for th, d, a, al in zip(np.asarray(q, float) + self.offset, self.d, self.a, self.alpha):
+            ct, st, ca, sa = math.cos(th), math.sin(th), math.cos(al), math.sin(al)
+            T = T @ np.array([[ct, -st * ca, st * sa, a * ct], [st, ct * ca, -ct * sa, a * st], [0, sa, ca, d],
+                              [0, 0, 0, 1.0]])
+        return T @ self.T_flange_tool
+
+
 @dataclass
 class Suite:
     """The suite's state: client, rule filter, results, and what HELLO and LIMITS reported."""
@@ -227,6 +306,8 @@ class Suite:
     profiles: tuple[str, ...] = ("quintic",)
     limits: Limits | None = None
     next_id: int = 100
+    arm: ArmKinematics | None = None  # the arm's published kinematics (the 1.3 arm rules need them)
+    arm_name: str | None = None  # what HELLO names (arm=, 1.3)
 
     @property
     def lim(self) -> Limits:
@@ -259,8 +340,8 @@ class Suite:
 
     @property
     def ruckig(self) -> bool:
-        """True for a dialect 1.2 session whose controller lists the ``ruckig`` profile."""
-        return self.version == "1.2" and "ruckig" in self.profiles
+        """True for a dialect 1.2 (or later) session whose controller lists the ``ruckig`` profile."""
+        return self.version in ("1.2", "1.3") and "ruckig" in self.profiles
 
     def status(self) -> dict:
         """STATUS parsed: ``p`` (mm), rotation vector ``rv`` (rad), moving, segment id, queued, ``t`` (s), fault."""
@@ -268,8 +349,11 @@ class Suite:
         if code != "ok" or len(f) < 11:
             raise AssertionError(f"STATUS answered {code} {' '.join(f)}")
         nums = [float(x) for x in f[:6]]
-        return {"p": np.array(nums[:3]), "rv": np.array(nums[3:6]), "moving": f[6] == "1", "seg_id": int(f[7]),
-                "queued": int(f[8]), "t": float(f[9]), "fault": f[10]}
+        out = {"p": np.array(nums[:3]), "rv": np.array(nums[3:6]), "moving": f[6] == "1", "seg_id": int(f[7]),
+               "queued": int(f[8]), "t": float(f[9]), "fault": f[10]}
+        if self.arm_name is not None and len(f) >= 17:  # 1.3: the six joints, degrees
+            out["q"] = np.radians([float(x) for x in f[11:17]])
+        return out
 
     def seg(self, p, rv, T, v=None, cmd="SEG", seg_id=None) -> tuple[str, list[str], int]:
         """SEG (or ``cmd``) to pose (``p`` mm, ``rv`` rad) in ``T`` s, end velocity ``v`` (mm/s): (code, fields, id)."""
@@ -405,12 +489,17 @@ class Suite:
             ("ruckig.arrival", self.r_ruckig_arrival),
             ("ruckig.splice", self.r_ruckig_splice),
             ("ruckig.limits", self.r_ruckig_limits),
+            ("arm.joints", self.r_arm_joints),
+            ("arm.reach", self.r_arm_reach),
+            ("arm.joint_limit", self.r_arm_joint_limit),
+            ("arm.singularity", self.r_arm_singularity),
+            ("arm.joint_rate", self.r_arm_joint_rate),
         ]
 
     def hello(self) -> None:
         """Open the session (HELLO 1.2, else HELLO), read queue size, profiles and LIMITS; CannotTalk if silent."""
         self.client.drain(0.05)
-        line = self.client.request("HELLO 1.2")
+        line = self.client.request("HELLO 1.3")
         if line is None:
             line = self.client.request("HELLO")
         if line is None:
@@ -421,11 +510,13 @@ class Suite:
         self.hello_fields = (code, f)
         if code == "ok" and len(f) >= 2 and VERSION_RE.match(f[1]):
             got = tuple(map(int, f[1].split(".")))
-            self.version = "1.2" if got >= (1, 2) else "1.1" if got >= (1, 1) else "1.0"
+            self.version = "1.3" if got >= (1, 3) else "1.2" if got >= (1, 2) else "1.1" if got >= (1, 1) else "1.0"
         for item in f[2:]:
             key, _, value = item.partition("=")
             if key == "queue" and value.isdigit():
                 self.queue = int(value)
+            elif key == "arm" and value and self.version == "1.3":
+                self.arm_name = value
             elif key == "profiles":
                 self.profiles = tuple(value.lower().split(","))
         code, lf = self.req("LIMITS")
@@ -443,29 +534,35 @@ class Suite:
 
     # --- framing and errors (no motion) -----------------------------------------------------
     def r_hello(self) -> None:
-        """hello.reply: HELLO answers ``ok <name> <version>``; a 1.1 or 1.2 session lists queue=N and the quintic
-        profile (``ruckig`` only in a 1.2 session)."""
+        """hello.reply: HELLO answers ``ok <name> <version>``; a 1.1, 1.2 or 1.3 session lists queue=N and the
+        quintic profile (``ruckig`` from 1.2 on), ``arm=`` only in a 1.3 session; a 1.0 reply ends at queue=."""
         code, f = self.hello_fields
         problems = []
         if code != "ok" or len(f) < 2 or not VERSION_RE.match(f[1]):
             problems.append(f"reply {code} {' '.join(f)!r} is not 'ok <name> <version> …'")
         if self.v11:
-            if f[1] not in ("1.1", "1.2"):
-                problems.append(f"session version {f[1]} after HELLO 1.2")
-            if "ruckig" in self.profiles and f[1] != "1.2":
+            if f[1] not in ("1.1", "1.2", "1.3"):
+                problems.append(f"session version {f[1]} after HELLO 1.3")
+            if "ruckig" in self.profiles and f[1] not in ("1.2", "1.3"):
                 problems.append(f"ruckig listed in a {f[1]} session")
+            if any(x.startswith("arm=") for x in f) and f[1] != "1.3":
+                problems.append(f"arm= listed in a {f[1]} session")
+        elif code == "ok" and any(x.startswith("profiles=") for x in f):
+            problems.append("profiles= in a 1.0 reply (the 1.0 text ends at queue=)")
             if not any(x.startswith("queue=") for x in f) or "quintic" not in self.profiles:
                 problems.append("no queue=N or profiles=… listing quintic")
         self.record("hello.reply", not problems, "; ".join(problems) or f"{' '.join(f)}")
 
     def r_status_format(self) -> None:
-        """status.format: STATUS has 11 fields of the documented types."""
+        """status.format: STATUS has 11 fields of the documented types (17 in a 1.3 session with an arm:
+        the six joints, degrees)."""
         code, f = self.req("STATUS")
-        ok = code == "ok" and len(f) == 11 and f[6] in ("0", "1") and f[7].isdigit() and f[8].isdigit() \
+        want = 17 if self.arm_name is not None else 11
+        ok = code == "ok" and len(f) == want and f[6] in ("0", "1") and f[7].isdigit() and f[8].isdigit() \
             and f[10] in ("none", "stopped", "watchdog")
         if ok:
             try:
-                [float(x) for x in f[:6] + f[9:10]]
+                [float(x) for x in f[:6] + f[9:10] + f[11:]]
             except ValueError:
                 ok = False
         self.record("status.format", ok, " ".join(f))
@@ -1024,12 +1121,195 @@ class Suite:
                     f"jmax 2·LIMITS → {c16} (want E16); ends 5 mm from the wall at {abs(v[ax]):.0f} mm/s outwards "
                     f"(needs {need:.0f} mm) → {c10} (want E10)")
 
+    # --- the arm (1.3) ----------------------------------------------------------------------
+    def _skip_arm(self, rule: str) -> bool:
+        """Record SKIP (no arm in this session, or no kinematics to judge it by) or FAIL (the kinematics are
+        another arm's) and return True; False when the arm rule can run."""
+        if self.arm_name is None:
+            self.record(rule, None, "not a 1.3 session with an arm (no arm= in HELLO)")
+            return True
+        if self.arm is None:
+            self.record(rule, None, f"the controller names arm={self.arm_name}; give its kinematics (--arm FILE)")
+            return True
+        if self.arm.name != self.arm_name:
+            self.record(rule, False, f"the controller names arm={self.arm_name}, the kinematics are {self.arm.name}'s")
+            return True
+        return False
+
+    def _arm_rest(self) -> tuple[dict, np.ndarray]:
+        """The status at rest and the joints it reports (rad)."""
+        st = self.wait_rest()
+        if "q" not in st:
+            raise AssertionError("STATUS has no joints in a 1.3 session with an arm")
+        return st, st["q"]
+
+    def _arm_seg(self, T: np.ndarray, duration: float) -> tuple[str, list[str], int]:
+        """SEG to the pose ``T`` (4×4 ``T_w_F``) in ``duration`` s."""
+        return self.seg(T[:3, 3], _matrix_rotvec(T[:3, :3]), duration)
+
+    def _move_time(self, T0: np.ndarray, T1: np.ndarray, least: float = 1.0) -> float:
+        """A rest-to-rest quintic's duration at half of LIMITS' speeds (1.875·distance / (limit/2))."""
+        d = float(np.linalg.norm(T1[:3, 3] - T0[:3, 3]))
+        th = float(np.linalg.norm(_matrix_rotvec(T0[:3, :3].T @ T1[:3, :3])))
+        return max(least, 1.875 * d / (0.5 * self.lim.v_max), 1.875 * th / (0.5 * self.lim.w_max))
+
+    def _arm_fly(self, T: np.ndarray, duration: float) -> str:
+        """Fly to ``T`` and wait for rest; the reply code."""
+        code, f, sid = self._arm_seg(T, duration)
+        if code == "ok":
+            self.wait_done(sid, float(f[1]) - float(f[0]) + 2.0)
+            self.wait_rest()
+        return code
+
+    def _status_pose(self, st: dict) -> np.ndarray:
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = _rotvec_matrix(st["rv"]), st["p"]
+        return T
+
+    def _joint_errors(self, st: dict) -> tuple[float, float]:
+        """(mm, rad) between the pose STATUS reports and the forward kinematics of the joints it reports."""
+        arm = cast(ArmKinematics, self.arm)
+        T_fk, T = arm.fk(st["q"]), self._status_pose(st)
+        return (float(np.linalg.norm(T_fk[:3, 3] - T[:3, 3])),
+                float(np.linalg.norm(_matrix_rotvec(T_fk[:3, :3].T @ T[:3, :3]))))
+
+    def r_arm_joints(self) -> None:
+        """arm.joints (1.3): the joints STATUS reports put the flange, by the arm's forward kinematics, where
+        the pose STATUS reports says — at rest and mid-move — within 0.1 mm and 2e-4 rad (the pose's four
+        decimals)."""
+        if self._skip_arm("arm.joints"):
+            return
+        st, _ = self._arm_rest()
+        errs = [self._joint_errors(st)]
+        T0 = self._status_pose(st)
+        T1 = T0.copy()
+        T1[2, 3] += 40.0 if T0[2, 3] + 40.0 < self.lim.box_max[2] else -40.0
+        code, f, sid = self._arm_seg(T1, 1.5)
+        if code == "ok":
+            self.wait(0.7)
+            errs.append(self._joint_errors(self.status()))
+            self.wait_done(sid, 3.0)
+            errs.append(self._joint_errors(self.wait_rest()))
+        mm, rad = max(e[0] for e in errs), max(e[1] for e in errs)
+        self.record("arm.joints", code == "ok" and mm <= 0.1 and rad <= 2e-4,
+                    f"{len(errs)} STATUS (rest, mid-move, rest): FK of the joints within {mm:.4f} mm, {rad:.1e} rad"
+                    + ("" if code == "ok" else f"; a 40 mm move → {code}"))
+
+    def r_arm_reach(self) -> None:
+        """arm.reach (1.3): a segment that puts the wrist point (DH frame 5) on the base axis, 400 mm above
+        the shoulder, keeping the flange's orientation, is E30 (outside the reach of an arm with a shoulder
+        offset d4: the cylinder of radius |d4| round the axis) and does not run."""
+        if self._skip_arm("arm.reach"):
+            return
+        arm = cast(ArmKinematics, self.arm)
+        st, _ = self._arm_rest()
+        T0 = self._status_pose(st)
+        T_flange = T0 @ np.linalg.inv(arm.T_flange_tool)
+        wrist = arm.T_w_base @ np.array([0.0, 0.0, arm.d[0] + 400.0, 1.0])
+        target = T_flange.copy()
+        target[:3, 3] = wrist[:3] + arm.d[5] * T_flange[:3, 2]
+        T1 = target @ arm.T_flange_tool
+        if np.any(T1[:3, 3] < self.lim.box_min) or np.any(T1[:3, 3] > self.lim.box_max):
+            self.record("arm.reach", None, "a pose over the base axis is outside the LIMITS box")
+            return
+        code, _, _ = self._arm_seg(T1, self._move_time(T0, T1, 2.0))
+        moved = bool(self.status()["moving"])
+        if code == "ok":
+            self.recover()
+        want = "E30" if abs(arm.d[3]) > 1.0 else "E32"
+        self.record("arm.reach", code == want and not moved,
+                    f"wrist point on the base axis → {code} (want {want}){', and it moved' if moved else ''}")
+
+    def r_arm_joint_limit(self) -> None:
+        """arm.joint_limit (1.3): turning the flange about its own axis (the last joint alone) by 170° a segment
+        is accepted while the last joint stays within its limit; the first turn past it is E31; then the
+        turns are undone."""
+        if self._skip_arm("arm.joint_limit"):
+            return
+        arm = cast(ArmKinematics, self.arm)
+        _, q0 = self._arm_rest()
+        step = math.radians(170.0)
+        n = int((arm.q_max[5] - q0[5]) // step) + 1  # the first turn that passes the limit
+        if n > 6:
+            self.record("arm.joint_limit", None, f"the last joint has {math.degrees(arm.q_max[5] - q0[5]):.0f}° to go")
+            return
+        T_here = arm.fk(q0)
+        got = []
+        for k in range(1, n + 1):
+            q = q0.copy()
+            q[5] += k * step
+            T = arm.fk(q)
+            code = self._arm_fly(T, self._move_time(T_here, T, 1.0))
+            got.append(code)
+            if code != "ok":
+                break
+            T_here = T
+        for k in range(len([c for c in got if c == "ok"]) - 1, -1, -1):  # undo the turns
+            q = q0.copy()
+            q[5] += k * step
+            T = arm.fk(q)
+            self._arm_fly(T, self._move_time(T_here, T, 1.0))
+            T_here = T
+        want = ["ok"] * (n - 1) + ["E31"]
+        self.record("arm.joint_limit", got == want,
+                    f"last joint from {math.degrees(q0[5]):.1f}° by 170° turns, limit "
+                    f"{math.degrees(arm.q_max[5]):.0f}°: {' '.join(got)} (want {' '.join(want)})")
+
+    def r_arm_singularity(self) -> None:
+        """arm.singularity (1.3): from the wrist 5° short of its singularity (q5 = ±5°, the other joints as
+        reported), a segment to the pose of q5 = ∓5° passes within 0.1° of it; it is E32 (within the
+        controller's margin), or E33 (no margin: the wrist would flip) and does not run."""
+        if self._skip_arm("arm.singularity"):
+            return
+        arm = cast(ArmKinematics, self.arm)
+        st, q0 = self._arm_rest()
+        T0 = self._status_pose(st)
+        side = 1.0 if math.sin(q0[4] + arm.offset[4]) >= 0 else -1.0
+        qa, qb = q0.copy(), q0.copy()
+        qa[4] = side * math.radians(5.0) - arm.offset[4]
+        qb[4] = -side * math.radians(5.0) - arm.offset[4]
+        Ta, Tb = arm.fk(qa), arm.fk(qb)
+        setup = self._arm_fly(Ta, self._move_time(T0, Ta, 2.0))
+        if setup != "ok":
+            self.record("arm.singularity", None, f"the move to 5° short of the wrist singularity → {setup}")
+            return
+        code, _, _ = self._arm_seg(Tb, 1.0)
+        moved = bool(self.status()["moving"])
+        if code == "ok":
+            self.recover()
+        self._arm_fly(T0, self._move_time(Ta, T0, 2.0))
+        self.record("arm.singularity", code in ("E32", "E33") and not moved,
+                    f"q5 {math.degrees(qa[4]):+.0f}° → {math.degrees(qb[4]):+.0f}° in 1 s → {code} (want E32 or E33)"
+                    + (", and it moved" if moved else ""))
+
+    def r_arm_joint_rate(self) -> None:
+        """arm.joint_rate (1.3): a 1° flick of the last joint at 95 % of LIMITS' wmax (16 ms: a joint
+        acceleration of ~2·10⁴ °/s², beyond any arm's) is E34 and does not run; the same turn in 1 s runs."""
+        if self._skip_arm("arm.joint_rate"):
+            return
+        arm = cast(ArmKinematics, self.arm)
+        _, q0 = self._arm_rest()
+        q = q0.copy()
+        q[5] += math.radians(1.0)
+        T = arm.fk(q)
+        fast = 1.875 * math.radians(1.0) / (0.95 * self.lim.w_max)
+        code, _, _ = self._arm_seg(T, fast)
+        moved = bool(self.status()["moving"])
+        if code == "ok":
+            self.recover()
+        slow = self._arm_fly(T, 1.0)
+        self.record("arm.joint_rate", code == "E34" and not moved and slow == "ok",
+                    f"1° in {fast * 1000:.0f} ms → {code} (want E34); in 1 s → {slow} (want ok)"
+                    + (", and it moved" if moved else ""))
+
 
 def run_suite(port: str, baud: int = 9600, *, no_motion: bool = False, only: list[str] | None = None,
-              log: Callable[[Result], None] | None = None, timeout_s: float = 1.0, serial_port=None) -> list[Result]:
-    """Run the suite against the controller on ``port``; CannotTalk if it cannot be reached."""
+              log: Callable[[Result], None] | None = None, timeout_s: float = 1.0, serial_port=None,
+              arm: ArmKinematics | None = None) -> list[Result]:
+    """Run the suite against the controller on ``port`` (``arm``: the kinematics of the arm it should name,
+    for the 1.3 arm rules); CannotTalk if it cannot be reached."""
     client = Client(port, baud, timeout_s, serial_port=serial_port)
     try:
-        return Suite(client, no_motion=no_motion, only=list(only or []), log=log).run()
+        return Suite(client, no_motion=no_motion, only=list(only or []), log=log, arm=arm).run()
     finally:
         client.close()
