@@ -564,7 +564,7 @@ class RobotEmulator:
         self._cut_at(t)
         if np.linalg.norm(v) > 0.0 or np.linalg.norm(w) > 0.0:
             ramp = self._make_ramp(t, p, v, R, w)
-            if self.arm is not None:  # a stop is never refused: the arm follows the ramp as best it can
+            if self.arm is not None and q0 is not None:  # a stop is never refused: the arm follows it as best it can
                 ts, Ts = ramp.sampled(self.arm.policy.check_dt_s)
                 ramp.joints = (ts, self.arm.check(ts, Ts, q0)[1])
             self.segments.append(ramp)
