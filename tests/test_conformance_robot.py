@@ -95,11 +95,54 @@ def test_reference_controller_passes_every_rule():
         assert not dev.errors
     rows = statuses(res.stdout)
     assert res.returncode == 0, res.stdout + res.stderr
-    assert len(rows) >= 27 and set(rows.values()) == {"PASS"}, res.stdout
+    arm_rules = {r for r in rows if r.startswith("arm.")}
+    assert len(arm_rules) == 5 and {rows[r] for r in arm_rules} == {"SKIP"}, res.stdout  # 1.2: no arm
+    assert len(rows) >= 32 and {v for r, v in rows.items() if r not in arm_rules} == {"PASS"}, res.stdout
     for rule in ("stop.ramp", "stop.refuse_outward_end", "stop.latch", "watchdog.trips", "checksum.reject",
                  "errors.arguments", "limits.path", "home.arrives", "ruckig.arrival", "ruckig.splice",
                  "ruckig.limits"):
         assert rows[rule] == "PASS"
+
+
+class NoArmCheck(RobotEmulator):
+    """An arm controller that follows every segment in joint space but refuses none for the arm."""
+
+    def _arm_check(self, seg, t0: float) -> int:
+        ts, Ts = seg.sampled(self.arm.policy.check_dt_s)
+        seg.joints = (ts, self.arm.check(ts, Ts, self.joints_at(t0))[1])
+        return 0
+
+
+def serve_arm(cls):
+    """``cls`` with the sample lab's robot limits and UR10e, started where the simulated lab starts it."""
+    from labctl.config import load_lab
+    from labctl.sim.lab import arm_servo
+    from labctl.sim.world import home_flange_pose
+    from labctl.workspace import sample_lab_path
+
+    lab = load_lab(sample_lab_path())
+    return PtyDevice(cls(time.monotonic, lab.robot, start_pose=home_flange_pose(lab), arm=arm_servo(lab)), 115200)
+
+
+def test_reference_controller_with_the_arm_passes_every_rule_including_the_arms():
+    with serve_arm(RobotEmulator) as dev:
+        res = conformance(dev.path, timeout=300.0)
+        assert not dev.errors
+    rows = statuses(res.stdout)
+    assert res.returncode == 0, res.stdout + res.stderr
+    assert len(rows) >= 32 and set(rows.values()) == {"PASS"}, res.stdout
+    for rule in ("arm.joints", "arm.reach", "arm.joint_limit", "arm.singularity", "arm.joint_rate"):
+        assert rows[rule] == "PASS"
+
+
+def test_an_arm_controller_that_refuses_nothing_fails_the_arm_rules():
+    with serve_arm(NoArmCheck) as dev:
+        res = conformance(dev.path, "--only", "arm.reach", "--only", "arm.joint_rate", "--only", "arm.singularity",
+                          timeout=300.0)
+    rows = statuses(res.stdout)
+    assert res.returncode == 1, res.stdout + res.stderr
+    assert rows == {"arm.reach": "FAIL", "arm.joint_rate": "FAIL", "arm.singularity": "FAIL",
+                    "checksum.output": "PASS", "timing.reply": "PASS"}, res.stdout
 
 
 @pytest.mark.parametrize("cls,only,rule", [

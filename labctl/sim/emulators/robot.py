@@ -255,13 +255,18 @@ class StopRamp:
 
 
 class RobotEmulator:
-    """The robot controller: ``receive(data, t)`` request bytes, ``read_output()`` reply bytes."""
+    """The robot controller: ``receive(data, t)`` request bytes, ``read_output()`` reply bytes.
+
+    ``start_pose`` (``T_base_flange``, default the home pose) is where the flange rests at boot; with an
+    ``arm`` the controller speaks 1.3 and its arm starts in the IK solution nearest the arm file's
+    ``home_deg`` there, or at ``start_joints`` (rad) when given (a bridge reads them from its arm)."""
 
     name = NAME
     dialect = DIALECT
 
     def __init__(self, clock: Callable[[], float], limits: RobotConfig | None = None, *, queue_size: int = QUEUE_SIZE,
-                 start_pose: np.ndarray | None = None, arm: ArmServo | None = None):
+                 start_pose: np.ndarray | None = None, arm: ArmServo | None = None,
+                 start_joints: np.ndarray | None = None):
         from ...config import RobotConfig
 
         cfg = limits if limits is not None else RobotConfig()
@@ -279,13 +284,15 @@ class RobotEmulator:
         self.home_T = make_T(_rpy(*HOME_RPY), cfg.home_mm)
         self.queue_size = queue_size
         self.now = float(clock())
+        if start_joints is not None and arm is not None:  # an arm whose joints are known (a bridge): its pose
+            start_pose = arm.model.fk(start_joints)
         T0 = self.home_T if start_pose is None else np.asarray(start_pose, float)
         self._rest_p = T0[:3, 3].copy()
         self._rest_R = T0[:3, :3].copy()
         self.arm = arm
         if arm is not None:
             self.dialect = ARM_DIALECT
-            self._rest_q = arm.initial(T0)
+            self._rest_q = arm.initial(T0) if start_joints is None else np.asarray(start_joints, float).copy()
         self.arm_check_s = 0.0  # time spent in the arm's segment checks (s), and how many
         self.arm_checks = 0
         self.segments: list = []  # scheduled and recent segments and ramps, in time order
