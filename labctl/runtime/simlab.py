@@ -389,7 +389,6 @@ def write_served_lab(lab: Lab, out, served: ServedLab, *, force: bool = False):
     """
     import dataclasses
     import json
-    import shutil
     from pathlib import Path
 
     import yaml
