@@ -135,14 +135,14 @@ def test_reference_controller_with_the_arm_passes_every_rule_including_the_arms(
         assert rows[rule] == "PASS"
 
 
-def test_an_arm_controller_that_refuses_nothing_fails_the_arm_rules():
+@pytest.mark.parametrize("rule", ["arm.reach", "arm.singularity", "arm.joint_rate"])
+def test_an_arm_controller_that_refuses_nothing_fails_the_arm_rules(rule):
     with serve_arm(NoArmCheck) as dev:
-        res = conformance(dev.path, "--only", "arm.reach", "--only", "arm.joint_rate", "--only", "arm.singularity",
-                          timeout=300.0)
+        res = conformance(dev.path, "--only", rule, timeout=300.0)
     rows = statuses(res.stdout)
     assert res.returncode == 1, res.stdout + res.stderr
-    assert rows == {"arm.reach": "FAIL", "arm.joint_rate": "FAIL", "arm.singularity": "FAIL",
-                    "checksum.output": "PASS", "timing.reply": "PASS"}, res.stdout
+    assert rows == {rule: "FAIL"}, res.stdout
+    assert "→ ok" in res.stdout, res.stdout  # it ran the segment the arm cannot fly
 
 
 @pytest.mark.parametrize("cls,only,rule", [
