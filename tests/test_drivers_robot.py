@@ -133,3 +133,35 @@ def test_a_reboot_after_motion_was_commanded_is_a_fault():
         with pytest.raises(RobotFault):
             robot.wait_done(7, timeout_s=5)
         assert "boot" in robot.faults
+
+
+def test_driver_speaks_1_3_with_an_arm_reads_its_joints_and_names_each_refusal():
+    from arm_dh import rotation_angle, sample_mount, ur10e_fk
+
+    from labctl.config import load_lab
+    from labctl.sim.lab import arm_servo
+    from labctl.sim.world import home_flange_pose
+    from labctl.workspace import sample_lab_path
+
+    lab = load_lab(sample_lab_path())
+    with fake_robot(limits=lab.robot, start_pose=home_flange_pose(lab), arm=arm_servo(lab)) as dev, \
+            SerialRobot(dev.path, 115200, timeout_s=2.0, heartbeat_s=0.1) as robot:
+        assert robot.dialect == "1.3" and robot.arm == "UR10e" and robot.profiles == ("quintic", "ruckig")
+        st = robot.status()
+        assert st.joints_rad is not None and len(st.joints_rad) == 6
+        T = ur10e_fk(st.joints_rad, sample_mount())
+        assert np.linalg.norm(T[:3, 3] - st.T_base_flange[:3, 3]) < 0.1
+        assert rotation_angle(T[:3, :3].T @ st.T_base_flange[:3, :3]) < 2e-4
+        over_axis = st.T_base_flange.copy()  # the wrist point on the base axis: out of the arm's reach
+        over_axis[:3, 3] = sample_mount()[:3, 3] + [0.0, 0.0, 580.7] + 116.55 * over_axis[:3, 2]
+        with pytest.raises(RobotError) as err:
+            robot.segment(over_axis, 4.0, 1)
+        assert err.value.code == 30
+        msg = str(err.value)
+        assert "\n" not in msg and "outside the arm's reach" in msg and "nothing moved" in msg
+        assert not robot.status().moving
+
+
+def test_driver_reads_no_joints_from_a_1_2_controller():
+    with fake_robot(limits=SLOW_WATCHDOG) as dev, SerialRobot(dev.path, 115200, timeout_s=2.0) as robot:
+        assert robot.dialect == "1.2" and robot.arm is None and robot.status().joints_rad is None
