@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import math
 import re
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, cast
@@ -467,8 +468,6 @@ class RobotEmulator:
         segment), else its 1.3 refusal (:meth:`labctl.sim.emulators.arm_servo.ArmServo.check`)."""
         if self.arm is None:
             return 0
-        import time
-
         start = time.perf_counter()
         ts, Ts = seg.sampled(self.arm.policy.check_dt_s)
         code, qs = self.arm.check(ts, Ts, self.joints_at(t0))
