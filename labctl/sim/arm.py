@@ -124,6 +124,7 @@ class ArmBody:
                     self.capsules.append(Capsule(i + 1, along, float(self.radius[i]), length))
                     self._local.append(_capsule(float(self.radius[i]), length))
         self._q: np.ndarray | None = None
+        self._T: np.ndarray | None = None
         self._cache: dict[float, np.ndarray] = {}
         self.ik_failures = 0
 
@@ -153,8 +154,11 @@ class ArmBody:
     def q_for(self, T_w_F: np.ndarray) -> np.ndarray:
         """The arm's configuration with its flange at ``T_w_F`` (4×4, W): IK from the last configuration."""
         if self._q is None:
-            self._q = self._first(T_w_F)
+            self._q, self._T = self._first(T_w_F), T_w_F.copy()
             return self._q
+        if np.array_equal(T_w_F, self._T):  # standing still (most frames): the same configuration
+            return self._q
+        self._T = T_w_F.copy()
         res = self.model.ik(T_w_F, self._q)
         if res.ok:
             self._q = res.q
@@ -195,13 +199,16 @@ class ArmBody:
             T = T @ make_T(np.array([[1.0, 0.0, 0.0], [0.0, ca, -sa], [0.0, sa, ca]]), np.zeros(3))
         return out
 
-    def mesh(self, q, *, skip_last: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    def mesh(self, q, *, skip_last: int = 0, view=None) -> tuple[np.ndarray, np.ndarray]:
         """The links at ``q`` as one closed triangle mesh in W (vertices mm, faces), leaving out the links
-        of the last ``skip_last`` joints (the mobile camera's own wrist)."""
+        of the last ``skip_last`` joints (the mobile camera's own wrist). ``view`` ``(camera, T_w_c, window)``
+        leaves out the capsules wholly outside that camera's view (or its pixel window (x0, y0, x1, y1)):
+        they would cost the rasteriser their triangles' set-up for no pixel."""
         keep_links = 6 - skip_last
+        cull = None if view is None else _ViewCull(*view)
         verts, faces, n = [], [], 0
-        for cap, (V, F), (p0, p1, _) in zip(self.capsules, self._local, self.segments(q)):
-            if cap.link > keep_links:
+        for cap, (V, F), (p0, p1, r) in zip(self.capsules, self._local, self.segments(q)):
+            if cap.link > keep_links or (cull is not None and not cull.may_see(p0, p1, r)):
                 continue
             T = _frame_along(p0, p1)
             verts.append(V @ T[:3, :3].T + T[:3, 3])
@@ -223,6 +230,34 @@ class ArmBody:
                 continue
             hidden |= _segment_distance(eye, P, a0, a1) < r
         return hidden
+
+
+class _ViewCull:
+    """Whether a capsule may show in a camera's view: its bounding sphere against the four side planes of
+    the view (or of a pixel window's) frustum, and the near plane (normalised image coordinates, 5 % margin
+    for the lens distortion between the sampled boundary points)."""
+
+    def __init__(self, camera, T_w_c, window=None):
+        from ..geometry import invert
+
+        x0, y0, x1, y1 = (0, 0, camera.width, camera.height) if window is None else window
+        xs, ys = np.array([x0 - 0.5, (x0 + x1) / 2, x1 - 0.5]), np.array([y0 - 0.5, (y0 + y1) / 2, y1 - 0.5])
+        px = np.array([[x, y] for x in xs for y in ys if (x, y) != (xs[1], ys[1])], float)
+        nrm = camera.normalized(px)
+        lo, hi = nrm.min(axis=0), nrm.max(axis=0)
+        pad = 0.05 * (hi - lo) + 1e-9
+        lo, hi = lo - pad, hi + pad
+        # outward normals of the planes x = hi_x z, x = lo_x z, y = hi_y z, y = lo_y z
+        planes = np.array([[1.0, 0.0, -hi[0]], [-1.0, 0.0, lo[0]], [0.0, 1.0, -hi[1]], [0.0, -1.0, lo[1]]])
+        self.planes = planes / np.linalg.norm(planes, axis=1, keepdims=True)
+        self.T_c_w = invert(np.asarray(T_w_c, float))
+
+    def may_see(self, p0, p1, r: float) -> bool:
+        """The capsule from ``p0`` to ``p1`` (W, mm) of radius ``r`` may cover a pixel of the view."""
+        c_w = 0.5 * (np.asarray(p0) + np.asarray(p1))
+        R = 0.5 * float(np.linalg.norm(np.asarray(p1) - np.asarray(p0))) + r
+        c = self.T_c_w[:3, :3] @ c_w + self.T_c_w[:3, 3]
+        return bool(c[2] + R > 1.0 and np.all(self.planes @ c <= R))
 
 
 def _segment_distance(e: np.ndarray, P: np.ndarray, a0: np.ndarray, a1: np.ndarray) -> np.ndarray:

@@ -265,16 +265,18 @@ class SimWorld:
         """The arm's joint angles (rad) at time ``t`` (s), following the flange; None without an arm."""
         return None if self.arm is None else self.arm.q_at(t, self.T_w_F)
 
-    def arm_meshes(self, role: str, t: float) -> list[Mesh]:
+    def arm_meshes(self, role: str, t: float, window: tuple | None = None) -> list[Mesh]:
         """The arm's links in W as camera ``role`` sees them at ``t`` (s): all of them and the mobile camera's
-        body for the fixed camera, without the wrist it rides on for the mobile one; [] without an arm."""
+        body for the fixed camera, without the wrist it rides on for the mobile one; only the links that may
+        show in the view (or in its pixel ``window``); [] without an arm."""
         if self.arm is None:
             return []
         q = self.arm.q_at(t, self.T_w_F)
+        view = (self.rigs[role].model, self.T_w_c(role, t), window)
         if role == "mobile":
-            V, F = self.arm.mesh(q, skip_last=MOBILE_SKIP_LINKS)
+            V, F = self.arm.mesh(q, skip_last=MOBILE_SKIP_LINKS, view=view)
             return [Mesh(V, F, ARM_COLOUR_BGR)] if len(F) else []
-        V, F = self.arm.mesh(q)
+        V, F = self.arm.mesh(q, view=view)
         Vc, Fc = camera_body(self.T_w_c("mobile", t))
         return [Mesh(np.concatenate([V, Vc]), np.concatenate([F, Fc + len(V)]), ARM_COLOUR_BGR)]
 
@@ -328,9 +330,10 @@ class SimWorld:
             states = [(T_w_c, meshes)] + (blur or [])
             window = self.object_window(role, states)  # the object's footprint: the arm only where it crosses it
         if self.arm is not None:  # the arm occludes, but the window stays the object's
-            meshes = meshes + self.arm_meshes(role, t)
+            win = window if isinstance(window, tuple) else None
+            meshes = meshes + self.arm_meshes(role, t, win)
             if blur is not None:
-                blur = [(T, ms + self.arm_meshes(role, t + dt)) for (T, ms), dt in zip(blur, offsets)]
+                blur = [(T, ms + self.arm_meshes(role, t + dt, win)) for (T, ms), dt in zip(blur, offsets)]
         return render(rig.model, T_w_c, meshes, table=self.table_surface(t), light_dir_w=self.light_dir_w,
                       noise_sigma=rig.noise_sigma, rng=rng, exposure_motion=blur, truth=truth,
                       supersample=self.supersample if supersample is None else supersample, window=window,
