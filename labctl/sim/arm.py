@@ -87,6 +87,25 @@ def camera_body(T_w_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return corners @ T[:3, :3].T + T[:3, 3], faces
 
 
+def body_hides(T_w_c: np.ndarray, eye_w, points_w) -> np.ndarray:
+    """Which of ``points_w`` (N×3, mm W) the mobile camera's body (:func:`camera_body`, at ``T_w_c``) hides from
+    a camera at ``eye_w``: the sight line crosses the box (slab test in the body's frame)."""
+    from ..geometry import invert
+
+    T_c_w = invert(np.asarray(T_w_c, float))
+    e = T_c_w[:3, :3] @ np.asarray(eye_w, float) + T_c_w[:3, 3]
+    P = np.asarray(points_w, float).reshape(-1, 3) @ T_c_w[:3, :3].T + T_c_w[:3, 3]
+    (hx, hy), (z0, z1) = (v / 2 for v in CAMERA_BODY_XY_MM), CAMERA_BODY_Z_MM
+    lo, hi = np.array([-hx, -hy, z0]), np.array([hx, hy, z1])
+    d = P - e
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t0, t1 = (lo - e) / d, (hi - e) / d
+    near = np.where(d != 0, np.minimum(t0, t1), np.where((e >= lo) & (e <= hi), -np.inf, np.inf))
+    far = np.where(d != 0, np.maximum(t0, t1), np.where((e >= lo) & (e <= hi), np.inf, -np.inf))
+    enter, leave = np.max(near, axis=1), np.min(far, axis=1)
+    return (enter <= leave) & (leave >= 0.0) & (enter <= 1.0)
+
+
 def _frame_along(p0: np.ndarray, p1: np.ndarray) -> np.ndarray:
     """A 4×4 pose whose origin is ``p0`` and whose z axis points at ``p1`` (the capsule's frame)."""
     z = (p1 - p0) / np.linalg.norm(p1 - p0)

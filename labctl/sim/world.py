@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING, Self
 import numpy as np
 
 from ..geometry import CameraModel, apply, invert, look_at, make_T, rot_z, rotate
-from .arm import ARM_COLOUR_BGR, MOBILE_SKIP_LINKS, ArmBody, camera_body
+from .arm import ARM_COLOUR_BGR, MOBILE_SKIP_LINKS, ArmBody, body_hides, camera_body
 from .effects import CameraEffects
 from .render import DEFAULT_LIGHT_DIR_W, MarkerDisc, Mesh, RenderResult, TableSurface, render
 
@@ -282,7 +282,8 @@ class SimWorld:
 
     def arm_hides_markers(self, role: str, t: float) -> tuple[int, int]:
         """Of the markers facing camera ``role`` at ``t`` (s), how many there are and how many the arm hides
-        (their centre's sight line passes through a link): ground truth of the arm's occlusions."""
+        (their centre's sight line passes through a link, or the mobile camera's body): ground truth of the arm's
+        occlusions."""
         if self.arm is None or self.obj is None:
             return 0, 0
         eye = self.T_w_c(role, t)[:3, 3]
@@ -290,8 +291,11 @@ class SimWorld:
         facing = [c for _, c, n in truth.markers_w if float(np.dot(n, eye - c)) > 0]
         if not facing:
             return 0, 0
-        hidden = self.arm.hides(self.arm.q_at(t, self.T_w_F), eye, np.array(facing),
-                                skip_last=MOBILE_SKIP_LINKS if role == "mobile" else 0)
+        if role == "mobile":
+            hidden = self.arm.hides(self.arm.q_at(t, self.T_w_F), eye, np.array(facing), skip_last=MOBILE_SKIP_LINKS)
+        else:  # the links and the mobile camera's body
+            hidden = self.arm.hides(self.arm.q_at(t, self.T_w_F), eye, np.array(facing)) \
+                | body_hides(self.T_w_c("mobile", t), eye, np.array(facing))
         return len(facing), int(hidden.sum())
 
     def table_surface(self, t: float) -> TableSurface:
