@@ -116,12 +116,12 @@ def test_arm_hides_the_marker_the_render_hides(lab):
     centre = np.array([300.0, 200.0, 0.0])
     for height, expect_hidden in ((830.0, True), (None, False)):
         T_w_F = (look_at(centre + [0, 0, height], centre, up=(0, 1, 0)) @ invert(Tfc)) if height else None
-        world = SimWorld.from_lab(lab, obj=builtin_test_object(), **({"flange_pose_at": lambda t: T_w_F}
+        world = SimWorld.from_lab(lab, obj=builtin_test_object(), **({"flange_pose_at": lambda t, T=T_w_F: T}
                                                                     if height else {}))
         facing, hidden = world.arm_hides_markers("fixed", 0.0)
         shown = world.render("fixed", 0.0, truth=True).marker_pixels
         bare = SimWorld.from_lab(lab, obj=builtin_test_object(), arm=False,
-                                 **({"flange_pose_at": lambda t: T_w_F} if height else {}))
+                                 **({"flange_pose_at": lambda t, T=T_w_F: T} if height else {}))
         shown_bare = bare.render("fixed", 0.0, truth=True).marker_pixels
         assert facing == 1
         assert (hidden == 1) is expect_hidden

@@ -175,7 +175,7 @@ class ArmBody:
         if self._q is None:
             self._q, self._T = self._first(T_w_F), T_w_F.copy()
             return self._q
-        if np.array_equal(T_w_F, self._T):  # standing still (most frames): the same configuration
+        if self._T is not None and np.array_equal(T_w_F, self._T):  # standing still (most frames)
             return self._q
         self._T = T_w_F.copy()
         res = self.model.ik(T_w_F, self._q)
