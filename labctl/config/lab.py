@@ -143,8 +143,8 @@ class TrackingConfig:
     # a gap in the sightings (the arm crossing the fixed camera's view) is bridged on the prediction for at most
     # this long: the one-step window stays at the predicted pixel and the track is kept; beyond it the track is
     # lost (the wait stage starts again; a later stage coasts). 1 s: the window's ±24 px (±22 mm) holds a
-    # prediction that missed a corner at 12 mm/s (the sample sweep's top speed) for ~1.3 s, and the arm's
-    # occlusions in the sample sweep last up to ~0.6 s (docs/notes/sim.md, "The arm in the cameras")
+    # prediction that missed a 90° corner at 12 mm/s (the sample sweep's top speed) for ~1.3 s, and the arm hides
+    # the marker for at most 8 frames (0.27 s) in the sample sweep (docs/notes/sim.md, "The arm in the cameras")
     max_bridge_s: Positive = 1.0
     plane_height_mm: NonNegative = 30.0  # height of the plane the fixed camera's centroids are mapped onto
     min_track_s: Positive = 1.0  # plan the interception after tracking this long at the latest
