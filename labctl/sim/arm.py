@@ -24,6 +24,7 @@ Millimetres and radians; poses ``T_<to>_<from>``.
 from __future__ import annotations
 
 import math
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -145,6 +146,7 @@ class ArmBody:
         self._q: np.ndarray | None = None
         self._T: np.ndarray | None = None
         self._cache: dict[float, np.ndarray] = {}
+        self._lock = threading.Lock()  # a served lab renders its two cameras from two threads
         self.ik_failures = 0
 
     @classmethod
@@ -187,12 +189,13 @@ class ArmBody:
 
     def q_at(self, t: float, T_w_F) -> np.ndarray:
         """:meth:`q_for` at time ``t`` (s), remembered per time: a frame's cameras and passes share one solve."""
-        q = self._cache.get(t)
-        if q is None:
-            if len(self._cache) > 64:
-                self._cache.clear()
-            q = self._cache[t] = self.q_for(np.asarray(T_w_F(t) if callable(T_w_F) else T_w_F, float))
-        return q
+        with self._lock:
+            q = self._cache.get(t)
+            if q is None:
+                if len(self._cache) > 64:
+                    self._cache.clear()
+                q = self._cache[t] = self.q_for(np.asarray(T_w_F(t) if callable(T_w_F) else T_w_F, float))
+            return q
 
     # --- geometry ---------------------------------------------------------------------------
     def segments(self, q) -> list[tuple[np.ndarray, np.ndarray, float]]:
