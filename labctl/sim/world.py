@@ -268,11 +268,14 @@ class SimWorld:
     def arm_meshes(self, role: str, t: float, window: tuple | None = None) -> list[Mesh]:
         """The arm's links in W as camera ``role`` sees them at ``t`` (s): all of them and the mobile camera's
         body for the fixed camera, without the wrist it rides on for the mobile one; only the links that may
-        show in the view (or in its pixel ``window``); [] without an arm."""
+        show in the view (or in its pixel ``window``) unless the camera's effects cast shadows; [] without
+        an arm."""
         if self.arm is None:
             return []
         q = self.arm.q_at(t, self.T_w_F)
-        view = (self.rigs[role].model, self.T_w_c(role, t), window)
+        fx = self.rigs[role].effects
+        # links out of view may still cast a shadow into it: cull only without cast shadows
+        view = None if fx is not None and fx.shadows > 0 else (self.rigs[role].model, self.T_w_c(role, t), window)
         if role == "mobile":
             V, F = self.arm.mesh(q, skip_last=MOBILE_SKIP_LINKS, view=view)
             return [Mesh(V, F, ARM_COLOUR_BGR)] if len(F) else []
