@@ -25,7 +25,8 @@ class ArmConfig:
     ``base_*``: the pose of the arm's base frame in the world, ``T_w_base`` (rotation Rz(yaw)·Ry(pitch)·Rx(roll)
     of ``rpy_deg`` = roll, pitch, yaw). ``tool_*``: the frame labctl commands (its flange F; the mobile
     camera is the hand-eye transform beyond it) in the arm's own flange frame, ``T_flange_F``.
-    ``home_deg``: the configuration the arm is kept near (the first IK seed; the branch it starts in)."""
+    ``home_deg``: the configuration the arm is kept near (the first IK seed; the branch it starts in).
+    ``link_radius_mm``: the radius of each DH row's link, as the simulated cameras draw it (capsules)."""
 
     name: str
     dh_d_mm: Six
@@ -42,6 +43,8 @@ class ArmConfig:
     tool_xyz_mm: Three = (0.0, 0.0, 0.0)
     tool_rpy_deg: Three = (0.0, 0.0, 0.0)
     source: str = ""  # where the numbers come from (data sheet, DH page)
+    # each DH row's link radius (mm), for drawing the arm in the simulated cameras (labctl.sim.arm); null: not drawn
+    link_radius_mm: PositiveSix | None = None
 
     def validate(self):
         """Each joint's minimum below its maximum, the home inside them: ``(key, message)`` or None."""

@@ -140,6 +140,12 @@ class TrackingConfig:
     measurement_noise_mm: Positive = 0.7
     gate_sigma: Positive = 4.0
     window_px: PositiveInt = 48
+    # a gap in the sightings (the arm crossing the fixed camera's view) is bridged on the prediction for at most
+    # this long: the one-step window stays at the predicted pixel and the track is kept; beyond it the track is
+    # lost (the wait stage starts again; a later stage coasts). 1 s: the window's ±24 px (±22 mm) holds a
+    # prediction that missed a 90° corner at 12 mm/s (the sample sweep's top speed) for ~1.3 s, and the arm hides
+    # the marker for at most 8 frames (0.27 s) in the sample sweep (docs/notes/sim.md, "The arm in the cameras")
+    max_bridge_s: Positive = 1.0
     plane_height_mm: NonNegative = 30.0  # height of the plane the fixed camera's centroids are mapped onto
     min_track_s: Positive = 1.0  # plan the interception after tracking this long at the latest
     commit_min_updates: PositiveInt = 3  # ... and never from fewer filter updates than this
@@ -197,7 +203,6 @@ class RunConfig:
     replan_until_s: NonNegative = 0.4  # ... and not in the last this-many seconds before arrival
     # an initial view that already holds the marker in its central half is not re-aimed to arrive later
     initial_view_hold: bool = True
-    marker_lost_s: Positive = 2.0  # no fixed-camera sighting for this long: the marker is lost
     spare_novelty_deg: NonNegative = 20.0  # a spare marker facing within this of a viewed face is not worth a view
     # which spare marker to view next: the one whose standard view is nearest, or the most novel face
     spare_order: Literal["nearest", "novel"] = "nearest"

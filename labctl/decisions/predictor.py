@@ -36,6 +36,7 @@ from ..planning.ruckig_profile import JerkLimits, controller_limits
 from ..planning.targets import prediction_margin_mm, standard_view_path, view_holds_marker, viewing_distance_with_margin
 from ..planning.tti_bound import Leg, identity_bound
 from ..timebase import wire_time_s
+from ..tracking.bridge import OcclusionBridge
 from ..tracking.tracker import MarkerTracker, position_from_frames
 from ..vision import detect_markers, detect_markers_windowed, red_blob_centroid
 from . import messages as m
@@ -150,6 +151,7 @@ class PredictorPlanner:
             and cfg.tracking.stop_corners else {}
         self.tracker = MarkerTracker.from_config(cfg.tracking, family=family, **stops)
         log("tracking_prior", t=t_start, family=family, curve_prior=self.tracker.curve_prior)
+        self.bridge = OcclusionBridge(cfg.tracking.max_bridge_s)  # a gap in the sightings, bridged on the prediction
         self.stage = "wait"
         self.stage_times = StageTimes()
         self.stage_times.enter("wait", t_start)
@@ -623,7 +625,7 @@ class PredictorPlanner:
         if pred_px is not None and not self.ctx.fixed_camera.contains(pred_px, margin=-5):
             self.fail(now, "the object left the fixed camera's field of view")
             return
-        if pred_px is not None and now - cast(float, self.t_last_seen) < 1.0:  # tracking: seen
+        if pred_px is not None and self.bridge.bridging(now):  # tracking: seen, or bridged on the prediction
             # the one-step-ahead window (§5.2); centroids only: the fixed camera needs no ellipse
             markers = detect_markers_windowed(frame.image, pred_px, self.cfg.tracking.window_px, refine=False,
                                               thresholds=thresholds)
@@ -640,25 +642,31 @@ class PredictorPlanner:
         else:  # a marker seen edge-on is no ellipse, but its red pixels still locate the object (§5.2)
             px = red_blob_centroid(frame.image, pred_px if pred_px is not None else self.last_px,
                                    thresholds=thresholds)
-        if px is not None:
-            xy = self.ctx.fixed_pixel_to_plane(px)
-            if self.tracker.update(now, xy):
-                self.track_xy.append((now, float(xy[0]), float(xy[1])))
-                self.n_updates += 1
-                self.t_last_seen, self.last_px = now, px
-                if self.t_first_seen is None:
-                    self.t_first_seen = now
-                    self._enter("track", now)
-                self.log("track", t=now, x=float(xy[0]), y=float(xy[1]), px=px)
-        if self.t_last_seen is not None and now - self.t_last_seen > self.cfg.run.marker_lost_s:
+        xy = None if px is None else self.ctx.fixed_pixel_to_plane(px)
+        if xy is None or not self.tracker.update(now, xy):
+            self.bridge.missed(now)
+        else:
+            if (b := self.bridge.seen(now)) is not None:
+                self.log("track_bridged", t=now, t_start=b.t_start, t_end=b.t_end, duration_s=b.duration_s,
+                         frames=b.frames, stage=self.stage)
+            self.track_xy.append((now, float(xy[0]), float(xy[1])))
+            self.n_updates += 1
+            self.t_last_seen, self.last_px = now, px
+            if self.t_first_seen is None:
+                self.t_first_seen = now
+                self._enter("track", now)
+            self.log("track", t=now, x=float(xy[0]), y=float(xy[1]), px=px)
+        if self.t_last_seen is not None and self.bridge.expired(now):
+            gap = {"gap_s": self.bridge.gap_s(now), "frames": self.bridge.frames}
             if self.stage == "track":  # lost before any plan: start again
-                self.log("marker_lost", t=now)
+                self.log("marker_lost", t=now, **gap)
                 self.tracker.reset()
+                self.bridge.reset()
                 self.t_first_seen = self.t_last_seen = None
                 self._enter("wait", now)
             elif not self.coasting:  # later stages coast on the prediction (the object moves predictably)
                 self.coasting = True
-                self.log("marker_lost", t=now, coasting=True)
+                self.log("marker_lost", t=now, coasting=True, **gap)
         elif self.t_last_seen == now:
             self.coasting = False
 

@@ -95,7 +95,14 @@ def simulate_run(lab: Lab, ctx: RunContext, spec: TrialSpec, record=None, *, hea
     rest = sim.robot.ensure_ready()  # as the live run does when it opens the robot, before its start
     t0 = clock.now()
 
-    log = record.event if record is not None else (lambda *a, **k: None)
+    record_event = record.event if record is not None else (lambda *a, **k: None)
+    counts = {"track_bridged": 0, "marker_lost": 0}
+
+    def log(event, **fields):  # the tracker's bridges and losses counted for the result, as recorded
+        if event in counts:
+            counts[event] += 1
+        record_event(event, **fields)
+
     save = record.save_image if record is not None else None
     meter = LinkMeter()
     outbox: list[m.Message] = []
@@ -132,6 +139,7 @@ def simulate_run(lab: Lab, ctx: RunContext, spec: TrialSpec, record=None, *, hea
     # 50 of 60 trials at 50 mm/s failed (docs/notes/planning.md, "Frames caught up").
     grid0: float | None = None
     n = fixed_seq = 0
+    hid_any = hid_all = 0  # fixed-camera frames in which the arm hides a facing marker / every facing marker
     next_beat = 0.0
     def deliver() -> None:
         while outbox:
@@ -173,6 +181,9 @@ def simulate_run(lab: Lab, ctx: RunContext, spec: TrialSpec, record=None, *, hea
         for tk in times:
             # the tracker reads only the red markers, all on the object: render its footprint only
             image = world.render("fixed", tk, rng, window="object", supersample=1).image
+            facing, hidden = world.arm_hides_markers("fixed", tk)
+            hid_any += hidden > 0
+            hid_all += facing > 0 and hidden == facing
             fixed_seq += 1
             frames.append(Frame(image, tk, fixed_seq))
         predictor.on_frames(frames)
@@ -195,6 +206,10 @@ def simulate_run(lab: Lab, ctx: RunContext, spec: TrialSpec, record=None, *, hea
         "sim_time_s": t_end - t0,
         "link": meter.summary(t_end - t0),
         "truth": {"placement": truth.to_dict()["placement"]},
+        # the simulated arm's occlusions of the markers in the fixed camera (ground truth) and the tracker's answer
+        "arm_occlusion": {"fixed_frames": fixed_seq, "frames_any_hidden": hid_any, "frames_all_hidden": hid_all,
+                          "bridges": counts["track_bridged"], "tracks_lost": counts["marker_lost"],
+                          "ik_failures": world.arm.ik_failures if world.arm is not None else 0},
     })
     pose_err = marker_pose_error(predictor, world)
     if pose_err is not None:

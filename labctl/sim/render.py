@@ -594,39 +594,54 @@ def _edge_supersample(camera: CameraModel, s: int, coef: np.ndarray, tri_colour:
 
 
 def _cast_shadow(grey: np.ndarray, camera: CameraModel, T_w_c: np.ndarray, geo: _TableGeometry,
-                 corners_w: np.ndarray, light_w: np.ndarray, strength: float) -> None:
+                 groups_w: Sequence[np.ndarray], light_w: np.ndarray, strength: float) -> None:
     """Darken the table image ``grey`` (H×W uint8, in place) where the meshes' shadow falls.
 
-    The shadow (:func:`~labctl.sim.effects.shadow_mask`, in table mm) is sampled at each pixel's
-    table point (the texture lookup's own map, so a window gets exactly the full frame's values),
-    only inside the image box of the shadow's bounds; radiance there × (1 − c·(1 − f)), c the
-    coverage, f the shadowed/lit ratio of the table's Lambert shading.
+    Each group of triangle corners (one mesh: the object, the arm) casts its own shadow
+    (:func:`~labctl.sim.effects.shadow_mask`, in table mm), so a large caster does not coarsen a small
+    one's mask; a pixel's coverage is the largest of them. Each is sampled at each pixel's table point
+    (the texture lookup's own map, so a window gets exactly the full frame's values), only inside the
+    image box of its bounds; radiance there × (1 − c·(1 − f)), c the coverage, f the shadowed/lit
+    ratio of the table's Lambert shading.
     """
-    sm = shadow_mask(shadow_polygons_w(corners_w, light_w))
-    if sm is None:
-        return
-    x0, y0, x1, y1 = sm.bounds
-    gx, gy = np.meshgrid(np.linspace(x0, x1, 5), np.linspace(y0, y1, 5))
-    pts_w = np.stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)], axis=1)
-    T_c_w = invert(T_w_c)
-    P = pts_w @ T_c_w[:3, :3].T + T_c_w[:3, 3]
     H, W = grey.shape
-    if np.all(P[:, 2] > _NEAR_MM):
-        px = camera.project(P)
-        if not np.all(np.isfinite(px)):
-            return
-        c0, r0 = (int(max(np.floor(v) - 2, 0)) for v in px.min(axis=0))
-        c1, r1 = (int(min(np.ceil(v) + 3, n)) for v, n in zip(px.max(axis=0), (W, H)))
-    else:  # part of the shadow behind the camera: test every pixel
-        c0, r0, c1, r1 = 0, 0, W, H
-    if c1 <= c0 or r1 <= r0:
+    cover_all: np.ndarray | None = None
+    box_all = [W, H, 0, 0]
+    T_c_w = invert(T_w_c)
+    for corners_w in groups_w:
+        if not len(corners_w):
+            continue
+        sm = shadow_mask(shadow_polygons_w(corners_w, light_w))
+        if sm is None:
+            continue
+        x0, y0, x1, y1 = sm.bounds
+        gx, gy = np.meshgrid(np.linspace(x0, x1, 5), np.linspace(y0, y1, 5))
+        pts_w = np.stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)], axis=1)
+        P = pts_w @ T_c_w[:3, :3].T + T_c_w[:3, 3]
+        if np.all(P[:, 2] > _NEAR_MM):
+            px = camera.project(P)
+            if not np.all(np.isfinite(px)):
+                continue
+            c0, r0 = (int(max(np.floor(v) - 2, 0)) for v in px.min(axis=0))
+            c1, r1 = (int(min(np.ceil(v) + 3, n)) for v, n in zip(px.max(axis=0), (W, H)))
+        else:  # part of the shadow behind the camera: test every pixel
+            c0, r0, c1, r1 = 0, 0, W, H
+        if c1 <= c0 or r1 <= r0:
+            continue
+        unit = np.float32(_TEXTURE_MM_PER_TEXEL)
+        wx = geo.map_x[r0:r1, c0:c1] * unit - np.float32(_TEXTURE_SIZE * _TEXTURE_MM_PER_TEXEL)
+        wy = np.float32(_TEXTURE_SIZE * _TEXTURE_MM_PER_TEXEL) - geo.map_y[r0:r1, c0:c1] * unit
+        cover = sm.sample(wx, wy)
+        if cover_all is None:
+            cover_all = np.zeros((H, W), np.float32)
+        np.maximum(cover_all[r0:r1, c0:c1], cover, out=cover_all[r0:r1, c0:c1])
+        box_all = [min(box_all[0], c0), min(box_all[1], r0), max(box_all[2], c1), max(box_all[3], r1)]
+    if cover_all is None:
         return
-    wx = geo.map_x[r0:r1, c0:c1] * np.float32(_TEXTURE_MM_PER_TEXEL) - np.float32(_TEXTURE_SIZE * _TEXTURE_MM_PER_TEXEL)
-    wy = np.float32(_TEXTURE_SIZE * _TEXTURE_MM_PER_TEXEL) - geo.map_y[r0:r1, c0:c1] * np.float32(_TEXTURE_MM_PER_TEXEL)
-    cover = sm.sample(wx, wy)
+    c0, r0, c1, r1 = box_all
     f = np.float32(shadow_factor(light_w, _AMBIENT, strength))
     patch = grey[r0:r1, c0:c1]
-    patch[...] = np.round(patch * (np.float32(1.0) - cover * (np.float32(1.0) - f))).astype(np.uint8)
+    patch[...] = np.round(patch * (np.float32(1.0) - cover_all[r0:r1, c0:c1] * (np.float32(1.0) - f))).astype(np.uint8)
 
 
 def _render_noiseless(camera: CameraModel, T_w_c: np.ndarray, meshes: Sequence[Mesh], table, light_w: np.ndarray,
@@ -651,7 +666,7 @@ def _render_noiseless(camera: CameraModel, T_w_c: np.ndarray, meshes: Sequence[M
             map_y = map_y + np.float32(oy / _TEXTURE_MM_PER_TEXEL)
         grey = cv2.remap(tex, map_x, map_y, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
         if fx is not None and fx.shadows > 0 and len(corners_w):
-            _cast_shadow(grey, camera, T_w_c, geo, corners_w, light_w, fx.shadows)
+            _cast_shadow(grey, camera, T_w_c, geo, [_gather_meshes([m])[0] for m in meshes], light_w, fx.shadows)
         if not geo.all_hit:
             grey[~geo.hit] = 0
         colour = cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR)

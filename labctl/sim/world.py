@@ -6,6 +6,9 @@ of its stable poses (He et al. 1996 §5.2: the object rides the X-Y table); fixe
 ``T_w_c1``; robot base B (= W in the sample lab), flange F, mobile camera
 ``T_w_c2(t) = T_w_b · T_b_f(t) · T_f_c2`` (§5.1: the camera rides the robot's wrist).
 
+The robot arm (:mod:`labctl.sim.arm`), when the lab has one, is drawn in both cameras: its links follow
+the flange by inverse kinematics; the mobile camera leaves out the wrist it is mounted on.
+
 The world holds no clock: it is asked "what is seen at t". The table's and the robot's motion
 come from callables (the GRBL emulator's ``position_at``, a robot emulator's ``flange_pose_at``),
 so one world serves both virtual-time trials and live runs.
@@ -20,6 +23,7 @@ from typing import TYPE_CHECKING, Self
 import numpy as np
 
 from ..geometry import CameraModel, apply, invert, look_at, make_T, rot_z, rotate
+from .arm import ARM_COLOUR_BGR, MOBILE_SKIP_LINKS, ArmBody, body_hides, camera_body
 from .effects import CameraEffects
 from .render import DEFAULT_LIGHT_DIR_W, MarkerDisc, Mesh, RenderResult, TableSurface, render
 
@@ -196,7 +200,8 @@ class SimWorld:
                  table_position: Callable[[float], Sequence[float] | np.ndarray] | None = None,
                  flange_pose_at: Callable[[float], np.ndarray] | None = None,
                  obj: SimObject | None = None, placement: Placement | None = None,
-                 light_dir_w=DEFAULT_LIGHT_DIR_W, supersample: int = 3):
+                 light_dir_w=DEFAULT_LIGHT_DIR_W, supersample: int = 3, arm: ArmBody | None = None):
+        self.arm = arm
         self.rigs = {"fixed": fixed, "mobile": mobile}
         self.T_w_c1 = np.asarray(T_w_c1, float)
         self.T_f_c2 = np.asarray(T_f_c2, float)
@@ -252,6 +257,50 @@ class SimWorld:
         markers = [MarkerDisc(c + shift, n, r) for _, c, n, r in self._markers_t]
         return [Mesh(self._verts_t + shift, self.obj.faces, self.obj.colour_bgr, markers)]
 
+    def T_w_F(self, t: float) -> np.ndarray:
+        """The flange in W at time ``t`` (s): the robot base's pose times the controller's flange pose."""
+        return self.T_w_b @ np.asarray(self.flange_pose_at(t), float)
+
+    def arm_q(self, t: float) -> np.ndarray | None:
+        """The arm's joint angles (rad) at time ``t`` (s), following the flange; None without an arm."""
+        return None if self.arm is None else self.arm.q_at(t, self.T_w_F)
+
+    def arm_meshes(self, role: str, t: float, window: tuple | None = None) -> list[Mesh]:
+        """The arm's links in W as camera ``role`` sees them at ``t`` (s): all of them and the mobile camera's
+        body for the fixed camera, without the wrist it rides on for the mobile one; only the links that may
+        show in the view (or in its pixel ``window``) unless the camera's effects cast shadows; [] without
+        an arm."""
+        if self.arm is None:
+            return []
+        q = self.arm.q_at(t, self.T_w_F)
+        fx = self.rigs[role].effects
+        # links out of view may still cast a shadow into it: cull only without cast shadows
+        view = None if fx is not None and fx.shadows > 0 else (self.rigs[role].model, self.T_w_c(role, t), window)
+        if role == "mobile":
+            V, F = self.arm.mesh(q, skip_last=MOBILE_SKIP_LINKS, view=view)
+            return [Mesh(V, F, ARM_COLOUR_BGR)] if len(F) else []
+        V, F = self.arm.mesh(q, view=view)
+        Vc, Fc = camera_body(self.T_w_c("mobile", t))
+        return [Mesh(np.concatenate([V, Vc]), np.concatenate([F, Fc + len(V)]), ARM_COLOUR_BGR)]
+
+    def arm_hides_markers(self, role: str, t: float) -> tuple[int, int]:
+        """Of the markers facing camera ``role`` at ``t`` (s), how many there are and how many the arm hides
+        (their centre's sight line passes through a link, or the mobile camera's body): ground truth of the arm's
+        occlusions."""
+        if self.arm is None or self.obj is None:
+            return 0, 0
+        eye = self.T_w_c(role, t)[:3, 3]
+        truth = self.truth(t)
+        facing = [c for _, c, n in truth.markers_w if float(np.dot(n, eye - c)) > 0]
+        if not facing:
+            return 0, 0
+        if role == "mobile":
+            hidden = self.arm.hides(self.arm.q_at(t, self.T_w_F), eye, np.array(facing), skip_last=MOBILE_SKIP_LINKS)
+        else:  # the links and the mobile camera's body
+            hidden = self.arm.hides(self.arm.q_at(t, self.T_w_F), eye, np.array(facing)) \
+                | body_hides(self.T_w_c("mobile", t), eye, np.array(facing))
+        return len(facing), int(hidden.sum())
+
     def table_surface(self, t: float) -> TableSurface:
         """The table's surface at time ``t`` (s): its origin in W (mm) for the renderer."""
         o = self.T_w_t(t)[:3, 3]
@@ -276,6 +325,7 @@ class SimWorld:
         T_w_c = self.T_w_c(role, t)
         meshes = self.meshes_at(t)
         blur = None
+        offsets: list[float] = []
         if rig.exposure_s > 0 and rig.blur_samples > 1:
             # sub-frames symmetric about t over the exposure (t is the exposure's middle)
             m = max(rig.blur_samples // 2, 1)
@@ -285,7 +335,12 @@ class SimWorld:
             if window != "object":
                 raise WorldError(f"unknown window {window!r}; expected 'object' or (x0, y0, x1, y1)")
             states = [(T_w_c, meshes)] + (blur or [])
-            window = self.object_window(role, states)
+            window = self.object_window(role, states)  # the object's footprint: the arm only where it crosses it
+        if self.arm is not None:  # the arm occludes, but the window stays the object's
+            win = window if isinstance(window, tuple) else None
+            meshes = meshes + self.arm_meshes(role, t, win)
+            if blur is not None:
+                blur = [(T, ms + self.arm_meshes(role, t + dt, win)) for (T, ms), dt in zip(blur, offsets)]
         return render(rig.model, T_w_c, meshes, table=self.table_surface(t), light_dir_w=self.light_dir_w,
                       noise_sigma=rig.noise_sigma, rng=rng, exposure_motion=blur, truth=truth,
                       supersample=self.supersample if supersample is None else supersample, window=window,
@@ -332,11 +387,12 @@ class SimWorld:
     def from_lab(cls, lab, *, obj: SimObject | None = None, placement: Placement | None = None,
                  table_position: Callable[[float], Sequence[float] | np.ndarray] | None = None,
                  flange_pose_at: Callable[[float], np.ndarray] | None = None,
-                 exposure_s: float = 0.0, supersample: int = 3) -> Self:
+                 exposure_s: float = 0.0, supersample: int = 3, arm: bool = True) -> Self:
         """The world of a lab's driver files (their *sim* ground-truth fields, via :mod:`labctl.sim.truth`).
 
         Defaults: the table held at the centre of its travel, the robot at home looking at the
-        table's centre (:func:`home_flange_pose`).
+        table's centre (:func:`home_flange_pose`). ``arm``: draw the lab's arm (``lab.arm``, when its file
+        gives link radii) in both cameras.
         """
         from .effects import effects_from_lab
         from .truth import camera_model, fixed_camera_pose, hand_eye
@@ -354,7 +410,7 @@ class SimWorld:
                              effects=effects_from_lab(lab, lab.mobile_camera)),
             T_w_c1=fixed_camera_pose(lab.fixed_camera), T_f_c2=T_f_c2, table_origin_w=lab.table.origin_w_mm,
             table_position=table_position, flange_pose_at=flange_pose_at, obj=obj, placement=placement,
-            supersample=supersample,
+            supersample=supersample, arm=ArmBody.from_config(lab.arm) if arm else None,
         )
 
 
