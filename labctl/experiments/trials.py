@@ -109,12 +109,15 @@ def _serial(lab_root: str, jobs: list[Job], records_dir: str | None) -> Iterator
         yield run_one(lab_root, index, spec, records_dir)
 
 
-def _pool(lab_root: str, jobs: list[Job], records_dir: str | None, n_jobs: int) -> Iterator[dict]:
+def _pool(lab_root: str, jobs: list[Job], records_dir: str | None, n_jobs: int,
+          start: str | None = None) -> Iterator[dict]:
     import multiprocessing as mp
     import threading
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 
-    if threading.active_count() == 1:
+    if start is None:
+        start = "fork" if threading.active_count() == 1 else "forkserver"
+    if start == "fork":
         # fork from this process once it has imported the runtime and loaded the lab: a worker then starts with
         # nothing to import or load (the pool's start was ~2 s of a 16-s sweep on 2 cores). With no other thread
         # there is no lock a child could inherit held; the pool forks all its workers before its own thread starts.
@@ -171,15 +174,17 @@ def _dask(lab_root: str, jobs: list[Job], records_dir: str | None, address: str,
 
 
 def execute(lab_root: str, jobs: list[Job], records_dir: str | None, *, n_jobs: int = 1,
-            scheduler: str | None = None) -> Iterator[dict]:
+            scheduler: str | None = None, pool_start: str | None = None) -> Iterator[dict]:
     """Run ``jobs`` with the chosen executor, yielding each result when it finishes.
 
     ``scheduler``: a Dask scheduler's address (``tcp://host:8786``), or ``"local"`` for a LocalCluster of
-    ``n_jobs`` worker processes on this machine."""
+    ``n_jobs`` worker processes on this machine. ``pool_start``: how the process pool starts its workers,
+    ``"fork"`` (from this process, warmed first) or ``"forkserver"``; None: fork unless another thread runs
+    (``labctl bench trials`` times both)."""
     if scheduler:
         return _dask(lab_root, jobs, records_dir, scheduler, max(1, min(n_jobs, len(jobs))))
     if n_jobs > 1 and len(jobs) > 1:
-        return _pool(lab_root, jobs, records_dir, min(n_jobs, len(jobs)))
+        return _pool(lab_root, jobs, records_dir, min(n_jobs, len(jobs)), pool_start)
     return _serial(lab_root, jobs, records_dir)
 
 
