@@ -22,7 +22,7 @@ import shutil
 import statistics
 import tempfile
 import time
-from collections import Counter
+from collections import defaultdict
 from pathlib import Path
 
 from ._timing import row
@@ -58,7 +58,7 @@ def _forkserver(lab, spec_trials: list[dict], jobs: int) -> tuple[float, list[di
 
 
 # the entry points timed (exclusive of the ones they call), by what they are
-_TIMED = {
+_TIMED: dict[str, list[tuple[str, str | None, str]]] = {
     "setup (lab, devices, workers)": [("labctl.sim.lab", "SimLab", "build"), ("labctl.sim.lab", "SimLab", "open"),
                                       ("labctl.drivers.robot", "SerialRobot", "ensure_ready"),
                                       ("labctl.decisions.predictor", "PredictorPlanner", "__init__")],
@@ -84,12 +84,12 @@ _TIMED = {
 
 
 @contextlib.contextmanager
-def _timed(acc: Counter):
+def _timed(acc: dict[str, float]):
     """Wrap each of :data:`_TIMED`'s entry points to add its exclusive wall time to ``acc`` (restored on exit)."""
     import importlib
 
     stack: list[float] = []
-    undo = []
+    undo: list[tuple[object, str, object]] = []
 
     def wrap(f, cat):
         @functools.wraps(f)
@@ -108,8 +108,8 @@ def _timed(acc: Counter):
     try:
         for cat, points in _TIMED.items():
             for mod, cls, name in points:
-                owner = importlib.import_module(mod)
-                owner = getattr(owner, cls) if cls else owner
+                module = importlib.import_module(mod)
+                owner = getattr(module, cls) if cls else module
                 undo.append((owner, name, owner.__dict__[name]))  # as stored (a classmethod stays one)
                 setattr(owner, name, wrap(getattr(owner, name), cat))
         yield
@@ -125,7 +125,7 @@ def breakdown(lab_root: str, n: int) -> dict:
     ctx = _context(lab_root)[1]
     specs = plan_specs(n, "line", SPEEDS, ctx.names, 200)
     run_one(lab_root, 0, specs[0], None)
-    acc: Counter = Counter()
+    acc: dict[str, float] = defaultdict(float)
     sim = 0.0
     with _timed(acc):
         t0 = time.perf_counter()
@@ -134,7 +134,7 @@ def breakdown(lab_root: str, n: int) -> dict:
         wall = time.perf_counter() - t0
     k = len(specs)
     parts = {cat: {"ms_per_trial": round(1000 * v / k, 1), "share": round(v / wall, 3)}
-             for cat, v in acc.most_common()}
+             for cat, v in sorted(acc.items(), key=lambda kv: -kv[1])}
     return {"trials": k, "ms_per_trial": round(1000 * wall / k, 1), "sim_s_per_trial": round(sim / k, 3),
             "parts": parts, "note": "timing wrappers add a few % to the whole"}
 

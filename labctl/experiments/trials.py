@@ -114,6 +114,7 @@ def _pool(lab_root: str, jobs: list[Job], records_dir: str | None, n_jobs: int,
     import multiprocessing as mp
     import threading
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+    from multiprocessing.context import BaseContext
 
     if start is None:
         start = "fork" if threading.active_count() == 1 else "forkserver"
@@ -122,7 +123,7 @@ def _pool(lab_root: str, jobs: list[Job], records_dir: str | None, n_jobs: int,
         # nothing to import or load (the pool's start was ~2 s of a 16-s sweep on 2 cores). With no other thread
         # there is no lock a child could inherit held; the pool forks all its workers before its own thread starts.
         warm(lab_root)
-        ctx = mp.get_context("fork")
+        ctx: BaseContext = mp.get_context("fork")
     else:
         # another thread runs (an embedding program): forkserver, a clean interpreter per worker, whose server
         # imports the runtime once and every worker forks from it with everything imported
