@@ -28,6 +28,7 @@ from ..planning.interception import _score
 from ..planning.ruckig_interception import RuckigTrajectory, plan_interception_ruckig, ruckig_limits
 from ..tracking import MarkerTracker, PredictedPath
 from ._timing import median_time, row
+from .nees import pooled_by_family
 from .ruckig_baseline import RuckigInterceptor
 
 # the filters compared with the bound (docs/notes/planning.md); measurement noise and frame rate are the lab's
@@ -388,8 +389,15 @@ def run(quick: bool = False) -> dict:
     prior_sigma = _make_tracker(MODELS[INFORMED], "arc").curvature_prior_sigma
     prior_drawn = _bound_table(quick, {INFORMED: MODELS[INFORMED]}, runs=16 if quick else CONSISTENCY_RUNS,
                                acceptance_only=True, with_ml=False, families=("arc",), curvature_sigma=prior_sigma)
+    # the acceptance's NEES: per family, pooled over its cells, with the truth drawn from the tracker's prior (the
+    # curves' radius drawn; every speed the bench runs); the fixed-radius arc and circle cells stay as information
+    curve = "curve (radius from the prior)"
+    pooled = pooled_by_family([r for r in consistency if r["family"] not in ("arc", "circle")]
+                              + [{**r, "family": curve} for r in prior_drawn])
     return {
         "rows": rows + irows + rrows,
+        "nees_pooled": pooled,
+        "nees_pooled_holds": pooled["holds"],
         "interception": interception,
         "replanning": replanning,
         "prediction_vs_bound": table,

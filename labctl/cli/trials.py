@@ -24,8 +24,9 @@ from .run import TRAJECTORIES, _speed
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the first trial.")
 @click.option("--record/--no-record", default=True, show_default=True, help="Keep a run record per trial.")
 @click.option("--jobs", "-j", type=int, default=None, help="Worker processes (default: all cores).")
-@click.option("--scheduler", default=None, metavar="ADDRESS",
-              help="Run on a Dask distributed cluster at ADDRESS (tcp://host:8786) instead of local processes.")
+@click.option("--scheduler", default=None, metavar="local|ADDRESS",
+              help="Run on Dask instead of a local process pool: 'local' starts a LocalCluster of --jobs workers, "
+                   "ADDRESS (tcp://host:8786) uses a running cluster's scheduler (pip install 'labctl[cluster]').")
 @click.option("--resume", type=click.Path(path_type=Path), default=None,
               help="Continue an interrupted sweep folder (runs/trials-…); other options are ignored.")
 @json_option
@@ -92,8 +93,11 @@ class _Progress:
     def __init__(self, console):
         from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
+        # redrawn on each finished trial, without rich's refresh thread: with no other thread running, the
+        # process pool forks its workers from this process (experiments.trials._pool)
         self.bar = Progress(TextColumn("trials"), BarColumn(), MofNCompleteColumn(),
-                            TextColumn("{task.fields[ok]}"), TimeRemainingColumn(), console=console, transient=True)
+                            TextColumn("{task.fields[ok]}"), TimeRemainingColumn(), console=console, transient=True,
+                            auto_refresh=False)
         self.task = None
         self.correct = 0
         self.seen = 0
@@ -114,6 +118,7 @@ class _Progress:
             self.task = self.bar.add_task("trials", total=total, completed=done, ok=ok)
         else:
             self.bar.update(self.task, completed=done, ok=ok)
+        self.bar.refresh()
 
 
 def _num(value, unit: str = "") -> str:

@@ -31,8 +31,16 @@ SPEC = "spec.json"
 RESULTS = "results.jsonl"
 SUMMARY = "summary.json"
 
-# Per-process cache of loaded labs and run contexts: a pool worker loads the library once.
+# Per-process cache of loaded labs and run contexts: a worker loads the lab, its calibration and its library
+# once, for every trial it runs (a forked pool worker inherits the parent's).
 _CONTEXTS: dict[str, tuple] = {}
+
+# What a trial imports on its first run (``simulate_run`` imports the simulator lazily): imported once in the
+# parent, or the fork server, before any worker starts, so no worker pays it on its first trial.
+RUNTIME_MODULES = ("labctl.experiments.trials", "labctl.runtime.virtual", "labctl.decisions.context",
+                   "labctl.decisions.predictor", "labctl.decisions.recognizer", "labctl.sim.clock", "labctl.sim.lab",
+                   "labctl.sim.world", "labctl.sim.render", "labctl.runtime.simlab", "labctl.runtime.stopping",
+                   "labctl.records", "labctl.records.record")
 
 
 def _context(lab_root: str):
@@ -43,6 +51,15 @@ def _context(lab_root: str):
         lab = load_lab(Path(lab_root))
         _CONTEXTS[lab_root] = (lab, RunContext.load(lab))
     return _CONTEXTS[lab_root]
+
+
+def warm(lab_root: str) -> None:
+    """Import the runtime and load ``lab_root``'s context into this process (what every trial then reuses)."""
+    import importlib
+
+    for name in RUNTIME_MODULES:
+        importlib.import_module(name)
+    _context(lab_root)
 
 
 def run_one(lab_root: str, index: int, spec: dict, records_dir: str | None) -> dict:
@@ -92,14 +109,26 @@ def _serial(lab_root: str, jobs: list[Job], records_dir: str | None) -> Iterator
         yield run_one(lab_root, index, spec, records_dir)
 
 
-def _pool(lab_root: str, jobs: list[Job], records_dir: str | None, n_jobs: int) -> Iterator[dict]:
+def _pool(lab_root: str, jobs: list[Job], records_dir: str | None, n_jobs: int,
+          start: str | None = None) -> Iterator[dict]:
     import multiprocessing as mp
+    import threading
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+    from multiprocessing.context import BaseContext
 
-    # forkserver: a clean interpreter per worker (no inherited threads or open ports); the server
-    # imports the runtime once and every worker forks from it with everything imported
-    ctx = mp.get_context("forkserver")
-    ctx.set_forkserver_preload(["labctl.experiments.trials", "labctl.runtime.virtual", "labctl.decisions.context"])
+    if start is None:
+        start = "fork" if threading.active_count() == 1 else "forkserver"
+    if start == "fork":
+        # fork from this process once it has imported the runtime and loaded the lab: a worker then starts with
+        # nothing to import or load (the pool's start was ~2 s of a 16-s sweep on 2 cores). With no other thread
+        # there is no lock a child could inherit held; the pool forks all its workers before its own thread starts.
+        warm(lab_root)
+        ctx: BaseContext = mp.get_context("fork")
+    else:
+        # another thread runs (an embedding program): forkserver, a clean interpreter per worker, whose server
+        # imports the runtime once and every worker forks from it with everything imported
+        ctx = mp.get_context("forkserver")
+        ctx.set_forkserver_preload(list(RUNTIME_MODULES))
     with ProcessPoolExecutor(max_workers=n_jobs, mp_context=ctx, initializer=_ignore_sigint) as pool:
         pending = {pool.submit(run_one, lab_root, i, s, records_dir) for i, s in jobs}
         try:
@@ -118,28 +147,45 @@ def _ignore_sigint() -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent handles Ctrl-C and cancels the rest
 
 
-def _dask(lab_root: str, jobs: list[Job], records_dir: str | None, address: str) -> Iterator[dict]:
+LOCAL = "local"  # --scheduler local: a Dask LocalCluster on this machine's cores
+
+
+def _dask(lab_root: str, jobs: list[Job], records_dir: str | None, address: str, n_workers: int) -> Iterator[dict]:
     try:
-        from distributed import Client, as_completed
+        from distributed import Client, LocalCluster, as_completed
     except ImportError:
         raise UserInputError("--scheduler needs Dask: pip install 'labctl[cluster]'") from None
-    with Client(address) as client:
-        futures = [client.submit(run_one, lab_root, i, s, records_dir, pure=False, key=f"trial-{i}")
-                   for i, s in jobs]
-        try:
-            for f in as_completed(futures):
-                yield f.result()
-        finally:
-            client.cancel(futures)
+    cluster = None
+    if address == LOCAL:
+        # one single-threaded worker process per core: a trial holds the GIL throughout
+        cluster = LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True, dashboard_address=None)
+        address = cluster.scheduler_address
+    try:
+        with Client(address) as client:
+            futures = [client.submit(run_one, lab_root, i, s, records_dir, pure=False, key=f"trial-{i}")
+                       for i, s in jobs]
+            try:
+                for f in as_completed(futures):
+                    yield f.result()
+            finally:
+                client.cancel(futures)
+    finally:
+        if cluster is not None:
+            cluster.close()
 
 
 def execute(lab_root: str, jobs: list[Job], records_dir: str | None, *, n_jobs: int = 1,
-            scheduler: str | None = None) -> Iterator[dict]:
-    """Run ``jobs`` with the chosen executor, yielding each result when it finishes."""
+            scheduler: str | None = None, pool_start: str | None = None) -> Iterator[dict]:
+    """Run ``jobs`` with the chosen executor, yielding each result when it finishes.
+
+    ``scheduler``: a Dask scheduler's address (``tcp://host:8786``), or ``"local"`` for a LocalCluster of
+    ``n_jobs`` worker processes on this machine. ``pool_start``: how the process pool starts its workers,
+    ``"fork"`` (from this process, warmed first) or ``"forkserver"``; None: fork unless another thread runs
+    (``labctl bench trials`` times both)."""
     if scheduler:
-        return _dask(lab_root, jobs, records_dir, scheduler)
+        return _dask(lab_root, jobs, records_dir, scheduler, max(1, min(n_jobs, len(jobs))))
     if n_jobs > 1 and len(jobs) > 1:
-        return _pool(lab_root, jobs, records_dir, min(n_jobs, len(jobs)))
+        return _pool(lab_root, jobs, records_dir, min(n_jobs, len(jobs)), pool_start)
     return _serial(lab_root, jobs, records_dir)
 
 
@@ -232,9 +278,7 @@ def run_sweep(lab, *, n: int, trajectory: str | Sequence[str], speeds: Sequence[
         sweep = Sweep.open(resume)
         spec = sweep.spec
     else:
-        from ..decisions.context import RunContext
-
-        ctx = RunContext.load(lab)  # fails early, in one line, without a calibration or a library
+        ctx = _context(str(lab.root))[1]  # fails early, in one line, without a calibration or a library
         names = list(objects) if objects else list(ctx.names)
         missing = [o for o in names if o not in ctx.library]
         if missing:

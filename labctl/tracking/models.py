@@ -134,8 +134,8 @@ def turn_process_noise(dt: float, q_acc: float, q_curv: float) -> np.ndarray:
     random-walk curvature (density ``q_curv`` mm⁻²/s)."""
     Q = np.zeros((5, 5))
     Q1 = axis_process_noise(1, dt, q_acc)
-    Q[np.ix_([0, 1], [0, 1])] = Q1
-    Q[np.ix_([2, 3], [2, 3])] = Q1
+    Q[0:2, 0:2] = Q1  # slices, not np.ix_: the same assignment, called at every frame's prediction
+    Q[2:4, 2:4] = Q1
     Q[4, 4] = q_curv * dt
     return Q
 
