@@ -147,7 +147,14 @@ def _print_trials(console, s: dict) -> None:
         console.print(f"all speeds: time to identity median {_num(o['time_to_identity_s_median'], ' s')} "
                       f"({_num(o.get('time_from_first_sight_s_median'), ' s')} from first sight), "
                       f"{_num(o.get('ratio_to_lower_bound_median'))}× the honest bound")
-    head = f"success rate {100 * s['success_rate']:.1f} % of {s['n']} trials"
+    from ..records.sweep_report import wilson_interval
+
+    k = sum(bool(t.get("correct")) for t in s.get("trials", []))
+    lo, hi = wilson_interval(k, s["n"])
+    console.print("× honest bound: time to identity over first sight + the legs' minimum time + frame times "
+                  "(≥ 1); × quintic bound: over the paper's quintic legs, which a jerk-limited run can beat "
+                  "(< 1 possible)", highlight=False)
+    head = f"success rate {100 * s['success_rate']:.1f} % of {s['n']} trials (95 % CI {100 * lo:.1f}–{100 * hi:.1f} %)"
     if s.get("interrupted"):
         head += f" (interrupted: {s['n']} of {s.get('planned')} done; --resume {s['sweep']} continues)"
     console.print(head)

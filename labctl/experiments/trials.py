@@ -220,6 +220,18 @@ class Sweep:
         write_sweep_report(self.path, summary)
 
 
+def library_digest(library_dir: Path) -> str:
+    """SHA-256 over a library folder's files (relative path and bytes, in path order): which library a
+    sweep ran against, for its report."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for p in sorted(q for q in library_dir.rglob("*") if q.is_file() and not q.name.startswith(".")):
+        h.update(str(p.relative_to(library_dir)).encode() + b"\0")
+        h.update(p.read_bytes())
+    return h.hexdigest()
+
+
 def run_sweep(lab, *, n: int, trajectory: str | Sequence[str], speeds: Sequence[float], objects: Sequence[str] | None,
               seed: int = 0, record: bool = True, n_jobs: int = 1, scheduler: str | None = None,
               profiles: Sequence[str | None] = (None,),
@@ -239,7 +251,9 @@ def run_sweep(lab, *, n: int, trajectory: str | Sequence[str], speeds: Sequence[
         missing = [o for o in names if o not in ctx.library]
         if missing:
             raise UserInputError(f"no object {missing[0]!r} in the library (have: {', '.join(ctx.names)})")
-        spec = {"lab": str(lab.root), "trajectory": trajectory, "speeds": [float(v) for v in speeds],
+        spec = {"lab": str(lab.root), "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
+                "library": str(lab.library_dir), "library_sha256": library_digest(Path(lab.library_dir)),
+                "trajectory": trajectory, "speeds": [float(v) for v in speeds],
                 "objects": names, "n": n, "seed": seed, "record": record,
                 "profiles": list(profiles), "trials": plan_specs(n, trajectory, speeds, names, seed, profiles)}
         sweep = Sweep.create(Path(lab.runs_dir), spec)
