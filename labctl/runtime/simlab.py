@@ -431,6 +431,9 @@ def write_served_lab(lab: Lab, out, served: ServedLab, *, force: bool = False):
             dump(tmp / "drivers/table.yaml", dataclasses.asdict(table), real)
         robot = dataclasses.replace(lab.robot, kind="serial", port=ep["robot"])
         dump(tmp / "drivers/robot.yaml", dataclasses.asdict(robot), real)
+        if (lab.root / "drivers" / "arms").is_dir():  # the robot file's ``arm:`` is relative to drivers/
+            shutil.copytree(lab.root / "drivers" / "arms", tmp / "drivers" / "arms",
+                            ignore=shutil.ignore_patterns(".*", "__pycache__"))
         for role in ("fixed_camera", "mobile_camera"):
             cfg = dataclasses.replace(getattr(lab, role), kind="stream", url=ep[role], timestamps="header",
                                       eye_w_mm=None, target_w_mm=None)
