@@ -23,13 +23,16 @@ from .run import TRAJECTORIES, _speed
 @click.option("--objects", default=None, help="Comma-separated objects to cycle through (default: all).")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the first trial.")
 @click.option("--record/--no-record", default=True, show_default=True, help="Keep a run record per trial.")
+@click.option("--keep", type=click.Choice(["all", "failures"]), default="all", show_default=True,
+              help="Which trials' records to keep: all, or only those that failed (their images and events; the "
+                   "others' results stay in results.jsonl).")
 @click.option("--jobs", "-j", type=int, default=None, help="Worker processes (default: all cores).")
 @click.option("--scheduler", default=None, metavar="ADDRESS",
               help="Run on a Dask distributed cluster at ADDRESS (tcp://host:8786) instead of local processes.")
 @click.option("--resume", type=click.Path(path_type=Path), default=None,
               help="Continue an interrupted sweep folder (runs/trials-…); other options are ignored.")
 @json_option
-def trials_cmd(n, trajectory, profile, speed, objects, seed, record, jobs, scheduler, resume) -> None:
+def trials_cmd(n, trajectory, profile, speed, objects, seed, record, keep, jobs, scheduler, resume) -> None:
     """Many simulated runs in virtual time with deterministic seeds, in parallel.
 
     Writes one folder, runs/trials-<time>/: spec, per-trial results and records, summary.json and
@@ -67,7 +70,8 @@ def trials_cmd(n, trajectory, profile, speed, objects, seed, record, jobs, sched
     try:
         with progress or _nothing():
             summary = run_sweep(lab, n=n, trajectory=trajs[0] if len(trajs) == 1 else trajs, speeds=speeds,
-                                objects=names, seed=seed, record=record, n_jobs=n_jobs, scheduler=scheduler,
+                                objects=names, seed=seed, record=record, keep=keep, n_jobs=n_jobs,
+                                scheduler=scheduler,
                                 resume=resume, profiles=profiles,
                                 on_result=progress.update if progress else None)
     except KeyboardInterrupt as exc:

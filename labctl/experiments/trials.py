@@ -233,12 +233,14 @@ def library_digest(library_dir: Path) -> str:
 
 
 def run_sweep(lab, *, n: int, trajectory: str | Sequence[str], speeds: Sequence[float], objects: Sequence[str] | None,
-              seed: int = 0, record: bool = True, n_jobs: int = 1, scheduler: str | None = None,
+              seed: int = 0, record: bool = True, keep: str = "all", n_jobs: int = 1, scheduler: str | None = None,
               profiles: Sequence[str | None] = (None,),
               resume: Path | None = None, on_result: Callable[[dict, int, int], None] | None = None) -> dict:
     """Run (or resume) a sweep and return its summary; the summary is also written to the folder.
 
-    ``on_result(result, done, total)`` is called after each finished trial (progress). On
+    ``keep``: "all" keeps every trial's record, "failures" deletes the record of each correct trial as it
+    finishes (its result stays, with ``record`` null), so a long sweep keeps images only where something
+    went wrong. ``on_result(result, done, total)`` is called after each finished trial (progress). On
     KeyboardInterrupt the partial summary is written and attached to the exception as ``.summary``."""
     if resume is not None:
         sweep = Sweep.open(resume)
@@ -254,7 +256,7 @@ def run_sweep(lab, *, n: int, trajectory: str | Sequence[str], speeds: Sequence[
         spec = {"lab": str(lab.root), "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
                 "library": str(lab.library_dir), "library_sha256": library_digest(Path(lab.library_dir)),
                 "trajectory": trajectory, "speeds": [float(v) for v in speeds],
-                "objects": names, "n": n, "seed": seed, "record": record,
+                "objects": names, "n": n, "seed": seed, "record": record, "keep": keep,
                 "profiles": list(profiles), "trials": plan_specs(n, trajectory, speeds, names, seed, profiles)}
         sweep = Sweep.create(Path(lab.runs_dir), spec)
     done = sweep.results()
@@ -264,6 +266,9 @@ def run_sweep(lab, *, n: int, trajectory: str | Sequence[str], speeds: Sequence[
     t0 = time.monotonic()
     try:
         for res in execute(spec["lab"], jobs, records_dir, n_jobs=n_jobs, scheduler=scheduler):
+            if spec.get("keep") == "failures" and res.get("correct") and res.get("record"):
+                shutil.rmtree(res["record"], ignore_errors=True)  # only where something went wrong
+                res = {**res, "record": None}
             sweep.append(res)
             done[res["index"]] = res
             if on_result is not None:
