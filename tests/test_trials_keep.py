@@ -29,7 +29,8 @@ def test_keep_failures_keeps_only_the_failed_trials_records(tmp_path, capsys):
     assert kept == sorted(f"{i:05d}-seed{i}" for i in failed)
     for t in s["trials"]:
         assert (t["record"] is None) == t["correct"]
-        assert t["record"] is None or (folder / "trials" / f"{t['index']:05d}-seed{t['index']}" / "events.jsonl").is_file()
+        rec = folder / "trials" / f"{t['index']:05d}-seed{t['index']}"
+        assert t["record"] is None or (rec / "events.jsonl").is_file()
     lines = [json.loads(x) for x in (folder / "results.jsonl").read_text().splitlines()]
     assert len(lines) == 4  # every result stays
     page = (folder / "report.html").read_text()

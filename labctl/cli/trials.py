@@ -26,13 +26,18 @@ from .run import TRAJECTORIES, _speed
 @click.option("--keep", type=click.Choice(["all", "failures"]), default="all", show_default=True,
               help="Which trials' records to keep: all, or only those that failed (their images and events; the "
                    "others' results stay in results.jsonl).")
+@click.option("--view", is_flag=True, help="Serve a live view of the trial being run on a local web page (its URL "
+              "goes to stderr), with a Stop button (Ctrl-C's path: the partial summary is kept).")
+@click.option("--view-port", type=click.IntRange(0, 65535), default=None,
+              help="The live view's port (default: lab.yaml view.port; 0: any free port).")
 @click.option("--jobs", "-j", type=int, default=None, help="Worker processes (default: all cores).")
 @click.option("--scheduler", default=None, metavar="ADDRESS",
               help="Run on a Dask distributed cluster at ADDRESS (tcp://host:8786) instead of local processes.")
 @click.option("--resume", type=click.Path(path_type=Path), default=None,
               help="Continue an interrupted sweep folder (runs/trials-…); other options are ignored.")
 @json_option
-def trials_cmd(n, trajectory, profile, speed, objects, seed, record, keep, jobs, scheduler, resume) -> None:
+def trials_cmd(n, trajectory, profile, speed, objects, seed, record, keep, view, view_port, jobs, scheduler,
+               resume) -> None:
     """Many simulated runs in virtual time with deterministic seeds, in parallel.
 
     Writes one folder, runs/trials-<time>/: spec, per-trial results and records, summary.json and
@@ -65,6 +70,20 @@ def trials_cmd(n, trajectory, profile, speed, objects, seed, record, keep, jobs,
     if resume is not None and not resume.is_dir():
         raise UserInputError(f"--resume: no sweep folder at {resume}")
 
+    if view and not record:
+        raise UserInputError("--view shows the trials' records: it cannot go with --no-record")
+    page = None
+    if view:
+        from .run import _bind_view
+
+        page = _bind_view(lab, view_port)  # a taken port: refused before the sweep starts
+        click.get_current_context().call_on_close(page.close)
+
+    def follow(folder: Path) -> None:
+        if page is not None:
+            page.follow_newest(folder / "trials").start()
+            click.echo(f"live view: {page.url}", err=True)
+
     con = live_console()  # never into a piped result
     progress = _Progress(con) if con is not None else None
     try:
@@ -72,7 +91,7 @@ def trials_cmd(n, trajectory, profile, speed, objects, seed, record, keep, jobs,
             summary = run_sweep(lab, n=n, trajectory=trajs[0] if len(trajs) == 1 else trajs, speeds=speeds,
                                 objects=names, seed=seed, record=record, keep=keep, n_jobs=n_jobs,
                                 scheduler=scheduler,
-                                resume=resume, profiles=profiles,
+                                resume=resume, profiles=profiles, on_sweep=follow,
                                 on_result=progress.update if progress else None)
     except KeyboardInterrupt as exc:
         partial = getattr(exc, "summary", None)

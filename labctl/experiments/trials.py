@@ -235,12 +235,14 @@ def library_digest(library_dir: Path) -> str:
 def run_sweep(lab, *, n: int, trajectory: str | Sequence[str], speeds: Sequence[float], objects: Sequence[str] | None,
               seed: int = 0, record: bool = True, keep: str = "all", n_jobs: int = 1, scheduler: str | None = None,
               profiles: Sequence[str | None] = (None,),
-              resume: Path | None = None, on_result: Callable[[dict, int, int], None] | None = None) -> dict:
+              resume: Path | None = None, on_result: Callable[[dict, int, int], None] | None = None,
+              on_sweep: Callable[[Path], None] | None = None) -> dict:
     """Run (or resume) a sweep and return its summary; the summary is also written to the folder.
 
     ``keep``: "all" keeps every trial's record, "failures" deletes the record of each correct trial as it
     finishes (its result stays, with ``record`` null), so a long sweep keeps images only where something
-    went wrong. ``on_result(result, done, total)`` is called after each finished trial (progress). On
+    went wrong. ``on_sweep(folder)`` is called once the sweep's folder exists (a live view follows its
+    trials). ``on_result(result, done, total)`` is called after each finished trial (progress). On
     KeyboardInterrupt the partial summary is written and attached to the exception as ``.summary``."""
     if resume is not None:
         sweep = Sweep.open(resume)
@@ -259,6 +261,8 @@ def run_sweep(lab, *, n: int, trajectory: str | Sequence[str], speeds: Sequence[
                 "objects": names, "n": n, "seed": seed, "record": record, "keep": keep,
                 "profiles": list(profiles), "trials": plan_specs(n, trajectory, speeds, names, seed, profiles)}
         sweep = Sweep.create(Path(lab.runs_dir), spec)
+    if on_sweep is not None:
+        on_sweep(sweep.path)
     done = sweep.results()
     jobs = [(i, s) for i, s in enumerate(spec["trials"]) if i not in done]
     records_dir = str(sweep.path / "trials") if spec.get("record", True) else None
