@@ -195,7 +195,7 @@ class RecordTail:
 
     def images(self) -> list[dict]:
         """The mobile camera's saved images, oldest first: ``{"name", "mtime"}``."""
-        out = []
+        out: list[dict] = []
         if not self.folder.is_dir():  # a sweep's first trial not started yet
             return out
         with os.scandir(self.folder) as it:
@@ -284,6 +284,8 @@ class LiveViewServer:
 
     def _newest(self) -> None:
         """Switch :attr:`tail` to the record under :attr:`parent` whose event log changed last."""
+        if self.parent is None:
+            return
         try:
             logs = [(p.stat().st_mtime, p.parent) for p in self.parent.glob(f"*/{EVENTS}")]
         except OSError:
