@@ -118,3 +118,16 @@ def test_sweep_spec_names_its_library_by_hash(tmp_path):
     assert spec["library_sha256"] == h.hexdigest() and spec["created_utc"].startswith("20")
     text = (lab.runs_dir / s["sweep"].split("/")[-1] / "report.html").read_text()
     assert spec["library_sha256"][:16] in text and str(root) in text
+
+
+@pytest.mark.parametrize("n", [1, 3, 10, 49, 120])
+def test_all_correct_or_all_failed_groups_draw(tmp_path, n):
+    """k = n and k = 0: the interval ends exactly at 1 and 0 (rounding once made matplotlib refuse a bar)."""
+    assert wilson_interval(n, n)[1] == 1.0 and wilson_interval(0, n)[0] == 0.0
+    trials = [_trial(i, "tee", "tee", 8.0) for i in range(n)] + [_trial(n + i, "tee", None, 40.0, failure="x")
+                                                                 for i in range(n)]
+    folder = tmp_path / "trials-x"
+    folder.mkdir()
+    s = summarize(trials)
+    s.update({"planned": 2 * n, "interrupted": False})
+    assert write_sweep_report(folder, s).is_file() and (folder / "report.png").stat().st_size > 1000

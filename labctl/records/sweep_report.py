@@ -55,7 +55,8 @@ def wilson_interval(k: int, n: int, z: float = Z95) -> tuple[float, float]:
     d = 1 + z * z / n
     centre = (p + z * z / (2 * n)) / d
     half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / d
-    return max(0.0, centre - half), min(1.0, centre + half)
+    # at k = 0 and k = n the bound is exactly 0 and 1 (the formula gives them only to rounding)
+    return (0.0 if k == 0 else max(0.0, centre - half)), (1.0 if k == n else min(1.0, centre + half))
 
 
 def failure_cause(result: dict) -> str:
@@ -117,8 +118,8 @@ def sweep_figure(summary: dict):
             if n:
                 xs.append(v + dx)
                 ys.append(100 * k / n)
-                lo.append(100 * (k / n - a))
-                hi.append(100 * (b - k / n))
+                lo.append(max(0.0, 100 * (k / n - a)))  # never below 0: matplotlib refuses a negative bar
+                hi.append(max(0.0, 100 * (b - k / n)))
         line = ax1.errorbar(xs, ys, yerr=[lo, hi], fmt="o-", capsize=3, label=tr)
         # every trial: 100 (correct) or 0, jittered so that none hides another
         for i, r in enumerate(rs):
