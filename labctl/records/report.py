@@ -339,8 +339,10 @@ def _draw_scores(ax, rows: list[dict], view, ident: str | None) -> None:
     top = max((r["score"] for _, r in scored), default=1.0) or 1.0
     for y, r in zip(ys, rows, strict=True):
         if r["score"] is None:
-            ax.text(0.02 * top, y, "no score: " + _clip(r["fate"], 60), va="center", fontsize=7, color="0.3")
+            short = r["fate"].split(":")[0].split(" (")[0]  # the gate's name; its numbers are in the HTML table
+            ax.text(0.02 * top, y, f"no score: {short}", va="center", fontsize=8, color="0.3")
     ax.set_yticks(ys, [r["object"] for r in rows])
+    ax.set_ylim(-0.7, n - 0.3)  # the last row's label clear of the axis
     ax.set_xlim(0, 1.15 * top)
     ax.set_title("Match scores" + (f" (view {view})" if view is not None else ""))
     ax.set_xlabel("silhouette mismatch (lower is better)")
