@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import base64
 import re
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -23,6 +24,10 @@ def _full_run(tmp_path):
     rec = RunRecord.create(tmp_path, {"trajectory": "line", "speed_mm_s": 8.0, "object": "wedge"})
     rec.event("worker_started", role="predictor", pid=11)
     rec.event("worker_started", role="recognizer", pid=12)
+    rec.event("tracking_prior", t=0.0, family="line", curve_prior=0.001)
+    for t, st in ((0.0, "track"), (1.0, "intercept"), (2.0, "initial"), (2.5, "standard"), (3.0, "match"),
+                  (3.1, "done")):
+        rec.event("stage", t=t, stage=st)
     for i in range(20):
         t = 0.1 * i
         rec.event("track", t=t, x=100 + 8 * t, y=50.0, px=[160.0 + i, 120.0])
@@ -68,7 +73,8 @@ def test_full_report_has_every_section_and_a_figure(tmp_path):
     assert scores.index("wedge") < scores.index("cube") < scores.index("prism")  # best (lowest) first
     assert "lower is better" in scores
     assert 'id="failure"' not in text
-    assert "time_to_identity_s" in _section(text, "summary")
+    assert "time_to_identity_s" in _section(text, "summary")  # every field, folded under the summary
+    assert "identified wedge: correct (sim truth: wedge)" in _section(text, "summary")
     # the embedded figure is the same PNG as report.png and decodes to an image
     b64 = re.search(r'src="data:image/png;base64,([^"]+)"', text).group(1)
     png = base64.b64decode(b64)
@@ -131,8 +137,12 @@ def test_early_ended_run_reports_not_reached(tmp_path):
     assert "did not finish" in _section(text, "summary")
     assert "failure" in _section(text, "events")
     assert (rec.path / "report.png").stat().st_size > 1000
-    titles = [ax.get_title() for ax in render_figure(load_run(rec.path)).axes]
-    assert "Standard view" in titles and "Match scores" in titles
+    # the figure leads with the cause and the fixed camera, not with a panel per step never reached
+    fig = render_figure(load_run(rec.path))
+    titles = [ax.get_title() for ax in fig.axes]
+    assert "Standard view" not in titles and "Match scores" not in titles
+    assert "Fixed camera, last frame" in titles and "Stage timeline" in titles
+    assert "recognizer worker died" in " ".join(fig._suptitle.get_text().split())
 
 
 def test_report_of_an_empty_record_and_of_bad_event_fields(tmp_path):
@@ -196,3 +206,118 @@ def test_report_command_redraws_a_failed_run_and_names_the_reason(tmp_path, caps
     assert (rec.path / "report.html").is_file() and (rec.path / "report.png").is_file()
     code, out, err = run_cli(capsys, "report", str(tmp_path))  # a folder that is no record: bad input
     assert code == 2 and len(err.strip().splitlines()) == 1 and "not a run record" in err
+
+
+def test_title_says_what_was_identified_and_whether_it_was_right(tmp_path):
+    rec = _full_run(tmp_path)
+    assert "identified wedge: correct (sim truth: wedge)" in render_figure(load_run(rec.path))._suptitle.get_text()
+    rec.finish({"identity": "wedge", "true_identity": "cube", "correct": False})
+    fig = render_figure(load_run(rec.path))
+    assert "identified wedge: WRONG (sim truth: cube)" in fig._suptitle.get_text()
+    text = write_report(rec.path).read_text()
+    assert "<title>labctl run" in text and "WRONG (sim truth: cube)" in text[: text.index("</title>")]
+    rec.finish({"identity": "wedge"})  # a real lab: no truth, nothing claimed
+    assert "no ground truth" in render_figure(load_run(rec.path))._suptitle.get_text()
+
+
+def test_timeline_has_no_negative_duration_and_says_why_it_clamped(tmp_path):
+    """A live record whose first frame was exposed 12.4 ms before the predictor's start (as records
+    written before the predictor's fix carry: ``wait: -0.0124``)."""
+    rec = RunRecord.create(tmp_path, {"trajectory": "line"})
+    rec.event("tracking_prior", t=5.0, family="line", curve_prior=0.001)
+    for t, st in ((4.9876, "track"), (5.2, "intercept"), (6.0, "initial"), (6.5, "initial"), (7.0, "standard"),
+                  (8.0, "match"), (8.1, "done")):
+        rec.event("stage", t=t, stage=st)
+    rec.finish({"identity": "wedge", "stages": {"wait": -0.0124, "track": 0.2124}})
+    from labctl.records.report import timeline
+
+    stages = timeline(load_run(rec.path))
+    assert [s.stage for s in stages] == ["wait", "track", "intercept", "initial", "standard", "match"]
+    assert all(s.duration_s >= 0 for s in stages)
+    assert stages[0].duration_s == 0 and stages[0].clamped_s == pytest.approx(0.0124)
+    assert stages[1].duration_s == pytest.approx(0.2) and stages[3].duration_s == pytest.approx(1.0)
+    sec = _section(write_report(rec.path).read_text(), "timeline")
+    assert "12.4 ms before it began" in sec and "-0.0" not in sec
+
+
+def test_stage_times_never_count_a_stage_backwards():
+    """The source of the negative wait: a stage entered on a frame exposed before the previous stage began."""
+    from labctl.decisions.predictor import StageTimes
+
+    st = StageTimes()
+    st.enter("wait", 5.0)
+    st.enter("track", 4.9876)  # the live camera's latest frame at the start
+    st.enter("intercept", 5.2)
+    assert st.durations == {"wait": 0.0, "track": pytest.approx(0.2)}
+
+
+def _lab(tmp_path, capsys, **run_settings):
+    from fakes import run_cli
+
+    lab = tmp_path / "lab"
+    code, _, err = run_cli(capsys, "init", str(lab))
+    assert code == 0, err
+    if run_settings:
+        text = (lab / "lab.yaml").read_text()
+        for k, v in run_settings.items():
+            text = re.sub(rf"(?m)^(  {k}:).*$", rf"\g<1> {v}", text)
+        (lab / "lab.yaml").write_text(text)
+    return lab
+
+
+def test_report_names_the_gate_that_dropped_each_object(tmp_path, capsys):
+    """Seed 8 on the sample lab: the standard view measures its marker 75 mm up, and three objects whose
+    silhouette would pass fall to the marker-height gate. The oracle: the library's own ``view_scores``
+    with and without the measured height (the gate inside the scoring), on the recorded image."""
+    from fakes import run_cli
+
+    from labctl.config import load_lab
+    from labctl.decisions.context import RunContext
+    from labctl.library.matching import view_scores
+    from labctl.library.views import mm_per_px
+    from labctl.vision.shape import features_from_image
+
+    lab = _lab(tmp_path, capsys)
+    code, out, err = run_cli(capsys, "--lab", str(lab), "--json", "run", "--virtual", "--seed", "8")
+    import json
+
+    res = json.loads(out)
+    assert code == 0 and res["correct"], err
+    run = load_run(res["record"])
+    ev = run.of("match")[-1]
+    ctx = RunContext.load(load_lab(lab))
+    img = cv2.imread(str(run.path / f"standard_{ev['view']}.png"), cv2.IMREAD_UNCHANGED)
+    f = features_from_image(img, mm_per_px(ctx.mobile_camera, ctx.lab.config.viewing.standoff_mm))
+    names = np.asarray(ctx.index.names)
+    free = view_scores(f, ctx.index)
+    held = view_scores(f, ctx.index, height_mm=ev["marker_height_mm"], height_tol_mm=ev["height_tol_mm"])
+    by_height = {n for n, s in ev["scores"].items() if s is None
+                 and np.isfinite(free[names == n]).any() and not np.isfinite(held[names == n]).any()}
+    by_shape = {n for n, s in ev["scores"].items() if s is None and not np.isfinite(free[names == n]).any()}
+    assert by_height and by_shape  # the seed shows both gates
+    sec = _section(Path(res["report"]).read_text(), "scores")
+    rows = dict(re.findall(r"<tr><th>([a-z_]+)</th><td>[^<]*</td><td>([^<]*)</td></tr>", sec))
+    assert {n for n, why in rows.items() if why.startswith("marker-height gate")} == by_height
+    assert {n for n, why in rows.items() if why.startswith("shape gate")} == by_shape
+    assert rows[res["identity"]] == "the answer"
+    # every object of the library has its row: none silently missing
+    assert set(rows) == set(ctx.names)
+    ax = next(a for a in render_figure(run).axes if a.get_title().startswith("Match scores"))
+    assert {t.get_text() for t in ax.get_yticklabels()} == set(ctx.names)
+
+
+def test_failed_virtual_run_report_shows_the_fixed_camera_and_the_cause(tmp_path, capsys):
+    from fakes import run_cli
+
+    lab = _lab(tmp_path, capsys, timeout_s="1.0")
+    code, out, err = run_cli(capsys, "--lab", str(lab), "run", "--virtual", "--seed", "3")
+    assert code == 1 and "no identity within the run's 1 s" in err
+    rec = sorted((lab / "runs").iterdir())[-1]
+    frame = cv2.imread(str(rec / "fixed_last.png"))
+    assert frame is not None and frame.shape[:2] == (480, 640)  # the whole fixed image, not the object's window
+    fig = render_figure(load_run(rec))
+    titles = [ax.get_title() for ax in fig.axes]
+    assert titles[0] == "Fixed camera, last frame" and fig.axes[0].images
+    assert "not reached" not in " ".join(t.get_text() for ax in fig.axes for t in ax.texts)
+    title = " ".join(fig._suptitle.get_text().split())
+    assert "FAILED in stage intercept" in title and "within the run's 1 s" in title

@@ -38,44 +38,92 @@ def bench_group(names: tuple[str, ...], quick: bool) -> None:
     for name in names or areas:
         results[name] = importlib.import_module(f"labctl.bench.{name}").run(quick=quick)
 
-    def human(console):
-        from rich.table import Table
+    emit(results, lambda console: print_bench(console, results))
 
-        for name, res in results.items():
-            t = Table("case", "median", "baseline", "ratio", title=f"bench {name}")
-            for r in res.get("rows", []):
-                ratio = r.get("ratio")
-                t.add_row(str(r.get("case")), _fmt_s(r.get("median_s")), str(r.get("baseline") or "-"),
-                          f"{ratio:.2f}×" if isinstance(ratio, int | float) else "-")
-            if res.get("rows"):
-                console.print(t)
-            _print_extra(console, name, {k: v for k, v in res.items() if k not in ("rows", "ratio_means")})
-        console.print(f"ratio: {RATIO_MEANS}. Medians; --json gives every number.", soft_wrap=True,
-                      highlight=False)
 
-    emit(results, human)
+def print_bench(console, results: dict) -> None:
+    """Every area's rows and other results as tables that fit the console's width."""
+    from rich.table import Table
+
+    for name, res in results.items():
+        t = Table("case", "median", "baseline", "ratio", title=f"bench {name}")
+        for r in res.get("rows", []):
+            ratio = r.get("ratio")
+            t.add_row(str(r.get("case")), _fmt_s(r.get("median_s")), str(r.get("baseline") or "-"),
+                      f"{ratio:.2f}×" if isinstance(ratio, int | float) else "-")
+        if res.get("rows"):
+            console.print(t)
+        _print_extra(console, name, {k: v for k, v in res.items() if k not in ("rows", "ratio_means")})
+    console.print(f"ratio: {RATIO_MEANS}. Medians; --json gives every number.", highlight=False)
 
 
 RATIO_MEANS = "the baseline's median time ÷ this case's median time, both timed in this run (> 1: faster)"
 
 
 def _print_extra(console, area: str, extra: dict) -> None:
-    """An area's other results as tables: scalars (nested keys dotted) in one, each list of records in its own."""
+    """An area's other results as tables: scalars (nested keys dotted) in one, each list of records in its own
+    (:func:`_record_tables`)."""
     from rich.table import Table
 
-    scalars = Table("result", "value", title=f"bench {area}: results", title_justify="left")
+    scalars = Table(title=f"bench {area}: results", title_justify="left")
+    scalars.add_column("result", overflow="fold")
+    scalars.add_column("value", overflow="fold")
     for key, value in extra.items():
         if isinstance(value, list) and value and all(isinstance(v, dict) for v in value):
-            cols = list(dict.fromkeys(k for v in value for k in v))
-            t = Table(*cols, title=f"bench {area}: {key}", title_justify="left")
-            for v in value:
-                t.add_row(*(_cell(v.get(c)) for c in cols))
-            console.print(t)
+            for t in _record_tables(f"bench {area}: {key}", value, console.width):
+                console.print(t)
             continue
         for k, v in _leaves(value, key):
             scalars.add_row(k, _cell(v))
     if scalars.row_count:
         console.print(scalars)
+
+
+def _record_tables(title: str, records: list[dict], width: int) -> list:
+    """A list of records as tables no wider than ``width`` columns: nested values flattened to one cell each
+    (``a.b`` keys, never a dict in a cell); the records' text columns (their names) repeated in every table
+    and the numbers split over as many tables as it takes to fit."""
+    from rich.table import Table
+
+    flat = [{k[1:]: v for k, v in _leaves(r, "")} for r in records]
+    cols = list(dict.fromkeys(k for r in flat for k in r))
+    ids = [c for c in cols if all(isinstance(r.get(c), str | type(None)) for r in flat)]
+    nums = [c for c in cols if c not in ids]
+    cells = [{c: _cell(r.get(c)) for c in cols} for r in flat]
+
+    name = " / ".join(ids) or "#"
+    for i, x in enumerate(cells):  # the text columns as one name column, wrapped at ID_WIDTH
+        x[name] = " / ".join(x[c] for c in ids) if ids else str(i + 1)
+
+    def need(c: str) -> int:  # a column's width: its widest cell or its header's longest word
+        head = max((len(w) for w in c.replace(".", " ").replace("_", " ").split()), default=1)
+        return max(head, max(len(x[c]) for x in cells))
+
+    def table(chunk: list[str], part: str = ""):
+        t = Table(title=title + part, title_justify="left")
+        w = min(need(name), ID_WIDTH)
+        t.add_column(name, min_width=w, max_width=w, overflow="fold")
+        for c in chunk:
+            t.add_column(c.replace(".", " ").replace("_", " "), justify="right", overflow="fold",
+                         min_width=need(c), max_width=need(c))
+        for x in cells:
+            t.add_row(*(x[c] for c in [name, *chunk]))
+        return t
+
+    def fits(chunk: list[str]) -> bool:  # each column at its minimum, 1 padding each side, 1 rule between
+        cols = [min(need(name), ID_WIDTH), *(need(c) for c in chunk)]
+        return sum(cols) + 3 * len(cols) + 1 <= width
+
+    chunks: list[list[str]] = [[]]
+    for c in nums:
+        if chunks[-1] and not fits([*chunks[-1], c]):
+            chunks.append([])
+        chunks[-1].append(c)
+    n = len(chunks)
+    return [table(chunk, f" ({i + 1}/{n})" if n > 1 else "") for i, chunk in enumerate(chunks)]
+
+
+ID_WIDTH = 20  # the name column of a record table: wide enough for "background texture", wraps beyond
 
 
 def _leaves(value, key: str):

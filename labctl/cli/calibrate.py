@@ -44,7 +44,9 @@ def _human_report(rep: dict):
         c.print(f"{rep.get('images', 0)} images kept in {rep.get('captures')}")
         for f in rep.get("files", []):
             c.print(f"wrote {f}")
-        c.print("next: labctl run --trajectory line", highlight=False)
+        if rep.get("scene_restored"):
+            c.print("the served lab's object is back on the table", highlight=False)
+        c.print(f"next: {rep.get('next') or 'labctl run --trajectory line'}", highlight=False)
     return show
 
 
@@ -52,6 +54,16 @@ def _fmt(v):
     if isinstance(v, dict):
         return "{" + ", ".join(f"{k}: {_fmt(x)}" for k, x in v.items()) + "}"
     return f"{v:.4g}" if isinstance(v, float) else str(v)
+
+
+class PromptRefused(Exception):
+    """Nobody placed the target: the prompt was refused or not answered. Nothing moves at a prompt (the
+    robot is back at its start), so the devices are read, not stopped: a STOP would latch a fault on the
+    robot's controller that only ``labctl robot clear`` releases."""
+
+    def __init__(self, error: Exception):
+        super().__init__(str(error))
+        self.error = error
 
 
 class TerminalPrompt:
@@ -75,7 +87,8 @@ class TerminalPrompt:
         else:
             click.echo(text, err=True)
         if not sys.stdin.readline():
-            raise UserInputError("no answer to the prompt (stdin closed): the target's placement was not confirmed")
+            raise PromptRefused(UserInputError("no answer to the prompt (stdin closed): the target's placement "
+                                               "was not confirmed"))
 
 
 class CommandPrompt:
@@ -97,10 +110,75 @@ class CommandPrompt:
             done = subprocess.run([*self.argv, f"{spacer_mm:g}", str(index + 1), str(count)], stdin=subprocess.DEVNULL,
                                   capture_output=True, text=True, timeout=600)
         except (OSError, subprocess.TimeoutExpired) as exc:
-            raise UserInputError(f"--prompt-command failed: {exc}") from None
+            raise PromptRefused(UserInputError(f"--prompt-command failed: {exc}")) from None
         if done.returncode != 0:
             why = (done.stderr.strip().splitlines() or [f"exit status {done.returncode}"])[-1]
-            raise UserInputError(f"--prompt-command did not place the target on {spacer_mm:g} mm: {why}")
+            raise PromptRefused(UserInputError(f"--prompt-command did not place the target on {spacer_mm:g} mm: "
+                                               f"{why}"))
+
+
+class ServedPrompt:
+    """The prompt answered by a served lab (``labctl sim serve``) itself: its ``/control/scene`` puts the
+    target on the spacer, and :meth:`restore` puts the run's object back afterwards."""
+
+    def __init__(self, url: str):
+        self.url = url
+        self.placed = False
+
+    def place_target(self, spacer_mm: float, index: int, count: int) -> None:
+        """Put the calibration target on its pins on a ``spacer_mm`` spacer (mm) in the served world."""
+        from .sim import _post_scene
+
+        try:
+            _post_scene(self.url, scene="calibration", spacer_mm=f"{spacer_mm:g}")
+        except Exception as exc:  # noqa: BLE001 — a served lab that does not answer is a refused prompt
+            raise PromptRefused(exc) from None
+        self.placed = True
+
+    def restore(self) -> bool:
+        """Put the run's object back on the table (once the target was placed); whether it was."""
+        from .sim import _post_scene
+
+        if not self.placed:
+            return False
+        _post_scene(self.url, scene="object", spacer_mm="0")
+        self.placed = False
+        return True
+
+
+def served_scene_url(lab) -> str | None:
+    """The served lab's scene control (``served_truth.json`` beside ``lab.yaml``, written by ``labctl sim serve
+    --lab-out``), or None for any other lab."""
+    import json
+
+    try:
+        return str(json.loads((Path(lab.root) / "served_truth.json").read_text())["endpoints"]["scene_control"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+def _read_still(devs) -> str:
+    """After a refused prompt: read both devices back without stopping them (nothing moves at a prompt); a
+    device found moving is stopped (:func:`_confirm_stopped`)."""
+    parts = []
+    table, robot = devs.table, devs.robot
+    moving = False
+    if table is not None:
+        try:
+            st = table.status()
+            moving |= not st.state.startswith(("Idle", "Alarm", "Check"))
+            parts.append(f"table still ({st.state})")
+        except Exception as exc:  # noqa: BLE001
+            parts.append(f"table status NOT read ({type(exc).__name__}: {exc})")
+            moving = True
+    if robot is not None:
+        try:
+            moving |= robot.status().moving
+            parts.append("robot still, no STOP sent")
+        except Exception as exc:  # noqa: BLE001
+            parts.append(f"robot status NOT read ({type(exc).__name__}: {exc})")
+            moving = True
+    return _confirm_stopped(devs) if moving else ", ".join(parts) or "no device was opened"
 
 
 def _confirm_stopped(devs, settle_s: float = 2.0) -> str:
@@ -138,10 +216,13 @@ def _latch_left(devs, lab) -> str | None:
     return latch_note(fault) if fault else None
 
 
-def _open_devices(lab, cameras: str, seed: int, target, prompt_command: str | None = None, console=None):
+def _open_devices(lab, cameras: str, seed: int, target, prompt_command: str | None = None, console=None, *,
+                  home: bool = False, ask: bool = False):
     """(Devices, prompt, truth or None, closer) for ``lab``: the coupled in-process simulator when
     every device is simulated, else the real drivers (mixing the two cannot work: a simulated
-    camera would not see a real table)."""
+    camera would not see a real table). ``home``: home a table found in Alarm (else that is an error
+    naming the command that homes it). The prompt: ``prompt_command``, else a served lab's own scene
+    control unless ``ask``, else the terminal."""
 
     from ..calibration.procedure import Devices
     from ..calibration.run import Truth
@@ -165,11 +246,23 @@ def _open_devices(lab, cameras: str, seed: int, target, prompt_command: str | No
         raise UserInputError("calibration needs the devices all simulated or all real, not "
                              + ", ".join(f"{r}: {k}" for r, k in kinds.items()))
     opened = {}
+    homing = False
     try:
         for r in roles:
             dev = open_device(r, lab)
             dev.open()
             opened[r] = dev
+        table = opened["table"]
+        if table.status().state.startswith("Alarm"):  # GRBL powers up homing-locked, as the served one does
+            from ..drivers.grbl import GrblTable
+            from ..errors import DeviceError
+
+            if not home or not isinstance(table, GrblTable):
+                raise DeviceError(f"table: in Alarm (position unknown; GRBL powers up locked until homed): "
+                                  f"next: labctl --lab {lab.root} calibrate --home (homes it, then calibrates)")
+            homing = True
+            table.home()
+            homing = False
         # before anything moves: a fault latched on the robot's controller (a STOP of an earlier command) would
         # refuse the first station only after the table has moved the target through the fixed camera's positions
         if "robot" in opened:
@@ -179,6 +272,9 @@ def _open_devices(lab, cameras: str, seed: int, target, prompt_command: str | No
         if "robot" in opened:
             check_robot_limits(opened["robot"], lab)
     except BaseException:
+        if homing:  # Ctrl-C or a fault during the homing cycle: the table must not go on moving
+            with contextlib.suppress(Exception):
+                opened["table"].stop()
         for dev in opened.values():
             with contextlib.suppress(Exception):
                 dev.close()
@@ -191,7 +287,9 @@ def _open_devices(lab, cameras: str, seed: int, target, prompt_command: str | No
 
     devs = Devices(table=opened["table"], robot=opened.get("robot"), fixed=opened.get("fixed_camera"),
                    mobile=opened.get("mobile_camera"), clock=MONOTONIC)
-    return devs, CommandPrompt(prompt_command) if prompt_command else TerminalPrompt(console), None, close
+    url = served_scene_url(lab) if not (prompt_command or ask) else None
+    prompt = CommandPrompt(prompt_command) if prompt_command else ServedPrompt(url) if url else TerminalPrompt(console)
+    return devs, prompt, None, close
 
 
 @click.group("calibrate", invoke_without_command=True)
@@ -204,15 +302,21 @@ def _open_devices(lab, cameras: str, seed: int, target, prompt_command: str | No
 @click.option("--seed", type=int, default=0, show_default=True, help="Sensor-noise seed of the simulated lab.")
 @click.option("--prompt-command", default=None, metavar="CMD",
               help="Instead of asking on the terminal, run 'CMD SPACER_MM N COUNT' to place the target (real kinds).")
+@click.option("--home", is_flag=True, help="Home the table first (GRBL's $H) if it is in Alarm, as a served or "
+              "freshly powered GRBL is.")
+@click.option("--ask", is_flag=True, help="On a served lab (`sim serve --lab-out`), ask on the terminal instead of "
+              "placing the target through the served lab.")
 @click.option("--truth", "truth_file", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Compare with this ground truth (served_truth.json of `labctl sim serve --lab-out`).")
 @json_option
 @click.pass_context
 def calibrate_group(ctx: click.Context, camera: str, dry_run: bool, ros: bool, full: bool, seed: int,
-                    prompt_command: str | None, truth_file: Path | None) -> None:
+                    prompt_command: str | None, home: bool, ask: bool, truth_file: Path | None) -> None:
     """Calibrate the lab through its devices: the fixed camera (Tsai, target moved by the table at
     one or more spacer heights), the mobile camera and its hand-eye (robot stations), the table's
-    registration. The same procedure runs on the simulated lab and on hardware."""
+    registration. The same procedure runs on the simulated lab and on hardware. On a served lab
+    (`labctl sim serve --lab-out`) the served lab places the target itself, is checked against its
+    truth, and gets its object back afterwards."""
     if ctx.invoked_subcommand is not None:
         return
     from rich.progress import Progress
@@ -243,6 +347,9 @@ def calibrate_group(ctx: click.Context, camera: str, dry_run: bool, ros: bool, f
             raise UserInputError(f"the calibration plan does not fit the lab: {rep['problems'][0]}")
         return
     plan = make_plan(target, nominal, camera)
+    served = served_scene_url(lab) is not None and not (prompt_command or ask)
+    if truth_file is None and served:
+        truth_file = Path(lab.root) / "served_truth.json"
     given_truth = load_truth(truth_file) if truth_file is not None else None
     if plan.problems:
         raise UserInputError(f"the calibration plan does not fit the lab: {plan.problems[0]}")
@@ -250,8 +357,10 @@ def calibrate_group(ctx: click.Context, camera: str, dry_run: bool, ros: bool, f
     old_signals = catch_stop_signals()
     devs = None
     close = None
+    prompt = None
     try:
-        devs, prompt, truth, close = _open_devices(lab, camera, seed, target, prompt_command, c.console)
+        devs, prompt, truth, close = _open_devices(lab, camera, seed, target, prompt_command, c.console, home=home,
+                                                   ask=ask)
         truth = given_truth or truth
         with Progress(console=c.console, transient=c.json) as bar:
             task = bar.add_task("calibrating", total=steps_for(plan))
@@ -261,21 +370,34 @@ def calibrate_group(ctx: click.Context, camera: str, dry_run: bool, ros: bool, f
     except BaseException as exc:
         # stop on every exit path; a second Ctrl-C/TERM must not cut the stop short
         ignore_stop_signals()
-        said = _confirm_stopped(devs) if devs is not None else "no device was opened"
+        refused = isinstance(exc, PromptRefused)
+        if devs is None:
+            said = "no device was opened"
+        else:  # nothing moves at a prompt: a refusal reads the devices, it sends no STOP to latch
+            said = _read_still(devs) if refused else _confirm_stopped(devs)
         latched = _latch_left(devs, lab)
+        if isinstance(prompt, ServedPrompt):
+            with contextlib.suppress(Exception):
+                prompt.restore()
         if close is not None:
             with contextlib.suppress(Exception):
                 close()
         if isinstance(exc, KeyboardInterrupt):
             click.echo(f"labctl: interrupted: {said}" + (f"; {latched}" if latched else ""), err=True)
             raise SystemExit(130) from None
-        if latched and isinstance(exc, LabctlError):  # a refused prompt, a device fault: still one line
+        if isinstance(exc, PromptRefused):
+            err = exc.error if isinstance(exc.error, LabctlError) else UserInputError(str(exc.error))
+            raise type(err)(f"{err}; {said}" + (f"; {latched}" if latched else "")) from None
+        if latched and isinstance(exc, LabctlError):  # a device fault: still one line
             exc.args = (f"{exc}; {latched}",)
         raise
     finally:
         restore_signals(old_signals)
+    if isinstance(prompt, ServedPrompt):
+        rep["scene_restored"] = prompt.restore()  # the next run finds its object, not the target
     if close is not None:
         close()
+    rep["next"] = f"labctl --lab {lab.root} run --trajectory line"
     emit(rep, _human_report(rep))
 
 

@@ -156,7 +156,10 @@ def table_home(port, baud, timeout_s) -> None:
     with _open_table(port, baud, None) as table, stops_table(table):
         st = table.home(timeout_s=timeout_s, on_progress=progress, progress_every_s=2.0)
         d = _status_dict(table, st)
-    emit(d, _print_status(d))
+    root = get_ctx().lab_root
+    d["next"] = f"labctl --lab {root} calibrate"  # a homed table's position is known: calibrate it to the cameras
+    show = _print_status(d)
+    emit(d, lambda c: (show(c), c.print(f"next: {d['next']}", highlight=False)))
 
 
 @table_group.command("reset")

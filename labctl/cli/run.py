@@ -85,6 +85,7 @@ def run_cmd(trajectory, speed, object_name, seed, virtual, view, view_port) -> i
     from ..decisions.context import RunContext
     from ..records import RunRecord, write_report
     from ..runtime.live import RunAborted
+    from .report import report_gates
 
     c = get_ctx()
     lab = c.lab()
@@ -126,7 +127,7 @@ def run_cmd(trajectory, speed, object_name, seed, virtual, view, view_port) -> i
     except LabctlError as exc:
         record.finish({"identity": None, "failure": str(exc)})
         with contextlib.suppress(Exception):  # a report that cannot be drawn must not hide the error
-            write_report(record.path)
+            write_report(record.path, gates=report_gates(ctx, record.path))
         raise LabctlError(f"{exc} (record: {record.path})") from None
     if not virtual:  # command → first tracked frame, phase by phase
         from ..runtime.live import process_start_wall, startup_seconds
@@ -135,7 +136,7 @@ def run_cmd(trajectory, speed, object_name, seed, virtual, view, view_port) -> i
     result["record"] = str(record.path)
     record.finish(result)
     with contextlib.suppress(Exception):  # nor the run's own result
-        result["report"] = str(write_report(record.path))
+        result["report"] = str(write_report(record.path, gates=report_gates(ctx, record.path)))
     emit(result, lambda con: _print_result(con, result, record.path))
     if not result.get("identity"):
         # the run's expected failure: one line on stderr, with where to look next

@@ -23,6 +23,13 @@ from .run import TRAJECTORIES, _speed
 @click.option("--objects", default=None, help="Comma-separated objects to cycle through (default: all).")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the first trial.")
 @click.option("--record/--no-record", default=True, show_default=True, help="Keep a run record per trial.")
+@click.option("--keep", type=click.Choice(["all", "failures"]), default="all", show_default=True,
+              help="Which trials' records to keep: all, or only those that failed (their images and events; the "
+                   "others' results stay in results.jsonl).")
+@click.option("--view", is_flag=True, help="Serve a live view of the trial being run on a local web page (its URL "
+              "goes to stderr), with a Stop button (Ctrl-C's path: the partial summary is kept).")
+@click.option("--view-port", type=click.IntRange(0, 65535), default=None,
+              help="The live view's port (default: lab.yaml view.port; 0: any free port).")
 @click.option("--jobs", "-j", type=int, default=None, help="Worker processes (default: all cores).")
 @click.option("--scheduler", default=None, metavar="local|ADDRESS",
               help="Run on Dask instead of a local process pool: 'local' starts a LocalCluster of --jobs workers, "
@@ -30,7 +37,8 @@ from .run import TRAJECTORIES, _speed
 @click.option("--resume", type=click.Path(path_type=Path), default=None,
               help="Continue an interrupted sweep folder (runs/trials-…); other options are ignored.")
 @json_option
-def trials_cmd(n, trajectory, profile, speed, objects, seed, record, jobs, scheduler, resume) -> None:
+def trials_cmd(n, trajectory, profile, speed, objects, seed, record, keep, view, view_port, jobs, scheduler,
+               resume) -> None:
     """Many simulated runs in virtual time with deterministic seeds, in parallel.
 
     Writes one folder, runs/trials-<time>/: spec, per-trial results and records, summary.json and
@@ -63,13 +71,28 @@ def trials_cmd(n, trajectory, profile, speed, objects, seed, record, jobs, sched
     if resume is not None and not resume.is_dir():
         raise UserInputError(f"--resume: no sweep folder at {resume}")
 
+    if view and not record:
+        raise UserInputError("--view shows the trials' records: it cannot go with --no-record")
+    page = None
+    if view:
+        from .run import _bind_view
+
+        page = _bind_view(lab, view_port)  # a taken port: refused before the sweep starts
+        click.get_current_context().call_on_close(page.close)
+
+    def follow(folder: Path) -> None:
+        if page is not None:
+            page.follow_newest(folder / "trials").start()
+            click.echo(f"live view: {page.url}", err=True)
+
     con = live_console()  # never into a piped result
     progress = _Progress(con) if con is not None else None
     try:
         with progress or _nothing():
             summary = run_sweep(lab, n=n, trajectory=trajs[0] if len(trajs) == 1 else trajs, speeds=speeds,
-                                objects=names, seed=seed, record=record, n_jobs=n_jobs, scheduler=scheduler,
-                                resume=resume, profiles=profiles,
+                                objects=names, seed=seed, record=record, keep=keep, n_jobs=n_jobs,
+                                scheduler=scheduler,
+                                resume=resume, profiles=profiles, on_sweep=follow,
                                 on_result=progress.update if progress else None)
     except KeyboardInterrupt as exc:
         partial = getattr(exc, "summary", None)
@@ -152,7 +175,14 @@ def _print_trials(console, s: dict) -> None:
         console.print(f"all speeds: time to identity median {_num(o['time_to_identity_s_median'], ' s')} "
                       f"({_num(o.get('time_from_first_sight_s_median'), ' s')} from first sight), "
                       f"{_num(o.get('ratio_to_lower_bound_median'))}× the honest bound")
-    head = f"success rate {100 * s['success_rate']:.1f} % of {s['n']} trials"
+    from ..records.sweep_report import wilson_interval
+
+    k = sum(bool(t.get("correct")) for t in s.get("trials", []))
+    lo, hi = wilson_interval(k, s["n"])
+    console.print("× honest bound: time to identity over first sight + the legs' minimum time + frame times "
+                  "(≥ 1); × quintic bound: over the paper's quintic legs, which a jerk-limited run can beat "
+                  "(< 1 possible)", highlight=False)
+    head = f"success rate {100 * s['success_rate']:.1f} % of {s['n']} trials (95 % CI {100 * lo:.1f}–{100 * hi:.1f} %)"
     if s.get("interrupted"):
         head += f" (interrupted: {s['n']} of {s.get('planned')} done; --resume {s['sweep']} continues)"
     console.print(head)

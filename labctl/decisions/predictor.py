@@ -66,8 +66,13 @@ class StageTimes:
     current: str | None = None
 
     def enter(self, stage: str, now: float) -> None:
-        """Enter ``stage`` at time ``now`` (s), adding the time spent in the previous stage to its duration."""
+        """Enter ``stage`` at time ``now`` (s), adding the time spent in the previous stage to its duration.
+
+        A stage entered on a frame exposed before the previous stage began (a live run's first frame: the
+        camera's latest, up to a frame period older than the predictor's start) begins when that one did,
+        so no duration is negative."""
         if self.current is not None:
+            now = max(now, self.started[self.current])
             self.durations[self.current] = self.durations.get(self.current, 0.0) + now - self.started[self.current]
         self.current = stage
         self.started[stage] = now

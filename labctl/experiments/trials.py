@@ -266,13 +266,29 @@ class Sweep:
         write_sweep_report(self.path, summary)
 
 
+def library_digest(library_dir: Path) -> str:
+    """SHA-256 over a library folder's files (relative path and bytes, in path order): which library a
+    sweep ran against, for its report."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for p in sorted(q for q in library_dir.rglob("*") if q.is_file() and not q.name.startswith(".")):
+        h.update(str(p.relative_to(library_dir)).encode() + b"\0")
+        h.update(p.read_bytes())
+    return h.hexdigest()
+
+
 def run_sweep(lab, *, n: int, trajectory: str | Sequence[str], speeds: Sequence[float], objects: Sequence[str] | None,
-              seed: int = 0, record: bool = True, n_jobs: int = 1, scheduler: str | None = None,
+              seed: int = 0, record: bool = True, keep: str = "all", n_jobs: int = 1, scheduler: str | None = None,
               profiles: Sequence[str | None] = (None,),
-              resume: Path | None = None, on_result: Callable[[dict, int, int], None] | None = None) -> dict:
+              resume: Path | None = None, on_result: Callable[[dict, int, int], None] | None = None,
+              on_sweep: Callable[[Path], None] | None = None) -> dict:
     """Run (or resume) a sweep and return its summary; the summary is also written to the folder.
 
-    ``on_result(result, done, total)`` is called after each finished trial (progress). On
+    ``keep``: "all" keeps every trial's record, "failures" deletes the record of each correct trial as it
+    finishes (its result stays, with ``record`` null), so a long sweep keeps images only where something
+    went wrong. ``on_sweep(folder)`` is called once the sweep's folder exists (a live view follows its
+    trials). ``on_result(result, done, total)`` is called after each finished trial (progress). On
     KeyboardInterrupt the partial summary is written and attached to the exception as ``.summary``."""
     if resume is not None:
         sweep = Sweep.open(resume)
@@ -283,10 +299,14 @@ def run_sweep(lab, *, n: int, trajectory: str | Sequence[str], speeds: Sequence[
         missing = [o for o in names if o not in ctx.library]
         if missing:
             raise UserInputError(f"no object {missing[0]!r} in the library (have: {', '.join(ctx.names)})")
-        spec = {"lab": str(lab.root), "trajectory": trajectory, "speeds": [float(v) for v in speeds],
-                "objects": names, "n": n, "seed": seed, "record": record,
+        spec = {"lab": str(lab.root), "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
+                "library": str(lab.library_dir), "library_sha256": library_digest(Path(lab.library_dir)),
+                "trajectory": trajectory, "speeds": [float(v) for v in speeds],
+                "objects": names, "n": n, "seed": seed, "record": record, "keep": keep,
                 "profiles": list(profiles), "trials": plan_specs(n, trajectory, speeds, names, seed, profiles)}
         sweep = Sweep.create(Path(lab.runs_dir), spec)
+    if on_sweep is not None:
+        on_sweep(sweep.path)
     done = sweep.results()
     jobs = [(i, s) for i, s in enumerate(spec["trials"]) if i not in done]
     records_dir = str(sweep.path / "trials") if spec.get("record", True) else None
@@ -294,6 +314,9 @@ def run_sweep(lab, *, n: int, trajectory: str | Sequence[str], speeds: Sequence[
     t0 = time.monotonic()
     try:
         for res in execute(spec["lab"], jobs, records_dir, n_jobs=n_jobs, scheduler=scheduler):
+            if spec.get("keep") == "failures" and res.get("correct") and res.get("record"):
+                shutil.rmtree(res["record"], ignore_errors=True)  # only where something went wrong
+                res = {**res, "record": None}
             sweep.append(res)
             done[res["index"]] = res
             if on_result is not None:

@@ -24,12 +24,15 @@ from .model import ModelError, load_model, merge_symmetric_poses, stable_poses, 
 from .placement import (
     Marker,
     ViewingGeometry,
+    candidate_sites,
     check_coverage,
     check_overhead_coverage,
     coverage_probability,
     coverage_vs_angle,
     optimal_viewing_angle,
     plan_markers,
+    view_directions_o,
+    visibility_matrix,
 )
 from .storage import LibraryError, LibraryObject, check_name, save_object
 from .views import RenderView, build_standard_views
@@ -109,8 +112,59 @@ def coverage_report(mesh: trimesh.Trimesh, poses: list[tuple[np.ndarray, float]]
     }
 
 
-def coverage_warnings(name: str, cov: dict, view: ViewingGeometry, curve: dict | None = None) -> list[str]:
-    """One line per shortfall of a coverage report, saying what would fix it."""
+MARKER_MARGIN = 1.3  # a marker's disc of radius r needs a flat of 2·1.3·r across (candidate_sites' margin)
+
+
+def pose_marker_fix(mesh: trimesh.Trimesh, T: np.ndarray, markers: list[Marker], view: ViewingGeometry,
+                    n_yaw: int = 36) -> str:
+    """What this part's own geometry can carry for the yaws of resting pose ``T`` (4×4, O on the table) that no
+    marker covers (paper §4.1): a flat face that can hold a marker and would be seen there, named by its centre
+    and normal (mm, rad-free unit vector, frame O); or, when no flat face of the part could (a round part's
+    curved side is many narrow facets), that nothing flat faces the camera there, in words."""
+    smallest = min(view.radii_mm) if view.radii_mm else None
+    radius = smallest if smallest is not None else 5.0
+    sites = candidate_sites(mesh, radius, margin=MARKER_MARGIN, radii_mm=view.radii_mm)
+    dirs = view_directions_o([T], view.angle_deg, n_yaw, 0.5)
+    kw = {"distance_mm": view.distance_mm, "max_obliquity_deg": view.max_obliquity_deg}
+    seen = visibility_matrix(mesh, markers, dirs, **kw).any(axis=1) if markers else np.zeros(len(dirs), bool)
+    miss = dirs[~seen]
+    used = {tuple(np.round(m.center, 3)) for m in markers}
+    free = [s for s in sites if tuple(np.round(s.center, 3)) not in used]
+    if len(miss) and free:
+        vis = visibility_matrix(mesh, free, miss, **kw)
+        k = int(np.argmax(vis.sum(axis=0)))
+        if vis[:, k].any():
+            s = free[k]
+            return (f"a marker on the flat face at ({', '.join(f'{v:.0f}' for v in s.center)}) mm facing "
+                    f"({', '.join(f'{v:.2f}' for v in s.normal)}), seen at {int(vis[:, k].sum())} of the "
+                    f"{len(miss)} uncovered yaws sampled")
+    need = 2 * MARKER_MARGIN * radius
+    narrow = len(mesh.facets) + int(len(mesh.faces) - sum(len(f) for f in mesh.facets)) - len(sites)
+    return (f"none this part can carry: no flat face ≥ {need:.0f} mm across faces the camera in that pose "
+            f"({narrow} of its faces are narrower, a curved side); hand-placed markers (--markers FILE) only if "
+            "the real part has a flat there, else --accept-partial")
+
+
+def overhead_marker_fix(mesh: trimesh.Trimesh, T: np.ndarray, markers: list[Marker], view: ViewingGeometry) -> str:
+    """What this part can carry for the overhead camera in resting pose ``T``: an unused flat face that can hold
+    a marker and looks within ``overhead_max_tilt_deg`` of upward there, or that it has none."""
+    radius = min(view.radii_mm) if view.radii_mm else 5.0
+    used = {tuple(np.round(m.center, 3)) for m in markers}
+    cos_max = np.cos(np.radians(view.overhead_max_tilt_deg))
+    up = [s for s in candidate_sites(mesh, radius, margin=MARKER_MARGIN, radii_mm=view.radii_mm)
+          if tuple(np.round(s.center, 3)) not in used and float((T[:3, :3] @ s.normal)[2]) >= cos_max]
+    if up:
+        s = up[0]
+        return (f"a marker on the flat face at ({', '.join(f'{v:.0f}' for v in s.center)}) mm facing "
+                f"({', '.join(f'{v:.2f}' for v in s.normal)}), within {view.overhead_max_tilt_deg:g}° of upward there")
+    return (f"none this part can carry: no flat face ≥ {2 * MARKER_MARGIN * radius:.0f} mm across looks within "
+            f"{view.overhead_max_tilt_deg:g}° of upward in that pose")
+
+
+def coverage_warnings(name: str, cov: dict, view: ViewingGeometry, curve: dict | None = None,
+                      pose_fix: str | None = None, tracked_fix: str | None = None) -> list[str]:
+    """One line per shortfall of a coverage report, saying what would fix it (``pose_fix``, ``tracked_fix``: what
+    the part's geometry can carry in its worst pose, :func:`pose_marker_fix`, :func:`overhead_marker_fix`)."""
     out = []
     if cov["initial_view"] < 1.0:
         worst = min(cov["per_pose"], key=lambda d: d["visible_yaw_share"])
@@ -120,10 +174,10 @@ def coverage_warnings(name: str, cov: dict, view: ViewingGeometry, curve: dict |
             if curve["coverage"][k] > cov["initial_view"] + 1e-3:
                 fixes.append(f"an initial viewing angle of {curve['angles_deg'][k]:g}° "
                              f"({100 * curve['coverage'][k]:.1f} %)")
-        smallest = min(view.radii_mm) if view.radii_mm else None
-        if smallest is not None:
-            fixes.append(f"a flat face ≥ {2 * 1.3 * smallest:.0f} mm across turned to the camera in that pose")
-        fixes.append("hand-placed markers (--markers FILE)")
+        if pose_fix is not None:
+            fixes.append(pose_fix)
+        else:
+            fixes.append("hand-placed markers (--markers FILE)")
         out.append(f"{name}: a marker is in the initial view in {100 * cov['initial_view']:.1f} % of random "
                    f"placements (worst: {worst['pose']}, probability {worst['probability']:.3f}, no marker at "
                    f"{100 * (1 - worst['visible_yaw_share']):.0f} % of yaws); would fix it: " + "; ".join(fixes))
@@ -131,7 +185,8 @@ def coverage_warnings(name: str, cov: dict, view: ViewingGeometry, curve: dict |
         miss = [d for d in cov["per_pose"] if not d["tracked"]]
         out.append(f"{name}: the overhead camera tracks a marker in {100 * cov['tracked']:.1f} % of random "
                    f"placements (not when {miss[0]['pose']}); the run then follows red pixels seen edge-on; "
-                   f"would fix it: a flat face within {view.overhead_max_tilt_deg:g}° of upward in that pose")
+                   "would fix it: " + (tracked_fix or f"a flat face within {view.overhead_max_tilt_deg:g}° of "
+                                                        "upward in that pose"))
     return out
 
 
@@ -285,7 +340,12 @@ def teach_object(name: str, model: Path | str | trimesh.Trimesh, *, radius_mm: f
     if angle_curve is None:
         angle_curve = library_dir is not None
     curve = coverage_vs_angle(mesh, poses, markers, view, n_yaw=36) if angle_curve else None
-    warnings = coverage_warnings(name, cov, view, curve) + [w for _, w in crops]
+    fix = None
+    if cov["initial_view"] < 1.0:
+        worst = int(np.argmin([d["visible_yaw_share"] for d in cov["per_pose"]]))
+        fix = pose_marker_fix(mesh, Ts[worst], list(markers), view)
+    tracked_fix = overhead_marker_fix(mesh, Ts[untracked[0]], list(markers), view) if untracked else None
+    warnings = coverage_warnings(name, cov, view, curve, fix, tracked_fix) + [w for _, w in crops]
     if dropped_probability > 0:
         warnings.append(f"{name}: resting poses with {100 * dropped_probability:.1f} % of the probability are below "
                         f"library.pose_probability_floor ({pose_probability_floor:g}) and were left out")

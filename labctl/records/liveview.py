@@ -195,7 +195,9 @@ class RecordTail:
 
     def images(self) -> list[dict]:
         """The mobile camera's saved images, oldest first: ``{"name", "mtime"}``."""
-        out = []
+        out: list[dict] = []
+        if not self.folder.is_dir():  # a sweep's first trial not started yet
+            return out
         with os.scandir(self.folder) as it:
             for entry in it:
                 if _IMAGE.match(entry.name):
@@ -246,6 +248,7 @@ class LiveViewServer:
     def __init__(self, folder: str | Path | None, host: str = "127.0.0.1", port: int = 0,
                  on_stop: Callable[[], None] | None = None, poll_s: float = 0.25):
         self.tail = RecordTail(folder) if folder is not None else None
+        self.parent: Path | None = None  # follow_newest: the newest record under it
         self.key = secrets.token_urlsafe(16)
         self.on_stop = on_stop
         self.poll_s = poll_s
@@ -272,6 +275,26 @@ class LiveViewServer:
         self.tail = RecordTail(folder)
         return self
 
+    def follow_newest(self, parent: str | Path) -> LiveViewServer:
+        """Follow whichever record folder under ``parent`` was written to last (a trials sweep's ``trials/``:
+        each trial in turn, the newest of those running in parallel); return self."""
+        self.parent = Path(parent)
+        self.tail = RecordTail(self.parent / "(waiting for the first trial)")
+        return self
+
+    def _newest(self) -> None:
+        """Switch :attr:`tail` to the record under :attr:`parent` whose event log changed last."""
+        if self.parent is None:
+            return
+        try:
+            logs = [(p.stat().st_mtime, p.parent) for p in self.parent.glob(f"*/{EVENTS}")]
+        except OSError:
+            return
+        if logs:
+            folder = max(logs)[1]
+            if self.tail is None or folder != self.tail.folder:
+                self.tail = RecordTail(folder)
+
     def start(self) -> LiveViewServer:
         """Serve in a daemon thread (a folder to follow must be set); return self."""
         if self.tail is None:
@@ -295,6 +318,8 @@ class LiveViewServer:
         """The state the page polls (one reader at a time: the tail is not thread-safe)."""
         assert self.tail is not None  # start() checked
         with self._lock:
+            if self.parent is not None:
+                self._newest()
             out = self.tail.snapshot()
             self.polled = True
         out["stop"] = {"available": self.on_stop is not None, "requested": self.stop_requested.is_set()}

@@ -11,7 +11,17 @@ What the report reads from the record, each through its declaration in
   ``resolved``, ``margin_deg`` (paper §3.2);
 * event  ``match``   — ``scores={name: score}``, ``view`` (k) (paper §3.3);
 * images ``initial1.png``, ``initial2.png``, ``standard_<k>.png``, ``silhouette_<k>.png``;
-* ``result.json``    — shown as the summary (identity, true identity, correct, times, stages).
+* events ``stage``   — ``t``, ``stage``: the stage timeline (the run's start is ``tracking_prior``'s ``t``);
+* event  ``refuted`` — ``view``, ``candidates``, ``reason``: candidates a view dropped for a missing top marker;
+* images ``fixed_last.png`` (a failed run's last fixed-camera frame) or ``live/fixed.jpg`` (the live view's);
+* ``result.json``    — identity, true identity (the simulator's), correct, times, failure.
+
+Why each library object fell out of a match is read from the ``match`` event: a finite score above the
+answer's is "scored worse"; a null score is a gate, and an object missing from an earlier ambiguous
+view's candidates was ruled out by that view. Which gate needs the library, which records do not
+import: the CLI scores the recorded standard image again and passes ``gates`` (``{k: {object:
+"height" | "shape"}}``, ``labctl.cli.report.match_gates``); without it the report says "gated out"
+and names no gate.
 
 A field of the wrong type (a record from an older or broken writer) reads as missing.
 Anything missing is drawn and listed as "not reached", so a run that ended early still gets a
@@ -25,6 +35,8 @@ import html
 import io
 import math
 import re
+from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -37,12 +49,14 @@ from ..fsutil import atomic_write_bytes, atomic_write_text
 from .events import spec
 from .record import RunData, load_run
 
-__all__ = ["write_report", "render_figure", "failure_reason", "SECTIONS"]
+__all__ = ["write_report", "render_figure", "failure_reason", "explain", "timeline", "SECTIONS"]
 
-SECTIONS = ("summary", "paths", "markers", "standard", "scores", "events")
+SECTIONS = ("summary", "timeline", "paths", "markers", "standard", "scores", "events")
 NOT_REACHED = "not reached"
 _STD = re.compile(r"^standard_(\d+)$")
 TRACK, PREDICT, ROBOT, MARKER_POSE, MATCH = (spec(n) for n in ("track", "predict", "robot", "marker_pose", "match"))
+STAGE, FAILURE, PRIOR, REFUTED = (spec(n) for n in ("stage", "failure", "tracking_prior", "refuted"))
+FIXED_LAST = "fixed_last"  # a failed run's last fixed-camera frame (the runtimes save it)
 MARKER_POSE_SHOWN = ("center_w", "normal_w", "resolved", "margin_deg")  # the pose's summary, in this order
 for _k in MARKER_POSE_SHOWN:
     MARKER_POSE.declared(_k)
@@ -145,10 +159,125 @@ def failure_reason(run: RunData) -> str | None:
     res = run.result
     if res is None:
         last = run.events[-1].get("event") if run.events else None
-        return "the run did not finish (no result.json)" + (f"; last event: {last}" if last else "; no events")
+        fails = run.of(FAILURE.name)
+        why = FAILURE.valid(fails[-1], "reason") if fails else None
+        return ("the run did not finish (no result.json)" + (f"; last event: {last}" if last else "; no events")
+                + (f"; it failed: {why}" if why else ""))
     if res.get("identity") is not None:
         return None
     return str(res.get("failure") or "no identity (the record gives no reason)")
+
+
+def verdict(run: RunData) -> str:
+    """One line: what the run identified and whether that was right (the simulator's truth), or why it failed."""
+    res = run.result or {}
+    ident, truth = res.get("identity"), res.get("true_identity")
+    reason = failure_reason(run)
+    if reason is not None:
+        fails = run.of(FAILURE.name)
+        where = FAILURE.valid(fails[-1], "stage") if fails else None
+        return ("FAILED" + (f" in stage {where}" if where else "") + ": " + _clip(reason, 160)
+                + (f" (sim truth: {truth})" if truth is not None else ""))
+    if truth is None:
+        return f"identified {ident} (no ground truth: a real lab)"
+    if res.get("correct", ident == truth):
+        return f"identified {ident}: correct (sim truth: {truth})"
+    return f"identified {ident}: WRONG (sim truth: {truth})"
+
+
+@dataclass(frozen=True)
+class Stage:
+    """One stretch of the stage timeline: ``stage`` from ``t0`` to ``t1`` (s, the run's clock)."""
+
+    stage: str
+    t0: float
+    t1: float
+    clamped_s: float = 0.0  # how far t1 lay before t0 in the record (shown as a zero-length stretch)
+
+    @property
+    def duration_s(self) -> float:
+        """Its length, s (never negative)."""
+        return self.t1 - self.t0
+
+
+def timeline(run: RunData) -> list[Stage]:
+    """The stage timeline from the ``stage`` events, starting at the run's start (``tracking_prior``'s ``t``,
+    the predictor's start, in ``wait``) and ending at ``done``/``failed`` (or the last stage event).
+
+    A stage entered at a time before the previous one began is shown with zero length and says by how
+    much (``clamped_s``): a live run's first frame can have been exposed up to a frame period before the
+    predictor started its clock (the camera's latest frame is handed over as the loop begins); records
+    written before the predictor counted such a frame from its start carry a negative ``wait``."""
+    marks: list[tuple[str, float]] = []
+    prior = run.of(PRIOR.name)
+    if prior and _finite([PRIOR.get(prior[0], "t")]):
+        marks.append(("wait", float(PRIOR.get(prior[0], "t"))))
+    for e in run.of(STAGE.name):
+        t, st = STAGE.valid(e, "t"), STAGE.valid(e, "stage")
+        if t is not None and st is not None and _finite([t]):
+            if marks and marks[-1][0] == st:
+                continue  # the second initial image re-enters "initial": one stretch
+            marks.append((str(st), float(t)))
+    out: list[Stage] = []
+    for (st, t0), (_, t1) in zip(marks, marks[1:], strict=False):
+        start = out[-1].t1 if out else t0
+        out.append(Stage(st, start, max(t1, start), max(0.0, start - t1)))
+    return out
+
+
+Gates = Mapping[int, Mapping[str, str]]
+
+
+def explain(run: RunData, gates: Gates | None = None) -> list[dict]:
+    """Each standard view's match, object by object, best first: ``{"view", "marker_height_mm",
+    "height_tol_mm", "rows": [{"object", "score", "fate"}]}``; ``fate`` says why the object is or is not
+    the answer (see the module docstring). ``gates``: for view k, the gate ("height" or "shape") that
+    dropped each object with a null score."""
+    res = run.result or {}
+    out = []
+    refuted: dict[int, tuple[list[str], str]] = {}
+    for e in run.of(REFUTED.name):
+        v, c, why = REFUTED.valid(e, "view"), REFUTED.valid(e, "candidates"), REFUTED.valid(e, "reason")
+        if v is not None and c is not None:
+            refuted[int(v)] = ([str(x) for x in c], str(why or "refuted"))
+    previous: list[str] | None = None
+    for e in run.of(MATCH.name):
+        s = MATCH.valid(e, "scores")
+        if s is None:
+            continue
+        view = MATCH.valid(e, "view")
+        cands = [str(c) for c in (MATCH.valid(e, "candidates") or [])]
+        best = MATCH.valid(e, "best")
+        h, tol = MATCH.valid(e, "marker_height_mm"), MATCH.valid(e, "height_tol_mm")
+        known = (gates or {}).get(int(view)) if view is not None else None
+        dropped, why_refuted = refuted.get(int(view), ([], "")) if view is not None else ([], "")
+        rows = []
+        for name, score in s.items():
+            name = str(name)
+            finite = _finite([score])
+            if name in dropped:
+                fate = f"refuted: {why_refuted}"
+            elif name == res.get("identity") and name in cands:
+                fate = "the answer" if len(cands) == 1 else "the answer (" + ", ".join(cands) + " were close)"
+            elif name in cands:
+                fate = "a candidate: too close to the best to tell apart"
+            elif finite:
+                fate = "scored worse than " + (str(best) if best else "the threshold")
+            elif previous is not None and name not in previous:
+                fate = "ruled out by the previous view"
+            elif known is None or name not in known:
+                fate = "gated out (eccentricity, size" + (" or marker height" if h is not None else "") + \
+                    "; run labctl report in the lab to tell which)"
+            elif known[name] == "height":
+                fate = (f"marker-height gate: no view whose silhouette fits rests its marker at the measured "
+                        f"{h:.1f} ± {tol:.1f} mm" if h is not None and tol is not None else "marker-height gate")
+            else:
+                fate = "shape gate: eccentricity or size too far from the silhouette's"
+            rows.append({"object": name, "score": float(score) if finite else None, "fate": fate})
+        rows.sort(key=lambda r: (r["score"] is None, r["score"] if r["score"] is not None else 0.0, r["object"]))
+        out.append({"view": view, "marker_height_mm": h, "height_tol_mm": tol, "rows": rows})
+        previous = cands if len(cands) > 1 else None
+    return out
 
 
 def _draw_paths(ax, track: np.ndarray, preds: list[np.ndarray], robot: np.ndarray, legend: bool) -> None:
@@ -172,18 +301,72 @@ def _draw_paths(ax, track: np.ndarray, preds: list[np.ndarray], robot: np.ndarra
         ax.legend(loc="best", fontsize=8)
 
 
-def render_figure(run: RunData):
-    """Draw the report figure (matplotlib ``Figure`` on the Agg canvas; no pyplot state)."""
+def _fixed_frame(run: RunData) -> np.ndarray | None:
+    """The last fixed-camera frame the record holds: ``fixed_last.png`` (saved on a failure), else the
+    live view's ``live/fixed.jpg``; None if neither."""
+    if FIXED_LAST in run.images:
+        return _load_rgb(run.images[FIXED_LAST])
+    live = run.path / "live" / "fixed.jpg"
+    return _load_rgb(live) if live.is_file() else None
+
+
+def _draw_timeline(ax, stages: list[Stage]) -> None:
+    """The stage timeline as bars on one line (s, the run's clock from its start)."""
+    ax.set_title("Stage timeline")
+    if not stages:
+        ax.text(0.5, 0.5, NOT_REACHED, ha="center", va="center", transform=ax.transAxes, color="0.45")
+        ax.set_yticks([])
+        return
+    t0 = stages[0].t0
+    colors = {"wait": "0.75", "track": "tab:blue", "intercept": "tab:orange", "initial": "tab:purple",
+              "standard": "tab:green", "match": "tab:olive", "failed": "tab:red"}
+    for st in stages:
+        ax.broken_barh([(st.t0 - t0, st.duration_s)], (0, 1), color=colors.get(st.stage, "0.5"))
+        ax.text(st.t0 - t0 + st.duration_s / 2, 0.5, f"{st.stage}\n{st.duration_s:.2f} s", ha="center",
+                va="center", fontsize=8)
+    ax.set_xlim(0, max(stages[-1].t1 - t0, 1e-3))
+    ax.set_yticks([])
+    ax.set_xlabel("time since the run's start (s)")
+
+
+def _draw_scores(ax, rows: list[dict], view, ident: str | None) -> None:
+    """Scored objects as bars (best at the top) and the gated ones as named rows saying which gate."""
+    n = len(rows)
+    ys = np.arange(n)[::-1]
+    scored = [(y, r) for y, r in zip(ys, rows, strict=True) if r["score"] is not None]
+    ax.barh([y for y, _ in scored], [r["score"] for _, r in scored],
+            color=["tab:red" if r["object"] == ident else "0.6" for _, r in scored])
+    top = max((r["score"] for _, r in scored), default=1.0) or 1.0
+    for y, r in zip(ys, rows, strict=True):
+        if r["score"] is None:
+            short = r["fate"].split(":")[0].split(" (")[0]  # the gate's name; its numbers are in the HTML table
+            ax.text(0.02 * top, y, f"no score: {short}", va="center", fontsize=8, color="0.3")
+    ax.set_yticks(ys, [r["object"] for r in rows])
+    ax.set_ylim(-0.7, n - 0.3)  # the last row's label clear of the axis
+    ax.set_xlim(0, 1.15 * top)
+    ax.set_title("Match scores" + (f" (view {view})" if view is not None else ""))
+    ax.set_xlabel("silhouette mismatch (lower is better)")
+
+
+def render_figure(run: RunData, gates: Gates | None = None):
+    """Draw the report figure (matplotlib ``Figure`` on the Agg canvas; no pyplot state). Its title is
+    :func:`verdict`; a run that failed before any mobile image leads with its cause and the last
+    fixed-camera frame, not with empty panels."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
     from matplotlib.patches import Ellipse
 
     views = _standard_views(run)
+    reason = failure_reason(run)
+    title = f"Run {run.meta.get('run_id', run.path.name)}: {verdict(run)}"
+    if reason is not None and not views and not any(n in run.images for n in ("initial1", "initial2")):
+        return _failed_figure(run, reason, title)
     n_std = max(1, min(len(views), 4))
     ncols = max(3, 2 + n_std)
-    fig = Figure(figsize=(4.2 * ncols, 8.4), layout="constrained")
+    fig = Figure(figsize=(4.2 * ncols, 10.0), layout="constrained")
     FigureCanvasAgg(fig)
-    gs = fig.add_gridspec(2, ncols)
+    gs = fig.add_gridspec(3, ncols, height_ratios=[1, 1, 0.28])
+    _draw_timeline(fig.add_subplot(gs[2, :]), timeline(run))
 
     # paths on the table plane, in two panels whose axes fit their data: everything (robot and object),
     # and the object up close (its tracked and predicted paths are a stub next to the robot's travel)
@@ -218,16 +401,12 @@ def render_figure(run: RunData):
     # match scores
     ax = fig.add_subplot(gs[0, ncols - 1])
     scores, ev = _last_scores(run)
-    if not scores:
+    matches = [m_ for m_ in explain(run, gates) if any(r["score"] is not None for r in m_["rows"])]
+    if not scores or not matches:
         _not_reached(ax, "Match scores")
     else:
-        names = sorted(scores, key=lambda n: scores[n])  # best (lowest) first, drawn at the top
-        ident = _identity_name(run) or names[0]
-        colors = ["tab:red" if n == ident else "0.6" for n in names]
-        ax.barh(names[::-1], [scores[n] for n in names][::-1], color=colors[::-1])
-        view = MATCH.get(ev, "view") if ev else None
-        ax.set_title("Match scores" + (f" (view {view})" if view is not None else ""))
-        ax.set_xlabel("silhouette mismatch (lower is better)")
+        last = matches[-1]
+        _draw_scores(ax, last["rows"], last["view"], _identity_name(run) or last["rows"][0]["object"])
 
     # the two marker images with their ellipses
     ellipses = _ellipses(run)
@@ -271,15 +450,56 @@ def render_figure(run: RunData):
             ax.set_title(f"Standard view {k} with silhouette")
         else:
             ax.set_title(f"Standard view {k} (silhouette not recorded)")
-    title = f"Run {run.meta.get('run_id', run.path.name)}"
-    reason = failure_reason(run)
-    if reason is not None:  # a failed run's figure leads with why, above its "not reached" panels
-        import textwrap
+    _suptitle(fig, title, reason, 4.2 * ncols)
+    return fig
 
-        lines = textwrap.wrap(_clip(reason, 300), width=int(7.5 * 4.2 * ncols))  # ~7.5 characters per inch at 13 pt
-        fig.suptitle("\n".join([f"{title}: FAILED"] + lines), color="tab:red", fontsize=13, fontweight="bold")
+
+def _suptitle(fig, title: str, reason: str | None, width_in: float) -> None:
+    """The verdict as the figure's title; a failure's whole cause below it, in red."""
+    import textwrap
+
+    if reason is None:
+        ok = "WRONG" not in title
+        fig.suptitle(title, fontsize=14, fontweight="bold", color="tab:green" if ok else "tab:red")
+        return
+    lines = textwrap.wrap(_clip(reason, 300), width=int(7.5 * width_in))  # ~7.5 characters per inch at 13 pt
+    head = title.split(": ", 1)[0] + ": " + title.split(": ", 1)[1].split(": ", 1)[0]  # "Run X: FAILED in stage S"
+    if (truth := title.rpartition("(sim truth: ")[2]) and truth != title:
+        head += " (sim truth: " + truth
+    fig.suptitle("\n".join([head] + lines), color="tab:red", fontsize=13, fontweight="bold")
+
+
+def _failed_figure(run: RunData, reason: str, title: str):
+    """A run that failed before any mobile image: the cause (title), the last fixed-camera frame, the paths
+    so far and the stage timeline."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(12.6, 7.0), layout="constrained")
+    FigureCanvasAgg(fig)
+    gs = fig.add_gridspec(2, 2, height_ratios=[1, 0.3])
+    ax = fig.add_subplot(gs[0, 0])
+    frame = _fixed_frame(run)
+    if frame is None:
+        _not_reached(ax, "Fixed camera, last frame", "no fixed-camera frame in the record")
     else:
-        fig.suptitle(title)
+        _show(ax, frame)
+        ax.set_title("Fixed camera, last frame")
+        ax.set_xticks([])
+        ax.set_yticks([])
+    ax = fig.add_subplot(gs[0, 1])
+    track, preds, robot = _track(run), _predictions(run), _robot(run)
+    if not len(track) and not preds and not len(robot):
+        _not_reached(ax, "Robot and object paths", "the object was never tracked")
+    else:
+        _draw_paths(ax, track, preds, robot, legend=True)
+        ax.margins(0.06)
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.set_xlabel("x (mm)")
+        ax.set_ylabel("y (mm)")
+        ax.set_title("Robot and object paths (table plane, W)")
+    _draw_timeline(fig.add_subplot(gs[1, :]), timeline(run))
+    _suptitle(fig, title, reason, 12.6)
     return fig
 
 
@@ -316,15 +536,52 @@ def _nr(what: str = NOT_REACHED) -> str:
     return f'<p class="nr">{html.escape(what)}</p>'
 
 
-def _html(run: RunData, png: bytes) -> str:
+def _summary(run: RunData) -> str:
+    """The result in words: the verdict, time to identity against its bound, views, where it failed."""
+    res = run.result
+    if res is None:
+        return _nr("not reached: the run did not finish (no result.json)")
+    esc = html.escape
+    items = [f"<li><b>{esc(verdict(run))}</b></li>"]
+    tti, bound = res.get("time_to_identity_s"), res.get("lower_bound_s")
+    if _finite([tti]):
+        line = f"time to identity {tti:.2f} s"
+        if _finite([bound]) and bound:
+            line += (f", {tti / bound:.2f}× the lower bound of {bound:.2f} s (first sight + the minimum-time legs "
+                     "flown + frame times: no run can be faster)")
+        items.append(f"<li>{esc(line)}</li>")
+    if res.get("views") is not None:
+        items.append(f"<li>standard views matched: {esc(str(res.get('views')))}</li>")
+    fails = run.of(FAILURE.name)
+    if fails and FAILURE.valid(fails[-1], "stage"):
+        items.append(f"<li>failed in stage {esc(str(FAILURE.valid(fails[-1], 'stage')))}</li>")
+    fields = _kv_table({k: v for k, v in res.items() if k not in ("stages",)})
+    return (f"<ul>{''.join(items)}</ul><details><summary>every result field (result.json)</summary>{fields}"
+            f"<h3>Run</h3>{_kv_table(run.meta)}</details>")
+
+
+def _timeline_html(run: RunData) -> str:
+    stages = timeline(run)
+    if not stages:
+        return _nr()
+    t0 = stages[0].t0
+    rows = "".join(f"<tr><td>{html.escape(st.stage)}</td><td>{st.t0 - t0:.3f}</td><td>{st.t1 - t0:.3f}</td>"
+                   f"<td>{st.duration_s:.3f}</td></tr>" for st in stages)
+    notes = [f"<p class=\"note\">{html.escape(st.stage)} is shown as 0 s: the record has it end "
+             f"{1000 * st.clamped_s:.1f} ms before it began (a live run's first frame, exposed before the "
+             "predictor started its clock)</p>" for st in stages if st.clamped_s > 0]
+    return ("<table><tr><th>stage</th><th>from (s)</th><th>to (s)</th><th>duration (s)</th></tr>"
+            f"{rows}</table>" + "".join(notes))
+
+
+def _html(run: RunData, png: bytes, gates: Gates | None = None) -> str:
     parts = []
     reason = failure_reason(run)
     if reason is not None:  # before the figure and every panel: why the run failed
         parts.append(f'<section id="failure"><h2>Run failed</h2><p class="failure">{html.escape(reason)}</p>'
                      "</section>\n")
-    summary = _kv_table(run.result) if run.result is not None else _nr("not reached: the run did not finish "
-                                                                       "(no result.json)")
-    parts.append(_section("summary", "Result", summary + "<h3>Run</h3>" + _kv_table(run.meta)))
+    parts.append(_section("summary", "Result", _summary(run)))
+    parts.append(_section("timeline", "Stage timeline", _timeline_html(run)))
 
     track, preds, robot = _track(run), _predictions(run), _robot(run)
     if len(track) or preds or len(robot):
@@ -361,14 +618,20 @@ def _html(run: RunData, png: bytes) -> str:
     parts.append(_section("standard", "Standard view and silhouette", body))
 
     body = ""
-    for e in run.of(MATCH.name):
-        s = MATCH.get(e, "scores")
-        valid = {str(k): float(v) for k, v in s.items() if _finite([v])} if isinstance(s, dict) else {}
-        if valid:
-            view = MATCH.get(e, "view")
-            label = f"view {view}" if view is not None else "match"
-            body += f"<h3>{html.escape(label)}</h3>" + _kv_table(dict(sorted(valid.items(), key=lambda kv: kv[1])))
-    body = ("<p>Silhouette mismatch per object, best first: lower is better.</p>" + body) if body else _nr()
+    for mv in explain(run, gates):
+        if not any(r["score"] is not None for r in mv["rows"]):
+            continue
+        label = f"view {mv['view']}" if mv["view"] is not None else "match"
+        if mv["marker_height_mm"] is not None:
+            label += f" (marker measured {mv['marker_height_mm']:.1f} mm above the table)"
+        table = "".join(f"<tr><th>{html.escape(r['object'])}</th>"
+                        f"<td>{'—' if r['score'] is None else format(r['score'], '.4g')}</td>"
+                        f"<td>{html.escape(r['fate'])}</td></tr>" for r in mv["rows"])
+        body += (f"<h3>{html.escape(label)}</h3><table><tr><th>object</th><th>mismatch</th><th>why</th></tr>"
+                 f"{table}</table>")
+    body = ("<p>Silhouette mismatch per object, best first: lower is better; an object with no score was "
+            "dropped by a gate before its silhouette was compared, and the row says which.</p>" + body) \
+        if body else _nr()
     parts.append(_section("scores", "Match scores", body))
 
     counts: dict[str, int] = {}
@@ -381,12 +644,12 @@ def _html(run: RunData, png: bytes) -> str:
 
     lead = parts.pop(0) if reason is not None else ""
     img = base64.b64encode(png).decode("ascii")
-    title = html.escape(f"labctl run {run.meta.get('run_id', run.path.name)}")
+    title = html.escape(f"labctl run {run.meta.get('run_id', run.path.name)}: {verdict(run)}")
     return f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>{title}</title>
 <style>body{{font-family:sans-serif;max-width:1400px;margin:1em auto}}table{{border-collapse:collapse}}
 th,td{{border:1px solid #ccc;padding:2px 8px;text-align:left}}.nr{{color:#888;font-style:italic}}
-.failure{{color:#b00;font-weight:bold;font-size:1.2em}}
+.failure{{color:#b00;font-weight:bold;font-size:1.2em}}.note{{color:#555;font-size:.9em}}
 img{{max-width:100%}}</style></head><body>
 <h1>{title}</h1>
 {lead}<figure id="figure"><img alt="run report figure" src="data:image/png;base64,{img}"></figure>
@@ -394,14 +657,16 @@ img{{max-width:100%}}</style></head><body>
 """
 
 
-def write_report(run_dir: Path | str, *, png: bool = True) -> Path:
+def write_report(run_dir: Path | str, *, png: bool = True,
+                 gates: Gates | None = None) -> Path:
     """Write ``report.html`` (figure embedded as base64; images linked relative) and, with ``png``,
-    ``report.png`` into the record; return the HTML path. Works on unfinished runs."""
+    ``report.png`` into the record; return the HTML path. Works on unfinished runs. ``gates``: which gate
+    dropped each unscored object (:func:`explain`), to name it."""
     run = load_run(run_dir)
-    fig = render_figure(run)
+    fig = render_figure(run, gates)
     data = _png_bytes(fig)
     if png:
         atomic_write_bytes(run.path / "report.png", data)
     out = run.path / "report.html"
-    atomic_write_text(out, _html(run, data))
+    atomic_write_text(out, _html(run, data, gates))
     return out
