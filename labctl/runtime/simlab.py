@@ -436,9 +436,6 @@ def write_served_lab(lab: Lab, out, served: ServedLab, *, force: bool = False):
             shutil.copyfile(arm_src, tmp / "drivers/arms" / arm_src.name)
             robot = dataclasses.replace(robot, arm=f"arms/{arm_src.name}")
         dump(tmp / "drivers/robot.yaml", dataclasses.asdict(robot), real)
-        if (lab.root / "drivers" / "arms").is_dir():  # the robot file's ``arm:`` is relative to drivers/
-            shutil.copytree(lab.root / "drivers" / "arms", tmp / "drivers" / "arms",
-                            ignore=shutil.ignore_patterns(".*", "__pycache__"))
         for role in ("fixed_camera", "mobile_camera"):
             cfg = dataclasses.replace(getattr(lab, role), kind="stream", url=ep[role], timestamps="header",
                                       eye_w_mm=None, target_w_mm=None)
