@@ -1,0 +1,155 @@
+"""A planned Cartesian path checked in the arm's joint space before it is sent (paper §4.3, §5.1).
+
+The planner plans in task space (quintic or ruckig segments of the flange F in the world W, mm, s, rad); the
+arm flies them through inverse kinematics from its own configuration, as an arm's Cartesian servo mode does
+(docs/notes/robot.md, "A real arm"). :class:`ArmPlanner` keeps that view of the arm: it follows a planned
+trajectory's poses from the configuration the arm will have at its start (:meth:`ArmModel.follow`, IK from
+the previous sample), then checks every sample
+
+* reachable and within the joint limits, with no change of configuration branch (``follow``'s own checks);
+* away from the singularities by the settings' margins (:meth:`ArmModel.singularity_margins`);
+* each joint's speed within ``speed_fraction`` of its limit: the exact joint rates q̇ = J(q)⁻¹·[v; ω] of the
+  trajectory's own velocity and angular velocity at each sample (no finite-difference underestimate).
+
+The peak joint-speed ratio ``r`` over the path is what the planner slows a segment by (its duration × r).
+Numbers in, numbers out: no clocks or devices.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..geometry import make_T
+from .arm import ArmModel
+from .quintic import Trajectory
+from .ruckig_interception import RuckigTrajectory
+
+
+@dataclass(frozen=True)
+class ArmCheckSettings:
+    """How a path is checked in joint space (lab.yaml ``run.arm_*``): sample step (s), the share of each
+    joint's speed limit a plan may use, and the singularity margins (shoulder mm; elbow |sin q3|; wrist
+    |sin q5|)."""
+
+    dt_s: float = 0.02
+    speed_fraction: float = 0.95
+    shoulder_margin_mm: float = 50.0
+    elbow_margin: float = 0.05
+    wrist_margin: float = 0.05
+
+    @classmethod
+    def from_run(cls, run) -> ArmCheckSettings:
+        """From a :class:`labctl.config.lab.RunConfig`'s ``arm_*`` settings."""
+        return cls(run.arm_check_dt_s, run.arm_speed_fraction, run.arm_shoulder_margin_mm, run.arm_elbow_margin,
+                   run.arm_wrist_margin)
+
+
+@dataclass
+class JointPath:
+    """A trajectory as the arm flies it: sample times ``t`` (s, the plan's time line), configurations ``qs``
+    (N×6 rad), and the verdict. ``ok``: followable within the limits and margins (its speed may still be
+    over: see ``ratio``); ``reason``: ``unreachable``, ``joint_limit``, ``configuration`` or ``singularity``;
+    ``ratio``: the peak over joints and samples of |q̇_i| / (speed_fraction · q̇max_i) — above 1 the segment
+    must be slowed by it; ``ratios``: each joint's peak."""
+
+    t: np.ndarray
+    qs: np.ndarray
+    ok: bool
+    reason: str | None = None
+    ratio: float = 0.0
+    ratios: np.ndarray = field(default_factory=lambda: np.zeros(6))
+
+    @property
+    def feasible(self) -> bool:
+        """Followable and within every joint's speed."""
+        return self.ok and self.ratio <= 1.0
+
+    def q_at(self, t: float) -> np.ndarray:
+        """The sampled configuration nearest ``t`` (s) at or before it (the first before the path, the last
+        after it): the seed of an IK for the pose at ``t``."""
+        k = int(np.searchsorted(self.t, float(t), side="right")) - 1
+        return self.qs[min(max(k, 0), len(self.qs) - 1)]
+
+    @property
+    def q_end(self) -> np.ndarray:
+        """The configuration at the path's end (its last sample)."""
+        return self.qs[-1]
+
+
+def _twist(traj: Trajectory | RuckigTrajectory, t: float) -> np.ndarray:
+    """[v (mm/s); ω (rad/s)] of the flange at ``t``, world axes (ω 0 where no rotation is planned)."""
+    v = traj.state(t)[1]
+    w: np.ndarray | None
+    if isinstance(traj, RuckigTrajectory):
+        w = traj.angular_velocity(t)
+    else:
+        seg = traj.segment_at(t)
+        w = seg.angular_velocity(t) if seg.rot_coeffs is not None and t < seg.t1 else None
+    return np.concatenate([v, np.zeros(3) if w is None else w])
+
+
+class ArmPlanner:
+    """The arm's side of planning: its configuration at a pose, a trajectory checked in joint space, and the
+    joint-space time of a move (for choosing views). ``model`` is the arm at its mount."""
+
+    def __init__(self, model: ArmModel, settings: ArmCheckSettings | None = None):
+        self.model = model
+        self.settings = settings or ArmCheckSettings()
+
+    def configuration_at(self, T_w_F, seed=None) -> np.ndarray | None:
+        """The configuration that puts F at ``T_w_F``, by IK from ``seed`` (default the arm's home, so the
+        arm's home branch); None if that does not converge within the limits, then the reachable solution
+        nearest home."""
+        model = self.model
+        res = model.ik(T_w_F, model.home if seed is None else seed)
+        if res.ok:
+            return res.q
+        sols = model.ik_solutions(T_w_F)
+        return sols[0] if sols else None
+
+    def singular(self, q) -> bool:
+        """``q`` is within a margin of a singularity (shoulder, elbow or wrist)."""
+        s, m = self.settings, self.model.singularity_margins(q)
+        return m["shoulder_mm"] < s.shoulder_margin_mm or m["elbow"] < s.elbow_margin or m["wrist"] < s.wrist_margin
+
+    def check(self, traj: Trajectory | RuckigTrajectory, t0: float, t1: float, q0) -> JointPath:
+        """Follow ``traj`` from ``t0`` to ``t1`` (s) in joint space from ``q0`` (the configuration at ``t0``), every
+        ``dt_s`` and at ``t1``, and judge it (module docstring)."""
+        model, s = self.model, self.settings
+        n = max(int(math.ceil((t1 - t0) / s.dt_s - 1e-9)), 1)
+        ts = np.linspace(t0, t1, n + 1)
+        poses = [make_T(traj.orientation(t), traj.state(t)[0]) for t in ts]
+        fol = model.follow(poses, q0)
+        if not fol.ok:
+            k = len(fol.qs)
+            return JointPath(ts[:k], fol.qs if k else np.asarray(q0, float)[None], False, fol.reason)
+        peak = np.zeros(6)
+        for t, q in zip(ts, fol.qs, strict=True):
+            if self.singular(q):
+                return JointPath(ts, fol.qs, False, "singularity")
+            try:
+                qd = np.linalg.solve(model.jacobian(q), _twist(traj, float(t)))
+            except np.linalg.LinAlgError:
+                return JointPath(ts, fol.qs, False, "singularity")
+            peak = np.maximum(peak, np.abs(qd))
+        ratios = peak / (s.speed_fraction * model.qd_max)
+        return JointPath(ts, fol.qs, True, None, float(ratios.max()), ratios)
+
+    def joint_time_s(self, q0, T_w_F) -> float:
+        """Least time (s) the joints need from ``q0`` to the configuration nearest it at ``T_w_F`` (IK from
+        ``q0``): max_i |Δq_i| / q̇max_i; inf if IK from ``q0`` does not reach it within the limits, or the
+        configuration branch differs or it is within a singularity margin."""
+        model = self.model
+        res = model.ik(T_w_F, q0)
+        if not res.ok or model.configuration(res.q) != model.configuration(q0) or self.singular(res.q):
+            return math.inf
+        return joint_time_s(q0, res.q, model.qd_max)
+
+
+def joint_time_s(q0, q1, qd_max) -> float:
+    """max_i |q1_i − q0_i| / qd_max_i (s): no joint moves faster than its limit, so no move between the two
+    configurations is shorter."""
+    return float(np.max(np.abs(np.asarray(q1, float) - np.asarray(q0, float)) / np.asarray(qd_max, float)))
