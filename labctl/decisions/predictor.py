@@ -31,7 +31,7 @@ from ..errors import DeviceError
 from ..geometry import make_T, matrix_to_rotvec, rotvec_to_matrix
 from ..planning import Interception, camera_placement_trajectory, plan_interception, rest_to_rest_times
 from ..planning.arm import ArmModel
-from ..planning.arm_plan import ArmCheckSettings, ArmPlanner, JointPath
+from ..planning.arm_plan import ArmCheckSettings, ArmPlanner, JointPath, fit_plan
 from ..planning.interception import plan_quintic_arriving
 from ..planning.quintic import Trajectory
 from ..planning.ruckig_interception import (
@@ -60,9 +60,6 @@ INITIAL_AZIMUTH_STEPS_DEG = (0.0, 20.0, -20.0, 45.0, -45.0, 90.0, -90.0, 180.0)
 #: (deg): straight above (90°) the azimuth no longer places the camera and image-up (world +z) lies along the
 #: optical axis; beyond it the step goes sideways round the marker instead
 MAX_STEP_UP_ELEVATION_DEG = 85.0
-#: an arm's segment over its joint speeds is slowed by its peak ratio and checked again, at most this often: a
-#: stretched ruckig segment is not an exact time scaling of the earliest one (its start state is kept)
-ARM_STRETCH_TRIES = 4
 #: the initial view's azimuths an arm chooses among (deg, round the marker), by its joint-space time
 ARM_AZIMUTH_STEP_DEG = 15.0
 #: a standard view the arm cannot fly as planned is tried with the camera rolled about its optical axis (deg)
@@ -388,31 +385,20 @@ class PredictorPlanner:
         return res.q if res.ok else seed
 
     def _arm_fit(self, plan: Interception, t0: float, state, R, target) -> Interception:
-        """``plan`` as the arm can fly it: checked in joint space from the configuration it will have at ``t0``;
-        over a joint's speed, its duration stretched by exactly the peak ratio and checked again (up to
-        :data:`ARM_STRETCH_TRIES`); not followable (out of reach, a joint limit, a singularity margin, a change of
-        configuration): unreachable, with the reason, so the caller tries another view."""
+        """``plan`` as the arm can fly it (:func:`~labctl.planning.arm_plan.fit_plan`): checked in joint space from
+        the configuration it will have at ``t0``; over a joint's speed, stretched by exactly the peak ratio and
+        checked again; not followable: unreachable with the reason, so the caller tries another view."""
         assert self.arm is not None
+        arm = self.arm
         q0 = self._arm_q_at(t0, state[0], R)
         if q0 is None:
             return Interception(None, None, "the arm has no configuration at the start pose", "arm_unreachable",
                                 target)
-        stretch = 1.0
-        for _ in range(ARM_STRETCH_TRIES):
-            traj, t_hit = _reached(plan)
-            path = self.arm.check(traj, t0, t_hit, q0)
-            if not path.ok:
-                return Interception(None, None, f"the arm cannot fly the path: {path.reason}", f"arm_{path.reason}",
-                                    target)
-            if path.ratio <= 1.0:
-                self._arm_checked = (plan, path, stretch)
-                return plan
-            T = (t_hit - t0) * path.ratio
-            stretch *= path.ratio
-            plan = self._plan_from(t0, state, R, target, duration=T)
-            if not plan.reachable:
-                return plan
-        return Interception(None, None, "the arm's joints stay over speed on the slowed path", "arm_speed", target)
+        fit = fit_plan(plan, t0, lambda p: arm.check(_reached(p)[0], t0, _t_hit(p), q0),
+                       lambda T: self._plan_from(t0, state, R, target, duration=T))
+        if fit.plan.reachable and fit.path is not None:
+            self._arm_checked = (fit.plan, fit.path, fit.stretch)
+        return fit.plan
 
     def _arm_view_time(self, target, now: float) -> float:
         """A view's rough cost for an arm (s): the larger of the rest-to-rest time at the planner's limits and

@@ -18,13 +18,16 @@ Numbers in, numbers out: no clocks or devices.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..geometry import make_T
 from .arm import ArmModel
+from .interception import Interception
 from .quintic import Trajectory
+from .rotation import exp_so3, log_so3
 from .ruckig_interception import RuckigTrajectory
 
 
@@ -153,3 +156,90 @@ def joint_time_s(q0, q1, qd_max) -> float:
     """max_i |q1_i − q0_i| / qd_max_i (s): no joint moves faster than its limit, so no move between the two
     configurations is shorter."""
     return float(np.max(np.abs(np.asarray(q1, float) - np.asarray(q0, float)) / np.asarray(qd_max, float)))
+
+
+class StationReach:
+    """Calibration stations as the arm flies them (:class:`labctl.calibration.procedure.StationReach`): the first
+    pose in the arm's home branch (IK from its home configuration), then each straight move to the next (position
+    linear, rotation slerped, sampled every ``step_mm`` / ``step_rad``) followed in joint space, every sample
+    within the joint limits and margins and in the same branch. Prefixes already flown are remembered, so a
+    planner that grows a sequence pose by pose pays one move per question."""
+
+    def __init__(self, planner: ArmPlanner, *, step_mm: float = 20.0, step_rad: float = math.radians(2.0)):
+        self.planner, self.step_mm, self.step_rad = planner, step_mm, step_rad
+        self._flown: dict[bytes, np.ndarray] = {}  # a prefix's poses → the configuration at its last pose
+
+    def _move(self, T0: np.ndarray, T1: np.ndarray, q0: np.ndarray) -> np.ndarray | None:
+        phi = log_so3(T0[:3, :3].T @ T1[:3, :3])
+        d = float(np.linalg.norm(T1[:3, 3] - T0[:3, 3]))
+        n = max(int(math.ceil(max(d / self.step_mm, float(np.linalg.norm(phi)) / self.step_rad))), 1)
+        poses = [make_T(T0[:3, :3] @ exp_so3(phi * u), T0[:3, 3] + u * (T1[:3, 3] - T0[:3, 3]))
+                 for u in np.linspace(0.0, 1.0, n + 1)[1:]]
+        fol = self.planner.model.follow(poses, q0)
+        if not fol.ok or any(self.planner.singular(q) for q in fol.qs):
+            return None
+        return fol.qs[-1]
+
+    def __call__(self, poses) -> bool:
+        """True if the arm flies through ``poses`` (``T_w_F``, 4×4 mm) in order (class docstring)."""
+        model = self.planner.model
+        key = b""
+        q: np.ndarray | None = None
+        prev: np.ndarray | None = None
+        for T in poses:
+            T = np.asarray(T, float)
+            key += T.tobytes()
+            if key in self._flown:
+                q, prev = self._flown[key], T
+                continue
+            if q is None or prev is None:
+                res = model.ik(T, model.home)
+                ok = res.ok and model.configuration(res.q) == model.configuration(model.home) \
+                    and not self.planner.singular(res.q)
+                q = res.q if ok else None
+            else:
+                q = self._move(prev, T, q)
+            if q is None:
+                return False
+            self._flown[key], prev = q, T
+        return True
+
+
+#: a segment over the joints' speeds is slowed by its peak ratio and checked again at most this often: a stretched
+#: ruckig segment keeps its start state, so it is not an exact time scaling of the earliest one
+STRETCH_TRIES = 4
+
+
+@dataclass
+class ArmFit:
+    """A plan as the arm can fly it: the plan (unreachable, with the reason, if none), its joint path, and how
+    much longer than the earliest arrival it was made (``stretch``, 1: not slowed)."""
+
+    plan: Interception
+    path: JointPath | None
+    stretch: float = 1.0
+
+
+def fit_plan(plan: Interception, t0: float, check: Callable[[Interception], JointPath],
+             plan_at: Callable[[float], Interception], tries: int = STRETCH_TRIES) -> ArmFit:
+    """``plan`` (starting at ``t0``, s) made flyable by the arm: ``check`` follows a plan in joint space; a path
+    whose peak joint-speed ratio r exceeds 1 is re-planned by ``plan_at(T)`` to last exactly r times as long
+    (T = r · (t_hit − t0)) and checked again, up to ``tries`` times; one that is not followable (out of reach, a
+    joint limit, a singularity margin, a change of configuration) comes back unreachable with ``arm_<reason>``,
+    so the caller chooses another view."""
+    G = plan.target
+    stretch = 1.0
+    for _ in range(tries):
+        assert plan.t_hit is not None and plan.trajectory is not None  # only reachable plans are checked
+        path = check(plan)
+        if not path.ok:
+            return ArmFit(Interception(None, None, f"the arm cannot fly the path: {path.reason}",
+                                       f"arm_{path.reason}", G), path, stretch)
+        if path.ratio <= 1.0:
+            return ArmFit(plan, path, stretch)
+        stretch *= path.ratio
+        plan = plan_at((plan.t_hit - t0) * path.ratio)
+        if not plan.reachable:
+            return ArmFit(plan, None, stretch)
+    return ArmFit(Interception(None, None, "the arm's joints stay over speed on the slowed path", "arm_speed", G),
+                  None, stretch)
