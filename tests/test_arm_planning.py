@@ -62,7 +62,10 @@ def _branch_solution(arm, T, branch, near):
     return best
 
 
-def _closed_form_follows(arm, poses, q0, max_step_rad=math.radians(5.0)) -> bool:
+STEP_RAD = math.radians(5.0)
+
+
+def _closed_form_follows(arm, poses, q0, max_step_rad=STEP_RAD) -> bool:
     """An independent follow: at every pose a closed-form solution in ``q0``'s branch, each within a few degrees
     of the previous one."""
     q, branch = np.asarray(q0, float), arm.configuration(q0)
@@ -155,7 +158,8 @@ def test_a_singularity_margin_refuses_a_path_the_follower_alone_would_take(arm):
                                      np.zeros(3), R0=A[:3, :3], R1=B[:3, :3]),))
     q0 = ArmPlanner(arm).configuration_at(A)
     # the oracle: the wrist point's distance outside the cylinder of radius d4, from forward kinematics
-    p5 = (np.linalg.inv(arm.T_w_base) @ arm.fk(q0))[:3, 3] - arm.d[5] * (np.linalg.inv(arm.T_w_base) @ arm.fk(q0))[:3, 2]
+    T_base_F = np.linalg.inv(arm.T_w_base) @ arm.fk(q0)
+    p5 = T_base_F[:3, 3] - arm.d[5] * T_base_F[:3, 2]
     margin = math.sqrt(p5[0] ** 2 + p5[1] ** 2 - arm.d[3] ** 2)
     path = ArmPlanner(arm, ArmCheckSettings(shoulder_margin_mm=margin + 30.0)).check(seg, 0.0, 1.0, q0)
     assert not path.ok and path.reason == "singularity"
