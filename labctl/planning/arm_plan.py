@@ -23,8 +23,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..geometry import make_T
-from .arm import ArmModel
+from ..geometry import invert, make_T
+from .arm import PATH_STEP_RAD, ArmModel
 from .interception import Interception
 from .quintic import Trajectory
 from .rotation import exp_so3, log_so3
@@ -82,16 +82,23 @@ class JointPath:
         return self.qs[-1]
 
 
-def _twist(traj: Trajectory | RuckigTrajectory, t: float) -> np.ndarray:
-    """[v (mm/s); ω (rad/s)] of the flange at ``t``, world axes (ω 0 where no rotation is planned)."""
-    v = traj.state(t)[1]
-    w: np.ndarray | None
-    if isinstance(traj, RuckigTrajectory):
-        w = traj.angular_velocity(t)
-    else:
-        seg = traj.segment_at(t)
-        w = seg.angular_velocity(t) if seg.rot_coeffs is not None and t < seg.t1 else None
-    return np.concatenate([v, np.zeros(3) if w is None else w])
+def _samples(traj: Trajectory | RuckigTrajectory, ts: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
+    """The flange poses ``T_w_F`` (4×4) and twists [v (mm/s); ω (rad/s)] (N×6, world axes; ω 0 where no rotation
+    is planned) of ``traj`` at times ``ts`` (s): a ruckig segment evaluated once per sample."""
+    poses, twists = [], np.zeros((len(ts), 6))
+    for k, t in enumerate(ts):
+        if isinstance(traj, RuckigTrajectory):
+            p, v, _, R, w = traj.plan.state(traj._tau(t))
+        else:
+            seg = traj.segment_at(t)
+            p, v, _ = seg.state(t)
+            R = traj.orientation(t)
+            w = seg.angular_velocity(t) if seg.rot_coeffs is not None and t < seg.t1 else None
+        poses.append(make_T(R, p))
+        twists[k, :3] = v
+        if w is not None:
+            twists[k, 3:] = w
+    return poses, twists
 
 
 class ArmPlanner:
@@ -101,6 +108,8 @@ class ArmPlanner:
     def __init__(self, model: ArmModel, settings: ArmCheckSettings | None = None):
         self.model = model
         self.settings = settings or ArmCheckSettings()
+        self._T_base_w = invert(model.T_w_base)
+        self._T_tool_flange = invert(model.T_flange_tool)
 
     def configuration_at(self, T_w_F, seed=None) -> np.ndarray | None:
         """The configuration that puts F at ``T_w_F``, by IK from ``seed`` (default the arm's home, so the
@@ -113,33 +122,57 @@ class ArmPlanner:
         sols = model.ik_solutions(T_w_F)
         return sols[0] if sols else None
 
-    def singular(self, q) -> bool:
-        """``q`` is within a margin of a singularity (shoulder, elbow or wrist)."""
-        s, m = self.settings, self.model.singularity_margins(q)
-        return m["shoulder_mm"] < s.shoulder_margin_mm or m["elbow"] < s.elbow_margin or m["wrist"] < s.wrist_margin
+    def singular(self, q, T_w_F=None) -> bool:
+        """``q`` (at flange pose ``T_w_F``, if known: saves a forward kinematics) is within a margin of a
+        singularity: shoulder (the wrist point's distance outside the cylinder of radius |d4| round the base
+        axis), elbow |sin q3|, wrist |sin q5| (:meth:`ArmModel.singularity_margins`)."""
+        s, model = self.settings, self.model
+        if abs(math.sin(float(q[2]) + model.offset[2])) < s.elbow_margin or \
+                abs(math.sin(float(q[4]) + model.offset[4])) < s.wrist_margin:
+            return True
+        T = self._T_base_w @ (model.fk(q) if T_w_F is None else T_w_F) @ self._T_tool_flange
+        p5 = T[:3, 3] - model.d[5] * T[:3, 2]
+        r2 = float(p5[0] ** 2 + p5[1] ** 2)
+        return math.sqrt(max(r2 - model.d[3] ** 2, 0.0)) < s.shoulder_margin_mm
 
     def check(self, traj: Trajectory | RuckigTrajectory, t0: float, t1: float, q0) -> JointPath:
         """Follow ``traj`` from ``t0`` to ``t1`` (s) in joint space from ``q0`` (the configuration at ``t0``), every
-        ``dt_s`` and at ``t1``, and judge it (module docstring)."""
+        ``dt_s`` and at ``t1``, and judge it (module docstring). Each sample is solved by IK from the previous
+        configuration moved on by its joint rates (so one or two iterations); as :meth:`ArmModel.follow`, a
+        sample that does not converge is ``unreachable``, one past a limit ``joint_limit``, and a change of
+        branch or a joint step over :data:`~labctl.planning.arm.PATH_STEP_RAD` ``configuration``."""
         model, s = self.model, self.settings
         n = max(int(math.ceil((t1 - t0) / s.dt_s - 1e-9)), 1)
         ts = np.linspace(t0, t1, n + 1)
-        poses = [make_T(traj.orientation(t), traj.state(t)[0]) for t in ts]
-        fol = model.follow(poses, q0)
-        if not fol.ok:
-            k = len(fol.qs)
-            return JointPath(ts[:k], fol.qs if k else np.asarray(q0, float)[None], False, fol.reason)
+        poses, twists = _samples(traj, ts)
+        q = np.asarray(q0, float)
+        branch = model.configuration(q)
+        seed = q
+        qs = np.zeros((len(ts), 6))
         peak = np.zeros(6)
-        for t, q in zip(ts, fol.qs, strict=True):
-            if self.singular(q):
-                return JointPath(ts, fol.qs, False, "singularity")
-            try:
-                qd = np.linalg.solve(model.jacobian(q), _twist(traj, float(t)))
-            except np.linalg.LinAlgError:
-                return JointPath(ts, fol.qs, False, "singularity")
+        for k, (T, tw) in enumerate(zip(poses, twists, strict=True)):
+            res = model.ik(T, seed)
+            reason = None if res.converged else "unreachable"
+            if reason is None and not res.within_limits:
+                reason = "joint_limit"
+            jump = reason is None and float(np.max(np.abs(res.q - q))) > PATH_STEP_RAD
+            if reason is None and (jump or model.configuration(res.q, T) != branch):
+                reason = "configuration"
+            if reason is None and self.singular(res.q, T):
+                reason = "singularity"
+            if reason is None:
+                try:
+                    qd = np.linalg.solve(model.jacobian(res.q), tw)
+                except np.linalg.LinAlgError:
+                    reason = "singularity"
+            if reason is not None:
+                return JointPath(ts[:k], qs[:k] if k else q[None], False, reason)
+            q = qs[k] = res.q
             peak = np.maximum(peak, np.abs(qd))
+            if k + 1 < len(ts):
+                seed = q + qd * (ts[k + 1] - ts[k])
         ratios = peak / (s.speed_fraction * model.qd_max)
-        return JointPath(ts, fol.qs, True, None, float(ratios.max()), ratios)
+        return JointPath(ts, qs, True, None, float(ratios.max()), ratios)
 
     def joint_time_s(self, q0, T_w_F) -> float:
         """Least time (s) the joints need from ``q0`` to the configuration nearest it at ``T_w_F`` (IK from
