@@ -200,7 +200,9 @@ class StationReach:
 
     def __init__(self, planner: ArmPlanner, *, step_mm: float = 20.0, step_rad: float = math.radians(2.0)):
         self.planner, self.step_mm, self.step_rad = planner, step_mm, step_rad
-        self._flown: dict[bytes, np.ndarray] = {}  # a prefix's poses → the configuration at its last pose
+        # a prefix's poses → the configuration at its last pose (None: not flown): a calibration plans its stations
+        # once before opening the devices and again after, when a slow plan would leave the robot's watchdog unfed
+        self._flown: dict[bytes, np.ndarray | None] = {}
 
     def _move(self, T0: np.ndarray, T1: np.ndarray, q0: np.ndarray) -> np.ndarray | None:
         phi = log_so3(T0[:3, :3].T @ T1[:3, :3])
@@ -224,17 +226,17 @@ class StationReach:
             key += T.tobytes()
             if key in self._flown:
                 q, prev = self._flown[key], T
-                continue
-            if q is None or prev is None:
+            elif q is None or prev is None:
                 res = model.ik(T, model.home)
                 ok = res.ok and model.configuration(res.q) == model.configuration(model.home) \
                     and not self.planner.singular(res.q)
-                q = res.q if ok else None
+                q, prev = res.q if ok else None, T
+                self._flown[key] = q
             else:
-                q = self._move(prev, T, q)
+                q, prev = self._move(prev, T, q), T
+                self._flown[key] = q
             if q is None:
                 return False
-            self._flown[key], prev = q, T
         return True
 
 

@@ -430,6 +430,11 @@ def write_served_lab(lab: Lab, out, served: ServedLab, *, force: bool = False):
             table = dataclasses.replace(lab.table, kind="grbl", port=ep["table"], origin_w_mm=(0.0, 0.0, 0.0))
             dump(tmp / "drivers/table.yaml", dataclasses.asdict(table), real)
         robot = dataclasses.replace(lab.robot, kind="serial", port=ep["robot"])
+        if lab.robot.arm is not None:  # the arm's data file goes with the robot file that names it
+            arm_src = lab.driver_paths["arm"]
+            (tmp / "drivers/arms").mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(arm_src, tmp / "drivers/arms" / arm_src.name)
+            robot = dataclasses.replace(robot, arm=f"arms/{arm_src.name}")
         dump(tmp / "drivers/robot.yaml", dataclasses.asdict(robot), real)
         for role in ("fixed_camera", "mobile_camera"):
             cfg = dataclasses.replace(getattr(lab, role), kind="stream", url=ep[role], timestamps="header",
