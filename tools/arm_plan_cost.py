@@ -1,5 +1,5 @@
 """What checking each plan in the arm's joint space costs the planner: virtual trials on a lab whose robot is an
-arm, with the planner's calls timed (wall clock, this process).
+arm, with the planner's calls timed (this process's CPU time: on a shared machine wall time counts the others').
 
     python tools/arm_plan_cost.py [--lab DIR] [--n 2] [--speed 8]
 
@@ -23,9 +23,9 @@ def _timed(cls, name: str, store: list, extra=None):
     orig = getattr(cls, name)
 
     def wrapper(*args, **kw):
-        t = time.perf_counter()
+        t = time.process_time()  # this process's CPU: on a shared machine wall time counts the others' work
         out = orig(*args, **kw)
-        store.append(time.perf_counter() - t)
+        store.append(time.process_time() - t)
         if extra is not None:
             extra(out)
         return out
