@@ -29,7 +29,7 @@ pure: images and poses in, models out; :func:`capture` is the only part that tou
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol, cast
 
@@ -113,17 +113,27 @@ def _aim(target: Target) -> np.ndarray:
     return np.array([0.0, 0.0, 0.5 * target.height_mm])
 
 
+class StationReach(Protocol):
+    """Can the robot's arm fly straight moves through ``poses`` (flange ``T_b_f``, 4×4 mm) in order, from the
+    configuration it starts in? (:class:`labctl.planning.arm_plan.StationReach` for a lab whose robot is an arm.)"""
+
+    def __call__(self, poses: Sequence[np.ndarray]) -> bool:
+        """True if every pose and every move between them is within the arm's reach, limits and margins."""
+        ...
+
+
 def plan_stations(target: Target, T_w_t: np.ndarray, nominal: CameraModel, X_nominal: np.ndarray, *,
                   distance_mm: float = 1000.0, workspace=None, n: int = 10,
-                  margin_px: float = 12.0) -> list[np.ndarray]:
+                  margin_px: float = 12.0, reach: StationReach | None = None) -> list[np.ndarray]:
     """Flange poses ``T_b_f`` looking at the target (at ``T_w_t``) from ``distance_mm``: tilts up
     to ~30° at golden-angle azimuths with varied roll (Tsai–Lenz need rotations about different
     axes), each keeping every dot in view of the nominal camera and the flange inside
     ``workspace`` ((min, max) corners, mm). Distances vary by ±10 % so that the robot's known
-    motions along the line of sight separate f from the distance (Tsai 1987 §V's f/Tz coupling)."""
+    motions along the line of sight separate f from the distance (Tsai 1987 §V's f/Tz coupling). With
+    ``reach`` (an arm), a station is kept only if the arm flies to it from the stations before it."""
     aim = apply(T_w_t, _aim(target))
     solid = target.solid().transformed(T_w_t)
-    out = []
+    out: list[np.ndarray] = []
     for i in range(96):
         tilt = (0.0, 24.0, 16.0, 30.0, 20.0, 28.0, 12.0, 26.0)[i % 8]
         az = np.radians(37.0 + 137.508 * i)
@@ -137,6 +147,8 @@ def plan_stations(target: Target, T_w_t: np.ndarray, nominal: CameraModel, X_nom
             continue
         T_b_f = T_w_c @ invert(X_nominal)
         if workspace is not None and not _inside(T_b_f, workspace):
+            continue
+        if reach is not None and not reach([*out, T_b_f]):
             continue
         out.append(T_b_f)
         if len(out) == n:
@@ -156,11 +168,13 @@ def _inside(T_b_f: np.ndarray, workspace) -> bool:
 
 def plan_calibration(target: Target, *, cameras: str, travel_mm, workspace, T_w_table: np.ndarray,
                      nominal_mobile: CameraModel, X_nominal: np.ndarray,
-                     nominal_fixed: CameraModel | None = None, T_w_c1: np.ndarray | None = None) -> Plan:
+                     nominal_fixed: CameraModel | None = None, T_w_c1: np.ndarray | None = None,
+                     reach: StationReach | None = None) -> Plan:
     """The poses of a calibration run and their checks against the table's travel, the robot's
     workspace and the nominal cameras' views. ``T_w_table``, ``X_nominal`` and ``T_w_c1`` are
     nominal (a previous calibration or the driver files); without ``T_w_c1`` the fixed camera's
-    view is not checked. Pure: nothing moves."""
+    view is not checked. ``reach``: the robot's arm, which must fly the stations and then the
+    registration poses in order (None: the workspace box only). Pure: nothing moves."""
     plan = Plan()
     travel = np.asarray(travel_mm, float)
     solid = target.solid()
@@ -189,7 +203,7 @@ def plan_calibration(target: Target, *, cameras: str, travel_mm, workspace, T_w_
         on_table(xy0, "robot stations")
         T_w_t = T_w_table @ target.T_table_t(xy0, h)
         plan.stations = plan_stations(target, T_w_t, nominal_mobile, X_nominal, distance_mm=target.robot_distance_mm,
-                                      workspace=workspace, n=target.robot_stations)
+                                      workspace=workspace, n=target.robot_stations, reach=reach)
         if len(plan.stations) < 3:
             plan.problems.append(f"only {len(plan.stations)} robot stations see the whole target inside the robot's "
                                  "workspace; need at least 3 (move the target or change robot_distance_mm)")
@@ -210,6 +224,9 @@ def plan_calibration(target: Target, *, cameras: str, travel_mm, workspace, T_w_
                 if not _inside(T, workspace):
                     plan.problems.append(f"table registration: flange {np.round(T[:3, 3], 1).tolist()} for table "
                                          f"{xy} is outside the robot's workspace")
+            if reach is not None and not reach([*plan.stations, *(T for _, T in plan.registration)]):
+                plan.problems.append("table registration: the robot's arm cannot fly the registration poses after "
+                                     "its stations (move the target or change robot_distance_mm)")
     return plan
 
 

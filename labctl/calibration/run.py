@@ -28,6 +28,7 @@ from .procedure import (
     Motion,
     Plan,
     Prompt,
+    StationReach,
     calibrate_fixed,
     calibrate_mobile,
     capture,
@@ -92,6 +93,7 @@ class Nominal:
     workspace: tuple
     motion: Motion
     sources: dict
+    reach: StationReach | None = None  # the robot's arm (None: the workspace box only); set by the caller
 
 
 def nominal_camera(cfg) -> CameraModel:
@@ -149,7 +151,7 @@ def make_plan(target: Target, nominal: Nominal, cameras: str) -> Plan:
     """The calibration plan for ``target`` and ``cameras`` under the lab's nominal geometry (mm, 4×4 poses)."""
     return plan_calibration(target, cameras=cameras, travel_mm=nominal.travel_mm, workspace=nominal.workspace,
                             T_w_table=nominal.T_w_table, nominal_mobile=nominal.mobile_camera, X_nominal=nominal.X,
-                            nominal_fixed=nominal.fixed_camera, T_w_c1=nominal.T_w_c1)
+                            nominal_fixed=nominal.fixed_camera, T_w_c1=nominal.T_w_c1, reach=nominal.reach)
 
 
 def steps_for(plan: Plan) -> int:

@@ -340,6 +340,14 @@ def calibrate_group(ctx: click.Context, camera: str, dry_run: bool, ros: bool, f
     except TargetError as exc:
         raise UserInputError(str(exc)) from None
     nominal = nominal_for(lab)
+    if lab.arm is not None:  # the robot is an arm: every station (and the registration after them) within its reach
+        from dataclasses import replace
+
+        from ..planning.arm import ArmModel
+        from ..planning.arm_plan import ArmCheckSettings, ArmPlanner, StationReach
+
+        planner = ArmPlanner(ArmModel.from_config(lab.arm), ArmCheckSettings.from_run(lab.config.run))
+        nominal = replace(nominal, reach=StationReach(planner))
     if dry_run:
         rep = plan_report(target, nominal, camera)
         emit(rep, _plan_human(rep))

@@ -214,6 +214,19 @@ class RunConfig:
     # reproduction). ruckig by measurement: 4.47 s vs 5.06 s median time to identity, 240/240 vs 239/240
     # correct, same seeds (docs/notes/planning.md "ruckig profile")
     profile: Literal["quintic", "ruckig"] = "ruckig"
+    # a lab whose robot is an arm (drivers/robot.yaml arm:) has every planned path checked in its joint space
+    # before it is sent (planning.arm_plan; docs/notes/robot.md "The planner plans for the arm"): sampled every
+    # arm_check_dt_s (20 ms: 2.4° of a joint at 120 °/s, well inside the follower's 5° step, ~5 ms a plan);
+    # each joint planned to at most arm_speed_fraction of its data-sheet speed (the check samples the path, the
+    # controller and an independent check see every instant: 5 % for what lies between samples); the
+    # singularity margins: the wrist point at least arm_shoulder_margin_mm outside the cylinder round the base
+    # axis, |sin q3| (elbow) and |sin q5| (wrist) at least theirs (0.05: 3° from stretched or aligned, where
+    # the joint rates of a slow Cartesian move grow twentyfold)
+    arm_check_dt_s: Positive = 0.02
+    arm_speed_fraction: Annotated[float, Range(gt=0, le=1)] = 0.95
+    arm_shoulder_margin_mm: NonNegative = 50.0
+    arm_elbow_margin: Annotated[float, Range(ge=0, lt=1)] = 0.05
+    arm_wrist_margin: Annotated[float, Range(ge=0, lt=1)] = 0.05
 
 
 SIM_CAMERA_PRESETS = ("none", "realistic")

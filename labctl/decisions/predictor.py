@@ -30,8 +30,16 @@ from ..drivers.interfaces import Frame, Robot, RobotStatus
 from ..errors import DeviceError
 from ..geometry import make_T, matrix_to_rotvec, rotvec_to_matrix
 from ..planning import Interception, camera_placement_trajectory, plan_interception, rest_to_rest_times
+from ..planning.arm import ArmModel
+from ..planning.arm_plan import ArmCheckSettings, ArmPlanner, JointPath, fit_plan
+from ..planning.interception import plan_quintic_arriving
 from ..planning.quintic import Trajectory
-from ..planning.ruckig_interception import RuckigTrajectory, plan_interception_ruckig, ruckig_limits
+from ..planning.ruckig_interception import (
+    RuckigTrajectory,
+    plan_interception_ruckig,
+    plan_ruckig_arriving,
+    ruckig_limits,
+)
 from ..planning.ruckig_profile import JerkLimits, controller_limits
 from ..planning.targets import prediction_margin_mm, standard_view_path, view_holds_marker, viewing_distance_with_margin
 from ..planning.tti_bound import Leg, identity_bound
@@ -53,6 +61,11 @@ INITIAL_AZIMUTH_STEPS_DEG = (0.0, 20.0, -20.0, 45.0, -45.0, 90.0, -90.0, 180.0)
 #: (deg): straight above (90°) the azimuth no longer places the camera and image-up (world +z) lies along the
 #: optical axis; beyond it the step goes sideways round the marker instead
 MAX_STEP_UP_ELEVATION_DEG = 85.0
+#: the initial view's azimuths an arm chooses among (deg, round the marker), by its joint-space time
+ARM_AZIMUTH_STEP_DEG = 15.0
+#: a standard view the arm cannot fly as planned is tried with the camera rolled about its optical axis (deg)
+#: and then a little nearer or farther (a share of the stand-off, within the library's 3 % stand-off tolerance)
+ARM_STANDARD_ALTERNATIVES = ((0.0, 1.0), (90.0, 1.0), (-90.0, 1.0), (180.0, 1.0), (0.0, 0.97), (0.0, 1.03))
 
 STAGES = ("wait", "track", "intercept", "initial", "standard", "match", "done", "failed")
 
@@ -210,6 +223,16 @@ class PredictorPlanner:
         self.profile = robot.choose_profile(profile or cfg.run.profile)
         self.jerk = ruckig_limits(ctx.lab.robot, cfg.run.robot_stop_budget_s)  # what ruckig segments carry
         self.jerk_ctrl = controller_limits(ctx.lab.robot)  # the controller's own: not sent
+        # an arm (drivers/robot.yaml arm:): every path is checked in its joint space before it is sent, from the
+        # configuration it will have (planning.arm_plan); None: a flange in the task-space box, as before
+        self.arm: ArmPlanner | None = None
+        if ctx.lab.arm is not None:
+            self.arm = ArmPlanner(ArmModel.from_config(ctx.lab.arm), ArmCheckSettings.from_run(cfg.run))
+        self.arm_q: np.ndarray | None = None  # the arm's configuration at rest (rest_T), once known
+        self.arm_path: JointPath | None = None  # the segment under way as the arm flies it (the plan's time line)
+        self._arm_checked: tuple[Interception, JointPath, float] | None = None  # the last plan checked, its stretch
+        self.leg_q0: np.ndarray | None = None  # the arm's configuration where the leg under way started
+        self.std_roll_deg, self.std_standoff_scale = 0.0, 1.0  # the standard view's roll and stand-off chosen
 
     # -- helpers ------------------------------------------------------------------------------
     @property
@@ -277,6 +300,10 @@ class PredictorPlanner:
         t0c, t1c = self.robot.segment(T_end, duration, self.segment_id, replace=True, **kw)
         # accepted (a refused splice raises, and the motion under way, its end and its leg stay as they were)
         self.T_end = T_end
+        if self.arm is not None and self._arm_checked is not None and self._arm_checked[0] is plan:
+            _, self.arm_path, stretch = self._arm_checked
+            self.log("arm_plan", t=now, id=self.segment_id, kind=self.plan_kind, ratio=self.arm_path.ratio,
+                     stretch=stretch, q_end_deg=np.degrees(self.arm_path.q_end))
         self.rest_T = None  # moving: at rest again only when the segment is done
         if not ruckig:
             self.leg_jerk_limited = False  # a quintic segment: no jerk limit binds this leg
@@ -312,18 +339,86 @@ class PredictorPlanner:
         return max(now, self.clock_fn()) if self.clock_fn is not None else now
 
     def _plan(self, now: float, kind: str, target) -> Interception:
-        """Plan from where the robot will be when the command reaches the controller."""
+        """Plan from where the robot will be when the command reaches the controller; for an arm, checked in
+        its joint space and slowed or refused (:meth:`_arm_fit`)."""
         t0 = self._now(now) + self.latency_s
         state, R = self._flange_state(t0)
+        plan = self._plan_from(t0, state, R, target)
+        if self.arm is None or not plan.reachable:
+            return plan
+        return self._arm_fit(plan, t0, state, R, target)
+
+    def _plan_from(self, t0: float, state, R, target, duration: float | None = None) -> Interception:
+        """The earliest arrival on ``target`` from ``state`` (p, v, a) and rotation ``R`` at ``t0``; with
+        ``duration`` (s), the arrival at ``t0 + duration`` (a stretched segment). Ruckig if the controller
+        runs it, else (or if ruckig finds none) the paper's quintic."""
         horizon = self.cfg.run.plan_horizon_s
         if self.profile == "ruckig":
             traj = self.plan.trajectory if self.plan is not None else None
             w = traj.angular_velocity(t0 - self.plan_shift) if isinstance(traj, RuckigTrajectory) else None
-            plan = plan_interception_ruckig(state, t0, target, self.ctx.limits, horizon, R0=R, w0=w, jerk=self.jerk,
+            if duration is None:
+                plan = plan_interception_ruckig(state, t0, target, self.ctx.limits, horizon, R0=R, w0=w,
+                                                jerk=self.jerk, base=self.jerk_ctrl)
+            else:
+                plan = plan_ruckig_arriving(state, t0, target, duration, self.ctx.limits, R0=R, w0=w, jerk=self.jerk,
                                             base=self.jerk_ctrl)
             if plan.reachable:
                 return plan
+        if duration is not None:
+            return plan_quintic_arriving(state, t0, target, duration, self.ctx.limits, R0=R)
         return plan_interception(state, t0, target, self.ctx.limits, horizon_s=horizon, R0=R)
+
+    # -- the arm -----------------------------------------------------------------------------------
+    def _arm_rest_q(self) -> np.ndarray | None:
+        """The arm's configuration at rest: where its last segment ended, else the rest pose's in the arm's
+        home branch (IK from its home configuration)."""
+        assert self.arm is not None
+        if self.arm_q is None:
+            self.arm_q = self.arm.configuration_at(self._rest_pose())
+        return self.arm_q
+
+    def _arm_q_at(self, t: float, p, R) -> np.ndarray | None:
+        """The configuration the arm will have at ``t`` (s, host time) where the flange is at (``p``, ``R``):
+        IK from the committed segment's own joint path there (the arm's Cartesian servo follows it), or from
+        the rest configuration."""
+        assert self.arm is not None
+        if self.plan is not None and self.arm_path is not None:
+            seed: np.ndarray | None = self.arm_path.q_at(t - self.plan_shift)
+        else:
+            seed = self._arm_rest_q()
+        if seed is None:
+            return None
+        res = self.arm.model.ik(make_T(R, p), seed)
+        return res.q if res.ok else seed
+
+    def _arm_fit(self, plan: Interception, t0: float, state, R, target) -> Interception:
+        """``plan`` as the arm can fly it (:func:`~labctl.planning.arm_plan.fit_plan`): checked in joint space from
+        the configuration it will have at ``t0``; over a joint's speed, stretched by exactly the peak ratio and
+        checked again; not followable: unreachable with the reason, so the caller tries another view."""
+        assert self.arm is not None
+        arm = self.arm
+        q0 = self._arm_q_at(t0, state[0], R)
+        if q0 is None:
+            return Interception(None, None, "the arm has no configuration at the start pose", "arm_unreachable",
+                                target)
+        fit = fit_plan(plan, t0, lambda p: arm.check(_reached(p)[0], t0, _t_hit(p), q0),
+                       lambda T: self._plan_from(t0, state, R, target, duration=T))
+        if fit.plan.reachable and fit.path is not None:
+            self._arm_checked = (fit.plan, fit.path, fit.stretch)
+        return fit.plan
+
+    def _arm_view_time(self, target, now: float) -> float:
+        """A view's rough cost for an arm (s): the larger of the rest-to-rest time at the planner's limits and
+        the joints' least time (:meth:`ArmPlanner.joint_time_s`, IK from the rest configuration), to the
+        ``target``'s pose now; inf where the arm cannot reach it in its branch."""
+        assert self.arm is not None
+        q0 = self._arm_rest_q()
+        if q0 is None:
+            return math.inf
+        T = cast(_RestAt, target).G.pose(now)
+        (p0, _, _), _ = self._flange_state(now)
+        cart = rest_to_rest_times(p0, T[:3, 3], self.ctx.limits.v_max, self.ctx.limits.a_max)[0]
+        return max(cart, self.arm.joint_time_s(q0, T))
 
     def _start_move(self, now: float, kind: m.CaptureKind, plan: Interception) -> None:
         traj, t_hit = _reached(plan)
@@ -331,6 +426,9 @@ class PredictorPlanner:
         p0, v0, a0 = traj.state(seg0.t0)  # the state the plan starts from: where the leg begins
         R0 = traj.orientation(seg0.t0)
         self.leg_start = (kind, p0, v0, a0, R0)
+        if self.arm is not None:
+            checked = self._arm_checked
+            self.leg_q0 = checked[1].qs[0].copy() if checked is not None and checked[0] is plan else None
         self.leg_jerk_limited = True  # until a segment of the leg is sent without the controller's jerk limit
         self.plan, self.plan_kind, self.t_last_plan = plan, kind, now
         _, quintic = rest_to_rest_times(p0, traj.state(t_hit)[0],
@@ -354,10 +452,24 @@ class PredictorPlanner:
         return self._commit_margin_mm() <= self.cfg.tracking.commit_margin_mm
 
     def _choose_azimuth(self) -> float:
-        """Initial viewing side: from the marker towards the robot's home (shortest reach)."""
+        """Initial viewing side: from the marker towards the robot's home (shortest reach); for an arm, of the
+        azimuths every :data:`ARM_AZIMUTH_STEP_DEG` round the marker, the view quickest for the arm from the
+        configuration it has (:meth:`_arm_view_time`), the nearest to the home side on a tie."""
         mp = self._marker_path()(np.array([self.tracker.time]))[0][0]
         home = np.asarray(self.ctx.lab.robot.home_mm)
-        return math.degrees(math.atan2(home[1] - mp[1], home[0] - mp[0]))
+        az0 = math.degrees(math.atan2(home[1] - mp[1], home[0] - mp[0]))
+        if self.arm is None:
+            return az0
+        now = cast(float, self.tracker.time)
+        steps = np.arange(0.0, 360.0, ARM_AZIMUTH_STEP_DEG)
+        deltas = sorted(((d + 180.0) % 360.0) - 180.0 for d in steps)
+        deltas.sort(key=abs)
+        best, best_t = az0, math.inf
+        for d in deltas:
+            t = self._arm_view_time(self._initial_view_target(az0 + d), now)
+            if t < best_t - 1e-9:
+                best, best_t = az0 + d, t
+        return best
 
     def _plan_initial(self, now: float, kind: m.CaptureKind) -> bool:
         # the margin-widened views first, then the nominal ones: while the table speeds up (0.5 s to 100 mm/s)
@@ -410,12 +522,19 @@ class PredictorPlanner:
                 self.log("replan_refused", t=now, error=str(exc))
 
     def _standard_target(self, mp: m.MarkerPose | None = None, t_ref: float | None = None,
-                         measured: bool | None = None):
+                         measured: bool | None = None, choice: tuple[float, float] | None = None):
         """G(t) of the standard view (paper §4.3): the marker, carried by the table's predicted
         motion from where it was measured, seen along its normal from the stand-off; at rest.
         Default: the marker being viewed (``marker_pose`` measured at ``t_marker_pose``). ``measured``: carry it
         by the table's measured motion up to the newest frame (:meth:`_table_since`), as for a spare marker
-        (default: whether the marker being viewed is one); else by the newest path extended back to its images."""
+        (default: whether the marker being viewed is one); else by the newest path extended back to its images.
+        ``choice``: the camera's roll about its optical axis (deg) from the least-rotation one and the share of
+        the stand-off (default: the ones chosen for the view under way, :meth:`_plan_standard`)."""
+        roll_deg, scale_standoff = (self.std_roll_deg, self.std_standoff_scale) if choice is None else choice
+        R_ref = self.R_w_c_ref
+        if roll_deg:
+            c, s = math.cos(math.radians(roll_deg)), math.sin(math.radians(roll_deg))
+            R_ref = R_ref @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])  # about the camera's z
         mp = self.marker_pose if mp is None else mp
         t_ref = cast(float, self.t_marker_pose if t_ref is None else t_ref)
         assert mp is not None  # the marker being viewed, or the one given
@@ -425,8 +544,8 @@ class PredictorPlanner:
         ref = self._table_since(t_ref) if measured else None
         ref_xy = None if ref is None else scale * ref
         return _RestAt(standard_view_path(_Scaled(self._marker_path(), scale), t_ref,
-                                          mp.center_w, mp.normal_w, self.cfg.viewing.standoff_mm, self.R_w_c_ref,
-                                          T_f_c=self.ctx.T_f_c2, table_xy_at_ref=ref_xy))
+                                          mp.center_w, mp.normal_w, self.cfg.viewing.standoff_mm * scale_standoff,
+                                          R_ref, T_f_c=self.ctx.T_f_c2, table_xy_at_ref=ref_xy))
 
     def _table_since(self, t_ref: float) -> np.ndarray | None:
         """The point of the newest predicted path (table plane, mm) the table's motion since ``t_ref`` is counted
@@ -451,7 +570,9 @@ class PredictorPlanner:
         planner's limits, the view where the marker is now): to rank spare markers."""
         _, R = self._flange_state(now)
         self.R_w_c_ref = R @ self.ctx.T_f_c2[:3, :3]
-        G = self._standard_target(pose, self.t_requested.get(pose.view_id, now), measured=True)
+        G = self._standard_target(pose, self.t_requested.get(pose.view_id, now), measured=True, choice=(0.0, 1.0))
+        if self.arm is not None:  # an arm: its joints' least time counts too, and a view it cannot reach goes last
+            return self._arm_view_time(G, now)
         p1 = G(np.array([now]))[0][0]
         p0 = self._flange_state(now)[0][0]
         return rest_to_rest_times(p0, p1, self.ctx.limits.v_max, self.ctx.limits.a_max)[0]
@@ -471,9 +592,20 @@ class PredictorPlanner:
         return view_holds_marker(self.ctx.mobile_camera, T_w_c, marker, prediction_margin_mm(cov))
 
     def _plan_standard(self, now: float) -> bool:
+        """Plan the standard view of the marker being viewed; an arm that cannot fly it tries the camera rolled
+        about its optical axis, then a little nearer or farther (:data:`ARM_STANDARD_ALTERNATIVES`), in order."""
         _, R = self._flange_state(now)
         self.R_w_c_ref = R @ self.ctx.T_f_c2[:3, :3]
-        plan = self._plan(now, "standard", self._standard_target())
+        choices = ARM_STANDARD_ALTERNATIVES if self.arm is not None else ((0.0, 1.0),)
+        first: Interception | None = None
+        for self.std_roll_deg, self.std_standoff_scale in choices:
+            plan = self._plan(now, "standard", self._standard_target())
+            first = plan if first is None else first
+            if plan.reachable:
+                break
+        else:
+            plan = cast(Interception, first)
+            self.std_roll_deg, self.std_standoff_scale = 0.0, 1.0
         if not plan.reachable:
             self.log("standard_view_unreachable", t=now, reason=plan.reason, code=plan.code)
             return False
@@ -530,9 +662,12 @@ class PredictorPlanner:
         if self.leg_start is None:
             return
         kind, p0, v0, a0, R0 = self.leg_start
+        q0 = q1 = None
+        if self.arm is not None and self.leg_q0 is not None and self.arm_q is not None:
+            q0, q1 = tuple(map(float, self.leg_q0)), tuple(map(float, self.arm_q))
         self.legs.append(Leg(kind, _vec3(p0), _vec3(T_flange[:3, 3]), _vec3(v0), _vec3(a0), R0=R0,
                              R1=T_flange[:3, :3].copy(),
-                             j_max=self.jerk_ctrl.j_max if self.leg_jerk_limited else None))
+                             j_max=self.jerk_ctrl.j_max if self.leg_jerk_limited else None, q0=q0, q1=q1))
         self.leg_start = None
 
     # -- capture ---------------------------------------------------------------------------------
@@ -768,6 +903,11 @@ class PredictorPlanner:
             self.log("robot", t=now, p=p)
             kind = self.plan_kind
             assert kind is not None  # set with the plan
+            if self.arm is not None:  # at rest where its segment ended: the configuration it followed there
+                seed = self.arm_path.q_end if self.arm_path is not None else self._arm_rest_q()
+                res = self.arm.model.ik(T_flange, seed) if seed is not None else None
+                self.arm_q = res.q if res is not None and res.ok else seed
+                self.arm_path = None
             self._end_leg(T_flange)
             self.plan = None
             if kind == "standard":
@@ -817,9 +957,10 @@ class PredictorPlanner:
         rc = self.ctx.lab.robot
         first = (self.t_first_seen - self.t_start) if self.t_first_seen is not None else 0.0
         fps = float(self.ctx.lab.mobile_camera.fps or 0.0)
+        qd = {"qd_max": tuple(map(float, self.arm.model.qd_max))} if self.arm is not None else {}
         out = identity_bound(first, self.legs, self.n_images, 1.0 / fps if fps > 0 else 0.0,
                              v_max=float(rc.v_max_mm_s), a_max=float(rc.a_max_mm_s2),
-                             w_max=math.radians(float(rc.w_max_deg_s)))  # each leg carries its own jerk limit
+                             w_max=math.radians(float(rc.w_max_deg_s)), **qd)  # each leg carries its own jerk limit
         out["legs"] = [leg.kind for leg in self.legs]
         return out
 

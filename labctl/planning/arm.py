@@ -146,9 +146,10 @@ class ArmModel:
         J = self._W @ self.jacobian(q)
         return float(math.sqrt(max(np.linalg.det(J @ J.T), 0.0)))
 
-    def wrist_point(self, q) -> np.ndarray:
-        """The origin of DH frame 5 in the arm's base (mm): the point the shoulder singularity is about."""
-        T = self.fk_flange(q)
+    def wrist_point(self, q, T_w_F=None) -> np.ndarray:
+        """The origin of DH frame 5 in the arm's base (mm): the point the shoulder singularity is about
+        (``T_w_F``: ``fk(q)`` when the caller has it)."""
+        T = self.fk_flange(q) if T_w_F is None else invert(self.T_w_base) @ T_w_F @ invert(self.T_flange_tool)
         return T[:3, 3] - self.d[5] * T[:3, 2]
 
     def singularity_margins(self, q) -> dict[str, float]:
@@ -162,13 +163,13 @@ class ArmModel:
                 "elbow": abs(math.sin(float(q[2]) + self.offset[2])),
                 "wrist": abs(math.sin(float(q[4]) + self.offset[4]))}
 
-    def configuration(self, q) -> tuple[int, int, int]:
+    def configuration(self, q, T_w_F=None) -> tuple[int, int, int]:
         """The (shoulder, elbow, wrist) branch, each ±1: which of the up to eight IK solutions ``q`` is.
 
         Shoulder: the side of joint 1 about the wrist point's azimuth (the ± of the closed-form solution);
         elbow: the sign of sin q3; wrist: the sign of sin q5. Within one branch the arm moves without
-        passing a singularity; changing branch means passing one."""
-        p = self.wrist_point(q)
+        passing a singularity; changing branch means passing one. ``T_w_F``: ``fk(q)`` when the caller has it."""
+        p = self.wrist_point(q, T_w_F)
         psi = math.atan2(p[1], p[0])
         side = math.remainder(float(q[0]) + self.offset[0] - psi - math.pi / 2, 2 * math.pi)
         sgn = lambda x: 1 if x >= 0 else -1  # noqa: E731

@@ -316,3 +316,23 @@ def shortest_quintic(p0, v0, a0, p1, v1, a1, limits: Limits, t0: float = 0.0, ma
     if not res.reachable or not isinstance(res.trajectory, Trajectory):
         raise PlanningError(f"no quintic within {max_duration_s:.0f} s meets the limits ({res.code})")
     return res.trajectory.segments[0]
+
+
+def plan_quintic_arriving(state0, t0: float, G: TargetFn, T: float, limits: Limits, *, R0=None) -> Interception:
+    """One limit-checked quintic from ``state0`` (at rest in orientation ``R0``) at ``t0`` arriving on G at
+    ``t0 + T`` (s): a slower flight than :func:`plan_interception`'s earliest, as when a segment is stretched
+    for the arm's joint speeds (rotation from rest, as that planner's from a start without a rate)."""
+    start = _checked_start(state0, t0, max(T, 0.02) * 2.0, 0.01, limits, G)
+    if isinstance(start, Interception):
+        return start
+    p0, v0, a0 = start
+    R1 = end_rotation(G)
+    rot_args: tuple = (None, None, None, None)
+    if R0 is not None and R1 is not None:
+        rot_args = (np.asarray(R0, dtype=float), R1, np.zeros(3), np.zeros(3))
+    seg = _segment(t0, T, p0, v0, a0, G, rot_args)
+    try:
+        seg = check_segment(seg, limits)
+    except LimitViolation as exc:
+        return Interception(None, None, f"the quintic lasting {T:.3f} s breaks a limit: {exc}", "too_slow", G)
+    return Interception(seg.t1, Trajectory((seg,)), None, "ok", G)

@@ -150,3 +150,29 @@ def plan_interception_ruckig(state0, t0: float, G: TargetFn, limits: Limits, hor
         prev = T
     code, reason = _unreachable_reason(bool(in_box.any()), gp, limits, horizon_s)
     return Interception(None, None, reason.replace("quintic", "ruckig segment"), code, G)
+
+
+def plan_ruckig_arriving(state0, t0: float, G: TargetFn, T: float, limits: Limits, *, R0=None, w0=None,
+                         jerk: JerkLimits | None = None, base: JerkLimits | None = None) -> Interception:
+    """One controller-checked ruckig segment from ``state0`` at ``t0`` arriving on G at ``t0 + T`` (s), the
+    segment asked to last ``T`` (ruckig's minimum duration): a slower flight than
+    :func:`plan_interception_ruckig`'s earliest, as when a segment is stretched for the arm's joint speeds.
+    The same inputs and checks as that search's final step; unreachable: ``t_hit`` None and a reason."""
+    start = _checked_start(state0, t0, max(T, 0.02) * 2.0, 0.01, limits, G)
+    if isinstance(start, Interception):
+        return start
+    p0, v0, a0 = start
+    R0 = np.eye(3) if R0 is None else np.asarray(R0, float)
+    w0 = np.zeros(3) if w0 is None else np.asarray(w0, float).reshape(3)
+    R1 = end_rotation(G)
+    R1 = R0 if R1 is None else R1
+    lim = (jerk if jerk is not None else JerkLimits.from_limits(limits)).rounded(base)
+    check = base if base is not None else lim
+    gp, gv, ga = (x[0] for x in G(np.array([t0 + T])))
+    if not limits.contains(gp):
+        return Interception(None, None, f"the target at {T:.3f} s is outside the workspace box", "outside_box", G)
+    plan = plan_ruckig((p0, v0, a0, R0, w0), gp, R1, gv, np.zeros(3), ga, T, lim)
+    if plan.code == 0 and plan.duration <= T * (1 + 1e-6) + 1e-6 and check_ruckig(plan, check) == 0:
+        traj = RuckigTrajectory(plan, t0, lim, base)
+        return Interception(traj.t1, traj, None, "ok", G)
+    return Interception(None, None, f"no controller-checked ruckig segment lasting {T:.3f} s", "too_slow", G)

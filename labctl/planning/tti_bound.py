@@ -22,6 +22,11 @@ before the robot moves counts against the run, not in the bound. Jerk: a leg flo
 ruckig segments is bound by the controller's ``jmax`` (``Leg.j_max``); a leg with any quintic
 segment has no jerk limit (the reference controller checks quintics against v and a only), and
 then the bound is the bang-bang / trapezoidal time.
+
+An arm (the lab's robot file names one): the leg's least time is also at least the joints' own,
+``max_i |q1_i − q0_i| / q̇max_i`` between the configurations the arm had at the leg's start and at its
+image (``Leg.q0``, ``Leg.q1``, rad; ``qd_max`` rad/s): no joint moves faster than its data-sheet speed,
+whatever the path.
 Units: mm, s, rad; world frame.
 Functional core: numbers in, numbers out.
 """
@@ -50,6 +55,8 @@ class Leg:
     R0: np.ndarray | None = None
     R1: np.ndarray | None = None
     j_max: float | None = None
+    q0: tuple[float, ...] | None = None  # the arm's configuration at the start and at the image (rad; None: no arm)
+    q1: tuple[float, ...] | None = None
 
 
 def min_line_time(d_mm: float, v0: float, a0: float, v1: float, a1: float, v_max: float, a_max: float,
@@ -76,8 +83,10 @@ def rotation_angle(R0: np.ndarray, R1: np.ndarray) -> float:
     return float(np.arccos(min(1.0, max(-1.0, c))))
 
 
-def leg_min_time(leg: Leg, v_max: float, a_max: float, w_max: float | None = None) -> float:
-    """Lower bound (s) of the time any profile within the limits needs for ``leg`` (module docstring)."""
+def leg_min_time(leg: Leg, v_max: float, a_max: float, w_max: float | None = None,
+                 qd_max: tuple[float, ...] | None = None) -> float:
+    """Lower bound (s) of the time any profile within the limits needs for ``leg`` (module docstring); with
+    ``qd_max`` (rad/s per joint) and the leg's configurations, also the joints' least time."""
     p0, p1 = np.asarray(leg.p0, float), np.asarray(leg.p1, float)
     d = float(np.linalg.norm(p1 - p0))
     if d > 1e-9:
@@ -89,14 +98,18 @@ def leg_min_time(leg: Leg, v_max: float, a_max: float, w_max: float | None = Non
         t = 0.0
     if w_max is not None and leg.R0 is not None and leg.R1 is not None:
         t = max(t, rotation_angle(leg.R0, leg.R1) / w_max)
+    if qd_max is not None and leg.q0 is not None and leg.q1 is not None:
+        dq = np.abs(np.asarray(leg.q1, float) - np.asarray(leg.q0, float))
+        t = max(t, float(np.max(dq / np.asarray(qd_max, float))))
     return t
 
 
 def identity_bound(first_sight_s: float, legs: list[Leg], n_images: int, frame_period_s: float, *,
-                   v_max: float, a_max: float, w_max: float | None = None) -> dict:
+                   v_max: float, a_max: float, w_max: float | None = None,
+                   qd_max: tuple[float, ...] | None = None) -> dict:
     """The lower bound (s) and its parts: ``first_sight_s`` (s after the run's start), the legs' minimum
-    times, ``n_images`` mobile frames of ``frame_period_s`` each."""
-    legs_s = [leg_min_time(leg, v_max, a_max, w_max) for leg in legs]
+    times (with ``qd_max``, rad/s: the arm's joints' too), ``n_images`` mobile frames of ``frame_period_s`` each."""
+    legs_s = [leg_min_time(leg, v_max, a_max, w_max, qd_max) for leg in legs]
     frames_s = n_images * frame_period_s
     return {"bound_s": first_sight_s + sum(legs_s) + frames_s, "first_sight_s": first_sight_s,
             "legs_s": legs_s, "frames_s": frames_s}
