@@ -270,3 +270,36 @@ def test_table_stream_rides_out_a_ser2net_restart_with_the_labs_reconnect_s(fw, 
     time.sleep(1.0)
     assert _grbl(fw)[1] == pytest.approx(xy, abs=1e-3)
     fw.fresh()
+
+
+@pytest.mark.timeout(300)
+def test_table_move_rides_out_a_ser2net_restart_and_lands_at_the_target(fw, ser2net, tmp_path):
+    """A drop while ``labctl table move`` waits for the table (its ``G4P0`` in flight) must not abandon the
+    move halfway: the wait moves nothing, so after the reconnect the driver goes on waiting, and the table
+    lands at the target, in GRBL's own word."""
+    lab = init_workspace(tmp_path / "lab")
+    table_yaml = lab / "drivers" / "table.yaml"
+    table_yaml.write_text(table_yaml.read_text() + "reconnect_s: 10.0\n")
+    fw.fresh()
+    fw.to_machine_zero()
+    p = subprocess.Popen([sys.executable, "-m", "labctl", "--lab", str(lab), "--json", "table", "move", "120", "0",
+                          "--feed", "1200", "--port", ser2net.url("socket"), "--baud", "115200",
+                          "--timeout", "60"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        # the command starts in ~2 s; the move takes 6 s of firmware time, ~24 s on the simulator's wall clock
+        time.sleep(6.0)
+        assert p.poll() is None, p.communicate()
+        ser2net.stop()
+        threading.Timer(1.0, ser2net.start).start()
+        out, err = p.communicate(timeout=150)
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait()
+        time.sleep(1.5)
+        if ser2net.proc.poll() is not None:
+            ser2net.start()
+    assert p.returncode == 0, err
+    assert _xy(json.loads(out)) == pytest.approx((120.0, 0.0), abs=1e-3)
+    assert _grbl(fw) == ("Idle", pytest.approx((120.0, 0.0), abs=1e-3))
+    fw.fresh()

@@ -90,6 +90,9 @@ class TableBusy(DeviceError):
     """The table is busy (Run, Hold, Jog, Home) when a command needs it Idle."""
 
 
+_DWELL = re.compile(r"G0*4P\d*\.?\d*")  # a cleaned line that only dwells
+
+
 def dwell_s(line: str) -> float:
     """Seconds a cleaned line dwells (``G4 P…``), 0 for anything else."""
     m = re.search(r"G0*4(?![0-9.])", line)
@@ -129,6 +132,9 @@ class ProgramStream:
             if len(line) > MAX_LINE:
                 raise GrblError(11, line, i, self.numbers[i] if self.numbered else None)
         self.table = table
+        # only dwells (wait_idle's G4P0): a program that moves nothing, so a drop cannot leave it halfway
+        self.motionless = bool(self.program) and all(_DWELL.fullmatch(line) for line in self.program)
+        self.lost = False  # its link dropped and came back: its replies may never come (motionless only)
         self.in_flight: deque[tuple[int, int]] = deque()  # (index, bytes)
         self.used = 0
         self.sent = 0
@@ -154,8 +160,8 @@ class ProgramStream:
 
     @property
     def active(self) -> bool:
-        """Lines remain to be acknowledged and no error stopped the program."""
-        return self.error is None and self.acked < len(self.program)
+        """Lines remain to be acknowledged and no error stopped the program (nor a drop a motionless one)."""
+        return self.error is None and not self.lost and self.acked < len(self.program)
 
     def progress(self) -> dict:
         """``{"acked", "sent", "total", "in_flight"}`` — lines, for the record."""
@@ -515,6 +521,13 @@ class GrblTable(OpenClose):
             if base_state(st.state) == "Alarm":
                 raise GrblAlarm(self.session_alarm, f"after the link came back ({dt:.1f} s; the controller reset or "
                                                     "alarmed): the position may be lost; home or unlock before moving")
+            if prog is not None and prog.active and prog.motionless:
+                # a dwell moves nothing: whether or not it reached GRBL, the motion before it goes on; the
+                # waiter (wait_idle) waits for Idle by status and drains the dwell's late ok
+                prog.lost = True
+                log.warning("%s: link restored after %.1f s during a wait (%s); waiting on", self.link.name, dt,
+                            st.state)
+                return
             if prog is not None and prog.active:
                 prog.error = LinkLost(f"{self.link.name}: the link dropped mid-program ({prog.acked}/{prog.total} "
                                       f"lines acknowledged) and came back after {dt:.1f} s")
@@ -765,14 +778,20 @@ class GrblTable(OpenClose):
         """Wait until the motion queued so far has finished (``G4 P0`` then an Idle report).
         TableStall if it reports Run without moving for ``stall_reports`` reports."""
         timeout_s = self.timeout_s if timeout_s is None else timeout_s
-        self.stream(["G4P0"])
+        prog = self.start_program(["G4P0"])
+        while prog.pump(0.01):
+            pass
         deadline = self.clock.now() + timeout_s
         while True:
             st = self.status()
             if st.state == "Idle":
+                if prog.lost:
+                    self._sync()  # the dwell's ok, if it came after the drop, is not some later line's
                 return st
             if self.stalled:
                 raise self._stall_error()
+            if prog.lost and st.state in BUSY and st.state != "Hold":
+                deadline = max(deadline, self.clock.now() + timeout_s)  # the dwell's ok is gone: moving counts
             if self.clock.now() > deadline:
                 raise DeviceTimeout(f"{self.link.name}: table not idle after {timeout_s:g} s (state {st.state})")
 
