@@ -14,6 +14,7 @@ import json
 import os
 import re
 import shutil
+import signal
 import socket
 import subprocess
 import sys
@@ -302,4 +303,50 @@ def test_table_move_rides_out_a_ser2net_restart_and_lands_at_the_target(fw, ser2
     assert p.returncode == 0, err
     assert _xy(json.loads(out)) == pytest.approx((120.0, 0.0), abs=1e-3)
     assert _grbl(fw) == ("Idle", pytest.approx((120.0, 0.0), abs=1e-3))
+    fw.fresh()
+
+
+@pytest.mark.timeout(300)
+def test_a_frozen_ser2net_bounds_the_stop_by_the_table_files_stop_total_s(fw, ser2net, tmp_path):
+    """ser2net SIGSTOPped mid-move: the connection stays open and nothing answers. The command notices the
+    silence within ``timeout_s`` (3 s here), then the whole stop (hold awaited, reset confirmed, state read
+    back) ends within the table file's ``stop_total_s`` (6 s here; before, 3 + 30 + 3 s whatever the file
+    said): exit 3, one line that says the budget ran out and to cut the power. Once ser2net runs again, the
+    stop bytes it queued reach GRBL and the table is still, in GRBL's own word."""
+    lab = init_workspace(tmp_path / "lab")
+    table_yaml = lab / "drivers" / "table.yaml"
+    table_yaml.write_text(table_yaml.read_text() + "stop_total_s: 6.0\n")
+    fw.fresh()
+    fw.to_machine_zero()
+    p = subprocess.Popen([sys.executable, "-m", "labctl", "--lab", str(lab), "table", "move", "150", "0",
+                          "--feed", "1200", "--port", ser2net.url("socket"), "--baud", "115200",
+                          "--timeout", "3"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    frozen = False
+    try:
+        time.sleep(5.0)  # the command starts in ~2 s; the move runs ~30 s on the simulator's wall clock
+        assert p.poll() is None, p.communicate()
+        os.kill(ser2net.proc.pid, signal.SIGSTOP)
+        frozen, t_frozen = True, time.monotonic()
+        _, err = p.communicate(timeout=120)
+        took = time.monotonic() - t_frozen
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait()
+        if frozen:
+            os.kill(ser2net.proc.pid, signal.SIGCONT)
+    lines = [x for x in err.splitlines() if x.strip()]
+    assert p.returncode == 3 and len(lines) == 1, err
+    assert "stop_total_s 6 s, ran out" in lines[0] and "cut its power" in lines[0], err
+    assert took < 3.0 + 6.0 + 4.0, took  # detection + the stop's budget + start-up slack on a loaded machine
+    print(f"frozen ser2net: the command exited {took:.1f} s after the SIGSTOP")
+    # the queued '!' and 0x18 now reach GRBL; ser2net reads the pty until it has seen the client's close,
+    # and a second reader meanwhile would lose replies to it
+    time.sleep(3.0)
+    deadline = time.monotonic() + 30
+    while (state := _grbl(fw))[0] not in ("Idle", "Alarm", "Hold:0"):
+        assert time.monotonic() < deadline, state
+        time.sleep(0.2)
+    time.sleep(1.0)
+    assert _grbl(fw)[1] == pytest.approx(state[1], abs=1e-3) and state[1][0] < 150.0, state
     fw.fresh()
