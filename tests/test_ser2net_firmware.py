@@ -350,3 +350,36 @@ def test_a_frozen_ser2net_bounds_the_stop_by_the_table_files_stop_total_s(fw, se
     time.sleep(1.0)
     assert _grbl(fw)[1] == pytest.approx(state[1], abs=1e-3) and state[1][0] < 150.0, state
     fw.fresh()
+
+
+def _pty_speed(path: str) -> int:
+    """The line rate ser2net set on the firmware's pty (termios output speed, as a ``termios.B…`` constant)."""
+    import termios
+
+    fd = os.open(path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+    try:
+        return termios.tcgetattr(fd)[5]
+    finally:
+        os.close(fd)
+
+
+@pytest.mark.timeout(300)
+@pytest.mark.parametrize("set_remote_baud", [False, True])
+def test_rfc2217_switches_the_servers_rate_only_when_the_table_file_asks(fw, ser2net, set_remote_baud):
+    """ser2net's connector runs the port at 115200 (stock GRBL 1.1h). A table opened at 9600 over RFC 2217
+    leaves the port at 115200 unless ``set_remote_baud`` asks; read from the port's own termios while the
+    connection is open. Either way the firmware answers (a pty has no real rate)."""
+    import termios
+
+    from labctl.drivers.grbl import GrblTable
+
+    fw.fresh()
+    table = GrblTable(ser2net.url("rfc2217"), 9600, timeout_s=float(TIMEOUT), reset_on_open=False,
+                      set_remote_baud=set_remote_baud)
+    table.open()
+    try:
+        assert table.status().state == "Idle"
+        speed = _pty_speed(fw.path)
+    finally:
+        table.close()
+    assert speed == (termios.B9600 if set_remote_baud else termios.B115200), speed

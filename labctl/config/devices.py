@@ -21,6 +21,9 @@ class TableConfig:
     kind: Literal["sim", "grbl"] = "sim"
     port: str | None = None  # device path or pyserial URL (socket://, rfc2217://, spy://)
     baud: PositiveInt = 9600
+    # rfc2217:// only: switch the server's port to `baud` (false: the server's own rate stands, e.g. ser2net's
+    # connector line); socket:// carries no rate at all, and a device path always runs at `baud`
+    set_remote_baud: bool = False
     timeout_s: Positive = 5.0
     reset_on_open: bool = True  # does opening the port reset the board (DTR)?
     travel_mm: tuple[float, float] = (600.0, 400.0)

@@ -260,9 +260,11 @@ class GrblTable(OpenClose):
                  rx_buffer: int = RX_BUFFER_SIZE,
                  auto_unlock: bool = True, reset_if_silent: bool = False, stall_reports: int = 25,
                  homing_timeout_s: float = 120.0, reconnect_s: float = 0.0, max_messages: int = 200,
-                 stop_confirm_s: float = 30.0, banner_wait_s: float = 3.0, stop_total_s: float = 40.0):
+                 stop_confirm_s: float = 30.0, banner_wait_s: float = 3.0, stop_total_s: float = 40.0,
+                 set_remote_baud: bool = False):
         self.link = SerialLink(port, baud, timeout_s, port=serial_port, clock=clock,
-                               name=f"grbl@{port or getattr(serial_port, 'port', 'port')}")
+                               name=f"grbl@{port or getattr(serial_port, 'port', 'port')}",
+                               set_remote_baud=set_remote_baud)
         self.timeout_s = timeout_s
         self.reset_on_open = reset_on_open
         self.status_period = 1.0 / max(status_hz, 0.1)
@@ -309,7 +311,8 @@ class GrblTable(OpenClose):
     @classmethod
     def from_config(cls, cfg: TableConfig, **kw) -> GrblTable:
         """From a :class:`labctl.config.TableConfig` (port, baud, timeout, reset_on_open, status_hz,
-        stall_reports, homing_timeout_s, reconnect_s, stop_confirm_s, stop_total_s). A ``port=None`` keyword keeps
+        stall_reports, homing_timeout_s, reconnect_s, stop_confirm_s, stop_total_s, set_remote_baud). A
+        ``port=None`` keyword keeps
         the
         configured port."""
         port = kw.pop("port", None) or cfg.port
@@ -319,6 +322,7 @@ class GrblTable(OpenClose):
         kw.setdefault("reconnect_s", cfg.reconnect_s)
         kw.setdefault("stop_confirm_s", cfg.stop_confirm_s)
         kw.setdefault("stop_total_s", cfg.stop_total_s)
+        kw.setdefault("set_remote_baud", cfg.set_remote_baud)
         return cls(port, baud, timeout_s=cfg.timeout_s, reset_on_open=cfg.reset_on_open,
                    status_hz=cfg.status_hz, **kw)
 
