@@ -58,12 +58,21 @@ class Ser2net:
         self.exe, self.folder = exe, folder
         self.ports = {"socket": _free_port(), "rfc2217": _free_port()}
         self.config = folder / "ser2net.yaml"
+        self._configure(device)
+        self.proc = None
+        self.start()
+
+    def _configure(self, device: str) -> None:
         self.config.write_text(
             f"connection: &raw\n  accepter: tcp,127.0.0.1,{self.ports['socket']}\n"
             f"  connector: serialdev,{device},115200n81,local\n"
             f"connection: &rfc2217\n  accepter: telnet(rfc2217),tcp,127.0.0.1,{self.ports['rfc2217']}\n"
             f"  connector: serialdev,{device},115200n81,local\n")
-        self.proc = None
+
+    def retarget(self, device: str) -> None:
+        """Serve another pty (a restarted simulator's), on the same TCP ports."""
+        self.stop()
+        self._configure(device)
         self.start()
 
     def url(self, transport: str, options: str = "?ign_set_control") -> str:
