@@ -228,8 +228,12 @@ def test_the_supervisors_stop_bytes_reach_the_table_over_rfc2217(fw, ser2net):
     sent_s = time.monotonic() - t0
     assert table["stopped"] and table["error"] is None, table
     deadline = time.monotonic() + 15
+    # this check's '?' goes straight to the pty and can overtake the '!' that ser2net still forwards (seen once
+    # in a full file run at load ~15: Run at X4.2 on the first read): Run counts as a failure only after 2 s
+    t_sent = time.monotonic()
     while (state := _grbl(fw))[0] != "Hold:0":
-        assert state[0].startswith("Hold") and time.monotonic() < deadline, state
+        running_late = state[0] == "Run" and time.monotonic() - t_sent < 2.0
+        assert (state[0].startswith("Hold") or running_late) and time.monotonic() < deadline, state
         time.sleep(0.1)
     x = state[1][0]
     assert 0.0 < x < 150.0, state
