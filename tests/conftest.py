@@ -45,3 +45,39 @@ def run_with_events():
         return simulate_run(lab, ctx, spec, Rec()), events
 
     return run
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_pyfunc_call(pyfuncitem):
+    """A test against the GRBL simulator (its ``fw`` fixture) that fails while the simulator itself has gone
+    silent runs once more on a new simulator, and says so (a warning naming the silent side). The oracle is
+    probed only after a failure: a test that passes, or fails while the simulator still answers, is left as
+    it is, so a product fault fails both runs and a flaky oracle never hangs or fails a landing alone."""
+    import shutil
+    import sys
+    import warnings
+
+    mod = sys.modules.get("test_grbl_firmware")
+    fw = pyfuncitem.funcargs.get("fw")
+    if mod is None or not isinstance(fw, mod.Firmware):
+        return None
+    args = {name: pyfuncitem.funcargs[name] for name in pyfuncitem._fixtureinfo.argnames}
+    try:
+        pyfuncitem.obj(**args)
+        return True
+    except Exception as exc:
+        why = fw.silent_side()
+        if why is None:
+            raise
+        first = f"{type(exc).__name__}: {str(exc)[:300]}"
+    msg = f"{pyfuncitem.nodeid}: the GRBL simulator went silent ({why}); re-running on a new one after: {first}"
+    warnings.warn(msg, stacklevel=1)
+    fw.restart(why)
+    if "ser2net" in args:
+        args["ser2net"].retarget(fw.path)  # its connector names the old simulator's pty
+    tmp = args.get("tmp_path")
+    if tmp is not None:
+        for p in tmp.iterdir():
+            shutil.rmtree(p) if p.is_dir() else p.unlink()
+    pyfuncitem.obj(**args)
+    return True

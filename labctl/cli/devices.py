@@ -70,7 +70,8 @@ def _open_table(port: str | None, baud: int | None, timeout_s: float | None, *, 
     return GrblTable(port, baud or cfg.baud, reset_on_open=cfg.reset_on_open, status_hz=cfg.status_hz,
                      timeout_s=timeout_s or cfg.timeout_s, auto_unlock=False, reset_if_silent=reset_if_silent,
                      stall_reports=cfg.stall_reports, homing_timeout_s=cfg.homing_timeout_s,
-                     stop_confirm_s=cfg.stop_confirm_s, reconnect_s=cfg.reconnect_s)
+                     stop_confirm_s=cfg.stop_confirm_s, stop_total_s=cfg.stop_total_s,
+                     reconnect_s=cfg.reconnect_s, set_remote_baud=cfg.set_remote_baud)
 
 
 @contextlib.contextmanager

@@ -21,6 +21,9 @@ class TableConfig:
     kind: Literal["sim", "grbl"] = "sim"
     port: str | None = None  # device path or pyserial URL (socket://, rfc2217://, spy://)
     baud: PositiveInt = 9600
+    # rfc2217:// only: switch the server's port to `baud` (false: the server's own rate stands, e.g. ser2net's
+    # connector line); socket:// carries no rate at all, and a device path always runs at `baud`
+    set_remote_baud: bool = False
     timeout_s: Positive = 5.0
     reset_on_open: bool = True  # does opening the port reset the board (DTR)?
     travel_mm: tuple[float, float] = (600.0, 400.0)
@@ -31,6 +34,10 @@ class TableConfig:
     homing_timeout_s: Positive = 120.0  # GRBL sends nothing while homing: give up after this long
     reconnect_s: NonNegative = 0.0  # after the port drops, retry opening it (with backoff) for this long
     stop_confirm_s: Positive = 30.0  # a stop waits this long (at least timeout_s) for GRBL to confirm its reset
+    # the whole stop (feed hold awaited, soft reset confirmed, state read back) ends within this, answered or not:
+    # 40 s is the sum of its stages at the defaults on a silent link (hold timeout_s 5 + reset stop_confirm_s 30 +
+    # read-back timeout_s 5); a real board answers each in milliseconds, so a lab may lower it (e.g. 10)
+    stop_total_s: Positive = 40.0
     # sim: T_w_table of the table's machine zero (the table plane is z = 0 in W)
     origin_w_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
@@ -44,6 +51,8 @@ class TableConfig:
             return "stall_reports", f"expected 0 (off) or a positive count, got {self.stall_reports}"
         if not self.homing_timeout_s > 0:
             return "homing_timeout_s", f"expected a positive time, got {self.homing_timeout_s}"
+        if not self.stop_total_s > 0:
+            return "stop_total_s", f"expected a positive time, got {self.stop_total_s}"
         if self.reconnect_s < 0:
             return "reconnect_s", f"expected a time ≥ 0, got {self.reconnect_s}"
         return None

@@ -203,6 +203,16 @@ class RunConfig:
     replan_until_s: NonNegative = 0.4  # ... and not in the last this-many seconds before arrival
     # an initial view that already holds the marker in its central half is not re-aimed to arrive later
     initial_view_hold: bool = True
+    # a live run that drives the table gives up early, with the cause, instead of waiting out timeout_s
+    # (labctl.runtime.early_end; --trajectory external waits, a part may come at any time):
+    # no fixed-camera marker for no_marker_s while waiting: the sample lab's programs start the object in the
+    # fixed camera's field and it is first seen 0.8 s in; 15 s also lets an object that starts 120 mm outside a
+    # smaller field enter it at 8 mm/s (null: wait out timeout_s)
+    no_marker_s: Positive | None = 15.0
+    # the table program ended (every line acknowledged, GRBL Idle) and no identity within after_program_s:
+    # the object stands still from then on; 20 s is four median times to identity (4.5 s) for the views
+    # already under way to finish on a still object (null: wait out timeout_s)
+    after_program_s: Positive | None = 20.0
     spare_novelty_deg: NonNegative = 20.0  # a spare marker facing within this of a viewed face is not worth a view
     # which spare marker to view next: the one whose standard view is nearest, or the most novel face
     spare_order: Literal["nearest", "novel"] = "nearest"

@@ -50,6 +50,12 @@ log = logging.getLogger(__name__)
 _STAMP = re.compile(r"^(\d+(?:\.\d+)?)\.(png|jpg|jpeg|bmp|tif|tiff)$", re.IGNORECASE)
 
 
+#: how long closing an FFmpeg stream waits for its grabber thread (s): a live stream's read returns within a
+#: frame period (33 ms at 30 fps); a dead one's only at FFmpeg's read time-out, and the thread then releases
+#: the capture by itself
+STREAM_CLOSE_WAIT_S = 0.25
+
+
 class CameraError(DeviceError):
     """The camera could not be opened or stopped delivering frames."""
 
@@ -223,6 +229,78 @@ class _CvSource:
     def stall_reason(self) -> str | None:
         """OpenCV does not say why no frame came."""
         return None
+
+
+class StreamClock:
+    """Capture times for the frames of a stream that buffers them (RTSP through FFmpeg), on the wall clock (s).
+
+    FFmpeg holds back what it read while probing the stream (about 2 s) and then hands it over at
+    once: 22 frames 3 ms apart, each stamped at its arrival, compress 2 s of motion into 70 ms. A frame
+    arriving less than ``burst_frac`` of a frame period after the one before is part of such a burst.
+    Until the first frame arrives at its own pace (the opening probe burst) frames are dropped
+    (:attr:`probe_dropped`). After that each frame is stamped by the stream's own time (its
+    presentation time ``pts_s`` while those increase, else the frame count × ``period_s``) mapped onto
+    the wall clock by the smallest ``arrival − stream time`` seen in the last ``window_s``: the frame that
+    came with the least delay anchors the mapping, so frames of a later burst get the times they were
+    captured at, never later than their arrival, always increasing. ``latency_s`` (the exposure-to-
+    arrival delay of the least-delayed frames) is subtracted, as for arrival stamps."""
+
+    def __init__(self, period_s: float, latency_s: float = 0.0, *, burst_frac: float = 0.25, window_s: float = 5.0):
+        self.period_s, self.latency_s, self.window_s = period_s, latency_s, window_s
+        self.burst_gap_s = burst_frac * period_s
+        self.steady = False
+        self.probe_dropped = 0
+        self._last_arrival: float | None = None
+        self._last_stream: float | None = None
+        self._last_stamp = -float("inf")
+        self._offsets: deque[tuple[float, float]] = deque()  # (arrival, arrival − stream time), last window_s
+
+    def stamp(self, arrival: float, pts_s: float | None = None) -> float | None:
+        """The capture time of a frame that arrived at ``arrival`` (wall clock, s) with presentation time
+        ``pts_s`` (s, the stream's clock, or None); None for a frame of the opening probe burst (drop it)."""
+        gap = None if self._last_arrival is None else arrival - self._last_arrival
+        self._last_arrival = arrival
+        last = self._last_stream
+        if pts_s is not None and (last is None or pts_s > last):
+            s = pts_s
+        else:
+            s = 0.0 if last is None else last + self.period_s
+        self._last_stream = s
+        if not self.steady:
+            if gap is None or gap < self.burst_gap_s:
+                self.probe_dropped += 1
+                return None
+            self.steady = True
+        self._offsets.append((arrival, arrival - s))
+        while self._offsets and self._offsets[0][0] < arrival - self.window_s:
+            self._offsets.popleft()
+        t = s + min(o for _, o in self._offsets)
+        t = max(t, min(arrival, self._last_stamp + 1e-6))  # increasing, and never after its arrival
+        self._last_stamp = t
+        return t - self.latency_s
+
+
+class _StreamSource(_CvSource):
+    """A network stream through ``cv2.VideoCapture`` (FFmpeg), its frames stamped by :class:`StreamClock`."""
+
+    def __init__(self, cap, period_s: float, latency_s: float, wall_clock: Callable[[], float] = time.time):
+        super().__init__(cap)
+        self.clock = StreamClock(period_s, latency_s)
+        self.wall_clock = wall_clock
+
+    def read(self):
+        import cv2
+
+        while True:
+            if not self.cap.grab():
+                raise CameraError("no frame from the stream")
+            arrival = self.wall_clock()
+            pts_ms = self.cap.get(cv2.CAP_PROP_POS_MSEC)
+            t = self.clock.stamp(arrival, pts_ms / 1000.0 if pts_ms and pts_ms > 0 else None)
+            if t is None:
+                continue  # the opening probe burst: its arrival times say nothing of when it was captured
+            ok, image = self.cap.retrieve()
+            return (image if ok else None), t
 
 
 class V4L2Camera(GrabberCamera):
@@ -458,8 +536,9 @@ class StreamCamera(GrabberCamera):
 
     def __init__(self, url: str, *, backend: str = "auto", timestamps: str = "arrival", timeout_s: float = 2.0,
                  latency_s: float = 0.0, clock: Callable[[], float] = time.monotonic, name: str = "",
-                 backlog: int = 16):
+                 backlog: int = 16, fps: float = 30.0):
         super().__init__(timeout_s=timeout_s, latency_s=latency_s, clock=clock, name=name or url, backlog=backlog)
+        self.fps = fps  # the frame period of a stream that does not say its own rate
         if backend not in ("auto", "http", "opencv"):
             raise CameraError(f"unknown stream backend {backend!r} (auto, http or opencv)")
         if timestamps not in ("arrival", "header"):
@@ -472,7 +551,7 @@ class StreamCamera(GrabberCamera):
         """The camera a driver file describes (``url``, backend, whether the stream carries timestamps, time-out and
         latency in s)."""
         return cls(cfg.url, **({"backend": cfg.backend, "timestamps": cfg.timestamps, "timeout_s": cfg.timeout_s,
-                                "latency_s": cfg.latency_s} | kw))
+                                "latency_s": cfg.latency_s, "fps": cfg.fps} | kw))
 
     def _meta(self) -> dict:
         return {"url": self.url}
@@ -485,11 +564,19 @@ class StreamCamera(GrabberCamera):
                                    use_header_time=self.timestamps == "header")
         import cv2
 
-        cap = cv2.VideoCapture(self.url, cv2.CAP_FFMPEG)
+        # FFmpeg's own read time-out: a read on a stream that ended returns within the camera's timeout_s
+        ms = int(max(self.timeout_s, 0.5) * 1000)
+        cap = cv2.VideoCapture(self.url, cv2.CAP_FFMPEG,
+                               [cv2.CAP_PROP_OPEN_TIMEOUT_MSEC, max(ms, 5000), cv2.CAP_PROP_READ_TIMEOUT_MSEC, ms])
         if not cap.isOpened():
             raise CameraError(f"OpenCV (FFmpeg) cannot open the stream {self.url}")
         self._backend_used = f"opencv-{cap.getBackendName()}"
-        return _CvSource(cap)
+        # a blocked read cannot be interrupted, and the grabber releases the capture itself when it returns:
+        # close() need not wait for it longer than a few frame periods
+        self.close_timeout_s = min(self.close_timeout_s, STREAM_CLOSE_WAIT_S)
+        fps = cap.get(cv2.CAP_PROP_FPS)
+        period = 1.0 / (fps if 1.0 <= fps <= 240.0 else self.fps)  # FFmpeg says 90000 for some RTP streams
+        return _StreamSource(cap, period, self.latency_s, wall_clock=self.wall_clock)
 
     def info(self) -> dict:
         """The base info plus the URL, the backend in use, whether frames carry timestamps and, once a frame came, its

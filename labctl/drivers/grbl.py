@@ -90,6 +90,9 @@ class TableBusy(DeviceError):
     """The table is busy (Run, Hold, Jog, Home) when a command needs it Idle."""
 
 
+_DWELL = re.compile(r"G0*4P\d*\.?\d*")  # a cleaned line that only dwells
+
+
 def dwell_s(line: str) -> float:
     """Seconds a cleaned line dwells (``G4 P…``), 0 for anything else."""
     m = re.search(r"G0*4(?![0-9.])", line)
@@ -129,6 +132,9 @@ class ProgramStream:
             if len(line) > MAX_LINE:
                 raise GrblError(11, line, i, self.numbers[i] if self.numbered else None)
         self.table = table
+        # only dwells (wait_idle's G4P0): a program that moves nothing, so a drop cannot leave it halfway
+        self.motionless = bool(self.program) and all(_DWELL.fullmatch(line) for line in self.program)
+        self.lost = False  # its link dropped and came back: its replies may never come (motionless only)
         self.in_flight: deque[tuple[int, int]] = deque()  # (index, bytes)
         self.used = 0
         self.sent = 0
@@ -154,8 +160,8 @@ class ProgramStream:
 
     @property
     def active(self) -> bool:
-        """Lines remain to be acknowledged and no error stopped the program."""
-        return self.error is None and self.acked < len(self.program)
+        """Lines remain to be acknowledged and no error stopped the program (nor a drop a motionless one)."""
+        return self.error is None and not self.lost and self.acked < len(self.program)
 
     def progress(self) -> dict:
         """``{"acked", "sent", "total", "in_flight"}`` — lines, for the record."""
@@ -254,9 +260,11 @@ class GrblTable(OpenClose):
                  rx_buffer: int = RX_BUFFER_SIZE,
                  auto_unlock: bool = True, reset_if_silent: bool = False, stall_reports: int = 25,
                  homing_timeout_s: float = 120.0, reconnect_s: float = 0.0, max_messages: int = 200,
-                 stop_confirm_s: float = 30.0, banner_wait_s: float = 3.0):
+                 stop_confirm_s: float = 30.0, banner_wait_s: float = 3.0, stop_total_s: float = 40.0,
+                 set_remote_baud: bool = False):
         self.link = SerialLink(port, baud, timeout_s, port=serial_port, clock=clock,
-                               name=f"grbl@{port or getattr(serial_port, 'port', 'port')}")
+                               name=f"grbl@{port or getattr(serial_port, 'port', 'port')}",
+                               set_remote_baud=set_remote_baud)
         self.timeout_s = timeout_s
         self.reset_on_open = reset_on_open
         self.status_period = 1.0 / max(status_hz, 0.1)
@@ -284,6 +292,8 @@ class GrblTable(OpenClose):
         self.reconnect_s = reconnect_s
         self.stop_confirm_s = stop_confirm_s  # how long stop() waits for the reset to be confirmed
         self.banner_wait_s = banner_wait_s  # after a reset, how long the banner alone is waited for
+        self.stop_total_s = stop_total_s  # the whole of stop() ends within this, answered or not
+        self._stop_by: float | None = None  # while stopping: the clock time every wait ends by
         self.reset_confirmed_by = ""  # "banner" or "status": how the last soft reset was confirmed
         self.locked = False  # GRBL ignores lines until a reset (critical alarm)
         self.session_alarm: int | None = None  # the last ALARM:N seen since open
@@ -301,7 +311,9 @@ class GrblTable(OpenClose):
     @classmethod
     def from_config(cls, cfg: TableConfig, **kw) -> GrblTable:
         """From a :class:`labctl.config.TableConfig` (port, baud, timeout, reset_on_open, status_hz,
-        stall_reports, homing_timeout_s, reconnect_s, stop_confirm_s). A ``port=None`` keyword keeps the
+        stall_reports, homing_timeout_s, reconnect_s, stop_confirm_s, stop_total_s, set_remote_baud). A
+        ``port=None`` keyword keeps
+        the
         configured port."""
         port = kw.pop("port", None) or cfg.port
         baud = kw.pop("baud", None) or cfg.baud
@@ -309,6 +321,8 @@ class GrblTable(OpenClose):
         kw.setdefault("homing_timeout_s", cfg.homing_timeout_s)
         kw.setdefault("reconnect_s", cfg.reconnect_s)
         kw.setdefault("stop_confirm_s", cfg.stop_confirm_s)
+        kw.setdefault("stop_total_s", cfg.stop_total_s)
+        kw.setdefault("set_remote_baud", cfg.set_remote_baud)
         return cls(port, baud, timeout_s=cfg.timeout_s, reset_on_open=cfg.reset_on_open,
                    status_hz=cfg.status_hz, **kw)
 
@@ -515,6 +529,13 @@ class GrblTable(OpenClose):
             if base_state(st.state) == "Alarm":
                 raise GrblAlarm(self.session_alarm, f"after the link came back ({dt:.1f} s; the controller reset or "
                                                     "alarmed): the position may be lost; home or unlock before moving")
+            if prog is not None and prog.active and prog.motionless:
+                # a dwell moves nothing: whether or not it reached GRBL, the motion before it goes on; the
+                # waiter (wait_idle) waits for Idle by status and drains the dwell's late ok
+                prog.lost = True
+                log.warning("%s: link restored after %.1f s during a wait (%s); waiting on", self.link.name, dt,
+                            st.state)
+                return
             if prog is not None and prog.active:
                 prog.error = LinkLost(f"{self.link.name}: the link dropped mid-program ({prog.acked}/{prog.total} "
                                       f"lines acknowledged) and came back after {dt:.1f} s")
@@ -624,12 +645,15 @@ class GrblTable(OpenClose):
     def _next_report(self, pace_s: float) -> None:
         before = self.status_reports
         deadline = self.clock.now() + self.timeout_s
+        if self._stop_by is not None and self._stop_by < deadline:
+            deadline = self._stop_by
         self._query()
         next_query = self.clock.now() + max(pace_s, 0.25)
         while self.status_reports == before:
             if self.clock.now() > deadline:
                 hint = " (locked by a critical alarm? `labctl table reset`)" if self.locked else ""
-                raise DeviceTimeout(f"{self.link.name}: no status report within {self.timeout_s:g} s{hint}")
+                raise DeviceTimeout(f"{self.link.name}: no status report within "
+                                    f"{self.timeout_s:g} s{hint}{self._budget_note(deadline)}")
             self._read(0.01, raise_alarm=False)
             if self.clock.now() >= next_query and self.status_reports == before:
                 self._query()  # a '?' may be lost on a noisy line
@@ -765,14 +789,20 @@ class GrblTable(OpenClose):
         """Wait until the motion queued so far has finished (``G4 P0`` then an Idle report).
         TableStall if it reports Run without moving for ``stall_reports`` reports."""
         timeout_s = self.timeout_s if timeout_s is None else timeout_s
-        self.stream(["G4P0"])
+        prog = self.start_program(["G4P0"])
+        while prog.pump(0.01):
+            pass
         deadline = self.clock.now() + timeout_s
         while True:
             st = self.status()
             if st.state == "Idle":
+                if prog.lost:
+                    self._sync()  # the dwell's ok, if it came after the drop, is not some later line's
                 return st
             if self.stalled:
                 raise self._stall_error()
+            if prog.lost and st.state in BUSY and st.state != "Hold":
+                deadline = max(deadline, self.clock.now() + timeout_s)  # the dwell's ok is gone: moving counts
             if self.clock.now() > deadline:
                 raise DeviceTimeout(f"{self.link.name}: table not idle after {timeout_s:g} s (state {st.state})")
 
@@ -811,6 +841,8 @@ class GrblTable(OpenClose):
         self._write(b"\x18")
         t0 = self.clock.now()
         deadline = t0 + (self.timeout_s if timeout_s is None else timeout_s)
+        if self._stop_by is not None and self._stop_by < deadline:
+            deadline = self._stop_by
         next_query = t0 + self.banner_wait_s
         asked = False
         self.reset_confirmed_by = ""
@@ -848,7 +880,14 @@ class GrblTable(OpenClose):
                 asked = True
                 next_query = self.clock.now() + 0.25
         raise DeviceTimeout(f"{self.link.name}: no banner and no status report within "
-                            f"{deadline - t0:g} s after a soft reset")
+                            f"{deadline - t0:.3g} s after a soft reset{self._budget_note(deadline)}")
+
+    def _budget_note(self, deadline: float) -> str:
+        """What a time-out inside :meth:`stop` adds: that the stop's whole budget ended the wait."""
+        if self._stop_by is None or deadline < self._stop_by:
+            return ""
+        return (f" (the stop's budget, stop_total_s {self.stop_total_s:g} s, ran out: feed hold ≤ timeout_s, "
+                f"reset ≤ stop_confirm_s, read-back ≤ timeout_s)")
 
     def _after_reset(self, how: str) -> None:
         """State after a confirmed soft reset: no alarm pending, not locked, no replies owed."""
@@ -866,10 +905,22 @@ class GrblTable(OpenClose):
         (its position changes between reports), up to ``max_hold_s``; if it stops changing for a
         second without reaching ``Hold:0`` (or GRBL goes silent), it resets at once. The reset is
         awaited for ``stop_confirm_s`` (at least the reply time-out): stopping is the one thing not
-        to give up on early. Returns the confirmed status (Idle, or Alarm); DeviceError if it still
+        to give up on early. The whole stop, answered or not, ends within ``stop_total_s`` (every wait in
+        it is clipped to that: a link that stays open but silent, e.g. a frozen ser2net, cannot hold the
+        caller for longer). Returns the confirmed status (Idle, or Alarm); DeviceError if it still
         reports motion afterwards."""
-        self.feed_hold()
         t0 = self.clock.now()
+        outer = self._stop_by is None
+        if outer:
+            self._stop_by = t0 + self.stop_total_s
+        try:
+            return self._stop(t0, max_hold_s)
+        finally:
+            if outer:
+                self._stop_by = None
+
+    def _stop(self, t0: float, max_hold_s: float) -> TableStatus:
+        self.feed_hold()
         try:
             n = 0
             last_pos, last_change = None, t0

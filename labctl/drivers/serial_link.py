@@ -53,9 +53,60 @@ class ProtocolError(DeviceError):
     """The device answered something the protocol does not allow (lost or garbled replies)."""
 
 
-def open_port(url: str, *, write_timeout_s: float | None, **kwargs):
+def remote_baud(url: str | None) -> str:
+    """Who sets the line rate of the port behind ``url``: ``"local"`` (a device path: the UART runs at the
+    configured baud), ``"server"`` (``socket://``: a raw TCP connection carries no rate, the server's own
+    configuration sets it, e.g. ser2net's connector line) or ``"rfc2217"`` (the server's unless the driver
+    file's ``set_remote_baud`` asks the client to switch it)."""
+    scheme = (url or "").split("://", 1)[0] if "://" in (url or "") else ""
+    if scheme in ("socket", "tcp"):
+        return "server"
+    if scheme == "rfc2217":
+        return "rfc2217"
+    return "local"
+
+
+def baud_words(url: str | None, baud: int, set_remote_baud: bool = False) -> str:
+    """How ``labctl devices`` says the line rate of ``url``: ``"@ 9600 bps"`` only where it takes effect."""
+    who = remote_baud(url)
+    if who == "local" or (who == "rfc2217" and set_remote_baud):
+        return f"@ {baud} bps" + (" (set on the server)" if who == "rfc2217" else "")
+    return "(baud set by the server)"
+
+
+def _rfc2217_keeping_rate():
+    """pyserial's RFC 2217 client that leaves the remote port's baud rate as the server has it.
+
+    Its ``open()`` sends SET-BAUDRATE with the client's rate and waits for the server to take it, so a
+    stock 115200-bps board behind ser2net would be switched to whatever labctl was configured with. Here
+    that one setting is neither sent nor waited for (data size, parity, stop bits and flow control still
+    are); the server's notifications of its rate are still read."""
+    import serial.rfc2217
+
+    class _Unchanged:
+        active = True
+
+        def set(self, value: bytes) -> None:
+            """Send nothing: the server's rate stands."""
+
+    class KeepRate(serial.rfc2217.Serial):
+        def _reconfigure_port(self):
+            real = self._rfc2217_port_settings["baudrate"]
+            self._rfc2217_port_settings["baudrate"] = _Unchanged()
+            try:
+                super()._reconfigure_port()
+            finally:
+                self._rfc2217_port_settings["baudrate"] = real
+
+    return KeepRate
+
+
+def open_port(url: str, *, write_timeout_s: float | None, set_remote_baud: bool = False, **kwargs):
     """``serial.serial_for_url(url, **kwargs)``, opened, with every write bounded by ``write_timeout_s``
     on every transport.
+
+    Over ``rfc2217://`` the remote port's rate is switched to ``baudrate`` only if ``set_remote_baud``
+    (a driver file's explicit key); otherwise the server's own rate stands (:func:`remote_baud`).
 
     pyserial's ``rfc2217://`` client refuses a ``write_timeout`` (``NotImplementedError``), so there
     the port is opened without one and its socket's own timeout is set to the bound instead (a
@@ -65,7 +116,11 @@ def open_port(url: str, *, write_timeout_s: float | None, **kwargs):
     import serial
     import serial.rfc2217
 
-    port = serial.serial_for_url(url, do_not_open=True, **kwargs)
+    if url.startswith("rfc2217://") and not set_remote_baud:
+        port = _rfc2217_keeping_rate()(None, **kwargs)
+        port.port = url
+    else:
+        port = serial.serial_for_url(url, do_not_open=True, **kwargs)
     rfc2217 = isinstance(port, serial.rfc2217.Serial)
     if not rfc2217:
         port.write_timeout = write_timeout_s
@@ -90,7 +145,7 @@ class SerialLink(OpenClose):
     def __init__(self, url: str | None = None, baud: int = 9600, timeout_s: float = 2.0, *, port=None,
                  clock: Clock = MONOTONIC,
                  name: str = "", pace_baud: int | None = None, eol: bytes = b"\n", poll_s: float = 0.005,
-                 serial_kwargs: dict | None = None):
+                 serial_kwargs: dict | None = None, set_remote_baud: bool = False):
         if url is None and port is None:
             raise LinkError("a serial link needs a port path/URL or a port object")
         self.url = url
@@ -102,6 +157,7 @@ class SerialLink(OpenClose):
         self.eol = eol
         self.poll_s = poll_s
         self.serial_kwargs = serial_kwargs or {}
+        self.set_remote_baud = set_remote_baud  # rfc2217://: switch the server's port to ``baud`` (else its own)
         self._given_port = port
         self.port = port
         self._buf = bytearray()
@@ -135,7 +191,7 @@ class SerialLink(OpenClose):
                 raise LinkError("a serial link needs a port path/URL or a port object")
             try:
                 self.port = open_port(self.url, write_timeout_s=self.timeout_s, baudrate=self.baud, timeout=0,
-                                      **self.serial_kwargs)
+                                      set_remote_baud=self.set_remote_baud, **self.serial_kwargs)
             except (serial.SerialException, OSError, ValueError) as exc:
                 raise LinkError(f"cannot open {self.url}: {exc}") from exc
         self._buf.clear()

@@ -286,6 +286,8 @@ _EVENTS = (
     EventSpec("table_progress", "the table's G-code program: lines acknowledged, sent, in total, in flight",
               {"t": T, "acked": _f("integer"), "sent": _f("integer"), "total": _f("integer"),
                "in_flight": _f("integer")}),
+    EventSpec("table_program_ended", "the table's program ended: every line acknowledged and GRBL Idle "
+              "(a live run then has run.after_program_s to identify)", {"t": T}),
     # -- the recognizer (Host 2: mobile camera, marker poses, silhouette matching)
     EventSpec("no_marker", "no marker in a mobile-camera image",
               {"t": T, "view_id": VIEW_ID, "kind": _f("string")}),

@@ -165,7 +165,13 @@ def _where(role: str, lab) -> tuple[str, str]:
     cfg = getattr(lab, role)
     kind = cfg.kind
     if role in ("table", "robot"):
-        return kind, ("in-process emulator" if kind == "sim" else f"{cfg.port} @ {cfg.baud} bps")
+        if kind == "sim":
+            return kind, "in-process emulator"
+        from ..drivers.serial_link import baud_words
+
+        # the robot's link keeps an RFC 2217 server's own rate (its file has no set_remote_baud)
+        remote = cfg.set_remote_baud if role == "table" else False
+        return kind, f"{cfg.port} {baud_words(cfg.port, cfg.baud, remote)}"
     if kind == "v4l2":
         return kind, str(cfg.device)
     if kind == "replay":

@@ -588,6 +588,11 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
             log("table_program", t=now, trajectory=args.spec["trajectory"], speed_mm_s=args.spec["speed_mm_s"])
         peer = PeerWatch("recognizer", hl.dead_after_s, hl.start_timeout_s)
         t_beat, hello = 0.0, False
+        early = None  # a run that drives the table fails early, with the cause (run.no_marker_s, after_program_s)
+        if progress is not None:
+            from .early_end import EarlyEnd, program_ended
+
+            early = EarlyEnd(lab.config.run.no_marker_s, lab.config.run.after_program_s, t0=now)
         while not planner.finished:
             if progress is not None:
                 progress.pump(run_clock.now())
@@ -612,6 +617,12 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
                         log("message_dropped", t=run_clock.now(), message=repr(msg)[:200])
             now = run_clock.now()
             planner.tick(now)
+            if early is not None and progress is not None and table is not None and not planner.finished:
+                if early.t_program_end is None and program_ended(progress.program, table):
+                    early.program_ended(now)
+                    log("table_program_ended", t=now)
+                if (why := early.check(now, waiting=planner.stage == "wait")) is not None:
+                    planner.fail(now, why)
             if not hello:  # the first message starts the peer's dead_after_s clock: only once the loop runs
                 link.send(m.Hello(role="predictor", pid=os.getpid()))
                 hello = alive["hello"] = True
