@@ -19,3 +19,7 @@ class DeviceError(LabctlError):
     """A device did not answer, answered wrongly, or reported a fault: exit status 3."""
 
     exit_code = 3
+
+
+class MotionRefused(DeviceError):
+    """A controller refused a motion it was sent, before moving (nothing moved): the planner may try another."""

@@ -138,3 +138,17 @@ def test_the_predictor_tracks_the_frames_exposed_while_it_commanded_the_robot(la
     segments = [f["t"] for n, f in events if n == "segment"]
     assert len(segments) >= 3 and tracked[0] < segments[0] and segments[-1] < tracked[-1]
     assert np.diff(tracked) == pytest.approx(dt, abs=1e-6)  # no frame missing, none twice
+
+
+def test_a_leg_the_arm_refuses_ends_the_run_with_the_reason(lab, ctx, monkeypatch):
+    """A controller that refuses the first leg (E34, joint speed) ends that trial as failed, with the refusal
+    as its cause and the robot stopped: the run loop (and a sweep around it) goes on."""
+    from labctl.drivers.robot import RobotRefusal, SerialRobot
+
+    def refuse(self, *args, **kwargs):
+        raise RobotRefusal(34, "a joint's speed or acceleration over its limit", "SEGNOW")
+
+    monkeypatch.setattr(SerialRobot, "segment", refuse)
+    res = simulate_run(lab, ctx, TrialSpec("line", 8.0, None, 1))
+    assert res["correct"] is False and res["identity"] is None
+    assert res["failure"].startswith("the robot refused the initial1 leg: robot E34"), res["failure"]

@@ -27,7 +27,7 @@ from typing import Any, cast
 import numpy as np
 
 from ..drivers.interfaces import Frame, Robot, RobotStatus
-from ..errors import DeviceError
+from ..errors import DeviceError, MotionRefused
 from ..geometry import make_T, matrix_to_rotvec, rotvec_to_matrix
 from ..planning import Interception, camera_placement_trajectory, plan_interception, rest_to_rest_times
 from ..planning.arm import ArmModel
@@ -434,7 +434,11 @@ class PredictorPlanner:
         _, quintic = rest_to_rest_times(p0, traj.state(t_hit)[0],
                                         self.ctx.lab.robot.v_max_mm_s, self.ctx.lab.robot.a_max_mm_s2)
         self.min_quintic_s += quintic
-        self._send_segment(now, plan)
+        try:
+            self._send_segment(now, plan)
+        except MotionRefused as exc:  # the arm cannot fly the leg: the run ends with the reason, nothing moved
+            self.fail(now, f"the robot refused the {kind} leg: {exc}")
+            return
         self.log("plan", t=now, kind=kind, t_hit=plan.t_hit)
         horizon = np.linspace(now, max(t_hit, now + 1.0), 12)
         self.log("predict", t=now, path=self._marker_path()(horizon)[0])

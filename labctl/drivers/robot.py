@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING, cast
 
 import numpy as np
 
-from ..errors import DeviceError
+from ..errors import DeviceError, MotionRefused
 from ..geometry import make_T, matrix_to_rotvec, rotvec_to_matrix
 from ..timebase import Clock
 from .clock import MONOTONIC
@@ -64,6 +64,10 @@ class RobotError(DeviceError):
                          + (f" (for {command!r})" if command else "")
                          + (f"; {CLEAR_HINT}" if code in (40, 41) else "")
                          + ("; the arm cannot fly this segment, nothing moved" if code in ARM_REFUSALS else ""))
+
+
+class RobotRefusal(RobotError, MotionRefused):
+    """The controller's arm cannot fly a segment (E30–E34): refused before it moved."""
 
 
 class RobotFault(DeviceError):
@@ -214,7 +218,8 @@ class SerialRobot(OpenClose):
                 last_exc = RobotError(5, msg.text, command)
                 continue
             if not msg.ok:
-                raise RobotError(msg.code or 0, msg.text, command)
+                refusal = RobotRefusal if msg.code in ARM_REFUSALS else RobotError
+                raise refusal(msg.code or 0, msg.text, command)
             return msg
         raise DeviceTimeout(f"{self.link.name}: no reply to {command} after {self.retries + 1} tries") from last_exc
 
