@@ -34,6 +34,8 @@ STAGES = {  # when to strike: the first event of the run that matches
 # (fault, target) -> exit status; -9: the supervisor itself is killed (the shell reports -9)
 EXPECTED = {
     ("SIGINT", "group"): 130,
+    ("SIGTERM", "group"): 143,  # what timeout, systemd and docker stop send
+    ("SIGHUP", "group"): 129,  # the terminal closed
     ("SIGTERM", "supervisor"): 143,
     ("SIGTERM", "predictor"): 1,
     ("SIGTERM", "recognizer"): 1,

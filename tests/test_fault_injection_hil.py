@@ -28,8 +28,8 @@ from test_hil import Served, _unlock_at
 
 pytestmark = pytest.mark.skipif(sys.platform != "linux", reason="ptys and the served lab need Linux")
 
-# the live table's default set also has SIGKILL of the supervisor; here two cases keep CI short (~15 s each)
-DEFAULT_CASES = [("SIGINT", "group", "cruise"), ("SIGSTOP", "predictor", "intercept")]
+# the live table's default set also has SIGKILL of the supervisor; here three cases keep CI short (~15 s each)
+DEFAULT_CASES = [("SIGINT", "group", "cruise"), ("SIGTERM", "group", "cruise"), ("SIGSTOP", "predictor", "intercept")]
 CASES = ALL_CASES if FULL else DEFAULT_CASES
 
 
