@@ -168,8 +168,17 @@ class MarkerQuality:
     of the rim measured: occluded, shadowed or cut), ``rough`` (residual over 4 % of the minor
     semi-axis), ``outliers`` (under 75 % of the boundary fits the ellipse), ``low_contrast``
     (edge contrast under 0.04), ``blurred`` (a quarter of the edge transitions wider than
-    max(3 px, 0.2 × minor semi-axis): motion or defocus smears the shape), ``merged`` (the
-    colour blob is much larger than its ellipse: a neighbour touches it)."""
+    max(3 px, 0.2 × minor semi-axis) and the blur could not be modelled: motion or defocus smears
+    the shape), ``merged`` (the colour blob is much larger than its ellipse: a neighbour touches it).
+
+    The blur the edge was measured through (:func:`_psf_variance`): ``blur_var_px2``, the
+    point-spread function's second moment across the edge (px², isotropic part; 0 for a sharp
+    edge), ``blur_shift_px``, the mean outward correction applied for it (the curvature bias
+    σ²κ/2), ``motion_px``, the smear length when the motion refit ran (else 0). A blur that was
+    modelled this way is no flag; it widens the pose covariance instead (``marker_poses``).
+    ``edge_skew``: median skewness of the edge spread (:func:`_edge_skew`); on a blurred edge a
+    lean above :data:`RESPONSE_SKEW_LIMIT` raises ``response_mismatch`` (the frame is not encoded
+    as the camera's declared response says: declare or learn it)."""
 
     arc_coverage: float
     residual_rel: float
@@ -177,6 +186,10 @@ class MarkerQuality:
     solidity: float
     edge_contrast: float
     flags: tuple[str, ...] = ()
+    blur_var_px2: float = 0.0
+    blur_shift_px: float = 0.0
+    motion_px: float = 0.0
+    edge_skew: float = 0.0
 
     @property
     def trusted(self) -> bool:
@@ -187,7 +200,9 @@ class MarkerQuality:
         """JSON-ready dict of the quality measures, flags and ``trusted``."""
         return {"arc_coverage": round(float(self.arc_coverage), 4), "residual_rel": float(self.residual_rel),
                 "inlier_fraction": round(float(self.inlier_fraction), 4), "solidity": round(float(self.solidity), 4),
-                "edge_contrast": float(self.edge_contrast), "flags": list(self.flags), "trusted": self.trusted}
+                "edge_contrast": float(self.edge_contrast), "flags": list(self.flags), "trusted": self.trusted,
+                "blur_var_px2": round(float(self.blur_var_px2), 4), "blur_shift_px": round(float(self.blur_shift_px), 4),
+                "motion_px": round(float(self.motion_px), 3)}
 
 
 _SCAN_HALF = 4  # px: scans run 8 px across the edge (covers 2–3 px of blur), shorter on small blobs
@@ -272,6 +287,71 @@ def _transition_width(prof: np.ndarray) -> np.ndarray:
     lo, hi = prof[:, -p:].mean(axis=1), prof[:, :p].mean(axis=1)
     c = (prof - lo[:, None]) / np.maximum(hi - lo, 1e-6)[:, None]
     return np.count_nonzero((c > 0.1) & (c < 0.9), axis=1)
+
+
+# second moment (px²) of a perfectly sharp edge's sampled profile: the pixel's own footprint plus the
+# sampling of the difference (0.19 measured on exact-coverage discs, 0.16–0.20 over obliquities 0–50°)
+_SHARP_EDGE_VAR_PX2 = 0.19
+# the response check (:func:`_edge_skew`) needs ramps this wide (px²; a sharp edge has one or two
+# intermediate pixels, too few to show a lean) ...
+_SKEW_MIN_BLUR_PX2 = 0.5
+# ... and flags ``response_mismatch`` above this median skewness. Measured on both oracles' defocused
+# discs (r 2–3 px, 10 images each): right response |skew| ≤ 0.04 (motion 8 px: ≤ 0.12 in magnitude, negative),
+# gamma 2.2 read as linear +0.14…+0.21. JPEG/Bayer frames lean the other way (−0.05…−0.22 with the right
+# response: their chroma was filtered in encoded values), so only this side is tested.
+RESPONSE_SKEW_LIMIT = 0.10
+# blur below this (px², a pillbox radius of ~0.9 px) is left uncorrected: its curvature bias is
+# under 0.01 px on any marker that passes the size gates
+_MIN_CORRECTED_BLUR_PX2 = 0.2
+
+
+def _psf_variance(prof: np.ndarray, along: np.ndarray) -> float:
+    """Second moment (px², across the edge) of the blur a marker's edge profiles show: per scan,
+    the variance of the profile's derivative (the line-spread function) along the scan, scaled to
+    the edge normal by |s·n|² and less the sharp edge's own :data:`_SHARP_EDGE_VAR_PX2`; median
+    over the scans. A pillbox of radius r gives r²/4, a Gaussian σ²."""
+    p = 2 if prof.shape[1] >= 6 else 1
+    inside, outside = prof[:, :p].mean(axis=1), prof[:, -p:].mean(axis=1)
+    c = (prof - outside[:, None]) / np.maximum(inside - outside, 1e-6)[:, None]
+    d = np.clip(c[:, :-1] - c[:, 1:], 0.0, None)
+    sd = np.maximum(d.sum(axis=1), 1e-9)
+    x = np.arange(d.shape[1]) + 0.5
+    mu = (d * x).sum(axis=1) / sd
+    v = (d * (x[None, :] - mu[:, None]) ** 2).sum(axis=1) / sd
+    return max(float(np.median((v - _SHARP_EDGE_VAR_PX2) * along * along)), 0.0)
+
+
+def _edge_skew(prof: np.ndarray) -> float:
+    """Median skewness of the edge profiles' derivatives (the line-spread functions along each scan).
+    A symmetric blur seen through the right response gives a symmetric spread (skewness ≈ 0); a
+    gamma-encoded frame read as linear stretches the bright side of every ramp and compresses the
+    dark one, so the spread leans the same way on every scan. NaN for fewer than 8 scans."""
+    if prof.shape[0] < 8:
+        return float("nan")
+    p = 2 if prof.shape[1] >= 6 else 1
+    inside, outside = prof[:, :p].mean(axis=1), prof[:, -p:].mean(axis=1)
+    c = (prof - outside[:, None]) / np.maximum(inside - outside, 1e-6)[:, None]
+    d = np.clip(c[:, :-1] - c[:, 1:], 0.0, None)
+    sd = np.maximum(d.sum(axis=1), 1e-9)
+    x = np.arange(d.shape[1]) + 0.5
+    mu = (d * x).sum(axis=1) / sd
+    r = x[None, :] - mu[:, None]
+    v = np.maximum((d * r * r).sum(axis=1) / sd, 1e-9)
+    return float(np.median((d * r ** 3).sum(axis=1) / sd / v ** 1.5))
+
+
+def _curvature_shift(conic, pts: np.ndarray, var_px2: float) -> np.ndarray:
+    """Outward displacement (N×2 px) that undoes the inward bias of a blurred curved edge: an edge
+    of curvature κ measured through a blur whose variance along it is σ² sits σ²κ/2 inside the true
+    one (first order in σκ; for the area rule and for the half level alike). κ and the outward
+    normal from the implicit conic Q (Q < 0 inside) at each point."""
+    a, b, c, d, e, _ = conic
+    x, y = pts[:, 0], pts[:, 1]
+    qx, qy = 2 * a * x + b * y + d, b * x + 2 * c * y + e
+    g2 = np.maximum(qx * qx + qy * qy, 1e-300)
+    kappa = np.abs(2 * a * qy * qy - 2 * b * qx * qy + 2 * c * qx * qx) / g2 ** 1.5
+    step = 0.5 * var_px2 * kappa / np.sqrt(g2)
+    return np.stack([qx * step, qy * step], axis=1)
 
 
 def _edge_offsets(prof: np.ndarray, k0: np.ndarray, contrast: float):
@@ -507,18 +587,44 @@ def _analyse_contour(img8: np.ndarray, linear_crop, contour: np.ndarray, touches
         flags.append("outliers")
     if edge_contrast < 0.04:
         flags.append("low_contrast")
+    redo, motion_px = None, 0.0
     if blur_px > 3.0:  # a wide ramp: if it is a motion smear, measure the edge where the smear leaves it
         redo = _motion_refit(signal, contrast, prof, kept, row, sgn, seeds, normals, arc, off, ell, (x0, y0), (cx, cy),
                              scale, support & kept)
         if redo is not None:
-            ell, bpts, bw_ = redo
+            ell, bpts, bw_, motion_px = redo
             resid = _sampson(ell.conic, bpts)
             rms = math.sqrt(float(bw_ @ (resid * resid)) / float(bw_.sum()))
-    if blur_px > max(3.0, 0.2 * b):  # motion or defocus blur wide against the marker: its shape is smeared
+    blur_var = _psf_variance(prof[kept], along[kept])
+    shift_px = 0.0
+    if redo is None and blur_var > _MIN_CORRECTED_BLUR_PX2:
+        # defocus (an isotropic blur): the area rule reads a blurred curved edge σ²κ/2 inside the true
+        # rim (0.2 % of the range on a 25 px marker at a 3 px blur radius): move each point back, refit
+        moved = _curvature_shift(ell.conic, bpts, blur_var)
+        try:
+            conic2, _ = _fit(bpts + moved - (cx + x0, cy + y0), bw_, None, origin=(0.0, 0.0), scale=scale)
+            if _conic_is_ellipse(conic2):
+                ell = Ellipse.from_conic(_shift_conic(conic2, cx + x0, cy + y0))
+                bpts = bpts + moved
+                shift_px = float(np.mean(np.hypot(moved[:, 0], moved[:, 1])))
+                resid = _sampson(ell.conic, bpts)
+                rms = math.sqrt(float(bw_ @ (resid * resid)) / float(bw_.sum()))
+        except EllipseFitError:
+            pass
+    # a blur is modelled (motion refit, or the curvature correction while first order holds: σ ≤ ¼ of the
+    # minor semi-axis); one that is not, wide against the marker, smears its shape: flagged
+    modelled = redo is not None or (shift_px > 0.0 and math.sqrt(blur_var) <= 0.25 * ell.axes[1])
+    if blur_px > max(3.0, 0.2 * b) and not modelled:
         flags.append("blurred")
     if area_fill > 1.3 * ell.area + 2.0 * math.pi * (a + b) * 0.5:
         flags.append("merged")
-    quality = MarkerQuality(coverage, residual_rel, inlier_fraction, solidity, edge_contrast, tuple(flags))
+    skew = _edge_skew(prof[kept])
+    if blur_var >= _SKEW_MIN_BLUR_PX2 and skew > RESPONSE_SKEW_LIMIT:
+        # the edges lean as a gamma-encoded frame linearised as linear does: the declared response is wrong,
+        # and every edge (so the range) is biased by it
+        flags.append("response_mismatch")
+    quality = MarkerQuality(coverage, residual_rel, inlier_fraction, solidity, edge_contrast, tuple(flags),
+                            blur_var, shift_px, motion_px, skew)
     return Marker(tuple(ell.center), ell, float(ell.area), bpts, bw_, (int(bx), int(by), int(bx + bw), int(by + bh)),
                   touches, rms, quality)
 
@@ -562,7 +668,7 @@ def _half_level_offsets(prof: np.ndarray, k0: np.ndarray, near: np.ndarray, reac
 
 def _motion_refit(signal, contrast, prof, kept, row, sgn, seeds, normals, arc, off, ell, origin, centre, scale, start):
     """Boundary of a motion-smeared marker (paper §3.1's fit, made to survive a blur): returns
-    (ellipse, boundary points, weights) in image px, or None when the blur looks isotropic
+    (ellipse, boundary points, weights, smear length L px) in image px, or None when the blur looks isotropic
     (defocus) or too little rim is left.
 
     A box blur of length L along u turns each edge into a ramp of width L·|u·n| across it (n the
@@ -624,7 +730,7 @@ def _motion_refit(signal, contrast, prof, kept, row, sgn, seeds, normals, arc, o
     pts = rel[inl] + (centre[0] + origin[0], centre[1] + origin[1])
     if _arc_coverage(new, pts) < 0.5:
         return None
-    return new, pts, w[inl]
+    return new, pts, w[inl], L
 
 
 _K3 = np.ones((3, 3), np.uint8)
@@ -853,6 +959,12 @@ def find_markers(image_bgr, *, thresholds: MarkerThresholds = RED, window=None, 
                                                           min_value))
         found, rejected = _merge_searches(found, rejected, found2, rejected2)
         largest = max(largest, largest2)
+    if n_blobs > 1 and any(m.quality is not None and {"partial", "outliers"} & set(m.quality.flags) for m in found):
+        # a thin occluder (a wire, a cable, a clamp's edge) across a marker cuts its colour blob in two; a 5×5
+        # closing bridges a dark band up to ~4 px wide, so the rim is fitted whole, the band's scans dropped
+        # as outliers (a red neighbour it merges comes out flagged and loses to the plain search's marker)
+        found2, rejected2, _, _ = search(cv2.morphologyEx(mask, cv2.MORPH_CLOSE, _K5))
+        found, rejected = _merge_searches(found, rejected, found2, rejected2)
     found.sort(key=lambda m: -m.area)
     reason = None
     if not found:
