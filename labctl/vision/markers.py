@@ -171,8 +171,8 @@ class MarkerQuality:
     max(3 px, 0.2 × minor semi-axis) and the blur could not be modelled: motion or defocus smears
     the shape), ``merged`` (the colour blob is much larger than its ellipse: a neighbour touches it).
 
-    The blur the edge was measured through (:func:`_psf_variance`): ``blur_var_px2``, the
-    point-spread function's second moment across the edge (px², isotropic part; 0 for a sharp
+    The blur the edge was measured through (:func:`_psf_cov`): ``blur_var_px2``, the
+    point-spread function's second moment (px², half the trace of its covariance; 0 for a sharp
     edge), ``blur_shift_px``, the mean outward correction applied for it (the curvature bias
     σ²κ/2), ``motion_px``, the smear length when the motion refit ran (else 0). A blur that was
     modelled this way is no flag; it widens the pose covariance instead (``marker_poses``).
@@ -295,21 +295,22 @@ _SHARP_EDGE_VAR_PX2 = 0.19
 # the response check (:func:`_edge_skew`) needs ramps this wide (px²; a sharp edge has one or two
 # intermediate pixels, too few to show a lean) ...
 _SKEW_MIN_BLUR_PX2 = 0.5
-# ... and flags ``response_mismatch`` above this median skewness. Measured on both oracles' defocused
-# discs (r 2–3 px, 10 images each): right response |skew| ≤ 0.04 (motion 8 px: ≤ 0.12 in magnitude, negative),
-# gamma 2.2 read as linear +0.14…+0.21. JPEG/Bayer frames lean the other way (−0.05…−0.22 with the right
-# response: their chroma was filtered in encoded values), so only this side is tested.
-RESPONSE_SKEW_LIMIT = 0.10
+# ... and flags ``response_mismatch`` above this median skewness (green channel, 8 px scans centred on the edge).
+# Measured on both oracles (10 images per condition, 2026-12-02): right response −0.12…+0.12 (defocus r 2–3 px
+# ≤ 0.04, motion 8 px and webcam-like JPEG/Bayer the widest); gamma 2.2 + defocus read as linear +0.15…+0.22;
+# a gamma frame that is also JPEG-compressed and smeared (mild combination) +0.00…+0.12, mostly *not* caught
+RESPONSE_SKEW_LIMIT = 0.13
 # blur below this (px², a pillbox radius of ~0.9 px) is left uncorrected: its curvature bias is
 # under 0.01 px on any marker that passes the size gates
 _MIN_CORRECTED_BLUR_PX2 = 0.2
 
 
-def _psf_variance(prof: np.ndarray, along: np.ndarray) -> float:
-    """Second moment (px², across the edge) of the blur a marker's edge profiles show: per scan,
-    the variance of the profile's derivative (the line-spread function) along the scan, scaled to
-    the edge normal by |s·n|² and less the sharp edge's own :data:`_SHARP_EDGE_VAR_PX2`; median
-    over the scans. A pillbox of radius r gives r²/4, a Gaussian σ²."""
+def _psf_cov(prof: np.ndarray, along: np.ndarray, nrm: np.ndarray) -> np.ndarray:
+    """2×2 covariance (px², image axes) of the blur a marker's edge profiles show: per scan, the
+    variance of the profile's derivative (the line-spread function) along the scan, scaled to the
+    edge normal nᵢ by |s·n|² and less the sharp edge's own :data:`_SHARP_EDGE_VAR_PX2`, is nᵢᵀ Σ nᵢ;
+    Σ by least squares over the scans (once more without those beyond 3 robust σ), made positive
+    semi-definite. A pillbox of radius r gives (r²/4) I, a box smear of length L along u (L²/12) uuᵀ."""
     p = 2 if prof.shape[1] >= 6 else 1
     inside, outside = prof[:, :p].mean(axis=1), prof[:, -p:].mean(axis=1)
     c = (prof - outside[:, None]) / np.maximum(inside - outside, 1e-6)[:, None]
@@ -317,8 +318,26 @@ def _psf_variance(prof: np.ndarray, along: np.ndarray) -> float:
     sd = np.maximum(d.sum(axis=1), 1e-9)
     x = np.arange(d.shape[1]) + 0.5
     mu = (d * x).sum(axis=1) / sd
-    v = (d * (x[None, :] - mu[:, None]) ** 2).sum(axis=1) / sd
-    return max(float(np.median((v - _SHARP_EDGE_VAR_PX2) * along * along)), 0.0)
+    y = (d * (x[None, :] - mu[:, None]) ** 2).sum(axis=1) / sd * along * along - _SHARP_EDGE_VAR_PX2
+    A = np.stack([nrm[:, 0] ** 2, 2.0 * nrm[:, 0] * nrm[:, 1], nrm[:, 1] ** 2], axis=1)
+    keep = np.ones(len(y), bool)
+    sol = np.zeros(3)
+    for _ in range(2):
+        if np.count_nonzero(keep) < 6:
+            return np.zeros((2, 2))
+        sol = np.linalg.lstsq(A[keep], y[keep], rcond=None)[0]
+        r = y - A @ sol
+        keep = np.abs(r) <= 3.0 * 1.48 * float(np.median(np.abs(r[keep]))) + 1e-6
+    lam, vec = np.linalg.eigh(np.array([[sol[0], sol[1]], [sol[1], sol[2]]]))
+    return (vec * np.clip(lam, 0.0, None)) @ vec.T
+
+
+def _edge_normals(conic, pts: np.ndarray) -> np.ndarray:
+    """Outward unit normals (N×2) of the conic (Q < 0 inside) at ``pts``."""
+    a, b, c, d, e, _ = conic
+    x, y = pts[:, 0], pts[:, 1]
+    g = np.stack([2 * a * x + b * y + d, b * x + 2 * c * y + e], axis=1)
+    return g / np.maximum(np.hypot(g[:, 0], g[:, 1]), 1e-300)[:, None]
 
 
 def _edge_skew(prof: np.ndarray) -> float:
@@ -340,17 +359,20 @@ def _edge_skew(prof: np.ndarray) -> float:
     return float(np.median((d * r ** 3).sum(axis=1) / sd / v ** 1.5))
 
 
-def _curvature_shift(conic, pts: np.ndarray, var_px2: float) -> np.ndarray:
+def _curvature_shift(conic, pts: np.ndarray, cov: np.ndarray) -> np.ndarray:
     """Outward displacement (N×2 px) that undoes the inward bias of a blurred curved edge: an edge
-    of curvature κ measured through a blur whose variance along it is σ² sits σ²κ/2 inside the true
-    one (first order in σκ; for the area rule and for the half level alike). κ and the outward
-    normal from the implicit conic Q (Q < 0 inside) at each point."""
+    of curvature κ read by the area rule through a blur of covariance Σ sits ½ κ tᵀΣt inside the
+    true one (t the edge's tangent; first order in σκ: the blur's spread *along* the edge is what
+    bends the reading, its spread across the edge only widens the ramp). κ and the outward normal
+    from the implicit conic Q (Q < 0 inside) at each point."""
     a, b, c, d, e, _ = conic
     x, y = pts[:, 0], pts[:, 1]
     qx, qy = 2 * a * x + b * y + d, b * x + 2 * c * y + e
     g2 = np.maximum(qx * qx + qy * qy, 1e-300)
     kappa = np.abs(2 * a * qy * qy - 2 * b * qx * qy + 2 * c * qx * qx) / g2 ** 1.5
-    step = 0.5 * var_px2 * kappa / np.sqrt(g2)
+    tx, ty = -qy / np.sqrt(g2), qx / np.sqrt(g2)
+    var_t = cov[0, 0] * tx * tx + 2.0 * cov[0, 1] * tx * ty + cov[1, 1] * ty * ty
+    step = 0.5 * var_t * kappa / np.sqrt(g2)
     return np.stack([qx * step, qy * step], axis=1)
 
 
@@ -509,6 +531,13 @@ def _analyse_contour(img8: np.ndarray, linear_crop, contour: np.ndarray, touches
         # a blurred edge (defocus, motion) whose transition reaches the plateaus biases the area
         # rule: lengthen the scans to cover it (as far as the blob's size allows)
         width = float(np.median(_transition_width(prof[kept])))
+        # ... or a smear along one direction, which widens only the ramps whose normal is along it (the
+        # median misses it, and the short scans' plateaus then sit on the ramp: the rim reads 0.2–0.5 px
+        # out along the smear, i.e. a frontal marker tilts by degrees); a box of length L has variance L²/12
+        n_first = normals[kept]
+        lam = float(np.linalg.eigvalsh(_psf_cov(prof[kept], np.maximum(np.abs(n_first[:, 0]), np.abs(n_first[:, 1])),
+                                                n_first))[1])
+        width = max(width, math.sqrt(12.0 * lam))
         longer = int(min(_SCAN_HALF_MAX, max(2, math.floor(1.0 + rb)), math.ceil(0.5 * width) + 3))
         if width > 2 * half - 5 and longer > half:
             half = longer
@@ -595,12 +624,14 @@ def _analyse_contour(img8: np.ndarray, linear_crop, contour: np.ndarray, touches
             ell, bpts, bw_, motion_px = redo
             resid = _sampson(ell.conic, bpts)
             rms = math.sqrt(float(bw_ @ (resid * resid)) / float(bw_.sum()))
-    blur_var = _psf_variance(prof[kept], along[kept])
+    psf = _psf_cov(prof[kept], along[kept], _edge_normals(ell.conic, edge[kept] + (x0, y0)))
+    blur_var = 0.5 * float(np.trace(psf))
     shift_px = 0.0
     if redo is None and blur_var > _MIN_CORRECTED_BLUR_PX2:
-        # defocus (an isotropic blur): the area rule reads a blurred curved edge σ²κ/2 inside the true
-        # rim (0.2 % of the range on a 25 px marker at a 3 px blur radius): move each point back, refit
-        moved = _curvature_shift(ell.conic, bpts, blur_var)
+        # the area rule reads a blurred curved edge ½κ tᵀΣt inside the true rim (0.2 % of the range on a
+        # 25 px marker at a 3 px defocus radius; an anisotropic blur, a short smear, also stretches the
+        # ellipse, i.e. tilts a frontal marker by degrees): move each point back, refit
+        moved = _curvature_shift(ell.conic, bpts, psf)
         try:
             conic2, _ = _fit(bpts + moved - (cx + x0, cy + y0), bw_, None, origin=(0.0, 0.0), scale=scale)
             if _conic_is_ellipse(conic2):
@@ -618,8 +649,16 @@ def _analyse_contour(img8: np.ndarray, linear_crop, contour: np.ndarray, touches
         flags.append("blurred")
     if area_fill > 1.3 * ell.area + 2.0 * math.pi * (a + b) * 0.5:
         flags.append("merged")
-    skew = _edge_skew(prof[kept])
-    if blur_var >= _SKEW_MIN_BLUR_PX2 and skew > RESPONSE_SKEW_LIMIT:
+    skew = 0.0
+    if blur_var >= _SKEW_MIN_BLUR_PX2:
+        # the lean is read on the green channel (the marker dark, the surround bright): JPEG's chroma, which
+        # the colour signal carries, was filtered in encoded values and leans by itself; luminance was not
+        # over the short scans (8 px), centred on each edge found: longer ones add the noise of their tails
+        half_s = min(half, _SCAN_HALF)
+        centre_s = np.clip(np.rint(off - 0.5).astype(np.int64), -_SCAN_HALF_MAX, _SCAN_HALF_MAX)
+        _, _, _, gprof = _scans(-lin[..., 1], seeds, normals, half_s, centre_s)
+        skew = _edge_skew(gprof[kept])
+    if skew > RESPONSE_SKEW_LIMIT:
         # the edges lean as a gamma-encoded frame linearised as linear does: the declared response is wrong,
         # and every edge (so the range) is biased by it
         flags.append("response_mismatch")
