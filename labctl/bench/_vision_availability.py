@@ -39,8 +39,9 @@ def mitsuba_conditions() -> list[tuple[str, Any, str]]:
     """(name, Mitsuba ``Shot``, declared response) of each condition."""
     from ._vision_mitsuba import Shot
 
-    webcam = dict(response="srgb", defocus_px=1.0, bayer=True, jpeg_quality=70, noise_std=3.0, photons=2000.0)
-    mild = dict(response="gamma 2.2", defocus_px=1.0, motion_mm_s=40.0, jpeg_quality=85, noise_std=2.0)
+    webcam: dict[str, Any] = dict(response="srgb", defocus_px=1.0, bayer=True, jpeg_quality=70, noise_std=3.0,
+                                  photons=2000.0)
+    mild: dict[str, Any] = dict(response="gamma 2.2", defocus_px=1.0, motion_mm_s=40.0, jpeg_quality=85, noise_std=2.0)
     return [
         ("clean", Shot(), "linear"),
         ("defocus r 2 px", Shot(defocus_px=2.0), "linear"),
@@ -59,8 +60,9 @@ def mitsuba_conditions() -> list[tuple[str, Any, str]]:
 def oracle_conditions() -> list[tuple[str, Any, str]]:
     """(name, oracle ``Conditions``, declared response) of each condition (the same kinds as Mitsuba's)."""
     C = oracle.Conditions
-    webcam = dict(response="srgb", defocus_px=1.0, bayer="bilinear", jpeg_quality=70, noise_std=3.0, photons=2000.0)
-    mild = dict(response="gamma 2.2", defocus_px=1.0, motion_px=4.0, jpeg_quality=85, noise_std=2.0)
+    webcam: dict[str, Any] = dict(response="srgb", defocus_px=1.0, bayer="bilinear", jpeg_quality=70, noise_std=3.0,
+                                  photons=2000.0)
+    mild: dict[str, Any] = dict(response="gamma 2.2", defocus_px=1.0, motion_px=4.0, jpeg_quality=85, noise_std=2.0)
     return [
         ("clean", C(), "linear"),
         ("defocus r 2 px", C(defocus_px=2.0), "linear"),
@@ -78,6 +80,7 @@ def oracle_conditions() -> list[tuple[str, Any, str]]:
 
 def _render_pairs(renderer: str, cond, n_pairs: int, seed: int) -> list[dict]:
     rng = np.random.default_rng(seed)
+    render: Any
     if renderer == "mitsuba":
         from . import _vision_mitsuba as mits
 
@@ -112,8 +115,8 @@ def pairs(renderer: str, name: str, cond, n_pairs: int, seed: int, cache_dir: st
     """The rendered pairs of one condition (from ``cache_dir`` when already rendered)."""
     path = Path(cache_dir) / _cache_key(renderer, name, n_pairs, seed) if cache_dir else None
     if path is not None and path.exists():
-        z = np.load(path)
-        out = []
+        z: Any = np.load(path)
+        out: list[dict[str, Any]] = []
         for i in range(n_pairs):
             discs = tuple(oracle.Disc(tuple(z["c"][i, k]), tuple(z["n"][i, k]), float(z["r"][i])) for k in (0, 1))
             out.append({"f": float(z["f"][i]), "discs": discs, "images": [z["img"][i, 0], z["img"][i, 1]]})
@@ -184,7 +187,7 @@ def evaluate(prs: list[dict], declared: str) -> dict:
                 acc["labctl"]["flags"]["inconsistent"] = acc["labctl"]["flags"].get("inconsistent", 0) + 2
         for name in ("labctl", "opencv"):
             a = acc[name]
-            cands = []
+            cands: list[Any] = []
             for k, disc in enumerate(p["discs"]):
                 a["n"] += 1
                 r = got[name][k]

@@ -10,10 +10,11 @@ radius mm, camera frame: +x columns, +y rows, +z optical axis).
 Scene (mm): a red disc (Mitsuba ``disk``, ``plastic`` BSDF: a diffuse red base under a smooth
 dielectric coat, so its highlights are the coat's Fresnel reflection) 0.02 mm in front of a
 grey ``diffuse`` plane of the same orientation; optionally a dark ``cylinder`` (a wire or cable)
-10 mm in front of the disc, across it (over a point within half a radius of its centre); lit by a constant sky plus a directional light (the wire
-casts a shadow). Camera: Mitsuba's ``perspective`` pinhole, or ``thinlens`` for defocus: with
-aperture radius A and focus distance z_f a point at depth z is spread over a disc of radius
-f·A·|1/z_f − 1/z| px, so z_f is chosen to give the requested blur radius at the disc's depth.
+10 mm in front of the disc, across it (over a point within half a radius of its centre);
+lit by a constant sky plus a directional light (the wire casts a shadow). Camera: Mitsuba's
+``perspective`` pinhole, or ``thinlens`` for defocus: with aperture radius A and focus
+distance z_f a point at depth z is spread over a disc of radius f·A·|1/z_f − 1/z| px, so z_f
+is chosen to give the requested blur radius at the disc's depth.
 Motion blur: the disc moves at ``motion_mm_s`` along a random direction in its plane during the
 exposure ``exposure_s``; the shutter is integrated by rendering sub-frames along the path (a box
 shutter; Mitsuba 3 has no animated shape transforms) and averaging them. Pixel filter ``box``
@@ -208,7 +209,9 @@ def camera_pipeline(rgb: np.ndarray, shot: Shot, rng: np.random.Generator) -> np
     out = cv2.cvtColor(np.clip(enc * 255.0 + 0.5, 0, 255).astype(np.uint8), cv2.COLOR_RGB2BGR)
     if shot.jpeg_quality:
         _, buf = cv2.imencode(".jpg", out, [cv2.IMWRITE_JPEG_QUALITY, int(shot.jpeg_quality)])
-        out = cv2.imdecode(buf, cv2.IMREAD_COLOR)
+        dec = cv2.imdecode(buf, cv2.IMREAD_COLOR)
+        if dec is not None:
+            out = dec
     return out
 
 

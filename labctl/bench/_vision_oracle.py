@@ -10,8 +10,8 @@ Pipeline of :func:`render` (all radiometry linear in [0, 1] until the response e
 
 1. **Scene**: background albedo (light grey, optionally textured), the disc (red albedo, its hue
    optionally rotated), optionally a neighbouring red bar or a lone bar, an occluder that
-   hides a given fraction of the rim, and a thin dark wire across the disc; exact area coverage of each pixel by each shape
-   (supersampled: 4×4 everywhere, 16×16 on edge pixels).
+   hides a given fraction of the rim, a thin dark wire across the disc; exact area coverage
+   of each pixel by each shape (supersampled: 4×4 everywhere, 16×16 on edge pixels).
 2. **Light**: illumination colour (white-balance cast), a soft shadow edge across the marker,
    vignetting, a linear gradient, an additive specular highlight.
 3. **Optics**: defocus (pillbox) or motion blur.

@@ -201,8 +201,9 @@ class MarkerQuality:
         return {"arc_coverage": round(float(self.arc_coverage), 4), "residual_rel": float(self.residual_rel),
                 "inlier_fraction": round(float(self.inlier_fraction), 4), "solidity": round(float(self.solidity), 4),
                 "edge_contrast": float(self.edge_contrast), "flags": list(self.flags), "trusted": self.trusted,
-                "blur_var_px2": round(float(self.blur_var_px2), 4), "blur_shift_px": round(float(self.blur_shift_px), 4),
-                "motion_px": round(float(self.motion_px), 3)}
+                "blur_var_px2": round(float(self.blur_var_px2), 4),
+                "blur_shift_px": round(float(self.blur_shift_px), 4), "motion_px": round(float(self.motion_px), 3),
+                "edge_skew": round(float(self.edge_skew), 3)}
 
 
 _SCAN_HALF = 4  # px: scans run 8 px across the edge (covers 2–3 px of blur), shorter on small blobs
