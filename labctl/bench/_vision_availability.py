@@ -12,7 +12,9 @@ declare — conditions where refusing a marker costs the run a view. Per conditi
   (the candidate nearer the truth), i.e. confident wrong answers;
 * ``duality``: pairs resolved right / ambiguous / wrong (both images trusted; ≥ 3° between the
   chosen and the true normal counts as wrong only when the other candidate was nearer);
-* ``z95``: 95th percentile of the normal error ÷ its σ (ours, trusted answers): calibration.
+* ``z95``: 95th percentile of the normal error ÷ its σ (ours, trusted answers): calibration;
+* ``available_centre`` (ours): share of images whose marker is good for its centre (tracking, range):
+  no flag but ``uncertain_normal`` — a near-frontal marker's tilt is ill-defined, its centre is not.
 
 Renderers: ``"mitsuba"`` (:mod:`._vision_mitsuba`, Mitsuba 3, the lab's mobile camera intrinsics)
 and ``"oracle"`` (:mod:`._vision_oracle`, the project's exact-coverage renderer, f 1200–2500 px).
@@ -163,7 +165,7 @@ def evaluate(prs: list[dict], declared: str) -> dict:
     from ..vision import pose_pair_consistency, resolve_duality_detailed, resolve_duality_noise_aware
 
     acc: dict[str, dict[str, Any]] = {m: {"n": 0, "avail": 0, "gross": 0, "dual": [0, 0, 0], "z": [],
-                                          "flags": {}} for m in ("labctl", "opencv")}
+                                          "flags": {}, "centre": 0} for m in ("labctl", "opencv")}
     for p in prs:
         cam = oracle.Cam(f=p["f"])
         got: dict[str, list] = {"labctl": [], "opencv": []}
@@ -185,6 +187,8 @@ def evaluate(prs: list[dict], declared: str) -> dict:
             if not chk.consistent:
                 trusted = [False, False]
                 acc["labctl"]["flags"]["inconsistent"] = acc["labctl"]["flags"].get("inconsistent", 0) + 2
+        for m in mp:
+            acc["labctl"]["centre"] += m is not None and set(m.flags) <= {"uncertain_normal"}
         for name in ("labctl", "opencv"):
             a = acc[name]
             cands: list[Any] = []
@@ -221,6 +225,7 @@ def evaluate(prs: list[dict], declared: str) -> dict:
                      "n_gross_trusted": a["gross"], "duality_right_ambiguous_wrong": a["dual"]}
         if name == "labctl":
             out[name]["z95"] = float(np.percentile(a["z"], 95)) if a["z"] else None
+            out[name]["available_centre"] = a["centre"] / max(a["n"], 1)
             out[name]["flags"] = a["flags"]
     return out
 
@@ -243,13 +248,14 @@ def run(renderer: str, n_pairs: int = 100, seed: int = 32, cache_dir: str | None
 
 def table(rows: list[dict]) -> str:
     """Markdown table of :func:`run`'s rows."""
-    lines = ["| condition | available labctl / OpenCV | gross trusted labctl / OpenCV | duality R/A/W labctl; OpenCV"
-             " | z95 | labctl flags |", "| --- | --- | --- | --- | --- | --- |"]
+    lines = ["| condition | available labctl / OpenCV | labctl centre-only | gross trusted labctl / OpenCV"
+             " | duality R/A/W labctl; OpenCV | z95 | labctl flags |", "| --- | --- | --- | --- | --- | --- | --- |"]
     for r in rows:
         o, b = r["labctl"], r["opencv"]
         z = f"{o['z95']:.2f}" if o.get("z95") is not None else "–"
         fl = ", ".join(f"{k} {v}" for k, v in sorted(o["flags"].items(), key=lambda kv: -kv[1])[:4])
         lines.append(f"| {r['condition']} | {100 * o['available']:.0f} / {100 * b['available']:.0f} % | "
+                     f"{100 * o.get('available_centre', math.nan):.0f} % | "
                      f"{100 * o['gross_trusted']:.1f} / {100 * b['gross_trusted']:.1f} % | "
                      f"{'/'.join(map(str, o['duality_right_ambiguous_wrong']))}; "
                      f"{'/'.join(map(str, b['duality_right_ambiguous_wrong']))} | {z} | {fl} |")
