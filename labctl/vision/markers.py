@@ -299,11 +299,15 @@ _SKEW_MIN_BLUR_PX2 = 0.5
 # ... and flags ``response_mismatch`` above this median skewness (green channel, 8 px scans centred on the edge).
 # Measured on both oracles (10 images per condition, 2026-12-02): right response −0.12…+0.12 (defocus r 2–3 px
 # ≤ 0.04, motion 8 px and webcam-like JPEG/Bayer the widest); gamma 2.2 + defocus read as linear +0.15…+0.22;
-# a gamma frame that is also JPEG-compressed and smeared (mild combination) +0.00…+0.12, mostly *not* caught
+# a gamma frame that is also JPEG-compressed and smeared (mild combination) +0.00…+0.12, mostly *not* caught.
+# Only a frame read as linear (the default a lab may have kept) is tested: the sim's realistic-camera frames
+# (sRGB declared, JPEG 80, Bayer) lean +0.11 with their right response, so a declared curve is believed
 RESPONSE_SKEW_LIMIT = 0.13
 # blur below this (px², a pillbox radius of ~0.9 px) is left uncorrected: its curvature bias is
 # under 0.01 px on any marker that passes the size gates
 _MIN_CORRECTED_BLUR_PX2 = 0.2
+# share of the colour signal's blur (trace) the green channel must show for the blur to count as optical
+_OPTICAL_BLUR_SHARE = 0.7
 
 
 def _psf_cov(prof: np.ndarray, along: np.ndarray, nrm: np.ndarray) -> np.ndarray:
@@ -457,9 +461,10 @@ class _Reject(Exception):
 
 
 def _analyse_contour(img8: np.ndarray, linear_crop, contour: np.ndarray, touches: bool,
-                     min_axis_ratio: float, max_residual_rel: float) -> Marker:
+                     min_axis_ratio: float, max_residual_rel: float, check_response: bool = False) -> Marker:
     """Sub-pixel boundary, robust fit and quality of one hole-filled colour blob (its external
-    ``contour`` in image pixels), paper §3.1. Works on a crop around the blob."""
+    ``contour`` in image pixels), paper §3.1. Works on a crop around the blob. ``check_response``:
+    test the edges for a response other than the (linear) one they were read with."""
     H, W = img8.shape[:2]
     bx, by, bw, bh = cv2.boundingRect(contour)
     x0, y0 = max(bx - _PAD, 0), max(by - _PAD, 0)
@@ -625,10 +630,24 @@ def _analyse_contour(img8: np.ndarray, linear_crop, contour: np.ndarray, touches
             ell, bpts, bw_, motion_px = redo
             resid = _sampson(ell.conic, bpts)
             rms = math.sqrt(float(bw_ @ (resid * resid)) / float(bw_.sum()))
-    psf = _psf_cov(prof[kept], along[kept], _edge_normals(ell.conic, edge[kept] + (x0, y0)))
+    n_fit = _edge_normals(ell.conic, edge[kept] + (x0, y0))
+    psf = _psf_cov(prof[kept], along[kept], n_fit)
     blur_var = 0.5 * float(np.trace(psf))
+    optical = False
+    if blur_var > _MIN_CORRECTED_BLUR_PX2:
+        # an optical blur (defocus, motion) widens every channel alike; JPEG's 4:2:0 chroma and demosaicing
+        # widen the colour signal only, and not as a convolution of linear radiance, so the curvature model
+        # does not hold for them: corrected only when the green channel (the marker dark, the surround
+        # bright; luminance-like, kept at full resolution) shows most of the blur too (measured: optical
+        # defocus ≥ 0.9 of it; the sim's realistic-camera side marker, sRGB + Bayer + JPEG 80, 0.49)
+        _, _, _, gprof = _scans(-lin[..., 1], seeds, normals, half, shift if np.any(shift) else None)
+        psf_g = _psf_cov(gprof[kept], along[kept], n_fit)
+        optical = float(np.trace(psf_g)) >= _OPTICAL_BLUR_SHARE * float(np.trace(psf))
+        if optical and np.trace(psf_g) < np.trace(psf):
+            psf = psf_g
+        blur_var = 0.5 * float(np.trace(psf))
     shift_px = 0.0
-    if redo is None and blur_var > _MIN_CORRECTED_BLUR_PX2:
+    if redo is None and blur_var > _MIN_CORRECTED_BLUR_PX2 and optical:
         # the area rule reads a blurred curved edge ½κ tᵀΣt inside the true rim (0.2 % of the range on a
         # 25 px marker at a 3 px defocus radius; an anisotropic blur, a short smear, also stretches the
         # ellipse, i.e. tilts a frontal marker by degrees): move each point back, refit
@@ -651,7 +670,7 @@ def _analyse_contour(img8: np.ndarray, linear_crop, contour: np.ndarray, touches
     if area_fill > 1.3 * ell.area + 2.0 * math.pi * (a + b) * 0.5:
         flags.append("merged")
     skew = 0.0
-    if blur_var >= _SKEW_MIN_BLUR_PX2:
+    if check_response and blur_var >= _SKEW_MIN_BLUR_PX2:
         # the lean is read on the green channel (the marker dark, the surround bright): JPEG's chroma, which
         # the colour signal carries, was filtered in encoded values and leans by itself; luminance was not
         # over the short scans (8 px), centred on each edge found: longer ones add the noise of their tails
@@ -980,7 +999,8 @@ def find_markers(image_bgr, *, thresholds: MarkerThresholds = RED, window=None, 
                 rejected.append((box, "cut by the image border"))
                 continue
             try:
-                mk = _analyse_contour(img, linear_crop, c, at_image_edge, min_axis_ratio, max_residual_rel)
+                mk = _analyse_contour(img, linear_crop, c, at_image_edge, min_axis_ratio, max_residual_rel,
+                                      resp.is_linear)
                 if not mk.fit_rms_px <= max_fit_rms_px:
                     raise _Reject(f"boundary residual {mk.fit_rms_px:.2f} px > {max_fit_rms_px:g} px")
             except _Reject as exc:
