@@ -220,7 +220,7 @@ def test_mixed_simulated_and_real_devices_are_refused(lab, capsys):
 
 
 def test_prompt_command_places_the_target_or_refuses(tmp_path):
-    from labctl.cli.calibrate import CommandPrompt
+    from labctl.cli.calibrate import CommandPrompt, PromptRefused
     from labctl.errors import UserInputError
 
     log = tmp_path / "placed.txt"
@@ -231,8 +231,9 @@ def test_prompt_command_places_the_target_or_refuses(tmp_path):
     p.place_target(0.0, 0, 2)
     p.place_target(60.0, 1, 2)
     assert log.read_text().splitlines() == ["0 1 2", "60 2 2"]
-    with pytest.raises(UserInputError, match="did not place the target on 99 mm"):
+    with pytest.raises(PromptRefused, match="did not place the target on 99 mm") as refused:
         p.place_target(99.0, 0, 1)
+    assert isinstance(refused.value.error, UserInputError)  # what the command exits with: 2
 
 
 def test_served_truth_file_is_read_as_the_simulator_truth(tmp_path):

@@ -151,3 +151,24 @@ def test_pose_images_is_the_pipeline_in_vision(scene):
     with pytest.raises(ImagePoseError) as err:
         pose_images([a, np.full_like(a, 200)], CAM, 10.0)
     assert err.value.index == 1 and "no marker" in str(err.value)
+
+
+def test_a_response_that_does_not_match_the_frame_is_said_in_one_line(scene, capsys, monkeypatch):
+    """A gamma-2.2 frame with a defocused marker (the project's oracle), posed as linear: the result
+    says the response looks wrong; posed with --response 'gamma 2.2' it does not."""
+    from labctl.bench import _vision_oracle as oracle
+
+    d, *_ = scene
+    monkeypatch.chdir(d)
+    cam = oracle.Cam(f=CAM.f / CAM.dx)
+    disc = oracle.random_pose(np.random.default_rng(4), cam, obliquity_deg=(30.0, 45.0))
+    img, _ = oracle.render(cam, disc, oracle.Conditions(response="gamma 2.2", defocus_px=2.0), np.random.default_rng(5))
+    cv2.imwrite("g.png", img)
+    for response, warned in (("linear", True), ("gamma 2.2", False)):
+        code, out, _ = _run(capsys, "vision", "pose", "g.png", "--radius", "10", "--camera", "cam.yaml",
+                            "--response", response, "--json")
+        assert code == 0
+        data = json.loads(out)
+        assert ("response_warning" in data) is warned
+        if warned:
+            assert "\n" not in data["response_warning"] and "--response linear" in data["response_warning"]

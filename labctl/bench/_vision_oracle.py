@@ -9,9 +9,9 @@ pixels), its own ray–plane coverage by supersampling, and its own scene and se
 Pipeline of :func:`render` (all radiometry linear in [0, 1] until the response encodes it):
 
 1. **Scene**: background albedo (light grey, optionally textured), the disc (red albedo, its hue
-   optionally rotated), optionally a neighbouring red bar or a lone bar, and an occluder that
-   hides a given fraction of the rim; exact area coverage of each pixel by each shape
-   (supersampled: 4×4 everywhere, 16×16 on edge pixels).
+   optionally rotated), optionally a neighbouring red bar or a lone bar, an occluder that
+   hides a given fraction of the rim, a thin dark wire across the disc; exact area coverage
+   of each pixel by each shape (supersampled: 4×4 everywhere, 16×16 on edge pixels).
 2. **Light**: illumination colour (white-balance cast), a soft shadow edge across the marker,
    vignetting, a linear gradient, an additive specular highlight.
 3. **Optics**: defocus (pillbox) or motion blur.
@@ -103,6 +103,7 @@ class Conditions:
     gradient: float = 0.0             # left-to-right illumination ramp (fraction)
     highlight: float = 0.0            # specular peak, grey levels (may exceed 255: clipped)
     occlusion: float = 0.0            # fraction of the rim hidden by a grey occluder
+    wire_px: float = 0.0              # a dark wire this wide across the marker (over a point ≤ r/2 from its centre)
     bar_gap_px: float | None = None   # a 5×40 px red bar this far from the rim
     lone_bar: tuple[float, float] | None = None  # (w, h) px: no disc, only a red bar
     defocus_px: float = 0.0           # pillbox radius
@@ -274,6 +275,10 @@ def render(cam: Cam, disc: Disc, cond: Conditions, rng: np.random.Generator) -> 
                min(int(rim[:, 0].max()) + 14, W), min(int(rim[:, 1].max()) + 14, H))
         paint(halfplane_coverage(cam, pt, d, box), (0.3, 0.3, 0.3))
         info["visible"] = 1.0 - cond.occlusion
+    if cond.wire_px > 0:  # a thin dark occluder (cable, wire) across the disc
+        k = int(rng.integers(len(rim)))
+        over = center_px + rng.uniform(0.0, 0.5) * (rim[k] - center_px)
+        paint(rect_coverage(cam, over, (4.0 * r_px + 20.0, cond.wire_px), rng.uniform(0, np.pi)), (0.05, 0.05, 0.05))
     lit = cond.shadow > 0 or cond.vignetting > 0 or cond.gradient > 0
     if lit or cond.highlight > 0:
         yy, xx = np.mgrid[0:H, 0:W].astype(np.float32)

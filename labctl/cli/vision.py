@@ -91,6 +91,12 @@ def vision_pose(image: Path, image2: Path | None, radius_mm: float, camera_file:
         raise UserInputError(f"{out}: cannot encode the annotated image")
     atomic_write_bytes(out, png.tobytes())
     result["annotated"] = str(out)
+    mismatched = sum("response_mismatch" in mk["flags"] for entry in result["images"] for mk in entry["markers"])
+    if mismatched:
+        # the edges of a blurred marker lean as a gamma-encoded frame read as linear does
+        result["response_warning"] = (f"{mismatched} marker(s) look encoded with another camera response than "
+                                      f"--response {response}: declare the camera's response (srgb, 'gamma G' or a "
+                                      "lookup table) before trusting their poses")
 
     def human(console):
         from rich.table import Table
@@ -116,6 +122,8 @@ def vision_pose(image: Path, image2: Path | None, radius_mm: float, camera_file:
             else:
                 console.print(f"duality ({d['motion']}): [yellow]ambiguous[/] (margin {d['margin_deg']:.3f}° < "
                               f"{d['threshold_deg']:.3f}° needed over the noise); no candidate chosen")
+        if "response_warning" in result:
+            console.print(f"[yellow]{result['response_warning']}[/]")
         console.print(f"annotated image: {result['annotated']}")
 
     emit(result, human)

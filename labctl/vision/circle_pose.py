@@ -243,6 +243,12 @@ POINT_SIGMA_FLOOR_PX = 0.05
 # the covariance as one more sigma point, large for a marker far off-axis and near-frontal (its tilt is read
 # from a ~1 % stretch there), small near the axis. See :func:`marker_poses`.
 UNMODELLED_LENS_SIGMA_PX = 2.0
+# A blur the detector modelled (defocus: the curvature correction σ²κ/2; motion: the half-level refit) leaves a
+# systematic error the residual does not show: a uniform offset of the rim along its normal. 1σ of it, px: this
+# share of the correction applied (its first-order model and the measured σ² are each good to ~15–30 %) ...
+BLUR_SHIFT_SIGMA_FRACTION = 0.5
+# ... plus this much per px of motion smear (the refit's axes are 0.07 px off in median at a 10 px smear)
+MOTION_OFFSET_SIGMA_PER_PX = 0.01
 # a pose whose normal σ exceeds this is flagged ``uncertain_normal``: a sixth of the 3° gross error, since
 # highlights and blur add systematic errors of up to ~6 σ (measured on the degradation suite)
 MAX_TRUSTED_NORMAL_SIGMA_RAD = math.radians(0.5)
@@ -304,6 +310,27 @@ def _lens_sigma_point(boundary, weights, K, radius: float, base, sigma_px: float
         minus = max(out[1], key=lambda c: float(c.normal @ ref))
         deltas.append((0.5 * (plus.normal - minus.normal), 0.5 * (plus.center - minus.center)))
     return deltas
+
+
+def _offset_sigma_point(boundary, weights, K, radius: float, sigma_px: float):
+    """Half the change (normal, centre) of each candidate when every boundary point moves ±``sigma_px``
+    along the fitted ellipse's outward normal (a blur's residual bias: the rim read uniformly too far
+    in or out), refitted and posed; None when a moved boundary gives no pose."""
+    conic = _fit(boundary, weights, None, origin=boundary[0].tolist())[0]
+    a, b, c, d, e, _ = conic
+    x, y = boundary[:, 0], boundary[:, 1]
+    gx, gy = 2 * a * x + b * y + d, b * x + 2 * c * y + e
+    g = np.sqrt(np.maximum(gx * gx + gy * gy, 1e-300))
+    nrm = np.stack([gx / g, gy / g], axis=1)
+    out = []
+    for sgn in (1.0, -1.0):
+        moved = boundary + sgn * sigma_px * nrm
+        try:
+            conic2 = _fit(moved, weights, None, origin=moved[0].tolist())[0]
+            out.append(_poses_from_cone(_cone(conic2, K), radius))
+        except (CirclePoseError, EllipseFitError, ValueError):
+            return None
+    return out
 
 
 def marker_poses(marker: Marker, camera: CameraModel, radius: float, *,
@@ -399,9 +426,23 @@ def marker_poses(marker: Marker, camera: CameraModel, radius: float, *,
                 dn, dc = lens[j]
                 ncov[j] += np.outer(dn, dn)
                 ccov[j] += np.outer(dc, dc)
+    q = marker.quality
+    blur_sigma = 0.0 if q is None else (BLUR_SHIFT_SIGMA_FRACTION * q.blur_shift_px
+                                        + MOTION_OFFSET_SIGMA_PER_PX * q.motion_px)
+    if blur_sigma > 0.0:
+        moved = _offset_sigma_point(boundary, weights, K, radius, blur_sigma)
+        for j in range(2):
+            if moved is None:
+                ncov[j] += np.eye(3)
+                ccov[j] += np.eye(3) * 1e4
+                continue
+            plus = max(moved[0], key=lambda c: float(c.normal @ base[j].normal))
+            minus = max(moved[1], key=lambda c: float(c.normal @ base[j].normal))
+            dn, dc = 0.5 * (plus.normal - minus.normal), 0.5 * (plus.center - minus.center)
+            ncov[j] += np.outer(dn, dn)
+            ccov[j] += np.outer(dc, dc)
     sig0, sig1 = (float(math.sqrt(max(np.trace(c), 0.0))) for c in ncov)
     sig = (sig0, sig1)
-    q = marker.quality
     flags = tuple(q.flags) if q is not None else ("no_quality",)
     if not max(sig) <= MAX_TRUSTED_NORMAL_SIGMA_RAD:  # e.g. a marker facing the camera: its tilt is ill-defined
         flags += ("uncertain_normal",)

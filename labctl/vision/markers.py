@@ -168,8 +168,17 @@ class MarkerQuality:
     of the rim measured: occluded, shadowed or cut), ``rough`` (residual over 4 % of the minor
     semi-axis), ``outliers`` (under 75 % of the boundary fits the ellipse), ``low_contrast``
     (edge contrast under 0.04), ``blurred`` (a quarter of the edge transitions wider than
-    max(3 px, 0.2 × minor semi-axis): motion or defocus smears the shape), ``merged`` (the
-    colour blob is much larger than its ellipse: a neighbour touches it)."""
+    max(3 px, 0.2 × minor semi-axis) and the blur could not be modelled: motion or defocus smears
+    the shape), ``merged`` (the colour blob is much larger than its ellipse: a neighbour touches it).
+
+    The blur the edge was measured through (:func:`_psf_cov`): ``blur_var_px2``, the
+    point-spread function's second moment (px², half the trace of its covariance; 0 for a sharp
+    edge), ``blur_shift_px``, the mean outward correction applied for it (the curvature bias
+    σ²κ/2), ``motion_px``, the smear length when the motion refit ran (else 0). A blur that was
+    modelled this way is no flag; it widens the pose covariance instead (``marker_poses``).
+    ``edge_skew``: median skewness of the edge spread (:func:`_edge_skew`); on a blurred edge a
+    lean above :data:`RESPONSE_SKEW_LIMIT` raises ``response_mismatch`` (the frame is not encoded
+    as the camera's declared response says: declare or learn it)."""
 
     arc_coverage: float
     residual_rel: float
@@ -177,6 +186,10 @@ class MarkerQuality:
     solidity: float
     edge_contrast: float
     flags: tuple[str, ...] = ()
+    blur_var_px2: float = 0.0
+    blur_shift_px: float = 0.0
+    motion_px: float = 0.0
+    edge_skew: float = 0.0
 
     @property
     def trusted(self) -> bool:
@@ -187,7 +200,10 @@ class MarkerQuality:
         """JSON-ready dict of the quality measures, flags and ``trusted``."""
         return {"arc_coverage": round(float(self.arc_coverage), 4), "residual_rel": float(self.residual_rel),
                 "inlier_fraction": round(float(self.inlier_fraction), 4), "solidity": round(float(self.solidity), 4),
-                "edge_contrast": float(self.edge_contrast), "flags": list(self.flags), "trusted": self.trusted}
+                "edge_contrast": float(self.edge_contrast), "flags": list(self.flags), "trusted": self.trusted,
+                "blur_var_px2": round(float(self.blur_var_px2), 4),
+                "blur_shift_px": round(float(self.blur_shift_px), 4), "motion_px": round(float(self.motion_px), 3),
+                "edge_skew": round(float(self.edge_skew), 3)}
 
 
 _SCAN_HALF = 4  # px: scans run 8 px across the edge (covers 2–3 px of blur), shorter on small blobs
@@ -274,6 +290,101 @@ def _transition_width(prof: np.ndarray) -> np.ndarray:
     return np.count_nonzero((c > 0.1) & (c < 0.9), axis=1)
 
 
+# second moment (px²) of a perfectly sharp edge's sampled profile: the pixel's own footprint plus the
+# sampling of the difference (0.19 measured on exact-coverage discs, 0.16–0.20 over obliquities 0–50°)
+_SHARP_EDGE_VAR_PX2 = 0.19
+# the response check (:func:`_edge_skew`) needs ramps this wide (px²; a sharp edge has one or two
+# intermediate pixels, too few to show a lean) ...
+_SKEW_MIN_BLUR_PX2 = 0.5
+# ... and flags ``response_mismatch`` above this median skewness (green channel, 8 px scans centred on the edge).
+# Measured on both oracles (10 images per condition, 2026-12-02): right response −0.12…+0.12 (defocus r 2–3 px
+# ≤ 0.04, motion 8 px and webcam-like JPEG/Bayer the widest); gamma 2.2 + defocus read as linear +0.15…+0.22;
+# a gamma frame that is also JPEG-compressed and smeared (mild combination) +0.00…+0.12, mostly *not* caught.
+# Only a frame read as linear (the default a lab may have kept) is tested: the sim's realistic-camera frames
+# (sRGB declared, JPEG 80, Bayer) lean +0.11 with their right response, so a declared curve is believed
+RESPONSE_SKEW_LIMIT = 0.13
+# blur below this (px², a pillbox radius of ~0.9 px) is left uncorrected: its curvature bias is
+# under 0.01 px on any marker that passes the size gates
+_MIN_CORRECTED_BLUR_PX2 = 0.2
+# share of the colour signal's blur (trace) the green channel must show for the blur to count as optical.
+# Measured (2026-12-02, 10 blurred images per condition on each oracle): defocus r 2–3 px, gamma + defocus and
+# motion smears 1.00–1.07 on both; webcam-like and mild combinations (Bayer, JPEG) 0.82–0.95; the sim's
+# realistic-camera side marker 0.49. At 0.7 or 0.9 the seed-1008 realistic run changed its target marker
+# (tests/test_sim_effects.py::test_realistic_run_falls_back_…: 90° pose error, then "still ambiguous")
+_OPTICAL_BLUR_SHARE = 0.97
+
+
+def _psf_cov(prof: np.ndarray, along: np.ndarray, nrm: np.ndarray) -> np.ndarray:
+    """2×2 covariance (px², image axes) of the blur a marker's edge profiles show: per scan, the
+    variance of the profile's derivative (the line-spread function) along the scan, scaled to the
+    edge normal nᵢ by |s·n|² and less the sharp edge's own :data:`_SHARP_EDGE_VAR_PX2`, is nᵢᵀ Σ nᵢ;
+    Σ by least squares over the scans (once more without those beyond 3 robust σ), made positive
+    semi-definite. A pillbox of radius r gives (r²/4) I, a box smear of length L along u (L²/12) uuᵀ."""
+    p = 2 if prof.shape[1] >= 6 else 1
+    inside, outside = prof[:, :p].mean(axis=1), prof[:, -p:].mean(axis=1)
+    c = (prof - outside[:, None]) / np.maximum(inside - outside, 1e-6)[:, None]
+    d = np.clip(c[:, :-1] - c[:, 1:], 0.0, None)
+    sd = np.maximum(d.sum(axis=1), 1e-9)
+    x = np.arange(d.shape[1]) + 0.5
+    mu = (d * x).sum(axis=1) / sd
+    y = (d * (x[None, :] - mu[:, None]) ** 2).sum(axis=1) / sd * along * along - _SHARP_EDGE_VAR_PX2
+    A = np.stack([nrm[:, 0] ** 2, 2.0 * nrm[:, 0] * nrm[:, 1], nrm[:, 1] ** 2], axis=1)
+    keep = np.ones(len(y), bool)
+    sol = np.zeros(3)
+    for _ in range(2):
+        if np.count_nonzero(keep) < 6:
+            return np.zeros((2, 2))
+        sol = np.linalg.lstsq(A[keep], y[keep], rcond=None)[0]
+        r = y - A @ sol
+        keep = np.abs(r) <= 3.0 * 1.48 * float(np.median(np.abs(r[keep]))) + 1e-6
+    lam, vec = np.linalg.eigh(np.array([[sol[0], sol[1]], [sol[1], sol[2]]]))
+    return (vec * np.clip(lam, 0.0, None)) @ vec.T
+
+
+def _edge_normals(conic, pts: np.ndarray) -> np.ndarray:
+    """Outward unit normals (N×2) of the conic (Q < 0 inside) at ``pts``."""
+    a, b, c, d, e, _ = conic
+    x, y = pts[:, 0], pts[:, 1]
+    g = np.stack([2 * a * x + b * y + d, b * x + 2 * c * y + e], axis=1)
+    return g / np.maximum(np.hypot(g[:, 0], g[:, 1]), 1e-300)[:, None]
+
+
+def _edge_skew(prof: np.ndarray) -> float:
+    """Median skewness of the edge profiles' derivatives (the line-spread functions along each scan).
+    A symmetric blur seen through the right response gives a symmetric spread (skewness ≈ 0); a
+    gamma-encoded frame read as linear stretches the bright side of every ramp and compresses the
+    dark one, so the spread leans the same way on every scan. NaN for fewer than 8 scans."""
+    if prof.shape[0] < 8:
+        return float("nan")
+    p = 2 if prof.shape[1] >= 6 else 1
+    inside, outside = prof[:, :p].mean(axis=1), prof[:, -p:].mean(axis=1)
+    c = (prof - outside[:, None]) / np.maximum(inside - outside, 1e-6)[:, None]
+    d = np.clip(c[:, :-1] - c[:, 1:], 0.0, None)
+    sd = np.maximum(d.sum(axis=1), 1e-9)
+    x = np.arange(d.shape[1]) + 0.5
+    mu = (d * x).sum(axis=1) / sd
+    r = x[None, :] - mu[:, None]
+    v = np.maximum((d * r * r).sum(axis=1) / sd, 1e-9)
+    return float(np.median((d * r ** 3).sum(axis=1) / sd / v ** 1.5))
+
+
+def _curvature_shift(conic, pts: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """Outward displacement (N×2 px) that undoes the inward bias of a blurred curved edge: an edge
+    of curvature κ read by the area rule through a blur of covariance Σ sits ½ κ tᵀΣt inside the
+    true one (t the edge's tangent; first order in σκ: the blur's spread *along* the edge is what
+    bends the reading, its spread across the edge only widens the ramp). κ and the outward normal
+    from the implicit conic Q (Q < 0 inside) at each point."""
+    a, b, c, d, e, _ = conic
+    x, y = pts[:, 0], pts[:, 1]
+    qx, qy = 2 * a * x + b * y + d, b * x + 2 * c * y + e
+    g2 = np.maximum(qx * qx + qy * qy, 1e-300)
+    kappa = np.abs(2 * a * qy * qy - 2 * b * qx * qy + 2 * c * qx * qx) / g2 ** 1.5
+    tx, ty = -qy / np.sqrt(g2), qx / np.sqrt(g2)
+    var_t = cov[0, 0] * tx * tx + 2.0 * cov[0, 1] * tx * ty + cov[1, 1] * ty * ty
+    step = 0.5 * var_t * kappa / np.sqrt(g2)
+    return np.stack([qx * step, qy * step], axis=1)
+
+
 def _edge_offsets(prof: np.ndarray, k0: np.ndarray, contrast: float):
     """Edge position along each scan by the area rule with locally normalised plateaus.
 
@@ -354,9 +465,10 @@ class _Reject(Exception):
 
 
 def _analyse_contour(img8: np.ndarray, linear_crop, contour: np.ndarray, touches: bool,
-                     min_axis_ratio: float, max_residual_rel: float) -> Marker:
+                     min_axis_ratio: float, max_residual_rel: float, check_response: bool = False) -> Marker:
     """Sub-pixel boundary, robust fit and quality of one hole-filled colour blob (its external
-    ``contour`` in image pixels), paper §3.1. Works on a crop around the blob."""
+    ``contour`` in image pixels), paper §3.1. Works on a crop around the blob. ``check_response``:
+    test the edges for a response other than the (linear) one they were read with."""
     H, W = img8.shape[:2]
     bx, by, bw, bh = cv2.boundingRect(contour)
     x0, y0 = max(bx - _PAD, 0), max(by - _PAD, 0)
@@ -429,6 +541,17 @@ def _analyse_contour(img8: np.ndarray, linear_crop, contour: np.ndarray, touches
         # a blurred edge (defocus, motion) whose transition reaches the plateaus biases the area
         # rule: lengthen the scans to cover it (as far as the blob's size allows)
         width = float(np.median(_transition_width(prof[kept])))
+        # ... or a smear along one direction, which widens only the ramps whose normal is along it (the
+        # median misses it, and the short scans' plateaus then sit on the ramp: the rim reads 0.2–0.5 px
+        # out along the smear, i.e. a frontal marker tilts by degrees); a box of length L has variance L²/12
+        n_first = normals[kept]
+        a_first = np.maximum(np.abs(n_first[:, 0]), np.abs(n_first[:, 1]))
+        lam = float(np.linalg.eigvalsh(_psf_cov(prof[kept], a_first, n_first))[1])
+        if 12.0 * lam > (2 * half - 5) ** 2:
+            # only an optical smear, which the green channel shows too (JPEG chroma widens the colour signal alone)
+            gp = _scans(-lin[..., 1], seeds, normals, half)[3]
+            lam = min(lam, float(np.linalg.eigvalsh(_psf_cov(gp[kept], a_first, n_first))[1]))
+            width = max(width, math.sqrt(12.0 * lam))
         longer = int(min(_SCAN_HALF_MAX, max(2, math.floor(1.0 + rb)), math.ceil(0.5 * width) + 3))
         if width > 2 * half - 5 and longer > half:
             half = longer
@@ -507,18 +630,67 @@ def _analyse_contour(img8: np.ndarray, linear_crop, contour: np.ndarray, touches
         flags.append("outliers")
     if edge_contrast < 0.04:
         flags.append("low_contrast")
+    redo, motion_px = None, 0.0
     if blur_px > 3.0:  # a wide ramp: if it is a motion smear, measure the edge where the smear leaves it
         redo = _motion_refit(signal, contrast, prof, kept, row, sgn, seeds, normals, arc, off, ell, (x0, y0), (cx, cy),
                              scale, support & kept)
         if redo is not None:
-            ell, bpts, bw_ = redo
+            ell, bpts, bw_, motion_px = redo
             resid = _sampson(ell.conic, bpts)
             rms = math.sqrt(float(bw_ @ (resid * resid)) / float(bw_.sum()))
-    if blur_px > max(3.0, 0.2 * b):  # motion or defocus blur wide against the marker: its shape is smeared
+    n_fit = _edge_normals(ell.conic, edge[kept] + (x0, y0))
+    psf = _psf_cov(prof[kept], along[kept], n_fit)
+    blur_var = 0.5 * float(np.trace(psf))
+    optical = False
+    if blur_var > _MIN_CORRECTED_BLUR_PX2:
+        # an optical blur (defocus, motion) widens every channel alike; JPEG's 4:2:0 chroma and demosaicing
+        # widen the colour signal only, and not as a convolution of linear radiance, so the curvature model
+        # does not hold for them: corrected only when the green channel (the marker dark, the surround
+        # bright; luminance-like, kept at full resolution) shows the whole blur too (_OPTICAL_BLUR_SHARE)
+        _, _, _, gprof = _scans(-lin[..., 1], seeds, normals, half, shift if np.any(shift) else None)
+        psf_g = _psf_cov(gprof[kept], along[kept], n_fit)
+        optical = float(np.trace(psf_g)) >= _OPTICAL_BLUR_SHARE * float(np.trace(psf))
+        if optical and np.trace(psf_g) < np.trace(psf):
+            psf = psf_g
+        blur_var = 0.5 * float(np.trace(psf))
+    shift_px = 0.0
+    if redo is None and blur_var > _MIN_CORRECTED_BLUR_PX2 and optical:
+        # the area rule reads a blurred curved edge ½κ tᵀΣt inside the true rim (0.2 % of the range on a
+        # 25 px marker at a 3 px defocus radius; an anisotropic blur, a short smear, also stretches the
+        # ellipse, i.e. tilts a frontal marker by degrees): move each point back, refit
+        moved = _curvature_shift(ell.conic, bpts, psf)
+        try:
+            conic2, _ = _fit(bpts + moved - (cx + x0, cy + y0), bw_, None, origin=(0.0, 0.0), scale=scale)
+            if _conic_is_ellipse(conic2):
+                ell = Ellipse.from_conic(_shift_conic(conic2, cx + x0, cy + y0))
+                bpts = bpts + moved
+                shift_px = float(np.mean(np.hypot(moved[:, 0], moved[:, 1])))
+                resid = _sampson(ell.conic, bpts)
+                rms = math.sqrt(float(bw_ @ (resid * resid)) / float(bw_.sum()))
+        except EllipseFitError:
+            pass
+    # a blur is modelled (motion refit, or the curvature correction while first order holds: σ ≤ ¼ of the
+    # minor semi-axis); one that is not, wide against the marker, smears its shape: flagged
+    modelled = redo is not None or (shift_px > 0.0 and math.sqrt(blur_var) <= 0.25 * ell.axes[1])
+    if blur_px > max(3.0, 0.2 * b) and not modelled:
         flags.append("blurred")
     if area_fill > 1.3 * ell.area + 2.0 * math.pi * (a + b) * 0.5:
         flags.append("merged")
-    quality = MarkerQuality(coverage, residual_rel, inlier_fraction, solidity, edge_contrast, tuple(flags))
+    skew = 0.0
+    if check_response and blur_var >= _SKEW_MIN_BLUR_PX2:
+        # the lean is read on the green channel (the marker dark, the surround bright): JPEG's chroma, which
+        # the colour signal carries, was filtered in encoded values and leans by itself; luminance was not
+        # over the short scans (8 px), centred on each edge found: longer ones add the noise of their tails
+        half_s = min(half, _SCAN_HALF)
+        centre_s = np.clip(np.rint(off - 0.5).astype(np.int64), -_SCAN_HALF_MAX, _SCAN_HALF_MAX)
+        _, _, _, gprof = _scans(-lin[..., 1], seeds, normals, half_s, centre_s)
+        skew = _edge_skew(gprof[kept])
+    if skew > RESPONSE_SKEW_LIMIT:
+        # the edges lean as a gamma-encoded frame linearised as linear does: the declared response is wrong,
+        # and every edge (so the range) is biased by it
+        flags.append("response_mismatch")
+    quality = MarkerQuality(coverage, residual_rel, inlier_fraction, solidity, edge_contrast, tuple(flags),
+                            blur_var, shift_px, motion_px, skew)
     return Marker(tuple(ell.center), ell, float(ell.area), bpts, bw_, (int(bx), int(by), int(bx + bw), int(by + bh)),
                   touches, rms, quality)
 
@@ -562,7 +734,7 @@ def _half_level_offsets(prof: np.ndarray, k0: np.ndarray, near: np.ndarray, reac
 
 def _motion_refit(signal, contrast, prof, kept, row, sgn, seeds, normals, arc, off, ell, origin, centre, scale, start):
     """Boundary of a motion-smeared marker (paper §3.1's fit, made to survive a blur): returns
-    (ellipse, boundary points, weights) in image px, or None when the blur looks isotropic
+    (ellipse, boundary points, weights, smear length L px) in image px, or None when the blur looks isotropic
     (defocus) or too little rim is left.
 
     A box blur of length L along u turns each edge into a ramp of width L·|u·n| across it (n the
@@ -624,7 +796,7 @@ def _motion_refit(signal, contrast, prof, kept, row, sgn, seeds, normals, arc, o
     pts = rel[inl] + (centre[0] + origin[0], centre[1] + origin[1])
     if _arc_coverage(new, pts) < 0.5:
         return None
-    return new, pts, w[inl]
+    return new, pts, w[inl], L
 
 
 _K3 = np.ones((3, 3), np.uint8)
@@ -834,7 +1006,8 @@ def find_markers(image_bgr, *, thresholds: MarkerThresholds = RED, window=None, 
                 rejected.append((box, "cut by the image border"))
                 continue
             try:
-                mk = _analyse_contour(img, linear_crop, c, at_image_edge, min_axis_ratio, max_residual_rel)
+                mk = _analyse_contour(img, linear_crop, c, at_image_edge, min_axis_ratio, max_residual_rel,
+                                      resp.is_linear)
                 if not mk.fit_rms_px <= max_fit_rms_px:
                     raise _Reject(f"boundary residual {mk.fit_rms_px:.2f} px > {max_fit_rms_px:g} px")
             except _Reject as exc:
@@ -853,6 +1026,12 @@ def find_markers(image_bgr, *, thresholds: MarkerThresholds = RED, window=None, 
                                                           min_value))
         found, rejected = _merge_searches(found, rejected, found2, rejected2)
         largest = max(largest, largest2)
+    if n_blobs > 1 and any(m.quality is not None and {"partial", "outliers"} & set(m.quality.flags) for m in found):
+        # a thin occluder (a wire, a cable, a clamp's edge) across a marker cuts its colour blob in two; a 5×5
+        # closing bridges a dark band up to ~4 px wide, so the rim is fitted whole, the band's scans dropped
+        # as outliers (a red neighbour it merges comes out flagged and loses to the plain search's marker)
+        found2, rejected2, _, _ = search(cv2.morphologyEx(mask, cv2.MORPH_CLOSE, _K5))
+        found, rejected = _merge_searches(found, rejected, found2, rejected2)
     found.sort(key=lambda m: -m.area)
     reason = None
     if not found:
