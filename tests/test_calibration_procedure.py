@@ -290,14 +290,15 @@ def test_segment_durations_keep_the_quintic_within_half_the_robot_limits(dp, rv)
 def test_terminal_prompt_waits_for_enter_and_refuses_a_closed_stdin(monkeypatch, capsys):
     import io
 
-    from labctl.cli.calibrate import TerminalPrompt
+    from labctl.cli.calibrate import PromptRefused, TerminalPrompt
     from labctl.errors import UserInputError
 
     monkeypatch.setattr(sys, "stdin", io.StringIO("\n"))
     TerminalPrompt().place_target(60.0, 1, 2)
     assert "[2/2] put the calibration target on its locating pins on the 60 mm spacer" in capsys.readouterr().err
-    with pytest.raises(UserInputError, match="stdin closed"):
+    with pytest.raises(PromptRefused, match="stdin closed") as refused:
         TerminalPrompt().place_target(0.0, 0, 2)
+    assert isinstance(refused.value.error, UserInputError)
 
 
 def test_target_mounted_off_centre_and_turned_still_registers_the_table(tmp_path):
