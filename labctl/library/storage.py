@@ -221,9 +221,14 @@ def _binary_stl_watertight(model: Path, name: str) -> bool:
     return True
 
 
+# libyaml's safe loader where PyYAML was built with it: the same documents, parsed in a ninth of the pure-Python
+# loader's time (a library's 21 YAML files, 11 ms instead of 77; every process of a run reads them)
+YAML_LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+
+
 def _read_yaml(path: Path, key: str):
     try:
-        data = yaml.safe_load(path.read_text())
+        data = yaml.load(path.read_text(), Loader=YAML_LOADER)  # a safe loader either way
     except FileNotFoundError:
         raise LibraryError(f"{path.parent.name}: missing {path.name}") from None
     except (yaml.YAMLError, UnicodeDecodeError) as exc:
