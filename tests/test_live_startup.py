@@ -1,8 +1,10 @@
 """Live start-up: the command's and the workers' library check read the models without trimesh, and say the
-same as trimesh does about them; the simulated lab still gets trimesh's own mesh."""
+same as trimesh does about them; the simulated lab still gets trimesh's own mesh; the table, connected beside
+the robot and the camera, fails the run in one line."""
 
 from __future__ import annotations
 
+import shutil
 import subprocess
 import sys
 
@@ -11,6 +13,7 @@ import pytest
 import trimesh
 
 from labctl.library.storage import LibraryError, _binary_stl_watertight, load_library
+from labctl.records import load_run
 from labctl.workspace import init_workspace
 
 
@@ -77,3 +80,26 @@ def test_the_lazy_mesh_is_trimeshs_own_and_a_model_broken_later_is_a_clear_error
     (obj.folder / "model.stl").write_bytes(b"solid broken\n")
     with pytest.raises(LibraryError, match=f"{name}: "):
         _ = other.mesh
+
+
+@pytest.mark.timeout(180)
+@pytest.mark.skipif(sys.platform != "linux", reason="the simulated lab's ptys need Linux")
+def test_a_table_that_fails_while_connecting_beside_the_robot_ends_the_run_in_one_line(lab, tmp_path):
+    # the predictor opens the table in a thread while its main thread opens the robot and the camera; a status
+    # report (~60 bytes at 9600 bps) cannot come within 1 ms, so the table's connection fails there
+    bad = tmp_path / "lab"
+    shutil.copytree(lab, bad, ignore=shutil.ignore_patterns("runs"))
+    table = bad / "drivers" / "table.yaml"
+    text = table.read_text()
+    assert "\ntimeout_s: 5.0\n" in text
+    table.write_text(text.replace("\ntimeout_s: 5.0\n", "\ntimeout_s: 0.001\n"))
+    run = subprocess.run([sys.executable, "-m", "labctl", "--lab", str(bad), "run", "--trajectory", "line",
+                          "--seed", "1"], capture_output=True, text=True, timeout=150)
+    lines = run.stderr.strip().splitlines()
+    assert run.returncode == 3, run.stderr[-2000:]
+    assert len(lines) == 1 and "Traceback" not in run.stderr, run.stderr[-2000:]
+    cause = lines[0].split(": robot stopped", 1)[0]  # the first failure: a write or a status query timing out
+    assert cause.startswith("labctl: error: predictor: ") and "grbl@" in cause and "timeout" in cause.lower(), cause
+    assert "robot stopped (confirmed)" in lines[0], lines[0]
+    record = load_run(lines[0].rsplit("record kept in ", 1)[1])
+    assert record.of("table_program") == [] and record.of("track") == []  # nothing started, nothing tracked
