@@ -103,3 +103,22 @@ def test_a_table_that_fails_while_connecting_beside_the_robot_ends_the_run_in_on
     assert "robot stopped (confirmed)" in lines[0], lines[0]
     record = load_run(lines[0].rsplit("record kept in ", 1)[1])
     assert record.of("table_program") == [] and record.of("track") == []  # nothing started, nothing tracked
+
+
+@pytest.mark.timeout(400)
+@pytest.mark.skipif(sys.platform != "linux", reason="the simulated lab's ptys need Linux")
+def test_the_startup_bench_reads_each_runs_phases_from_its_record():
+    from labctl.bench.startup import import_breakdown, measure
+
+    res = measure(1, cold=False)
+    (run,) = res["warm"]
+    assert run["exit_code"] == 0 and run["identity"], run
+    phases = run["startup_s"]
+    # stamps by three processes (command, simulated lab, predictor) against the command's /proc start time
+    assert list(phases)[-1] == "first_tracked_frame" and 0 < phases["sim_lab_starting"] < phases["first_tracked_frame"]
+    assert phases["first_tracked_frame"] < run["command_s"]  # the whole command, timed by the bench's own clock
+    assert res["warm_first_tracked_frame_s"] == [phases["first_tracked_frame"]]
+    assert "error" in res["cold"]  # not asked for: said so, not guessed
+    imports = import_breakdown()
+    assert imports["total_s"] > 0 and "labctl.cli" in imports["labctl_roots_s"]
+    assert "trimesh" not in imports["largest_packages_s"]

@@ -107,7 +107,8 @@ def measure(n: int, *, cold: bool = True, tree: Path | None = None) -> dict:
             drop_caches()
             res["cold"] = one_run(lab, 1, tree)
         else:
-            res["cold"] = {"error": "not measurable here: dropping the page cache needs root"}
+            res["cold"] = {"error": "not measurable here: dropping the page cache needs root" if cold
+                           else "not asked for"}
             one_run(lab, 1, tree)  # the warm runs then all find the cache filled
         warm = [one_run(lab, 2 + i, tree) for i in range(n)]
     ok = [w for w in warm if w.get("first_tracked_frame_s") is not None]
