@@ -10,9 +10,12 @@ angle of the hull facet region seen from the centre of mass).
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import trimesh
+
+if TYPE_CHECKING:
+    import trimesh
 
 from ..errors import UserInputError
 
@@ -27,6 +30,7 @@ class ModelError(UserInputError):
 
 def load_model(path: Path | str) -> trimesh.Trimesh:
     """Read an STL/OBJ file (mm) as one mesh; raise :class:`ModelError` if unreadable or empty."""
+    import trimesh  # a heavy import (scipy, networkx): paid by teaching, not by a run
     path = Path(path)
     if not path.is_file():
         raise ModelError(f"model file not found: {path}")
@@ -88,6 +92,7 @@ def stable_poses(mesh: trimesh.Trimesh, *, min_probability: float = 0.0) -> list
     probability, most likely first; translations put the lowest point at z = 0 and the centre
     of mass over the origin of x, y.
     """
+    import trimesh  # a heavy import (scipy, networkx): paid by teaching, not by a run
     Ts, probs = trimesh.poses.compute_stable_poses(mesh, n_samples=1)
     out = []
     for T, p in zip(Ts, probs, strict=True):
@@ -108,6 +113,7 @@ def stable_poses(mesh: trimesh.Trimesh, *, min_probability: float = 0.0) -> list
 
 def _rested_points(mesh: trimesh.Trimesh, T: np.ndarray) -> np.ndarray:
     """The hull's vertices in resting pose ``T`` (the centre of mass over the origin, as stable_poses puts it)."""
+    import trimesh  # a heavy import (scipy, networkx): paid by teaching, not by a run
     return trimesh.transform_points(mesh.convex_hull.vertices, T)
 
 
@@ -127,6 +133,7 @@ def same_pose_up_to_yaw(mesh: trimesh.Trimesh, T_a: np.ndarray, T_b: np.ndarray,
     (every vertex within ``tol_mm`` of one of the other pose's); candidate angles φ come from pairing
     the hull vertex farthest from the axis with the other pose's vertices at the same height and
     radius. Returns S (4×4, object frame), or None when the poses differ."""
+    import trimesh  # a heavy import (scipy, networkx): paid by teaching, not by a run
     from scipy.spatial import cKDTree
 
     pa, pb = _rested_points(mesh, T_a), _rested_points(mesh, T_b)
@@ -214,6 +221,7 @@ def extrude_polygon(poly_xy: np.ndarray, height: float) -> trimesh.Trimesh:
 
     Hand-built (no triangulation engine needed): ear-clipped caps plus two triangles per side.
     """
+    import trimesh  # a heavy import (scipy, networkx): paid by teaching, not by a run
     p = np.asarray(poly_xy, dtype=float)
     area = 0.5 * (np.dot(p[:, 0], np.roll(p[:, 1], -1)) - np.dot(np.roll(p[:, 0], -1), p[:, 1]))
     if area < 0:

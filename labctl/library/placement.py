@@ -44,11 +44,13 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
-from typing import Protocol, cast
+from typing import TYPE_CHECKING, Protocol, cast
 
 import cv2
 import numpy as np
-import trimesh
+
+if TYPE_CHECKING:  # only annotations here: a run that loads a taught library never imports trimesh for it
+    import trimesh
 
 from ..geometry import rot_z
 from .model import ModelError

@@ -11,10 +11,13 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
-import trimesh
+
+if TYPE_CHECKING:  # only annotations: loading a library for a run imports no trimesh
+    import trimesh
 
 from ..geometry import CameraModel, invert, make_T, rotvec_to_matrix
 from ..vision.shape import ShapeError, ShapeFeatures, features_from_image, silhouette_mask

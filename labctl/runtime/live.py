@@ -47,8 +47,11 @@ from ..timebase import wire_time_s
 CTX = mp.get_context("forkserver")
 # Not the predictor: its tracking imports filterpy → scipy.stats (~0.5 s CPU), which only the predictor
 # needs; it imports them after its fork, beside the simulated lab's set-up, instead of holding up the
-# lab's fork
-_PRELOAD = ["labctl.runtime.live", "labctl.decisions.recognizer", "labctl.runtime.simlab", "labctl.decisions.context"]
+# lab's fork. trimesh (with scipy.spatial, networkx): only the simulated lab builds meshes (the workers'
+# and the command's library checks read the models with numpy), but it is imported here, beside the
+# command's own loading, rather than after the lab's fork, on the way to its ready
+_PRELOAD = ["labctl.runtime.live", "labctl.decisions.recognizer", "labctl.runtime.simlab", "labctl.decisions.context",
+            "trimesh"]
 
 
 def warm_up() -> None:

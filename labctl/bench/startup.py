@@ -1,0 +1,142 @@
+"""``labctl bench startup``: live start-up, command to the first tracked frame of the fixed camera.
+
+Runs ``labctl run --trajectory line --seed k`` as a fresh process ``n`` times on a fresh ``labctl init``
+lab (the sample simulated lab, live: forkserver, simulated lab, both workers, the 9600-bps table) and
+reads each run's ``result.json``: ``startup_s`` holds every start-up phase in s after the command's own
+process started (its start time from /proc, not the bench's clock), the last one
+``first_tracked_frame`` (the first ``track`` event's wall stamp). Medians per phase.
+
+*Warm*: the page cache holds the interpreter, the packages and the lab (every run after the first).
+*Cold*: the first run after ``sync; echo 3 > /proc/sys/vm/drop_caches`` — only as root; elsewhere it is
+reported as not measurable rather than guessed. Byte-code caches (``__pycache__``) stay as they are in
+both: a user's installed labctl has them.
+
+Also the command's own import cost (``python -X importtime``, the modules ``labctl run`` imports before
+the simulated lab can start), largest cumulative first. The load average is reported beside every
+number: on a shared machine it, not the code, sets most of the spread.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from ._timing import row
+
+DROP_CACHES = Path("/proc/sys/vm/drop_caches")
+RUN_TIMEOUT_S = 180.0  # one live run on a loaded 2-core machine (≈10 s when quiet)
+# what ``labctl run`` imports before its simulated lab can start (labctl/cli/run.py, in its order)
+COMMAND_IMPORTS = ("import labctl.cli; import labctl.runtime.live; import labctl.decisions.context; "
+                   "import labctl.records; import labctl.cli.report")
+
+
+def _env(tree: Path | None) -> dict:
+    env = dict(os.environ)
+    if tree is not None:  # time another checkout (e.g. the commit before a change) with the same bench
+        env["PYTHONPATH"] = str(tree)
+    return env
+
+
+def can_drop_caches() -> bool:
+    """True when this process may drop the page cache (root, and /proc/sys/vm writable)."""
+    return os.geteuid() == 0 and os.access(DROP_CACHES, os.W_OK)
+
+
+def drop_caches() -> None:
+    """Write back dirty pages and drop the page cache, dentries and inodes (root only)."""
+    os.sync()
+    DROP_CACHES.write_text("3\n")
+
+
+def one_run(lab: Path, seed: int, tree: Path | None = None) -> dict:
+    """One ``labctl run --trajectory line`` in a fresh process; its ``startup_s`` phases, the wall time of
+    the whole command, its exit code and the load average when it started."""
+    load = os.getloadavg()[0]
+    t0 = time.time()
+    proc = subprocess.run([sys.executable, "-m", "labctl", "--lab", str(lab), "--json", "run", "--trajectory",
+                           "line", "--seed", str(seed)], capture_output=True, text=True, timeout=RUN_TIMEOUT_S,
+                          env=_env(tree), cwd=lab)
+    out: dict = {"seed": seed, "exit_code": proc.returncode, "command_s": round(time.time() - t0, 3),
+                 "load_avg": round(load, 2)}
+    try:
+        result = json.loads(proc.stdout)
+    except json.JSONDecodeError:
+        out["error"] = (proc.stderr.strip().splitlines() or ["no output"])[-1]
+        return out
+    out["startup_s"] = result.get("startup_s") or {}
+    out["first_tracked_frame_s"] = out["startup_s"].get("first_tracked_frame")
+    out["identity"] = result.get("identity")
+    return out
+
+
+def import_breakdown(tree: Path | None = None, top: int = 8) -> dict:
+    """The command's imports (``-X importtime``): total s and the ``top`` largest cumulative top-level-ish
+    packages (s), in a fresh interpreter."""
+    proc = subprocess.run([sys.executable, "-X", "importtime", "-c", COMMAND_IMPORTS], capture_output=True,
+                          text=True, env=_env(tree), timeout=RUN_TIMEOUT_S)
+    rows = []
+    for line in proc.stderr.splitlines():
+        if not line.startswith("import time:") or "|" not in line or "cumulative" in line:
+            continue
+        _, cum, name = line.split("|")
+        depth = (len(name) - len(name.lstrip())) // 2
+        rows.append((name.strip(), int(cum) / 1e6, depth))
+    roots = {n: s for n, s, d in rows if d == 0 and n.startswith("labctl")}
+    third = {n: s for n, s, d in rows if "." not in n and d > 0}
+    biggest = sorted(third.items(), key=lambda kv: -kv[1])[:top]
+    total = sum(s for _, s, d in rows if d == 0)
+    return {"total_s": round(total, 3), "labctl_roots_s": {k: round(v, 3) for k, v in roots.items()},
+            "largest_packages_s": {k: round(v, 3) for k, v in biggest}}
+
+
+def measure(n: int, *, cold: bool = True, tree: Path | None = None) -> dict:
+    """``n`` warm runs (after one unmeasured warm-up when ``cold`` is not measured) and, as root, one
+    cold run first; medians of each phase."""
+    with tempfile.TemporaryDirectory(prefix="labctl-bench-startup-") as tmp:
+        lab = Path(tmp) / "lab"
+        subprocess.run([sys.executable, "-m", "labctl", "init", str(lab)], check=True, capture_output=True,
+                       env=_env(tree), timeout=RUN_TIMEOUT_S)
+        res: dict = {"runs": n}
+        if cold and can_drop_caches():
+            drop_caches()
+            res["cold"] = one_run(lab, 1, tree)
+        else:
+            res["cold"] = {"error": "not measurable here: dropping the page cache needs root" if cold
+                           else "not asked for"}
+            one_run(lab, 1, tree)  # the warm runs then all find the cache filled
+        warm = [one_run(lab, 2 + i, tree) for i in range(n)]
+    ok = [w for w in warm if w.get("first_tracked_frame_s") is not None]
+    phases: dict[str, list[float]] = {}
+    for w in ok:
+        for k, v in w["startup_s"].items():
+            phases.setdefault(k, []).append(v)
+    res["warm"] = warm
+    res["warm_median_phases_s"] = {k: round(statistics.median(v), 3)
+                                   for k, v in sorted(phases.items(), key=lambda kv: statistics.median(kv[1]))}
+    res["warm_first_tracked_frame_s"] = sorted(w["first_tracked_frame_s"] for w in ok)
+    res["warm_failed"] = len(warm) - len(ok)
+    return res
+
+
+def run(quick: bool = False) -> dict:
+    """Time live start-up warm (median of 2 or 5 runs) and cold (root only), plus the command's imports."""
+    res = measure(2 if quick else 5)
+    res["imports"] = import_breakdown()
+    firsts = res["warm_first_tracked_frame_s"]
+    rows = []
+    if firsts:
+        rows.append(row("command → first tracked frame, warm", statistics.median(firsts), baseline="goal 1.5 s",
+                        baseline_s=1.5, load_avg=statistics.median(w["load_avg"] for w in res["warm"])))
+    cold = res["cold"].get("first_tracked_frame_s")
+    if cold is not None:
+        rows.append(row("command → first tracked frame, cold", cold, baseline="goal 4 s", baseline_s=4.0,
+                        load_avg=res["cold"]["load_avg"]))
+    rows.append(row("command's imports (-X importtime)", res["imports"]["total_s"]))
+    res["rows"] = rows
+    return res
