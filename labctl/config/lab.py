@@ -153,8 +153,8 @@ class TrackingConfig:
     # of the mobile camera's view at the initial distance (viewing_distance_with_margin), and the plan is
     # re-planned as the filter converges (10 mm waited ~0.25 s longer for nothing measurable)
     commit_margin_mm: Positive = 40.0
-    # about the first leg's duration: ~0.6 s flown + ~0.1 s for its command at 9600 bps with ruckig segments
-    # (1.5 s was the quintic legs'); the margin it gives also widens the initial view (viewing_distance_with_margin)
+    # about the first leg's duration: ~0.6 s flown + ~0.1 s for its command at 9600 bps with ruckig segments;
+    # the margin it gives also widens the initial view (viewing_distance_with_margin)
     commit_horizon_s: Positive = 0.8
 
     def curve_prior_for(self, family: str | None) -> float:
