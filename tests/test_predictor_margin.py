@@ -104,3 +104,25 @@ def test_the_initial_view_hold_is_a_setting(ctx):
     _then(p, 1.3, 65.0)  # later and held: re-aimed all the same
     p._replan(1.3)
     assert len(robot.segments) == 2
+
+
+@pytest.mark.parametrize("speed_mm_s", [4.0, 12.0])
+def test_a_steady_marker_is_committed_to_after_three_frames_with_the_first_legs_horizon(ctx, speed_mm_s):
+    """The commit gate looks ``commit_horizon_s`` ahead, about the first leg (~0.6 s flown + ~0.1 s for its
+    command): three frames of a marker moving steadily at the sweep's speeds put the 3-σ radius there under
+    ``commit_margin_mm``; the quintic legs' old 1.5-s horizon held the same track two frames longer."""
+    import dataclasses
+
+    def planner(horizon_s):
+        cfg = ctx.lab.config
+        cfg = dataclasses.replace(cfg, tracking=dataclasses.replace(cfg.tracking, commit_horizon_s=horizon_s))
+        run_ctx = dataclasses.replace(ctx, lab=dataclasses.replace(ctx.lab, config=cfg))
+        p = PredictorPlanner(run_ctx, SegmentRobot(home_flange_pose(ctx.lab)), lambda msg: None,
+                             lambda *a, **k: None)
+        _track(p, 0.0, 2.0 / 30.0, (150.0, 200.0), (speed_mm_s, 0.0))  # frames at 0, 1/30, 2/30 s
+        p.t_first_seen = 0.0
+        return p
+
+    assert ctx.lab.config.tracking.commit_horizon_s <= 1.0
+    assert planner(ctx.lab.config.tracking.commit_horizon_s)._ready_to_commit(2.0 / 30.0)
+    assert not planner(1.5)._ready_to_commit(2.0 / 30.0)

@@ -153,7 +153,9 @@ class TrackingConfig:
     # of the mobile camera's view at the initial distance (viewing_distance_with_margin), and the plan is
     # re-planned as the filter converges (10 mm waited ~0.25 s longer for nothing measurable)
     commit_margin_mm: Positive = 40.0
-    commit_horizon_s: Positive = 1.5  # about the interception's duration
+    # about the first leg's duration: ~0.6 s flown + ~0.1 s for its command at 9600 bps with ruckig segments;
+    # the margin it gives also widens the initial view (viewing_distance_with_margin)
+    commit_horizon_s: Positive = 0.8
 
     def curve_prior_for(self, family: str | None) -> float:
         """The IMM's curve prior for motion of ``family`` (a trajectory labctl drives the table along).
