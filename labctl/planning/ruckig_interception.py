@@ -85,6 +85,17 @@ def ruckig_limits(robot_cfg, stop_budget_s: float | None = None) -> JerkLimits:
     return replace(ctrl, v_max=min(ctrl.v_max, v_cap))
 
 
+
+def _ruckig_inputs(state, G: TargetFn, limits: Limits, R0, w0, jerk: JerkLimits | None, base: JerkLimits | None):
+    """The start ``(p0, v0, a0, R0, w0)`` of a checked state, the end rotation (G's, else ``R0``), the segment's
+    limits as the controller runs them and the limits it checks against (its own, ``base``, when given)."""
+    p0, v0, a0 = state
+    R0 = np.eye(3) if R0 is None else np.asarray(R0, float)
+    w0 = np.zeros(3) if w0 is None else np.asarray(w0, float).reshape(3)
+    R1 = end_rotation(G)
+    lim = (jerk if jerk is not None else JerkLimits.from_limits(limits)).rounded(base)
+    return (p0, v0, a0, R0, w0), R0 if R1 is None else R1, lim, base if base is not None else lim
+
 def plan_interception_ruckig(state0, t0: float, G: TargetFn, limits: Limits, horizon_s: float = 10.0, *,
                              R0=None, w0=None, jerk: JerkLimits | None = None, base: JerkLimits | None = None,
                              t_min: float = 0.02,
@@ -103,14 +114,7 @@ def plan_interception_ruckig(state0, t0: float, G: TargetFn, limits: Limits, hor
     start = _checked_start(state0, t0, horizon_s, t_min, limits, G)
     if isinstance(start, Interception):
         return start
-    p0, v0, a0 = start
-    R0 = np.eye(3) if R0 is None else np.asarray(R0, float)
-    w0 = np.zeros(3) if w0 is None else np.asarray(w0, float).reshape(3)
-    R1 = end_rotation(G)
-    R1 = R0 if R1 is None else R1
-    lim = (jerk if jerk is not None else JerkLimits.from_limits(limits)).rounded(base)
-    check = base if base is not None else lim  # the controller checks against its own limits
-    start = (p0, v0, a0, R0, w0)
+    start, R1, lim, check = _ruckig_inputs(start, G, limits, R0, w0, jerk, base)
     zero = np.zeros(3)
 
     def segment(T: float, g, full: bool = True) -> RuckigPlan:
@@ -161,17 +165,11 @@ def plan_ruckig_arriving(state0, t0: float, G: TargetFn, T: float, limits: Limit
     start = _checked_start(state0, t0, max(T, 0.02) * 2.0, 0.01, limits, G)
     if isinstance(start, Interception):
         return start
-    p0, v0, a0 = start
-    R0 = np.eye(3) if R0 is None else np.asarray(R0, float)
-    w0 = np.zeros(3) if w0 is None else np.asarray(w0, float).reshape(3)
-    R1 = end_rotation(G)
-    R1 = R0 if R1 is None else R1
-    lim = (jerk if jerk is not None else JerkLimits.from_limits(limits)).rounded(base)
-    check = base if base is not None else lim
+    start, R1, lim, check = _ruckig_inputs(start, G, limits, R0, w0, jerk, base)
     gp, gv, ga = (x[0] for x in G(np.array([t0 + T])))
     if not limits.contains(gp):
         return Interception(None, None, f"the target at {T:.3f} s is outside the workspace box", "outside_box", G)
-    plan = plan_ruckig((p0, v0, a0, R0, w0), gp, R1, gv, np.zeros(3), ga, T, lim)
+    plan = plan_ruckig(start, gp, R1, gv, np.zeros(3), ga, T, lim)
     if plan.code == 0 and plan.duration <= T * (1 + 1e-6) + 1e-6 and check_ruckig(plan, check) == 0:
         traj = RuckigTrajectory(plan, t0, lim, base)
         return Interception(traj.t1, traj, None, "ok", G)
