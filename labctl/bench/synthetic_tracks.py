@@ -270,6 +270,6 @@ def _drawn_truths(family: str, runs: int, seed: int, curvature_sigma: float | No
         raise ValueError("give curvature_sigma or prior, not both")
     if family not in ("line", "arc", "circle"):
         raise ValueError(f"a truth drawn from a prior is a line or a curve, not a {family!r} (its legs, its corner)")
-    if prior is not None:
-        return prior.draw(runs, seed)
-    return np.ones(runs, dtype=bool), np.random.default_rng([seed, 2]).normal(0.0, float(curvature_sigma), runs)
+    if curvature_sigma is not None:
+        return np.ones(runs, dtype=bool), np.random.default_rng([seed, 2]).normal(0.0, curvature_sigma, runs)
+    return prior.draw(runs, seed)
