@@ -375,7 +375,7 @@ def _bayes_table(quick: bool) -> list[dict]:
     with the IMM's curve probability (its curvature from the CT mode's prior) or else a line, and a heading from
     the isotropic velocity prior (uniform). Families whose trackers declare the same prior (arc and circle: a
     radius is no part of it) are one family. The speed is the cell's: the velocity prior is diffuse
-    (``speed_sigma`` against the frames' ~0.1 mm/s after 2 s), so the frames determine it and E[NEES | speed] is
+    (``speed_sigma`` against the frames' ~0.2 mm/s after 2 s), so the frames determine it and E[NEES | speed] is
     the prior's 2 at every speed. The zigzag keeps the program's corner and straight legs: the bound has no
     curved leg, and its prior's curve weight is ``family_prior.zigzag``. ``CONSISTENCY_RUNS`` runs a cell (the
     first 64 of a line's or zigzag's are the main table's), the ML reference (``nees_ml_crb``) on the same runs;
