@@ -20,6 +20,52 @@ than its nominal 95 %. :func:`pooled_by_family` therefore also pools per (family
 from __future__ import annotations
 
 from collections.abc import Iterable
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class TrackPrior:
+    """The prior a tracker declares over the motion it tracks: its mode, curvature and velocity priors (§4.2).
+
+    ``curve_probability``: the IMM's prior probability of its coordinated-turn mode against the straight one
+    (``tracking.family_prior`` for the family it is told, ``tracking.curve_prior`` blind); ``curvature_sigma``
+    (mm⁻¹): the CT mode's curvature prior N(0, σ²); ``speed_sigma`` (mm/s per axis): the velocity prior
+    N(0, σ² I), isotropic, so a truth drawn from it has a uniform heading. Read from a built tracker with
+    :meth:`of`, never restated: a truth drawn from it is what that tracker's covariance claims to cover.
+    """
+
+    curve_probability: float
+    curvature_sigma: float
+    speed_sigma: float
+
+    def __post_init__(self) -> None:
+        """Reject a prior no truth can be drawn from (a probability outside [0, 1], a width not positive)."""
+        if not 0.0 <= self.curve_probability <= 1.0:
+            raise ValueError(f"curve_probability must be in [0, 1], got {self.curve_probability!r}")
+        for name in ("curvature_sigma", "speed_sigma"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be a positive number, got {value!r}")
+
+    @classmethod
+    def of(cls, tracker) -> TrackPrior:
+        """The prior ``tracker`` (a :class:`labctl.tracking.MarkerTracker`) was built with."""
+        return cls(float(tracker.curve_prior), float(tracker.curvature_prior_sigma), float(tracker.speed_prior_sigma))
+
+    def draw(self, runs: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+        """``runs`` truths' mode and curvature: ``(curved (runs,) bool, curvature (runs,) mm⁻¹)``.
+
+        ``curved[i]`` is a Bernoulli(``curve_probability``) draw, the curvature N(0, ``curvature_sigma``²) where
+        curved and 0 where straight. Each from its own stream of ``seed`` (the curvature's ``[seed, 2]``, the
+        mode's ``[seed, 3]``), so the headings and the measurement noise a caller draws from ``seed`` itself
+        are the same whatever the prior."""
+        if runs < 0:
+            raise ValueError(f"runs must be ≥ 0, got {runs}")
+        kappa = np.random.default_rng([seed, 2]).normal(0.0, self.curvature_sigma, runs)
+        curved = np.random.default_rng([seed, 3]).random(runs) < self.curve_probability
+        return curved, np.where(curved, kappa, 0.0)
 
 
 def nees_band(samples: int, dim: int = 2, level: float = 0.95) -> tuple[float, float]:

@@ -28,7 +28,7 @@ from ..planning.interception import _score
 from ..planning.ruckig_interception import RuckigTrajectory, plan_interception_ruckig, ruckig_limits
 from ..tracking import MarkerTracker, PredictedPath
 from ._timing import median_time, row
-from .nees import pooled_by_family
+from .nees import TrackPrior, pooled_by_family
 from .ruckig_baseline import RuckigInterceptor
 
 # the filters compared with the bound (docs/notes/planning.md); measurement noise and frame rate are the lab's
@@ -97,7 +97,7 @@ def acceptance_summary(rows: list[dict]) -> dict:
 
 def _bound_table(quick: bool, models=None, *, runs: int | None = None, acceptance_only: bool = False,
                  with_ml: bool = True, families=None, corner_frames: float = 0.0,
-                 drop_frames: float = 0.0, curvature_sigma: float | None = None) -> list[dict]:
+                 drop_frames: float = 0.0, curvature_sigma: float | None = None, prior=None) -> list[dict]:
     """Each filter's 5-s prediction RMS and NEES against the bound, per family and speed.
 
     The paths are :mod:`labctl.bench.track_bound`'s line, arc (r 200 mm), circle (r 80 mm) and
@@ -113,7 +113,8 @@ def _bound_table(quick: bool, models=None, *, runs: int | None = None, acceptanc
     the Cramér-Rao bound. ``corner_frames``: the zigzag's corner that many frame intervals after 2 s
     (a real corner lies between two frames; at 2 s it lies on one). ``drop_frames``: the share of frames
     the tracker (and the bound) never gets; ``curvature_sigma``: arcs' and circles' curvature drawn per run from
-    N(0, curvature_sigma²) (both :func:`~labctl.bench.synthetic_tracks.compare_with_bound`).
+    N(0, curvature_sigma²); ``prior``: lines', arcs' and circles' truths drawn from that
+    :class:`~labctl.bench.nees.TrackPrior` (all :func:`~labctl.bench.synthetic_tracks.compare_with_bound`).
     """
     from ..config.lab import RunConfig
     from .synthetic_tracks import compare_with_bound
@@ -136,7 +137,7 @@ def _bound_table(quick: bool, models=None, *, runs: int | None = None, acceptanc
                                          runs=runs, rate_hz=fps, sigma_mm=sigma, with_ml=with_ml and first is None,
                                          track_s=track_s, after_corner_s=after_corner_s, seed=int(speed),
                                          corner_s=corner_s, table_accel_mm_s2=accel,
-                                         drop_frames=drop_frames, curvature_sigma=curvature_sigma)
+                                         drop_frames=drop_frames, curvature_sigma=curvature_sigma, prior=prior)
                 first = first or res
                 for t, r in res.items():
                     ml_mm, ml_nees = first[t].get("ml_rms_mm", np.inf), first[t].get("nees_ml_crb")
@@ -153,7 +154,7 @@ def _bound_table(quick: bool, models=None, *, runs: int | None = None, acceptanc
                                  "ml_mm": round(ml_mm, 3) if with_ml else None, "ratio": round(r["rms_mm"] / ref, 3),
                                  "ratio_limit": limit,
                                  "ratio_holds": None if limit is None else bool(r["rms_mm"] / ref <= limit),
-                                 "nees": round(r["nees"], 2), "nees_95": [round(lo, 2), round(hi, 2)],
+                                 "nees": round(r["nees"], 4), "nees_95": [round(lo, 2), round(hi, 2)],
                                  "nees_holds": bool(lo <= r["nees"] <= hi),
                                  "nees_frac_95": round(r["nees_frac_95"], 3),
                                  "nees_frac_holds": bool(r["nees_frac_bounds"][0] <= r["nees_frac_95"]
@@ -161,7 +162,8 @@ def _bound_table(quick: bool, models=None, *, runs: int | None = None, acceptanc
                                  "nees_crb": round(r["nees_crb"], 2), "cov_to_crb": round(r["cov_to_crb"], 3),
                                  "nees_ml_crb": None if ml_nees is None else round(ml_nees, 2),
                                  "ml_nees_holds": None if ml_nees is None else bool(lo <= ml_nees <= hi),
-                                 "runs": runs, "corner_frames": corner_frames if zig else None})
+                                 "runs": runs, "corner_frames": corner_frames if zig else None,
+                                 "curved_runs": r["curved_runs"]})
     return rows
 
 
@@ -363,6 +365,45 @@ def _tracker_rows(quick: bool) -> list[dict]:
     return rows
 
 
+def _bayes_table(quick: bool) -> list[dict]:
+    """The informed tracker's NEES with each run's truth drawn from the tracker's own prior (Bayes consistency).
+
+    A filter whose mean and covariance are the posterior's has E[eᵀP⁻¹e] = tr(P⁻¹P) = 2 over truths drawn from its
+    prior (Gaussian or not), where one fixed truth near the prior's mean scores less (docs/notes/planning.md,
+    "Tenth round"). Per family the tracker is told (a run's ``tracking.family_prior``), its
+    :class:`~labctl.bench.nees.TrackPrior` is read from the tracker built for it, and each run draws a curve
+    with the IMM's curve probability (its curvature from the CT mode's prior) or else a line, and a heading from
+    the isotropic velocity prior (uniform). Families whose trackers declare the same prior (arc and circle: a
+    radius is no part of it) are one family. The speed is the cell's: the velocity prior is diffuse
+    (``speed_sigma`` against the frames' ~0.2 mm/s after 2 s), so the frames determine it and E[NEES | speed] is
+    the prior's 2 at every speed. The zigzag keeps the program's corner and straight legs: the bound has no
+    curved leg, and its prior's curve weight is ``family_prior.zigzag``. ``CONSISTENCY_RUNS`` runs a cell (the
+    first 64 of a line's or zigzag's are the main table's), the ML reference (``nees_ml_crb``) on the same runs;
+    the per-cell bands are information, the acceptance pools the family's cells (:func:`pooled_by_family`).
+    """
+    from .track_bound import FAMILIES, ZIGZAGS
+
+    runs = 16 if quick else CONSISTENCY_RUNS
+    informed = {INFORMED: MODELS[INFORMED]}
+    groups: dict[TrackPrior, list[str]] = {}
+    for family in FAMILIES:
+        if family not in ZIGZAGS:
+            groups.setdefault(TrackPrior.of(_make_tracker(MODELS[INFORMED], family)), []).append(family)
+    rows = []
+    for prior, fams in groups.items():
+        name = " / ".join(fams)
+        rows += [{**r, "family": name, "prior": {"curve_probability": prior.curve_probability,
+                                                 "curvature_sigma_mm_inv": prior.curvature_sigma,
+                                                 "speed_sigma_mm_s": prior.speed_sigma}}
+                 for r in _bound_table(quick, informed, runs=runs, acceptance_only=True, families=(fams[0],),
+                                       prior=prior)]
+    zig = TrackPrior.of(_make_tracker(MODELS[INFORMED], "zigzag"))
+    rows += [{**r, "prior": {"curve_probability": zig.curve_probability, "curve_drawn": False,
+                             "speed_sigma_mm_s": zig.speed_sigma}}
+             for r in _bound_table(quick, informed, runs=runs, acceptance_only=True, families=("zigzag",))]
+    return rows
+
+
 def run(quick: bool = False) -> dict:
     """Run the planning benchmark; ``quick`` trims trajectories, speeds and cases."""
     rows = _tracker_rows(quick)
@@ -380,20 +421,9 @@ def run(quick: bool = False) -> dict:
     # frames a busy live predictor skips (29 % of its frame intervals in a 50 mm/s zigzag trial)
     table += _bound_table(quick, {DROPPING: MODELS[INFORMED]}, acceptance_only=True, families=("zigzag",),
                           drop_frames=0.3)
-    # the informed tracker's NEES on 4x the runs (the first 64 are the main table's)
-    consistency = _bound_table(quick, {INFORMED: MODELS[INFORMED]}, runs=16 if quick else CONSISTENCY_RUNS,
-                               acceptance_only=True, with_ml=False)
-    # ... and on curves whose curvature follows the tracker's own prior (a fixed radius near the prior's mean scores
-    # a Bayesian filter's NEES below 2: docs/notes/planning.md, "Tenth round"). Arc and circle differ only in their
-    # radius, so with the curvature drawn they are one family: the arc's cells
-    prior_sigma = _make_tracker(MODELS[INFORMED], "arc").curvature_prior_sigma
-    prior_drawn = _bound_table(quick, {INFORMED: MODELS[INFORMED]}, runs=16 if quick else CONSISTENCY_RUNS,
-                               acceptance_only=True, with_ml=False, families=("arc",), curvature_sigma=prior_sigma)
-    # the acceptance's NEES: per family, pooled over its cells, with the truth drawn from the tracker's prior (the
-    # curves' radius drawn; every speed the bench runs); the fixed-radius arc and circle cells stay as information
-    curve = "curve (radius from the prior)"
-    pooled = pooled_by_family([r for r in consistency if r["family"] not in ("arc", "circle")]
-                              + [{**r, "family": curve} for r in prior_drawn])
+    # the acceptance's NEES: the truth drawn from the tracker's own prior, per family pooled over its cells
+    bayes = _bayes_table(quick)
+    pooled = pooled_by_family(bayes)
     return {
         "rows": rows + irows + rrows,
         "nees_pooled": pooled,
@@ -402,9 +432,8 @@ def run(quick: bool = False) -> dict:
         "replanning": replanning,
         "prediction_vs_bound": table,
         "acceptance": acceptance_summary(table),
-        "consistency": consistency,
-        "consistency_holds": f"{sum(r['nees_holds'] for r in consistency)} / {len(consistency)}",
-        "curvature_from_prior": prior_drawn,
-        "curvature_from_prior_holds": f"{sum(r['nees_holds'] for r in prior_drawn)} / {len(prior_drawn)}",
+        "nees_bayes": bayes,
+        "nees_bayes_cells_inside": f"{sum(r['nees_holds'] for r in bayes)} / {len(bayes)}",
+        "nees_bayes_reference_inside": f"{sum(bool(r['ml_nees_holds']) for r in bayes)} / {len(bayes)}",
         "tracker_params": MODELS,
     }

@@ -159,7 +159,7 @@ def compare_with_bound(make_tracker, family: str, speed_mm_s: float, *, runs: in
                        horizon_s: float = 5.0, rate_hz: float = 30.0, sigma_mm: float = 0.7, with_ml: bool = True,
                        seed: int = 0, after_corner_s=(), corner_s: float = 2.0,
                        table_accel_mm_s2: float | None = None, drop_frames: float = 0.0,
-                       curvature_sigma: float | None = None) -> dict:
+                       curvature_sigma: float | None = None, prior=None) -> dict:
     """Monte-Carlo of a tracker's ``horizon_s`` prediction against the bound (:mod:`.track_bound`) on one family.
 
     ``make_tracker()`` builds a fresh tracker; each run feeds it the frames of a
@@ -172,7 +172,11 @@ def compare_with_bound(make_tracker, family: str, speed_mm_s: float, *, runs: in
     circles): each run's curvature is drawn from N(0, curvature_sigma²) instead of the family's radius, i.e. the
     truth follows a tracker's curvature prior of that width; a filter whose mean and covariance are the posterior's
     then has a mean NEES of 2 over the runs (E[eᵀP⁻¹e] = tr(P⁻¹P)), where on one fixed radius near the prior's mean
-    it scores less. Returns, per instant (keyed by its
+    it scores less. ``prior`` (a :class:`~labctl.bench.nees.TrackPrior`; lines, arcs and circles): each run's truth
+    drawn from a tracker's whole prior: a curve with its ``curve_probability`` (then of curvature
+    N(0, ``curvature_sigma``²)), else a line; the family given then only names the cell (a line's cell holds the
+    curves its prior allows, an arc's the lines), and the bound and the ML fit are the drawn truth's model.
+    Returns, per instant (keyed by its
     time in s): the tracker's RMS error (mm), the Cramér-Rao bound on it, the RMS of the ML fit on
     the same measurements (if ``with_ml``), and the tracker's mean NEES of that prediction (2 dof)
     with its two-sided 95 % bounds for ``runs`` runs; and a tail-robust check of the same: the fraction of
@@ -203,10 +207,12 @@ def compare_with_bound(make_tracker, family: str, speed_mm_s: float, *, runs: in
     crb: dict[float, list[float]] = {t: [] for t in instants}
     nees_ml: dict[float, list[float]] = {t: [] for t in instants}
     drops = np.random.default_rng([seed, 1])  # its own stream: the runs' paths and noise do not change
-    curvatures = np.random.default_rng([seed, 2])  # the same: headings and noise as on the family's radius
-    for _ in range(runs):
-        kappa = None if curvature_sigma is None else curvatures.normal(0.0, curvature_sigma)
-        scn = make_scenario(family, speed_mm_s, duration, rate_hz=rate_hz, sigma_mm=sigma_mm,
+    # the truths' curvatures (and modes) from their own streams too: headings and noise as on the family's radius
+    curved, kappas = _drawn_truths(family, runs, seed, curvature_sigma, prior)
+    for i in range(runs):
+        kappa = None if kappas is None or not curved[i] else float(kappas[i])
+        truth_family = family if curved is None else "arc" if curved[i] else "line"
+        scn = make_scenario(truth_family, speed_mm_s, duration, rate_hz=rate_hz, sigma_mm=sigma_mm,
                             heading_rad=rng.uniform(-np.pi, np.pi), corner_s=corner_s,
                             table_accel_mm_s2=table_accel_mm_s2, curvature_mm_inv=kappa)
         z = scn.measure(rng)
@@ -243,10 +249,27 @@ def compare_with_bound(make_tracker, family: str, speed_mm_s: float, *, runs: in
         row = {"rms_mm": float(np.sqrt(np.mean(np.sum(e**2, axis=1)))), "crb_mm": float(np.sqrt(np.mean(crb[t]))),
                "nees": float(np.mean(nees[t])), "nees_bounds": (float(lo), float(hi)),
                "nees_frac_95": float(np.mean(np.array(nees[t]) <= gate)), "nees_frac_bounds": frac_bounds,
-               "nees_crb": float(np.mean(nees_crb[t])), "cov_to_crb": float(np.median(cov_to_crb[t]))}
+               "nees_crb": float(np.mean(nees_crb[t])), "cov_to_crb": float(np.median(cov_to_crb[t])),
+               "curved_runs": None if curved is None else int(np.sum(curved))}
         if with_ml:
             m = np.array(ml_errs[t])
             row["ml_rms_mm"] = float(np.sqrt(np.mean(np.sum(m**2, axis=1))))
             row["nees_ml_crb"] = float(np.mean(nees_ml[t]))
         out[t] = row
     return out
+
+
+def _drawn_truths(family: str, runs: int, seed: int, curvature_sigma: float | None, prior):
+    """Each run's (curved, curvature mm⁻¹) for :func:`compare_with_bound`: ``(None, None)`` for the family's own path.
+
+    ``curvature_sigma`` alone: every run curved, the curvature N(0, σ²); ``prior``: the mode and the curvature from
+    :meth:`~labctl.bench.nees.TrackPrior.draw` (both on the same ``[seed, 2]`` curvature stream)."""
+    if curvature_sigma is None and prior is None:
+        return None, None
+    if curvature_sigma is not None and prior is not None:
+        raise ValueError("give curvature_sigma or prior, not both")
+    if family not in ("line", "arc", "circle"):
+        raise ValueError(f"a truth drawn from a prior is a line or a curve, not a {family!r} (its legs, its corner)")
+    if curvature_sigma is not None:
+        return np.ones(runs, dtype=bool), np.random.default_rng([seed, 2]).normal(0.0, curvature_sigma, runs)
+    return prior.draw(runs, seed)

@@ -442,6 +442,13 @@ class MarkerTracker:
         """Standard deviation (mm⁻¹) of the CT mode's prior on the curvature, as built."""
         return self._init_sigmas[1]
 
+    @property
+    def speed_prior_sigma(self) -> float:
+        """Standard deviation (mm/s) per axis of the track's prior on the velocity, N(0, σ² I), as built.
+
+        Isotropic, so its heading is uniform; diffuse against the table's speeds, so the frames overrule it."""
+        return self._init_sigmas[0]
+
     @classmethod
     def from_config(cls, cfg: TrackingSettings, family: str | None = None, **overrides) -> MarkerTracker:
         """Build from a :class:`labctl.config.lab.TrackingConfig` (model, noises, gate, curve prior): the same as
