@@ -463,6 +463,13 @@ class RobotEmulator:
         p, _, _, R, _ = seg.state(tc)
         return self.arm.joints(make_T(R, p), q_near)
 
+    def configuration_at(self, t: float) -> np.ndarray:
+        """:meth:`joints_at` after running the controller up to ``t`` when that is not in the future, as
+        :meth:`flange_pose_at` does: the arm the simulated cameras draw (:class:`labctl.sim.arm.ArmBody`)."""
+        if t <= self.clock():
+            self.advance(max(self.now, t))
+        return self.joints_at(t)
+
     def _arm_check(self, seg, t0: float) -> int:
         """0 if the arm can fly ``seg`` from its configuration at ``t0`` (its joints are then kept on the
         segment), else its 1.3 refusal (:meth:`labctl.sim.emulators.arm_servo.ArmServo.check`)."""
