@@ -34,6 +34,9 @@ DAMPING = 1e-10  # λ² of the damped least squares, on the scaled (m, rad) erro
 MAX_STEP_RAD = math.pi  # largest joint change of one iteration (smaller clamps cost convergence: notes)
 PATH_STEP_RAD = math.radians(5.0)  # a larger joint change between two path samples is a configuration jump
 
+_I6 = np.eye(6)
+_I6.setflags(write=False)  # the damping's identity, scaled into a new array each iteration
+
 
 def _rpy(rpy_rad) -> np.ndarray:
     r, p, y = rpy_rad
@@ -205,7 +208,7 @@ class ArmModel:
             J = W @ pin.Jlog6(diff) @ pin.getFrameJacobian(model, data, fid, pin.LOCAL)
             e = W @ err
             # Levenberg–Marquardt with Sugihara's damping (½‖e‖² + a floor): wide steps far away, Newton near
-            dq = np.linalg.solve(J.T @ J + (0.5 * float(e @ e) + DAMPING) * np.eye(6), J.T @ e)
+            dq = np.linalg.solve(J.T @ J + (0.5 * float(e @ e) + DAMPING) * _I6, J.T @ e)
             big = float(np.max(np.abs(dq)))
             q = q + (dq * (MAX_STEP_RAD / big) if big > MAX_STEP_RAD else dq)
         pos_err = float(np.linalg.norm(cur.translation - goal.translation))

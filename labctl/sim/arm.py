@@ -274,12 +274,13 @@ class ArmBody:
         up to their 12-gon facets."""
         eye = np.asarray(eye_w, float)
         P = np.asarray(points_w, float).reshape(-1, 3)
-        hidden = np.zeros(len(P), bool)
-        for cap, (a0, a1, r) in zip(self.capsules, self.segments(q)):
-            if cap.link > 6 - skip_last:
-                continue
-            hidden |= _segment_distance(eye, P, a0, a1) < r
-        return hidden
+        kept = [seg for cap, seg in zip(self.capsules, self.segments(q)) if cap.link <= 6 - skip_last]
+        if not kept or not len(P):
+            return np.zeros(len(P), bool)
+        a0 = np.array([k[0] for k in kept])
+        a1 = np.array([k[1] for k in kept])
+        r = np.array([k[2] for k in kept])
+        return np.any(_segment_distance(eye, P, a0, a1) < r[:, None], axis=0)
 
 
 class _ViewCull:
@@ -312,21 +313,25 @@ class _ViewCull:
 
 def _segment_distance(e: np.ndarray, P: np.ndarray, a0: np.ndarray, a1: np.ndarray) -> np.ndarray:
     """Distances (mm) between the segments ``e``–``P[k]`` and ``a0``–``a1`` (Ericson, Real-Time Collision
-    Detection §5.1.9, clamped closest points)."""
-    d1 = P - e  # (N, 3)
+    Detection §5.1.9, clamped closest points): N distances for one segment ``a0``–``a1`` (3,), or M×N for
+    M of them (M×3 each), all at once."""
+    one = np.ndim(a0) == 1
+    a0, a1 = np.atleast_2d(a0)[:, None, :], np.atleast_2d(a1)[:, None, :]  # (M, 1, 3)
+    d1 = (P - e)[None]  # (1, N, 3)
     d2 = a1 - a0
     r = e - a0
-    a = np.einsum("ij,ij->i", d1, d1)
-    ee = float(d2 @ d2)
-    f = float(d2 @ r)
-    c = d1 @ r
-    b = d1 @ d2
+    a = np.sum(d1 * d1, axis=-1)
+    ee = np.sum(d2 * d2, axis=-1)
+    f = np.sum(d2 * r, axis=-1)
+    c = np.sum(d1 * r, axis=-1)
+    b = np.sum(d1 * d2, axis=-1)
     denom = a * ee - b * b
     with np.errstate(divide="ignore", invalid="ignore"):
         s = np.where(denom > 1e-12, np.clip((b * f - c * ee) / denom, 0.0, 1.0), 0.0)
     t = (b * s + f) / ee
     t_c = np.clip(t, 0.0, 1.0)
     s = np.where(t < 0.0, np.clip(-c / a, 0.0, 1.0), np.where(t > 1.0, np.clip((b - c) / a, 0.0, 1.0), s))
-    c1 = e + s[:, None] * d1
-    c2 = a0 + t_c[:, None] * d2
-    return np.linalg.norm(c1 - c2, axis=1)
+    c1 = e + s[..., None] * d1
+    c2 = a0 + t_c[..., None] * d2
+    dist = np.linalg.norm(c1 - c2, axis=-1)
+    return dist[0] if one else dist
