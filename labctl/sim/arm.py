@@ -153,6 +153,7 @@ class ArmBody:
         self._T: np.ndarray | None = None
         self._cache: dict[float, np.ndarray] = {}
         self._segments: dict[bytes, list[tuple[np.ndarray, np.ndarray, float]]] = {}
+        self._placed_at: dict[bytes, list[np.ndarray]] = {}
         self._lock = threading.Lock()  # a served lab renders its two cameras from two threads
         self.ik_failures = 0
 
@@ -257,16 +258,33 @@ class ArmBody:
         keep_links = 6 - skip_last
         cull = None if view is None else _ViewCull(*view)
         verts, faces, n = [], [], 0
-        for cap, (V, F), (p0, p1, r) in zip(self.capsules, self._local, self.segments(q)):
+        placed = self._placed(q)
+        for cap, (_, F), (p0, p1, r), Vw in zip(self.capsules, self._local, self.segments(q), placed):
             if cap.link > keep_links or (cull is not None and not cull.may_see(p0, p1, r)):
                 continue
-            T = _frame_along(p0, p1)
-            verts.append(V @ T[:3, :3].T + T[:3, 3])
+            verts.append(Vw)
             faces.append(F + n)
-            n += len(V)
+            n += len(Vw)
         if not verts:
             return np.zeros((0, 3)), np.zeros((0, 3), np.int64)
         return np.concatenate(verts), np.concatenate(faces)
+
+    def _placed(self, q) -> list[np.ndarray]:
+        """Each capsule's vertices in W at ``q`` (mm), remembered per configuration: an arm at rest (most
+        frames) is placed once, whatever each camera and window then culls."""
+        key = np.asarray(q, float).tobytes()
+        with self._lock:
+            out = self._placed_at.get(key)
+        if out is None:
+            out = []
+            for (V, _), (p0, p1, _) in zip(self._local, self.segments(q)):
+                T = _frame_along(p0, p1)
+                out.append(V @ T[:3, :3].T + T[:3, 3])
+            with self._lock:
+                if len(self._placed_at) > 16:
+                    self._placed_at.clear()
+                self._placed_at[key] = out
+        return out
 
     def hides(self, q, eye_w, points_w, *, skip_last: int = 0) -> np.ndarray:
         """Which of ``points_w`` (N×3, mm) the links at ``q`` hide from a camera at ``eye_w``: the sight line
