@@ -164,3 +164,59 @@ def test_mobile_camera_does_not_see_its_own_wrist(lab):
         assert V.size and np.all((V @ T_c_w[:3, :3].T + T_c_w[:3, 3])[-74 * 2:, 2] < 0.0)
         checked += 1
     assert checked >= 8
+
+
+def test_the_drawn_arm_is_the_controllers_arm(lab):
+    """In a simulated lab the drawn arm takes the controller emulator's joints as it flies a segment: the same
+    configuration (not an IK of its own), whose flange by the independent UR10e chain is the controller's flange
+    at every frame time, at rest and in motion."""
+    from labctl.sim.clock import VirtualClock
+    from labctl.sim.lab import Scene, SimLab
+    from labctl.sim.world import home_flange_pose
+
+    clock = VirtualClock(0.0)
+    sim = SimLab.build(lab, clock, scene=Scene.test_block(lab, 0))
+    sim.open()
+    emu, world = sim.robot_emu, sim.world
+    T0 = home_flange_pose(lab)
+    T1 = T0.copy()
+    T1[:3, 3] += [60.0, -40.0, 30.0]
+    t0, t1 = sim.robot.segment(T1, 1.0, 1)
+    q_start = None
+    for t in np.linspace(t0 - 0.1, t1 + 0.2, 13):
+        clock.sleep_until(max(t, clock.now()))
+        sim.advance(clock.now())
+        sim.robot.heartbeat()  # fed, as a run feeds it: the controller's watchdog would stop the arm
+        t = clock.now()
+        q = world.arm_q(t)
+        assert np.array_equal(q, emu.joints_at(t))
+        T_hand, _ = ur10e_chain(q)
+        assert np.allclose(T_hand, world.T_w_F(t), atol=1e-6)
+        q_start = q if q_start is None else q_start
+    assert np.max(np.abs(q - q_start)) > 0.02  # it moved
+    assert np.allclose(world.T_w_F(clock.now())[:3, 3], T1[:3, 3], atol=1e-6)
+
+
+def test_occlusion_truth_against_sampled_distances(lab):
+    """:meth:`ArmBody.hides` (every link at once) against sight lines sampled by hand: a point whose sight line
+    passes well inside a link is hidden, one well clear of every link is not."""
+    q = np.radians(CONFIGS_DEG[0])
+    world = _world(lab, ur10e_chain(q)[0])
+    eye = world.T_w_c1[:3, 3]
+    _, axes = ur10e_chain(q)
+    rng = np.random.default_rng(3)
+    # points round the links' axes and scattered below them, towards the table
+    pts = np.array([p0 + rng.uniform(0, 1) * (p1 - p0) + rng.normal(0, 80.0, 3) - [0, 0, 300.0]
+                    for _, p0, p1 in axes for _ in range(15)])
+    hidden = world.arm.hides(q, eye, pts)
+    radii = np.asarray(lab.arm.link_radius_mm, float)
+    sight = eye + np.linspace(0.0, 1.0, 600)[None, :, None] * (pts - eye)[:, None, :]  # (N, 600, 3), < 3 mm apart
+    margin = np.full(len(pts), np.inf)
+    for i, p0, p1 in axes:  # each sample's distance to the link's axis (projection clamped to its ends)
+        ax = p1 - p0
+        s_ = np.clip(((sight - p0) @ ax) / (ax @ ax), 0.0, 1.0)
+        d = np.linalg.norm(sight - (p0 + s_[..., None] * ax), axis=2).min(axis=1)
+        margin = np.minimum(margin, d - radii[i])
+    inside, clear = margin < -6.0, margin > 6.0
+    assert inside.sum() > 10 and clear.sum() > 10
+    assert hidden[inside].all() and not hidden[clear].any()

@@ -34,6 +34,9 @@ DAMPING = 1e-10  # λ² of the damped least squares, on the scaled (m, rad) erro
 MAX_STEP_RAD = math.pi  # largest joint change of one iteration (smaller clamps cost convergence: notes)
 PATH_STEP_RAD = math.radians(5.0)  # a larger joint change between two path samples is a configuration jump
 
+_I6 = np.eye(6)
+_I6.setflags(write=False)  # the damping's identity, scaled into a new array each iteration
+
 
 def _rpy(rpy_rad) -> np.ndarray:
     r, p, y = rpy_rad
@@ -99,6 +102,7 @@ class ArmModel:
         self.home = np.asarray(home, float)
         self.T_w_base = np.eye(4) if T_w_base is None else np.asarray(T_w_base, float)
         self.T_flange_tool = np.eye(4) if T_flange_tool is None else np.asarray(T_flange_tool, float)
+        self._T_base_w, self._T_tool_flange = invert(self.T_w_base), invert(self.T_flange_tool)  # fixed: once
         self._pin = pin
         model = pin.Model()
         parent, M = 0, pin.SE3(self.T_w_base[:3, :3], self.T_w_base[:3, 3])
@@ -132,7 +136,7 @@ class ArmModel:
 
     def fk_flange(self, q) -> np.ndarray:
         """``T_base_flange``: the arm's own flange (DH frame 6) in its base, without mount or tool (4×4, mm)."""
-        return invert(self.T_w_base) @ self.fk(q) @ invert(self.T_flange_tool)
+        return self._T_base_w @ self.fk(q) @ self._T_tool_flange
 
     def jacobian(self, q) -> np.ndarray:
         """The 6×6 geometric Jacobian of the commanded frame, world-aligned: rows vx vy vz (mm/rad), ωx ωy ωz."""
@@ -149,7 +153,7 @@ class ArmModel:
     def wrist_point(self, q, T_w_F=None) -> np.ndarray:
         """The origin of DH frame 5 in the arm's base (mm): the point the shoulder singularity is about
         (``T_w_F``: ``fk(q)`` when the caller has it)."""
-        T = self.fk_flange(q) if T_w_F is None else invert(self.T_w_base) @ T_w_F @ invert(self.T_flange_tool)
+        T = self.fk_flange(q) if T_w_F is None else self._T_base_w @ T_w_F @ self._T_tool_flange
         return T[:3, 3] - self.d[5] * T[:3, 2]
 
     def singularity_margins(self, q) -> dict[str, float]:
@@ -198,18 +202,20 @@ class ArmModel:
             cur = pin.updateFramePlacement(model, data, fid)
             diff = cur.actInv(goal)
             err = pin.log6(diff).vector
-            converged = bool(np.linalg.norm(err[:3]) < POS_TOL_MM and np.linalg.norm(err[3:]) < ROT_TOL_RAD)
+            ep, er = err[:3], err[3:]  # norms as np.linalg.norm takes them (√ of the dot), without its overhead
+            converged = math.sqrt(ep.dot(ep)) < POS_TOL_MM and math.sqrt(er.dot(er)) < ROT_TOL_RAD
             if converged or it == max_iter:
                 break
             it += 1
             J = W @ pin.Jlog6(diff) @ pin.getFrameJacobian(model, data, fid, pin.LOCAL)
             e = W @ err
             # Levenberg–Marquardt with Sugihara's damping (½‖e‖² + a floor): wide steps far away, Newton near
-            dq = np.linalg.solve(J.T @ J + (0.5 * float(e @ e) + DAMPING) * np.eye(6), J.T @ e)
-            big = float(np.max(np.abs(dq)))
+            dq = np.linalg.solve(J.T @ J + (0.5 * float(e @ e) + DAMPING) * _I6, J.T @ e)
+            big = float(np.abs(dq).max())
             q = q + (dq * (MAX_STEP_RAD / big) if big > MAX_STEP_RAD else dq)
-        pos_err = float(np.linalg.norm(cur.translation - goal.translation))
-        rot_err = float(np.linalg.norm(err[3:]))  # log6's angular part: the rotation angle left
+        dp, er = cur.translation - goal.translation, err[3:]
+        pos_err = math.sqrt(dp.dot(dp))
+        rot_err = math.sqrt(er.dot(er))  # log6's angular part: the rotation angle left
         seed = np.asarray(seed, float)
         q = seed + np.remainder(q - seed + math.pi, 2 * math.pi) - math.pi  # the same pose, each joint nearest the seed
         return IKResult(q, converged, pos_err, rot_err, it, self.within_limits(q))

@@ -82,23 +82,21 @@ class JointPath:
         return self.qs[-1]
 
 
-def _samples(traj: Trajectory | RuckigTrajectory, ts: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
-    """The flange poses ``T_w_F`` (4×4) and twists [v (mm/s); ω (rad/s)] (N×6, world axes; ω 0 where no rotation
-    is planned) of ``traj`` at times ``ts`` (s): a ruckig segment evaluated once per sample."""
-    poses, twists = [], np.zeros((len(ts), 6))
-    for k, t in enumerate(ts):
-        if isinstance(traj, RuckigTrajectory):
-            p, v, _, R, w = traj.plan.state(traj._tau(t))
-        else:
-            seg = traj.segment_at(t)
-            p, v, _ = seg.state(t)
-            R = traj.orientation(t)
-            w = seg.angular_velocity(t) if seg.rot_coeffs is not None and t < seg.t1 else None
-        poses.append(make_T(R, p))
-        twists[k, :3] = v
-        if w is not None:
-            twists[k, 3:] = w
-    return poses, twists
+def _sample(traj: Trajectory | RuckigTrajectory, t) -> tuple[np.ndarray, np.ndarray]:
+    """The flange pose ``T_w_F`` (4×4) and twist [v (mm/s); ω (rad/s)] (6,, world axes; ω 0 where no rotation is
+    planned) of ``traj`` at time ``t`` (s): a ruckig segment evaluated once."""
+    twist = np.zeros(6)
+    if isinstance(traj, RuckigTrajectory):
+        p, v, _, R, w = traj.plan.state(traj._tau(t))
+    else:
+        seg = traj.segment_at(t)
+        p, v, _ = seg.state(t)
+        R = traj.orientation(t)
+        w = seg.angular_velocity(t) if seg.rot_coeffs is not None and t < seg.t1 else None
+    twist[:3] = v
+    if w is not None:
+        twist[3:] = w
+    return make_T(R, p), twist
 
 
 class ArmPlanner:
@@ -144,13 +142,13 @@ class ArmPlanner:
         model, s = self.model, self.settings
         n = max(int(math.ceil((t1 - t0) / s.dt_s - 1e-9)), 1)
         ts = np.linspace(t0, t1, n + 1)
-        poses, twists = _samples(traj, ts)
         q = np.asarray(q0, float)
         branch = model.configuration(q)
         seed = q
         qs = np.zeros((len(ts), 6))
         peak = np.zeros(6)
-        for k, (T, tw) in enumerate(zip(poses, twists, strict=True)):
+        for k, t in enumerate(ts):  # each sample evaluated when reached: a path refused early costs no more
+            T, tw = _sample(traj, t)
             res = model.ik(T, seed)
             reason = None if res.converged else "unreachable"
             if reason is None and not res.within_limits:

@@ -10,6 +10,9 @@ from __future__ import annotations
 
 import numpy as np
 
+_I3 = np.eye(3)
+_I3.setflags(write=False)  # only ever added to: a new array each time
+
 
 def hat(w) -> np.ndarray:
     """Skew-symmetric matrix of ``w`` (3,)."""
@@ -23,8 +26,8 @@ def exp_so3(r) -> np.ndarray:
     th = float(np.linalg.norm(r))
     K = hat(r)
     if th < 1e-8:
-        return np.eye(3) + K + 0.5 * K @ K
-    return np.eye(3) + (np.sin(th) / th) * K + ((1 - np.cos(th)) / th**2) * (K @ K)
+        return _I3 + K + 0.5 * K @ K
+    return _I3 + (np.sin(th) / th) * K + ((1 - np.cos(th)) / th**2) * (K @ K)
 
 
 def log_so3(R) -> np.ndarray:
@@ -48,5 +51,5 @@ def right_jacobian(r) -> np.ndarray:
     th = float(np.linalg.norm(r))
     K = hat(r)
     if th < 1e-6:
-        return np.eye(3) - 0.5 * K + (K @ K) / 6.0
-    return np.eye(3) - ((1 - np.cos(th)) / th**2) * K + ((th - np.sin(th)) / th**3) * (K @ K)
+        return _I3 - 0.5 * K + (K @ K) / 6.0
+    return _I3 - ((1 - np.cos(th)) / th**2) * K + ((th - np.sin(th)) / th**3) * (K @ K)

@@ -184,7 +184,7 @@ class Piecewise:
     def state(self, tau: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(value, first, second derivative) at τ (s), clamped to [0, duration]."""
         tau = min(max(float(tau), 0.0), self.duration)
-        k = int(np.clip(np.searchsorted(self.breaks, tau, side="right") - 1, 0, len(self.coeffs) - 1))
+        k = min(max(int(np.searchsorted(self.breaks, tau, side="right")) - 1, 0), len(self.coeffs) - 1)
         h = tau - self.breaks[k]
         c = self.coeffs[k]
         p = c[0] + h * (c[1] + h * (c[2] + h * c[3]))

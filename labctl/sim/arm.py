@@ -4,10 +4,13 @@ following the flange with inverse kinematics.
 In the paper the mobile camera rides the wrist of a six-joint arm (He et al. 1996 §5.1); on a real lab
 the arm reaches over the table and crosses the fixed camera's view of it, so the simulated lab draws it.
 
-* **Pose.** The robot controller reports the flange (labctl's F, ``T_w_F``); the arm's configuration is
-  the one its own Cartesian servo would have there: :meth:`labctl.planning.arm.ArmModel.ik` seeded with
-  the configuration of the previous frame, starting in the branch of the arm's home
-  (:meth:`ArmBody.q_at`). A pose the arm cannot reach leaves it where it last was (``ik_failures``).
+* **Pose.** In a simulated lab the drawn arm is the controller's arm: its joints are the ones the robot
+  controller's emulator keeps for the segment it flies (``joints_at``, :meth:`labctl.sim.emulators.robot.
+  RobotEmulator.configuration_at`), so the picture and the controller agree and no frame solves IK. A world
+  without a controller (its flange a pose, or a function of time) follows the flange with
+  :meth:`labctl.planning.arm.ArmModel.ik` seeded with the configuration of the previous frame, starting in
+  the branch of the arm's home (:meth:`ArmBody.q_at`). A pose the arm cannot reach leaves it where it last
+  was (``ik_failures``).
 * **Links.** Each DH step ``Rz(θ)·Tz(d)·Tx(a)·Rx(α)`` moves along z by ``d`` and then along x by ``a``;
   every non-zero move is one capsule (a cylinder with hemispherical ends, radius the arm file's
   ``link_radius_mm`` of that joint's link), from DH frame 0 (the base, on its mount) to frame 6 (the
@@ -25,6 +28,7 @@ from __future__ import annotations
 
 import math
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -131,10 +135,12 @@ class ArmBody:
     """A six-joint arm's links in the world, following the flange (see the module doc).
 
     ``model``: the arm's :class:`~labctl.planning.arm.ArmModel` (its mount ``T_w_base`` in the world);
-    ``link_radius_mm``: each DH row's link radius (mm)."""
+    ``link_radius_mm``: each DH row's link radius (mm); ``joints_at(t)``: the arm's configuration (rad) at time
+    ``t`` (s) as its controller keeps it, when there is one (else the body follows the flange by IK)."""
 
-    def __init__(self, model, link_radius_mm):
+    def __init__(self, model, link_radius_mm, joints_at: Callable[[float], np.ndarray] | None = None):
         self.model = model
+        self.joints_at = joints_at
         self.radius = np.asarray(link_radius_mm, float).reshape(6)
         self.capsules: list[Capsule] = []
         self._local: list[tuple[np.ndarray, np.ndarray]] = []
@@ -146,17 +152,20 @@ class ArmBody:
         self._q: np.ndarray | None = None
         self._T: np.ndarray | None = None
         self._cache: dict[float, np.ndarray] = {}
+        self._segments: dict[bytes, list[tuple[np.ndarray, np.ndarray, float]]] = {}
+        self._placed_at: dict[bytes, list[np.ndarray]] = {}
         self._lock = threading.Lock()  # a served lab renders its two cameras from two threads
         self.ik_failures = 0
 
     @classmethod
-    def from_config(cls, cfg) -> ArmBody | None:
-        """The body of an :class:`~labctl.config.arm.ArmConfig` (None when its file gives no link radii)."""
+    def from_config(cls, cfg, joints_at: Callable[[float], np.ndarray] | None = None) -> ArmBody | None:
+        """The body of an :class:`~labctl.config.arm.ArmConfig` (None when its file gives no link radii), posed by
+        its controller's ``joints_at`` when given."""
         if cfg is None or cfg.link_radius_mm is None:
             return None
         from ..planning.arm import ArmModel
 
-        return cls(ArmModel.from_config(cfg), cfg.link_radius_mm)
+        return cls(ArmModel.from_config(cfg), cfg.link_radius_mm, joints_at)
 
     # --- pose -------------------------------------------------------------------------------
     def _first(self, T_w_F: np.ndarray) -> np.ndarray:
@@ -188,18 +197,38 @@ class ArmBody:
         return self._q
 
     def q_at(self, t: float, T_w_F) -> np.ndarray:
-        """:meth:`q_for` at time ``t`` (s), remembered per time: a frame's cameras and passes share one solve."""
+        """The configuration at time ``t`` (s): the controller's (``joints_at``) when the body has one, else
+        :meth:`q_for` at the flange pose ``T_w_F`` (4×4, or a function of t); remembered per time: a frame's
+        cameras and passes share one answer."""
         with self._lock:
             q = self._cache.get(t)
             if q is None:
                 if len(self._cache) > 64:
                     self._cache.clear()
-                q = self._cache[t] = self.q_for(np.asarray(T_w_F(t) if callable(T_w_F) else T_w_F, float))
+                if self.joints_at is not None:
+                    q = np.asarray(self.joints_at(t), float)
+                else:
+                    q = self.q_for(np.asarray(T_w_F(t) if callable(T_w_F) else T_w_F, float))
+                self._cache[t] = q
             return q
 
     # --- geometry ---------------------------------------------------------------------------
     def segments(self, q) -> list[tuple[np.ndarray, np.ndarray, float]]:
-        """Each capsule's axis in W: ``(start, end, radius)`` (mm), base first, flange last."""
+        """Each capsule's axis in W: ``(start, end, radius)`` (mm), base first, flange last; remembered per
+        configuration (a frame's render and its occlusion truth walk the same chain)."""
+        key = np.asarray(q, float).tobytes()
+        with self._lock:
+            out = self._segments.get(key)
+        if out is None:
+            out = self._chain(q)
+            with self._lock:
+                if len(self._segments) > 64:
+                    self._segments.clear()
+                self._segments[key] = out
+        return out
+
+    def _chain(self, q) -> list[tuple[np.ndarray, np.ndarray, float]]:
+        """The capsules' axes of :meth:`segments`, walked down the DH chain."""
         m = self.model
         T = m.T_w_base.copy()
         out = []
@@ -229,16 +258,33 @@ class ArmBody:
         keep_links = 6 - skip_last
         cull = None if view is None else _ViewCull(*view)
         verts, faces, n = [], [], 0
-        for cap, (V, F), (p0, p1, r) in zip(self.capsules, self._local, self.segments(q)):
+        placed = self._placed(q)
+        for cap, (_, F), (p0, p1, r), Vw in zip(self.capsules, self._local, self.segments(q), placed):
             if cap.link > keep_links or (cull is not None and not cull.may_see(p0, p1, r)):
                 continue
-            T = _frame_along(p0, p1)
-            verts.append(V @ T[:3, :3].T + T[:3, 3])
+            verts.append(Vw)
             faces.append(F + n)
-            n += len(V)
+            n += len(Vw)
         if not verts:
             return np.zeros((0, 3)), np.zeros((0, 3), np.int64)
         return np.concatenate(verts), np.concatenate(faces)
+
+    def _placed(self, q) -> list[np.ndarray]:
+        """Each capsule's vertices in W at ``q`` (mm), remembered per configuration: an arm at rest (most
+        frames) is placed once, whatever each camera and window then culls."""
+        key = np.asarray(q, float).tobytes()
+        with self._lock:
+            out = self._placed_at.get(key)
+        if out is None:
+            out = []
+            for (V, _), (p0, p1, _) in zip(self._local, self.segments(q)):
+                T = _frame_along(p0, p1)
+                out.append(V @ T[:3, :3].T + T[:3, 3])
+            with self._lock:
+                if len(self._placed_at) > 16:
+                    self._placed_at.clear()
+                self._placed_at[key] = out
+        return out
 
     def hides(self, q, eye_w, points_w, *, skip_last: int = 0) -> np.ndarray:
         """Which of ``points_w`` (N×3, mm) the links at ``q`` hide from a camera at ``eye_w``: the sight line
@@ -246,12 +292,13 @@ class ArmBody:
         up to their 12-gon facets."""
         eye = np.asarray(eye_w, float)
         P = np.asarray(points_w, float).reshape(-1, 3)
-        hidden = np.zeros(len(P), bool)
-        for cap, (a0, a1, r) in zip(self.capsules, self.segments(q)):
-            if cap.link > 6 - skip_last:
-                continue
-            hidden |= _segment_distance(eye, P, a0, a1) < r
-        return hidden
+        kept = [seg for cap, seg in zip(self.capsules, self.segments(q)) if cap.link <= 6 - skip_last]
+        if not kept or not len(P):
+            return np.zeros(len(P), bool)
+        a0 = np.array([k[0] for k in kept])
+        a1 = np.array([k[1] for k in kept])
+        r = np.array([k[2] for k in kept])
+        return np.any(_segment_distance(eye, P, a0, a1) < r[:, None], axis=0)
 
 
 class _ViewCull:
@@ -284,21 +331,25 @@ class _ViewCull:
 
 def _segment_distance(e: np.ndarray, P: np.ndarray, a0: np.ndarray, a1: np.ndarray) -> np.ndarray:
     """Distances (mm) between the segments ``e``–``P[k]`` and ``a0``–``a1`` (Ericson, Real-Time Collision
-    Detection §5.1.9, clamped closest points)."""
-    d1 = P - e  # (N, 3)
+    Detection §5.1.9, clamped closest points): N distances for one segment ``a0``–``a1`` (3,), or M×N for
+    M of them (M×3 each), all at once."""
+    one = np.ndim(a0) == 1
+    a0, a1 = np.atleast_2d(a0)[:, None, :], np.atleast_2d(a1)[:, None, :]  # (M, 1, 3)
+    d1 = (P - e)[None]  # (1, N, 3)
     d2 = a1 - a0
     r = e - a0
-    a = np.einsum("ij,ij->i", d1, d1)
-    ee = float(d2 @ d2)
-    f = float(d2 @ r)
-    c = d1 @ r
-    b = d1 @ d2
+    a = np.sum(d1 * d1, axis=-1)
+    ee = np.sum(d2 * d2, axis=-1)
+    f = np.sum(d2 * r, axis=-1)
+    c = np.sum(d1 * r, axis=-1)
+    b = np.sum(d1 * d2, axis=-1)
     denom = a * ee - b * b
     with np.errstate(divide="ignore", invalid="ignore"):
         s = np.where(denom > 1e-12, np.clip((b * f - c * ee) / denom, 0.0, 1.0), 0.0)
     t = (b * s + f) / ee
     t_c = np.clip(t, 0.0, 1.0)
     s = np.where(t < 0.0, np.clip(-c / a, 0.0, 1.0), np.where(t > 1.0, np.clip((b - c) / a, 0.0, 1.0), s))
-    c1 = e + s[:, None] * d1
-    c2 = a0 + t_c[:, None] * d2
-    return np.linalg.norm(c1 - c2, axis=1)
+    c1 = e + s[..., None] * d1
+    c2 = a0 + t_c[..., None] * d2
+    dist = np.linalg.norm(c1 - c2, axis=-1)
+    return dist[0] if one else dist

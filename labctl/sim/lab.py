@@ -185,21 +185,25 @@ class SimLab:
         def read(role, fn):  # a served emulator is read under its pty's lock
             return _locked(self._locks[role], fn) if role in self.ptys else fn
 
-        table_position = flange_pose_at = None  # no emulator: the world's own (the table and robot at rest)
+        table_position = flange_pose_at = joints_at = None  # no emulator: the world's own (table and robot at rest)
         if self.grbl is not None:
             table_position = read("table", self.grbl.position_at)
         if self.robot_emu is not None:
             flange_pose_at = read("robot", self.robot_emu.flange_pose_at)
+            if self.robot_emu.arm is not None:  # the drawn arm is the controller's
+                joints_at = read("robot", self.robot_emu.configuration_at)
         from .world import SimWorld
 
         if scene.target is None:
             self.world = SimWorld.from_lab(self.lab, obj=scene.obj, placement=scene.placement,
-                                           table_position=table_position, flange_pose_at=flange_pose_at)
+                                           table_position=table_position, flange_pose_at=flange_pose_at,
+                                           arm_joints_at=joints_at)
             return
         from .rigs import target_world
 
         self.world = target_world(self.lab, scene.target, table_position=table_position,
-                                  flange_pose_at=flange_pose_at, obj=scene.obj, placement=scene.placement)
+                                  flange_pose_at=flange_pose_at, obj=scene.obj, placement=scene.placement,
+                                  arm_joints_at=joints_at)
         self.world.calibration = bool(scene.calibration)
 
     # --- use ------------------------------------------------------------------------------------

@@ -13,7 +13,8 @@ from __future__ import annotations
 import numpy as np
 
 
-def target_world(lab, target, *, table_position, flange_pose_at, supersample: int = 3, obj=None, placement=None):
+def target_world(lab, target, *, table_position, flange_pose_at, supersample: int = 3, obj=None, placement=None,
+                 arm_joints_at=None):
     """A :class:`~labctl.sim.world.SimWorld` of ``lab`` whose only object is the calibration
     ``target`` on its locating pins on the carriage, raised by ``world.spacer_mm`` (a light
     block under it): ``T_w_target = T_w_table(t) · (0, 0, spacer) · T_table_mount``.
@@ -23,6 +24,7 @@ def target_world(lab, target, *, table_position, flange_pose_at, supersample: in
     exposed at or after ``t`` (s, the world's clock), so a frame never shows a change made after
     its exposure (the served lab's control endpoint, :class:`labctl.runtime.simlab.ServedLab`).
     Without a change, the scene is ``world.calibration`` (default True) on ``world.spacer_mm``.
+    ``arm_joints_at``: the controller's joints, which the drawn arm takes (:meth:`SimWorld.from_lab`).
     """
     import bisect
     import threading
@@ -70,7 +72,7 @@ def target_world(lab, target, *, table_position, flange_pose_at, supersample: in
             return meshes
 
     world = _World.from_lab(lab, table_position=table_position, flange_pose_at=flange_pose_at,
-                            supersample=supersample, obj=obj, placement=placement)
+                            arm_joints_at=arm_joints_at, supersample=supersample, obj=obj, placement=placement)
     world._changes, world._changes_lock = [], threading.Lock()
     return world
 

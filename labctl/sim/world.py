@@ -387,12 +387,14 @@ class SimWorld:
     def from_lab(cls, lab, *, obj: SimObject | None = None, placement: Placement | None = None,
                  table_position: Callable[[float], Sequence[float] | np.ndarray] | None = None,
                  flange_pose_at: Callable[[float], np.ndarray] | None = None,
-                 exposure_s: float = 0.0, supersample: int = 3, arm: bool = True) -> Self:
+                 exposure_s: float = 0.0, supersample: int = 3, arm: bool = True,
+                 arm_joints_at: Callable[[float], np.ndarray] | None = None) -> Self:
         """The world of a lab's driver files (their *sim* ground-truth fields, via :mod:`labctl.sim.truth`).
 
         Defaults: the table held at the centre of its travel, the robot at home looking at the
         table's centre (:func:`home_flange_pose`). ``arm``: draw the lab's arm (``lab.arm``, when its file
-        gives link radii) in both cameras.
+        gives link radii) in both cameras; ``arm_joints_at(t)``: its joints (rad) at time ``t`` (s) as its
+        controller keeps them (default: the body follows ``flange_pose_at`` by IK).
         """
         from .effects import effects_from_lab
         from .truth import camera_model, fixed_camera_pose, hand_eye
@@ -410,7 +412,7 @@ class SimWorld:
                              effects=effects_from_lab(lab, lab.mobile_camera)),
             T_w_c1=fixed_camera_pose(lab.fixed_camera), T_f_c2=T_f_c2, table_origin_w=lab.table.origin_w_mm,
             table_position=table_position, flange_pose_at=flange_pose_at, obj=obj, placement=placement,
-            supersample=supersample, arm=ArmBody.from_config(lab.arm) if arm else None,
+            supersample=supersample, arm=ArmBody.from_config(lab.arm, arm_joints_at) if arm else None,
         )
 
 

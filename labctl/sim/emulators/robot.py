@@ -297,6 +297,8 @@ class RobotEmulator:
         self.arm_check_s = 0.0  # time spent in the arm's segment checks (s), and how many
         self.arm_checks = 0
         self.segments: list = []  # scheduled and recent segments and ramps, in time order
+        self._joints_memo: tuple | None = None  # (segment, its t1, its joints, time, configuration) last solved
+        self._pose_memo: tuple | None = None  # (segment, its t1, time, T_base_flange) last evaluated
         self.history_s = 600.0
         self.last_request_t = self.now
         self.fault: str | None = None
@@ -443,8 +445,15 @@ class RobotEmulator:
         """``T_base_flange`` (4×4, mm) at time t (exact for t up to now; planned motion beyond)."""
         if t <= self.clock():
             self.advance(max(self.now, t))
+        seg = self._segment_at(t)
+        memo = self._pose_memo  # a frame asks for its time's pose several times (both cameras, the arm, truth)
+        if seg is not None and memo is not None and memo[0] is seg and memo[1] == seg.t1 and memo[2] == t:
+            return memo[3].copy()
         p, _, _, R, _ = self.state_at(t)
-        return make_T(R, p)
+        T = make_T(R, p)
+        if seg is not None:
+            self._pose_memo = (seg, seg.t1, t, T.copy())
+        return T
 
     def joints_at(self, t: float) -> np.ndarray:
         """The arm's configuration (6 joints, rad) at controller time ``t``: the segment's sampled joints
@@ -457,11 +466,23 @@ class RobotEmulator:
             if seg is None and first is not None and first.joints is not None:
                 return first.joints[1][0].copy()
             return self._rest_q.copy()
-        ts, qs = seg.joints
         tc = min(max(t, seg.t0), seg.t1)
+        memo = self._joints_memo  # at rest after a segment (most frames) the answer is the segment's last
+        if memo is not None and memo[0] is seg and memo[1] == seg.t1 and memo[2] is seg.joints and memo[3] == tc:
+            return memo[4].copy()
+        ts, qs = seg.joints
         q_near = np.array([np.interp(tc, ts, qs[:, j]) for j in range(6)])
         p, _, _, R, _ = seg.state(tc)
-        return self.arm.joints(make_T(R, p), q_near)
+        q = self.arm.joints(make_T(R, p), q_near)
+        self._joints_memo = (seg, seg.t1, seg.joints, tc, q.copy())
+        return q
+
+    def configuration_at(self, t: float) -> np.ndarray:
+        """:meth:`joints_at` after running the controller up to ``t`` when that is not in the future, as
+        :meth:`flange_pose_at` does: the arm the simulated cameras draw (:class:`labctl.sim.arm.ArmBody`)."""
+        if t <= self.clock():
+            self.advance(max(self.now, t))
+        return self.joints_at(t)
 
     def _arm_check(self, seg, t0: float) -> int:
         """0 if the arm can fly ``seg`` from its configuration at ``t0`` (its joints are then kept on the
