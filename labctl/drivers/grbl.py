@@ -395,7 +395,9 @@ class GrblTable(OpenClose):
             state = self.status().state
         self.locked = False
         if base_state(state) not in BUSY:
-            self.locked = not self._sync()
+            # a controller that has just answered '?' is not in the critical-alarm loop (1.1h serves no status
+            # there): its 'ok' may only be slow (a loaded host), so it gets the whole reply timeout
+            self.locked = not self._sync(patient=self.connected_by == "status")
         if self.locked:
             log.warning("%s: controller ignores lines (critical alarm: reset to continue)", self.link.name)
             return
@@ -409,11 +411,12 @@ class GrblTable(OpenClose):
         if "rx_buffer" in self.info and 16 <= self.info["rx_buffer"] <= 4096:
             self.rx_limit = min(self.rx_limit, self.info["rx_buffer"] - 1)
 
-    def _sync(self) -> bool:
+    def _sync(self, patient: bool = False) -> bool:
         """Terminate any half-line left in GRBL's buffer and drain stale replies. False if no reply
-        came (GRBL locked by a critical alarm ignores lines until reset)."""
+        came (GRBL locked by a critical alarm ignores lines until reset) within 1.5 s, or (``patient``)
+        within the reply timeout."""
         self._write(b"\n")
-        deadline = self.clock.now() + min(self.timeout_s, 1.5)
+        deadline = self.clock.now() + (self.timeout_s if patient else min(self.timeout_s, 1.5))
         got = False
         while self.clock.now() < deadline and not got:
             got = any(m.is_response for m in self._read(0.05, raise_alarm=False))
