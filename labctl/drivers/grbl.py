@@ -396,8 +396,13 @@ class GrblTable(OpenClose):
         self.locked = False
         if base_state(state) not in BUSY:
             # a controller that has just answered '?' is not in the critical-alarm loop (1.1h serves no status
-            # there): its 'ok' may only be slow (a loaded host), so it gets the whole reply timeout
-            self.locked = not self._sync(patient=self.connected_by == "status")
+            # there): its 'ok' may only be slow (a loaded host), so it gets the whole reply timeout, and no 'ok'
+            # is a timeout, not a lock
+            answered = self.connected_by == "status"
+            self.locked = not self._sync(patient=answered)
+            if self.locked and answered:
+                raise DeviceTimeout(f"{self.link.name}: a status report came but no 'ok' to an empty line within "
+                                    f"{max(self.timeout_s, 1.5):g} s")
         if self.locked:
             log.warning("%s: controller ignores lines (critical alarm: reset to continue)", self.link.name)
             return
@@ -414,9 +419,9 @@ class GrblTable(OpenClose):
     def _sync(self, patient: bool = False) -> bool:
         """Terminate any half-line left in GRBL's buffer and drain stale replies. False if no reply
         came (GRBL locked by a critical alarm ignores lines until reset) within 1.5 s, or (``patient``)
-        within the reply timeout."""
+        within the reply timeout (at least 1.5 s)."""
         self._write(b"\n")
-        deadline = self.clock.now() + (self.timeout_s if patient else min(self.timeout_s, 1.5))
+        deadline = self.clock.now() + (max(self.timeout_s, 1.5) if patient else min(self.timeout_s, 1.5))
         got = False
         while self.clock.now() < deadline and not got:
             got = any(m.is_response for m in self._read(0.05, raise_alarm=False))
