@@ -148,3 +148,67 @@ def atomic_dir(path: Path | str) -> Iterator[Path]:
     fsync_dir(path.parent)
     if had_old:
         shutil.rmtree(bak, ignore_errors=True)  # 3: old gone
+
+
+# ---------------------------------------------------------------------------------------------------------
+# A cache of computed arrays on disk (the simulated lab's table texture and pixel rays, the library's meshes
+# as trimesh reads them): what a fresh process would otherwise recompute for seconds on every start, read
+# back bit for bit. Keyed by everything the arrays are a function of (the inputs and the source files that
+# compute them), so a stale entry is never read; a cache that cannot be read or written is recomputed.
+# ---------------------------------------------------------------------------------------------------------
+CACHE_ENV = "LABCTL_CACHE_DIR"  # the cache's folder; set empty to compute everything afresh
+
+
+def cache_root() -> Path | None:
+    """The cache's folder: ``$LABCTL_CACHE_DIR``, else ``$XDG_CACHE_HOME/labctl`` (``~/.cache/labctl``);
+    None when ``$LABCTL_CACHE_DIR`` is set empty (no cache)."""
+    env = os.environ.get(CACHE_ENV)
+    if env is not None:
+        return Path(env) if env else None
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "labctl"
+
+
+def file_digest(*paths: Path | str) -> str:
+    """SHA-256 (hex) of the files' bytes in turn: a cache key part that changes whenever the code or the
+    data that computes an entry does."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for p in paths:
+        h.update(Path(p).read_bytes())
+        h.update(b"\0")
+    return h.hexdigest()
+
+
+def cached_arrays(kind: str, key: tuple, names: tuple[str, ...], compute) -> dict:
+    """The arrays ``compute()`` returns (a dict holding exactly ``names``), read from the cache when an
+    entry for ``key`` (a tuple of reprs that pins every input: values, versions, :func:`file_digest`\\ s)
+    exists, else computed and stored. Stored as an uncompressed ``.npz`` with no pickles, written to a
+    temporary sibling and renamed into place (no fsync: a torn entry only reads as a miss)."""
+    import hashlib
+    import zipfile
+
+    import numpy as np
+
+    root = cache_root()
+    if root is None:
+        return compute()
+    path = root / kind / f"{hashlib.sha256(repr(key).encode()).hexdigest()[:40]}.npz"
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            if sorted(z.files) == sorted(names):
+                return {k: z[k] for k in names}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile):
+        pass
+    out = compute()
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = _tmp_name(path)
+        with open(tmp, "wb") as fh:
+            np.savez(fh, **{k: out[k] for k in names})
+        os.replace(tmp, path)
+    except OSError:
+        with contextlib.suppress(OSError, UnboundLocalError):
+            os.unlink(tmp)
+    return out

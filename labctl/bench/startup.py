@@ -11,6 +11,15 @@ process started (its start time from /proc, not the bench's clock), the last one
 reported as not measurable rather than guessed. Byte-code caches (``__pycache__``) stay as they are in
 both: a user's installed labctl has them.
 
+*Against a base tree*: with ``$LABCTL_BENCH_BASE`` set to another checkout (the commit before a change),
+both trees are timed in the same bench, run by run alternating (the order swapped every round, one lab
+each), cold and warm, and the report gives each median with the ratio new/base: on a shared machine only a
+ratio timed side by side says what the code changed.
+
+*Cold, empty cache*: the simulated lab reads its table texture, pixel rays and meshes from the disk cache
+(``labctl.fsutil.cached_arrays``); one more cold run with ``$LABCTL_CACHE_DIR`` pointing at an empty folder
+is a machine's very first run.
+
 Also the command's own import cost (``python -X importtime``, the modules ``labctl run`` imports before
 the simulated lab can start), largest cumulative first. The load average is reported beside every
 number: on a shared machine it, not the code, sets most of the spread.
@@ -36,10 +45,15 @@ COMMAND_IMPORTS = ("import labctl.cli; import labctl.runtime.live; import labctl
                    "import labctl.records; import labctl.cli.report")
 
 
-def _env(tree: Path | None) -> dict:
+BASE_ENV = "LABCTL_BENCH_BASE"  # another checkout to time beside this one, run by run
+
+
+def _env(tree: Path | None, cache_dir: Path | None = None) -> dict:
     env = dict(os.environ)
     if tree is not None:  # time another checkout (e.g. the commit before a change) with the same bench
         env["PYTHONPATH"] = str(tree)
+    if cache_dir is not None:  # the simulated lab's disk cache (labctl.fsutil.cache_root)
+        env["LABCTL_CACHE_DIR"] = str(cache_dir)
     return env
 
 
@@ -54,14 +68,14 @@ def drop_caches() -> None:
     DROP_CACHES.write_text("3\n")
 
 
-def one_run(lab: Path, seed: int, tree: Path | None = None) -> dict:
+def one_run(lab: Path, seed: int, tree: Path | None = None, cache_dir: Path | None = None) -> dict:
     """One ``labctl run --trajectory line`` in a fresh process; its ``startup_s`` phases, the wall time of
     the whole command, its exit code and the load average when it started."""
     load = os.getloadavg()[0]
     t0 = time.time()
     proc = subprocess.run([sys.executable, "-m", "labctl", "--lab", str(lab), "--json", "run", "--trajectory",
                            "line", "--seed", str(seed)], capture_output=True, text=True, timeout=RUN_TIMEOUT_S,
-                          env=_env(tree), cwd=lab)
+                          env=_env(tree, cache_dir), cwd=lab)
     out: dict = {"seed": seed, "exit_code": proc.returncode, "command_s": round(time.time() - t0, 3),
                  "load_avg": round(load, 2)}
     try:
@@ -95,22 +109,7 @@ def import_breakdown(tree: Path | None = None, top: int = 8) -> dict:
             "largest_packages_s": {k: round(v, 3) for k, v in biggest}}
 
 
-def measure(n: int, *, cold: bool = True, tree: Path | None = None) -> dict:
-    """``n`` warm runs (after one unmeasured warm-up when ``cold`` is not measured) and, as root, one
-    cold run first; medians of each phase."""
-    with tempfile.TemporaryDirectory(prefix="labctl-bench-startup-") as tmp:
-        lab = Path(tmp) / "lab"
-        subprocess.run([sys.executable, "-m", "labctl", "init", str(lab)], check=True, capture_output=True,
-                       env=_env(tree), timeout=RUN_TIMEOUT_S)
-        res: dict = {"runs": n}
-        if cold and can_drop_caches():
-            drop_caches()
-            res["cold"] = one_run(lab, 1, tree)
-        else:
-            res["cold"] = {"error": "not measurable here: dropping the page cache needs root" if cold
-                           else "not asked for"}
-            one_run(lab, 1, tree)  # the warm runs then all find the cache filled
-        warm = [one_run(lab, 2 + i, tree) for i in range(n)]
+def _summary(res: dict, warm: list[dict]) -> dict:
     ok = [w for w in warm if w.get("first_tracked_frame_s") is not None]
     phases: dict[str, list[float]] = {}
     for w in ok:
@@ -124,19 +123,74 @@ def measure(n: int, *, cold: bool = True, tree: Path | None = None) -> dict:
     return res
 
 
+def measure(n: int, *, cold: bool = True, tree: Path | None = None, base: Path | None = None) -> dict:
+    """``n`` warm runs (after one unmeasured warm-up when ``cold`` is not measured) and, as root, one
+    cold run first (and one cold with an empty disk cache); medians of each phase. With ``base`` (another
+    checkout) the same for it, alternating run by run, under ``"base"``."""
+    trees: dict[str, Path | None] = {"new": tree} if base is None else {"new": tree, "base": base}
+    with tempfile.TemporaryDirectory(prefix="labctl-bench-startup-") as tmp:
+        labs = {}
+        for name, t in trees.items():
+            labs[name] = Path(tmp) / f"lab-{name}"
+            subprocess.run([sys.executable, "-m", "labctl", "init", str(labs[name])], check=True,
+                           capture_output=True, env=_env(t), timeout=RUN_TIMEOUT_S)
+        out: dict[str, dict] = {name: {"runs": n} for name in trees}
+        measurable = cold and can_drop_caches()
+        for name, t in trees.items():
+            if measurable:
+                drop_caches()
+                out[name]["cold"] = one_run(labs[name], 1, t)
+            else:
+                out[name]["cold"] = {"error": "not measurable here: dropping the page cache needs root" if cold
+                                     else "not asked for"}
+                one_run(labs[name], 1, t)  # the warm runs then all find the cache filled
+        if measurable:  # a machine's first run: nothing in the simulated lab's disk cache either
+            empty = Path(tmp) / "empty-cache"
+            drop_caches()
+            out["new"]["cold_empty_cache"] = one_run(labs["new"], 1, tree, cache_dir=empty)
+        warm: dict[str, list[dict]] = {name: [] for name in trees}
+        for i in range(n):
+            for name in (list(trees) if i % 2 == 0 else list(trees)[::-1]):
+                warm[name].append(one_run(labs[name], 2 + i, trees[name]))
+    res = _summary(out["new"], warm["new"])
+    if base is not None:
+        b = _summary(out["base"], warm["base"])
+        res["base"] = b
+        res["base_tree"] = str(base)
+    return res
+
+
+def _ratio(new: float | None, base: float | None) -> float | None:
+    return round(new / base, 3) if new is not None and base else None
+
+
 def run(quick: bool = False) -> dict:
-    """Time live start-up warm (median of 2 or 5 runs) and cold (root only), plus the command's imports."""
-    res = measure(2 if quick else 5)
+    """Time live start-up warm (median of 2 or 5 runs) and cold (root only), plus the command's imports; beside
+    the checkout ``$LABCTL_BENCH_BASE`` names, if set, with the ratios."""
+    base = os.environ.get(BASE_ENV)
+    res = measure(2 if quick else 5, base=Path(base) if base else None)
     res["imports"] = import_breakdown()
-    firsts = res["warm_first_tracked_frame_s"]
     rows = []
-    if firsts:
-        rows.append(row("command → first tracked frame, warm", statistics.median(firsts), baseline="goal 1.5 s",
-                        baseline_s=1.5, load_avg=statistics.median(w["load_avg"] for w in res["warm"])))
-    cold = res["cold"].get("first_tracked_frame_s")
-    if cold is not None:
-        rows.append(row("command → first tracked frame, cold", cold, baseline="goal 4 s", baseline_s=4.0,
-                        load_avg=res["cold"]["load_avg"]))
+
+    def rows_for(r: dict, label: str, versus: dict | None) -> None:
+        firsts = r["warm_first_tracked_frame_s"]
+        if firsts:
+            med = statistics.median(firsts)
+            extra = {} if versus is None or not versus["warm_first_tracked_frame_s"] else {
+                "ratio_to_base": _ratio(med, statistics.median(versus["warm_first_tracked_frame_s"]))}
+            rows.append(row(f"command → first tracked frame, warm{label}", med, baseline="goal 1.5 s",
+                            baseline_s=1.5, load_avg=statistics.median(w["load_avg"] for w in r["warm"]), **extra))
+        for key, what in (("cold", "cold"), ("cold_empty_cache", "cold, empty disk cache")):
+            c = r.get(key, {}).get("first_tracked_frame_s")
+            if c is not None:
+                extra = {} if versus is None else {
+                    "ratio_to_base": _ratio(c, versus.get("cold", {}).get("first_tracked_frame_s"))}
+                rows.append(row(f"command → first tracked frame, {what}{label}", c, baseline="goal 4 s",
+                                baseline_s=4.0, load_avg=r[key]["load_avg"], **extra))
+
+    rows_for(res, "", res.get("base"))
+    if "base" in res:
+        rows_for(res["base"], " (base tree)", None)
     rows.append(row("command's imports (-X importtime)", res["imports"]["total_s"]))
     res["rows"] = rows
     return res

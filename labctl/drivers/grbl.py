@@ -386,15 +386,27 @@ class GrblTable(OpenClose):
         self._alarm = None
         self.session_alarm = None
         self._reset_seen = False
-        self._read(0.05, raise_alarm=False)  # the rest of the banner burst ([MSG:…])
-        st = self.status()
+        if self.connected_by == "status" and self.last_status is not None:
+            # found alive by the report just read: no banner burst to wait for, and that report is the state
+            # (another '?' now would first wait out the polling period, then a round trip: ~0.15 s at 9600 bps)
+            state = self.last_status.state
+        else:
+            self._read(0.05, raise_alarm=False)  # the rest of the banner burst ([MSG:…])
+            state = self.status().state
         self.locked = False
-        if base_state(st.state) not in BUSY:
-            self.locked = not self._sync()
+        if base_state(state) not in BUSY:
+            # a controller that has just answered '?' is not in the critical-alarm loop (1.1h serves no status
+            # there): its 'ok' may only be slow (a loaded host), so it gets the whole reply timeout, and no 'ok'
+            # is a timeout, not a lock
+            answered = self.connected_by == "status"
+            self.locked = not self._sync(patient=answered)
+            if self.locked and answered:
+                raise DeviceTimeout(f"{self.link.name}: a status report came but no 'ok' to an empty line within "
+                                    f"{max(self.timeout_s, 1.5):g} s")
         if self.locked:
             log.warning("%s: controller ignores lines (critical alarm: reset to continue)", self.link.name)
             return
-        if st.state not in ("Idle", "Alarm", "Check"):
+        if state not in ("Idle", "Alarm", "Check"):
             return  # $I needs Idle/Alarm; a held or running GRBL would queue the line
         try:
             feedback = self.command("$I")
@@ -404,11 +416,12 @@ class GrblTable(OpenClose):
         if "rx_buffer" in self.info and 16 <= self.info["rx_buffer"] <= 4096:
             self.rx_limit = min(self.rx_limit, self.info["rx_buffer"] - 1)
 
-    def _sync(self) -> bool:
+    def _sync(self, patient: bool = False) -> bool:
         """Terminate any half-line left in GRBL's buffer and drain stale replies. False if no reply
-        came (GRBL locked by a critical alarm ignores lines until reset)."""
+        came (GRBL locked by a critical alarm ignores lines until reset) within 1.5 s, or (``patient``)
+        within the reply timeout (at least 1.5 s)."""
         self._write(b"\n")
-        deadline = self.clock.now() + min(self.timeout_s, 1.5)
+        deadline = self.clock.now() + (max(self.timeout_s, 1.5) if patient else min(self.timeout_s, 1.5))
         got = False
         while self.clock.now() < deadline and not got:
             got = any(m.is_response for m in self._read(0.05, raise_alarm=False))
@@ -617,8 +630,9 @@ class GrblTable(OpenClose):
                 raise DeviceTimeout(f"{self.link.name}: no reply to {line!r} within {timeout_s:g} s")
             self._maybe_poll()
 
-    def status(self, max_age_s: float | None = None) -> TableStatus:
-        """Query ``?`` and return the next report (a fresh one if younger than ``max_age_s``).
+    def status(self, max_age_s: float | None = None, paced: bool = True) -> TableStatus:
+        """Query ``?`` and return the next report (a fresh one if younger than ``max_age_s``). ``paced``: queries
+        at most ``status_hz`` (False: at once, for a single report right after a command's ``ok``).
 
         The position is the machine position (mm). Until a report has carried ``WCO:`` the work
         offset is unknown; status then keeps asking (GRBL sends WCO in every 10th report, every
@@ -630,7 +644,7 @@ class GrblTable(OpenClose):
                 and self.clock.now() - self.last_status_t <= max_age_s):
             return self._table_status()
         wait = self._last_query_t + self.status_period - self.clock.now()
-        if 0 < wait < self.status_period and self.last_status_t >= self._last_query_t:
+        if paced and 0 < wait < self.status_period and self.last_status_t >= self._last_query_t:
             self.clock.sleep(wait)  # bounded polling rate
         self._next_report(self.status_period)
         if self._wco is None:
@@ -731,14 +745,16 @@ class GrblTable(OpenClose):
                 on_progress(now - t0)
                 next_report = now + progress_every_s
 
-    def ensure_ready(self, unlock: bool | None = None) -> TableStatus:
-        """Idle (or Check) and unlocked, or a typed error saying what to do.
+    def ensure_ready(self, unlock: bool | None = None, max_age_s: float | None = None) -> TableStatus:
+        """Idle (or Check) and unlocked, or a typed error saying what to do. ``max_age_s``: a status report read
+        that recently (s; the one :meth:`open` read) stands for the state, else one is queried; after an unlock
+        a report is always read back.
 
         An Alarm is released with ``$X`` only if ``unlock`` (the caller vouches for the position),
         or — with ``auto_unlock`` — when this session saw the controller boot and no ALARM:N since
         (the power-up homing lock). An Alarm found on a controller that did not just boot may be
         an ALARM:3 (reset in motion, position lost): it needs a home or an explicit unlock."""
-        st = self.status()
+        st = self.status(max_age_s=max_age_s)
         state = base_state(st.state)
         if state == "Alarm":
             if self.locked:
@@ -749,7 +765,7 @@ class GrblTable(OpenClose):
                 raise GrblAlarm(code, "the table's position may be lost; home it (`labctl table home`) or, if you "
                                       "know it is right, unlock it (`--unlock`)")
             self.unlock()
-            st = self.status()
+            st = self.status(paced=False)  # the state $X left, read back before anything may move
             state = base_state(st.state)
         if state in BUSY:
             raise TableBusy(f"{self.link.name}: the table is {st.state}, not Idle; `labctl table reset` stops it "

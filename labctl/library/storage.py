@@ -34,7 +34,15 @@ import numpy as np
 import yaml
 
 from ..errors import UserInputError
-from ..fsutil import atomic_dir, atomic_write_bytes, atomic_write_text, recover_dir, recover_dirs
+from ..fsutil import (
+    atomic_dir,
+    atomic_write_bytes,
+    atomic_write_text,
+    cached_arrays,
+    file_digest,
+    recover_dir,
+    recover_dirs,
+)
 from ..vision.shape import ShapeError, ShapeFeatures, silhouette_mask
 from .placement import Marker
 from .views import StandardView, contact_sheet
@@ -70,6 +78,26 @@ class LibraryObject:
         if self.loaded_mesh is None:
             self.loaded_mesh = _read_mesh(self.folder / "model.stl", self.name)
         return self.loaded_mesh
+
+    def mesh_arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        """The model's vertices (V, 3) float64 mm in frame O and faces (F, 3) int64, exactly as :attr:`mesh`
+        holds them; for a stored object read from the disk cache when its ``model.stl`` (same bytes, same
+        trimesh) was read before, so that drawing it (the simulated lab) needs no trimesh import (~1 s)."""
+        if self.loaded_mesh is not None or self.path is None:
+            return np.asarray(self.mesh.vertices), np.asarray(self.mesh.faces)
+        from importlib.metadata import version
+
+        model = self.folder / "model.stl"
+        try:
+            key = ("library_mesh", file_digest(model, __file__), version("trimesh"), np.__version__)
+        except OSError:
+            return np.asarray(self.mesh.vertices), np.asarray(self.mesh.faces)  # its own error, from the reader
+
+        def read() -> dict:
+            return {"vertices": np.asarray(self.mesh.vertices), "faces": np.asarray(self.mesh.faces)}
+
+        out = cached_arrays("library", key, ("vertices", "faces"), read)
+        return out["vertices"], out["faces"]
 
     @property
     def folder(self) -> Path:

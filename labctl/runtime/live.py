@@ -47,11 +47,16 @@ from ..timebase import wire_time_s
 CTX = mp.get_context("forkserver")
 # Not the predictor: its tracking imports filterpy → scipy.stats (~0.5 s CPU), which only the predictor
 # needs; it imports them after its fork, beside the simulated lab's set-up, instead of holding up the
-# lab's fork. trimesh (with scipy.spatial, networkx): only the simulated lab builds meshes (the workers'
-# and the command's library checks read the models with numpy), but it is imported here, beside the
-# command's own loading, rather than after the lab's fork, on the way to its ready
-_PRELOAD = ["labctl.runtime.live", "labctl.decisions.recognizer", "labctl.runtime.simlab", "labctl.decisions.context",
-            "trimesh"]
+# lab's fork. Not trimesh (with scipy.spatial, networkx, ~0.8 s CPU): no process of a run needs it when the
+# library's meshes were read before (the simulated lab draws them from the disk cache,
+# ``LibraryObject.mesh_arrays``), and a first run imports it in the simulated lab alone
+_PRELOAD = ["labctl.runtime.live", "labctl.decisions.recognizer", "labctl.runtime.simlab", "labctl.decisions.context"]
+
+
+# The status report the table's connection read (Alarm or Idle) stands for its state for this long: only ``$I``
+# (which moves nothing) was sent since, and an alarm meanwhile is read and raised anyway; a second ``?`` would
+# cost the polling period and a round trip at 9600 bps (~0.15 s). After an unlock a report is always read back.
+CONNECT_STATUS_AGE_S = 1.0
 
 
 def warm_up() -> None:
@@ -545,7 +550,7 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
             assert table is not None  # submitted only with a table
             table.open()
             marks["table_connected"] = time.time()
-            st = table.ensure_ready(unlock=lab.table.kind == "sim")
+            st = table.ensure_ready(unlock=lab.table.kind == "sim", max_age_s=CONNECT_STATUS_AGE_S)
             marks["table_unlocked"] = time.time()
             robot_checked.wait()  # the robot's limits first: a run that cannot go on moves nothing
             if robot_ok.is_set():

@@ -29,6 +29,7 @@ centre at integer coordinates, as in :class:`labctl.geometry.CameraModel`.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from functools import lru_cache
@@ -37,7 +38,9 @@ from typing import cast
 import cv2
 import numpy as np
 
+from ..fsutil import cached_arrays, file_digest
 from ..geometry import CameraModel, invert
+from ..geometry import camera as _camera_module
 from .effects import (
     CameraEffects,
     blinn_phong,
@@ -126,8 +129,23 @@ def _pixel_rays(camera: CameraModel) -> _PixelRays:
     return rays if rays is not None else _full_pixel_rays(camera)
 
 
+_RAY_FIELDS = ("nx", "ny", "nx64", "ny64", "jac")
+
+
 @lru_cache(maxsize=8)
 def _full_pixel_rays(camera: CameraModel) -> _PixelRays:
+    # ~0.4 s a camera (the distortion inverted at every pixel), on every start of a simulated lab: read from
+    # the disk cache, keyed by the camera's fields and the code that computes them, so bit for bit the same
+    key = ("pixel_rays", dataclasses.astuple(camera), np.__version__,
+           file_digest(__file__, cast(str, _camera_module.__file__)))
+    def compute() -> dict:
+        rays = _compute_pixel_rays(camera)
+        return {k: getattr(rays, k) for k in _RAY_FIELDS}
+
+    return _PixelRays(**cached_arrays("render", key, _RAY_FIELDS, compute))
+
+
+def _compute_pixel_rays(camera: CameraModel) -> _PixelRays:
     u, v = np.meshgrid(np.arange(camera.width, dtype=float), np.arange(camera.height, dtype=float))
     px = np.stack([u, v], axis=-1)
     n = camera.normalized(px)
@@ -150,6 +168,13 @@ _TEXTURE_SIZE = 1024  # texels; the texture tiles (periodic) so the plane is end
 @lru_cache(maxsize=4)
 def _table_grey(seed: int) -> np.ndarray:
     """A dark breadboard texture, (2N, 2N) float32 grey levels, 1 mm per texel, periodic with period N."""
+    # ~1 s of FFTs on every start of a simulated lab: read from the disk cache, keyed by the seed and this
+    # file (the code that draws it), so bit for bit the texture drawn below
+    key = ("table_grey", seed, _TEXTURE_SIZE, _TEXTURE_MM_PER_TEXEL, np.__version__, file_digest(__file__))
+    return cached_arrays("render", key, ("grey",), lambda: {"grey": _draw_table_grey(seed)})["grey"]
+
+
+def _draw_table_grey(seed: int) -> np.ndarray:
     n = _TEXTURE_SIZE
     rng = np.random.default_rng(seed)
     f = np.fft.fftfreq(n)

@@ -79,7 +79,8 @@ class SimObject:
         markers = [SimMarker(int(m.id), np.asarray(m.center, float), np.asarray(m.normal, float),
                              float(m.radius)) for m in obj.markers]
         poses = [(np.asarray(T, float), float(p)) for T, p in obj.stable_poses]
-        return cls(obj.name, np.asarray(obj.mesh.vertices), np.asarray(obj.mesh.faces), markers, poses)
+        V, F = obj.mesh_arrays()  # the cached arrays when the model was read before: no trimesh import
+        return cls(obj.name, V, F, markers, poses)
 
     @classmethod
     def from_trimesh(cls, name: str, mesh, markers: Sequence[SimMarker | Marker] = (), stable_poses=None) -> SimObject:
