@@ -247,8 +247,11 @@ UNMODELLED_LENS_SIGMA_PX = 2.0
 # systematic error the residual does not show: a uniform offset of the rim along its normal. 1σ of it, px: this
 # share of the correction applied (its first-order model and the measured σ² are each good to ~15–30 %) ...
 BLUR_SHIFT_SIGMA_FRACTION = 0.5
-# ... plus this much per px of motion smear (the refit's axes are 0.07 px off in median at a 10 px smear)
+# ... plus this much per px of motion smear (the refit's axes are 0.07 px off in median at a 10 px smear) ...
 MOTION_OFFSET_SIGMA_PER_PX = 0.01
+# ... plus this share of the curvature bias a colour-only blur (JPEG chroma, demosaicing: not corrected) would
+# imply if it were optical: the whole of it, since the error left is somewhere between none and that bias
+UNMODELLED_BLUR_SIGMA_FRACTION = 1.0
 # a pose whose normal σ exceeds this is flagged ``uncertain_normal``: a sixth of the 3° gross error, since
 # highlights and blur add systematic errors of up to ~6 σ (measured on the degradation suite)
 MAX_TRUSTED_NORMAL_SIGMA_RAD = math.radians(0.5)
@@ -428,7 +431,8 @@ def marker_poses(marker: Marker, camera: CameraModel, radius: float, *,
                 ccov[j] += np.outer(dc, dc)
     q = marker.quality
     blur_sigma = 0.0 if q is None else (BLUR_SHIFT_SIGMA_FRACTION * q.blur_shift_px
-                                        + MOTION_OFFSET_SIGMA_PER_PX * q.motion_px)
+                                        + MOTION_OFFSET_SIGMA_PER_PX * q.motion_px
+                                        + UNMODELLED_BLUR_SIGMA_FRACTION * q.blur_unmodelled_px)
     if blur_sigma > 0.0:
         moved = _offset_sigma_point(boundary, weights, K, radius, blur_sigma)
         for j in range(2):
