@@ -258,6 +258,9 @@ MAX_TRUSTED_NORMAL_SIGMA_RAD = math.radians(0.5)
 # ... and one whose centre σ exceeds this fraction of its range ``uncertain_centre``: likewise a sixth of the
 # gross centre error (2 % of the range); an unmodelled lens scales a marker's image by ~1 % off-axis
 MAX_TRUSTED_CENTRE_SIGMA_FRACTION = 0.02 / 6.0
+# flags that leave a marker fit for tracking (its centre): an ill-defined tilt does not move the centre, and its
+# normal covariance says how ill-defined it is; every other flag (shape, blur, response, centre σ) refuses it
+TRACKING_TOLERATED_FLAGS = frozenset({"uncertain_normal"})
 
 
 @dataclass(frozen=True)
@@ -270,7 +273,9 @@ class MarkerPoses:
     (boundary-point noise σ from the fit residual, inflated by :data:`NOISE_INFLATION`);
     ``flags``: the marker's quality flags, plus ``uncertain_normal`` when a normal's σ exceeds
     :data:`MAX_TRUSTED_NORMAL_SIGMA_RAD` and ``uncertain_centre`` when a centre's σ exceeds
-    :data:`MAX_TRUSTED_CENTRE_SIGMA_FRACTION` of its range; ``trusted``: no flag."""
+    :data:`MAX_TRUSTED_CENTRE_SIGMA_FRACTION` of its range; ``trusted``: no flag. :attr:`fit_for`
+    says which uses the marker serves: a near-frontal marker (§3.2: its tilt is read from a < 1 %
+    anisotropy) is kept for tracking with its honest, large normal covariance instead of refused."""
 
     candidates: tuple[CirclePose, CirclePose]
     normal_sigma_rad: tuple[float, float]
@@ -279,12 +284,25 @@ class MarkerPoses:
     trusted: bool = True
     flags: tuple[str, ...] = ()
 
+    @property
+    def fit_for(self) -> tuple[str, ...]:
+        """The uses this marker is good enough for: ``"tracking"`` (its centre: the fixed camera's
+        Kalman filter, range, interception; every flag but :data:`TRACKING_TOLERATED_FLAGS` refuses it),
+        ``"pose"`` and ``"standard_view"`` (its normal too: trusted; the standard view also needs the
+        pair's duality resolved, §3.3). Empty: refused."""
+        if self.trusted:
+            return ("tracking", "pose", "standard_view")
+        if set(self.flags) <= TRACKING_TOLERATED_FLAGS:
+            return ("tracking",)
+        return ()
+
     def to_dict(self) -> dict:
-        """JSON-ready dict of the candidates, their normal σ (deg) and centre σ (mm), ``trusted`` and ``flags``."""
+        """JSON-ready dict of the candidates, their normal σ (deg) and centre σ (mm), ``trusted``, ``flags``
+        and ``fit_for``."""
         return {"candidates": [c.to_dict() for c in self.candidates],
                 "normal_sigma_deg": [math.degrees(s) for s in self.normal_sigma_rad],
                 "center_sigma_mm": [float(math.sqrt(max(np.trace(c), 0.0))) for c in self.center_cov],
-                "trusted": self.trusted, "flags": list(self.flags)}
+                "trusted": self.trusted, "flags": list(self.flags), "fit_for": list(self.fit_for)}
 
 
 def _lens_sigma_point(boundary, weights, K, radius: float, base, sigma_px: float, camera: CameraModel):
