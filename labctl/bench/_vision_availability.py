@@ -17,7 +17,8 @@ declare — conditions where refusing a marker costs the run a view. Per conditi
   (``MarkerPoses.fit_for``: at least tracking — no flag but ``uncertain_normal``, a near-frontal
   marker's tilt is ill-defined, its centre is not) and whose pair passes the two-view check;
   ``n_gross_kept``: those with a centre > 2 % of range off, or (pose-grade ones) a normal > 3° off;
-  ``z95_kept``: the normal z of all kept answers (a tracking-only marker's large σ included).
+  ``z95_kept``: the normal z of all kept answers (a tracking-only marker's large σ included);
+  ``z95_centre_kept``: their centre error (mm) ÷ √trace of the centre covariance (a 3-D Gaussian: 1.6).
 
 Renderers: ``"mitsuba"`` (:mod:`._vision_mitsuba`, Mitsuba 3, the lab's mobile camera intrinsics)
 and ``"oracle"`` (:mod:`._vision_oracle`, the project's exact-coverage renderer, f 1200–2500 px).
@@ -168,7 +169,7 @@ def evaluate(prs: list[dict], declared: str) -> dict:
     from ..vision import pose_pair_consistency, resolve_duality_detailed, resolve_duality_noise_aware
 
     acc: dict[str, dict[str, Any]] = {m: {"n": 0, "avail": 0, "gross": 0, "dual": [0, 0, 0], "z": [],
-                                          "flags": {}, "centre": 0, "gross_kept": 0, "z_kept": []}
+                                          "flags": {}, "centre": 0, "gross_kept": 0, "z_kept": [], "zc_kept": []}
                                    for m in ("labctl", "opencv")}
     for p in prs:
         cam = oracle.Cam(f=p["f"])
@@ -202,6 +203,8 @@ def evaluate(prs: list[dict], declared: str) -> dict:
             # gross for its use: the centre for a tracking-only marker, centre and normal for a pose-grade one
             a_["gross_kept"] += ce > GROSS_CENTRE_PCT or (trusted[k] and ne > GROSS_NORMAL_DEG)
             a_["z_kept"].append(ne / max(math.degrees(float(m.normal_sigma_rad[j])), 1e-9))
+            rng_mm = float(np.linalg.norm(disc.center))
+            a_["zc_kept"].append(ce / 100.0 * rng_mm / max(math.sqrt(max(float(np.trace(m.center_cov[j])), 0.0)), 1e-9))
         for name in ("labctl", "opencv"):
             a = acc[name]
             cands: list[Any] = []
@@ -242,13 +245,15 @@ def evaluate(prs: list[dict], declared: str) -> dict:
             out[name]["n_kept"] = a["centre"]
             out[name]["n_gross_kept"] = a["gross_kept"]
             out[name]["z95_kept"] = float(np.percentile(a["z_kept"], 95)) if a["z_kept"] else None
+            out[name]["z95_centre_kept"] = float(np.percentile(a["zc_kept"], 95)) if a["zc_kept"] else None
             out[name]["flags"] = a["flags"]
     return out
 
 
 def run(renderer: str, n_pairs: int = 100, seed: int = 32, cache_dir: str | None = None,
-        only: str | None = None) -> list[dict]:
-    """Every condition of ``renderer`` ("mitsuba" or "oracle"): rows {condition, declared, labctl, opencv}."""
+        only: str | None = None, n_eval: int | None = None) -> list[dict]:
+    """Every condition of ``renderer`` ("mitsuba" or "oracle"): rows {condition, declared, labctl, opencv}.
+    ``n_eval``: judge only the first that many of the ``n_pairs`` rendered (cached) pairs."""
     conds = mitsuba_conditions() if renderer == "mitsuba" else oracle_conditions()
     cache_dir = cache_dir or os.environ.get("LABCTL_VISION_AVAIL_CACHE")
     rows = []
@@ -258,7 +263,7 @@ def run(renderer: str, n_pairs: int = 100, seed: int = 32, cache_dir: str | None
         # the undeclared rows reuse their declared twin's images (same condition, same seed)
         twin = next((j for j, (_, c2, _) in enumerate(conds) if c2 == cond), i)
         prs = pairs(renderer, conds[twin][0], cond, n_pairs, seed + 100 * twin, cache_dir)
-        rows.append({"condition": name, "declared": declared, **evaluate(prs, declared)})
+        rows.append({"condition": name, "declared": declared, **evaluate(prs[:n_eval], declared)})
     return rows
 
 
@@ -282,13 +287,14 @@ def _pct_ci(frac: float, n: int) -> str:
 def table(rows: list[dict]) -> str:
     """Markdown table of :func:`run`'s rows: shares in % with 95 % Wilson intervals; gross as counts."""
     lines = ["| condition | pose-grade (trusted) | fit for its use (kept) | OpenCV | gross trusted / kept; OpenCV"
-             " | duality R/A/W labctl; OpenCV | z95 trusted / kept | labctl flags |",
+             " | duality R/A/W labctl; OpenCV | normal z95 trusted / kept; centre z95 kept | labctl flags |",
              "| --- | --- | --- | --- | --- | --- | --- | --- |"]
     for r in rows:
         o, b = r["labctl"], r["opencv"]
         n = o["n_images"]
         z = f"{o['z95']:.2f}" if o.get("z95") is not None else "–"
         zk = f"{o['z95_kept']:.2f}" if o.get("z95_kept") is not None else "–"
+        zc = f"{o['z95_centre_kept']:.2f}" if o.get("z95_centre_kept") is not None else "–"
         n_tr = int(round(o["available"] * n))
         fl = ", ".join(f"{k} {v}" for k, v in sorted(o["flags"].items(), key=lambda kv: -kv[1])[:4])
         lines.append(f"| {r['condition']} | {_pct_ci(o['available'], n)} | {_pct_ci(o['available_centre'], n)} | "
@@ -296,5 +302,5 @@ def table(rows: list[dict]) -> str:
                      f"{o['n_gross_trusted']}/{n_tr} / {o['n_gross_kept']}/{o['n_kept']}; "
                      f"{b['n_gross_trusted']}/{int(round(b['available'] * b['n_images']))} | "
                      f"{'/'.join(map(str, o['duality_right_ambiguous_wrong']))}; "
-                     f"{'/'.join(map(str, b['duality_right_ambiguous_wrong']))} | {z} / {zk} | {fl} |")
+                     f"{'/'.join(map(str, b['duality_right_ambiguous_wrong']))} | {z} / {zk}; {zc} | {fl} |")
     return "\n".join(lines)
