@@ -121,11 +121,13 @@ def pairs(renderer: str, name: str, cond, n_pairs: int, seed: int, cache_dir: st
     """The rendered pairs of one condition (from ``cache_dir`` when already rendered)."""
     path = Path(cache_dir) / _cache_key(renderer, name, n_pairs, seed) if cache_dir else None
     if path is not None and path.exists():
-        z: Any = np.load(path)
+        # each z[key] decompresses the whole array again: read every one once (100 pairs of images is 180 MB)
+        with np.load(path) as z:
+            f, c, n, r, img = (z[k] for k in ("f", "c", "n", "r", "img"))
         out: list[dict[str, Any]] = []
         for i in range(n_pairs):
-            discs = tuple(oracle.Disc(tuple(z["c"][i, k]), tuple(z["n"][i, k]), float(z["r"][i])) for k in (0, 1))
-            out.append({"f": float(z["f"][i]), "discs": discs, "images": [z["img"][i, 0], z["img"][i, 1]]})
+            discs = tuple(oracle.Disc(tuple(c[i, k]), tuple(n[i, k]), float(r[i])) for k in (0, 1))
+            out.append({"f": float(f[i]), "discs": discs, "images": [img[i, 0], img[i, 1]]})
         return out
     out = _render_pairs(renderer, cond, n_pairs, seed)
     if path is not None:
