@@ -133,3 +133,42 @@ def test_mitsuba_thin_lens_defocus_is_measured_through():
         assert "blurred" not in mk.quality.flags
         assert abs(mk.quality.blur_var_px2 / (2.5**2 / 4) - 1.0) < 0.35
         assert c_err < 0.25 and n_err < 1.0
+
+
+def test_a_near_frontal_marker_is_kept_for_tracking_with_an_honest_normal_sigma():
+    """A marker facing the camera (obliquity under 8°): its tilt is read from a < 1 % anisotropy, so its
+    normal σ is large and it is not pose-grade, but its centre is good: ``fit_for`` keeps it for tracking
+    (not refused), its centre is within 0.5 % of the range, and its normal error stays within 3 of its σ."""
+    n_kept = 0
+    for cam, disc, s in _scenes(12, 5, f_range=(1200.0, 2500.0), obliquity=(0.0, 8.0)):
+        img, _ = oracle.render(cam, disc, oracle.Conditions(), np.random.default_rng(s))
+        _, mp, n_err, c_err, j = _measure(img, cam, disc)
+        if mp.trusted:
+            assert mp.fit_for == ("tracking", "pose", "standard_view")
+            continue
+        assert "uncertain_normal" in mp.flags
+        assert mp.fit_for == ("tracking",) and mp.to_dict()["fit_for"] == ["tracking"]
+        n_kept += 1
+        assert c_err < 0.5
+        assert n_err < 3.0 * math.degrees(mp.normal_sigma_rad[j])
+    assert n_kept >= 6
+
+
+def test_a_jpeg_bayer_marker_is_not_refused_for_its_colour_blur():
+    """Webcam-like frames (sRGB, Bayer, JPEG 70, noise, a 1 px defocus): the colour signal's ramps are
+    widened by chroma subsampling and demosaicing, the green channel's hardly. The marker is not flagged
+    ``blurred`` for it; the bias that blur would imply is carried in the covariance (``blur_unmodelled_px``),
+    and the centre error stays within 3 σ of it, never gross."""
+    cond = oracle.Conditions(response="srgb", defocus_px=1.0, bayer="bilinear", jpeg_quality=70, noise_std=3.0,
+                             photons=2000.0)
+    carried = 0
+    for cam, disc, s in _scenes(10, 17, f_range=(1800.0, 2500.0), obliquity=(20.0, 50.0)):
+        img, _ = oracle.render(cam, disc, cond, np.random.default_rng(s))
+        mk, mp, n_err, c_err, j = _measure(img, cam, disc, response="srgb")
+        assert "blurred" not in mk.quality.flags
+        carried += mk.quality.blur_unmodelled_px > 0.0
+        # within 3 σ of what the covariance says (the range error dominates the centre's)
+        centre_sigma_mm = math.sqrt(float(np.trace(mp.center_cov[j])))
+        assert c_err / 100.0 * float(np.linalg.norm(disc.center)) < 3.0 * centre_sigma_mm
+        assert c_err < 2.0 and n_err < 3.0
+    assert carried >= 5

@@ -341,8 +341,9 @@ def test_an_isotropic_camera_blur_is_not_taken_for_a_motion_smear(monkeypatch):
     kw = dict(thresholds=MarkerThresholds(hue_range_deg=(-15.0, 15.0), min_saturation=0.25), response="srgb")
     (mk,) = find_markers(img, **kw).markers
     # its blur is JPEG's chroma and demosaicing, not optical (the green channel shows under half of it):
-    # not corrected, still flagged
-    assert "blurred" in mk.quality.flags and mk.quality.blur_shift_px == 0 and mk.quality.motion_px == 0
+    # not corrected; the bias it would imply is carried as uncertainty; the marker stays untrusted (rough)
+    assert mk.quality.blur_shift_px == 0 and mk.quality.motion_px == 0 and not mk.quality.trusted
+    assert mk.quality.blur_unmodelled_px > 0.02
     calls = []
     real = markers_mod._motion_refit
     monkeypatch.setattr(markers_mod, "_motion_refit", lambda *a, **k: calls.append(real(*a, **k)) or calls[-1])

@@ -13,8 +13,12 @@ declare — conditions where refusing a marker costs the run a view. Per conditi
 * ``duality``: pairs resolved right / ambiguous / wrong (both images trusted; ≥ 3° between the
   chosen and the true normal counts as wrong only when the other candidate was nearer);
 * ``z95``: 95th percentile of the normal error ÷ its σ (ours, trusted answers): calibration;
-* ``available_centre`` (ours): share of images whose marker is good for its centre (tracking, range):
-  no flag but ``uncertain_normal`` — a near-frontal marker's tilt is ill-defined, its centre is not.
+* ``available_centre`` (ours): share of images whose marker is *fit for its use*
+  (``MarkerPoses.fit_for``: at least tracking — no flag but ``uncertain_normal``, a near-frontal
+  marker's tilt is ill-defined, its centre is not) and whose pair passes the two-view check;
+  ``n_gross_kept``: those with a centre > 2 % of range off, or (pose-grade ones) a normal > 3° off;
+  ``z95_kept``: the normal z of all kept answers (a tracking-only marker's large σ included);
+  ``z95_centre_kept``: their centre error (mm) ÷ √trace of the centre covariance (a 3-D Gaussian: 1.6).
 
 Renderers: ``"mitsuba"`` (:mod:`._vision_mitsuba`, Mitsuba 3, the lab's mobile camera intrinsics)
 and ``"oracle"`` (:mod:`._vision_oracle`, the project's exact-coverage renderer, f 1200–2500 px).
@@ -117,11 +121,13 @@ def pairs(renderer: str, name: str, cond, n_pairs: int, seed: int, cache_dir: st
     """The rendered pairs of one condition (from ``cache_dir`` when already rendered)."""
     path = Path(cache_dir) / _cache_key(renderer, name, n_pairs, seed) if cache_dir else None
     if path is not None and path.exists():
-        z: Any = np.load(path)
+        # each z[key] decompresses the whole array again: read every one once (100 pairs of images is 180 MB)
+        with np.load(path) as z:
+            f, c, n, r, img = (z[k] for k in ("f", "c", "n", "r", "img"))
         out: list[dict[str, Any]] = []
         for i in range(n_pairs):
-            discs = tuple(oracle.Disc(tuple(z["c"][i, k]), tuple(z["n"][i, k]), float(z["r"][i])) for k in (0, 1))
-            out.append({"f": float(z["f"][i]), "discs": discs, "images": [z["img"][i, 0], z["img"][i, 1]]})
+            discs = tuple(oracle.Disc(tuple(c[i, k]), tuple(n[i, k]), float(r[i])) for k in (0, 1))
+            out.append({"f": float(f[i]), "discs": discs, "images": [img[i, 0], img[i, 1]]})
         return out
     out = _render_pairs(renderer, cond, n_pairs, seed)
     if path is not None:
@@ -165,7 +171,8 @@ def evaluate(prs: list[dict], declared: str) -> dict:
     from ..vision import pose_pair_consistency, resolve_duality_detailed, resolve_duality_noise_aware
 
     acc: dict[str, dict[str, Any]] = {m: {"n": 0, "avail": 0, "gross": 0, "dual": [0, 0, 0], "z": [],
-                                          "flags": {}, "centre": 0} for m in ("labctl", "opencv")}
+                                          "flags": {}, "centre": 0, "gross_kept": 0, "z_kept": [], "zc_kept": []}
+                                   for m in ("labctl", "opencv")}
     for p in prs:
         cam = oracle.Cam(f=p["f"])
         got: dict[str, list] = {"labctl": [], "opencv": []}
@@ -177,18 +184,29 @@ def evaluate(prs: list[dict], declared: str) -> dict:
             got["opencv"].append(_opencv(img, cam, disc, truth, tol))
         mp = got["labctl"]
         trusted = [m is not None and m.trusted for m in mp]
+        kept = [m is not None and "tracking" in m.fit_for for m in mp]
         for m in mp:
             if m is not None:
                 for f in m.flags:
                     acc["labctl"]["flags"][f] = acc["labctl"]["flags"].get(f, 0) + 1
-        if all(trusted):
+        if all(kept):
+            # the two-view check (noise-aware: a near-frontal marker's large normal σ is in it) on every kept pair
             chk = pose_pair_consistency(mp[0], mp[1], displacement_mm=np.subtract(p["discs"][1].center,
                                                                                    p["discs"][0].center))
             if not chk.consistent:
-                trusted = [False, False]
+                trusted, kept = [False, False], [False, False]
                 acc["labctl"]["flags"]["inconsistent"] = acc["labctl"]["flags"].get("inconsistent", 0) + 2
-        for m in mp:
-            acc["labctl"]["centre"] += m is not None and set(m.flags) <= {"uncertain_normal"}
+        a_ = acc["labctl"]
+        for k, (m, disc) in enumerate(zip(mp, p["discs"])):
+            if not kept[k]:
+                continue
+            ne, ce, j = _errors(m.candidates, disc)
+            a_["centre"] += 1
+            # gross for its use: the centre for a tracking-only marker, centre and normal for a pose-grade one
+            a_["gross_kept"] += ce > GROSS_CENTRE_PCT or (trusted[k] and ne > GROSS_NORMAL_DEG)
+            a_["z_kept"].append(ne / max(math.degrees(float(m.normal_sigma_rad[j])), 1e-9))
+            rng_mm = float(np.linalg.norm(disc.center))
+            a_["zc_kept"].append(ce / 100.0 * rng_mm / max(math.sqrt(max(float(np.trace(m.center_cov[j])), 0.0)), 1e-9))
         for name in ("labctl", "opencv"):
             a = acc[name]
             cands: list[Any] = []
@@ -226,13 +244,18 @@ def evaluate(prs: list[dict], declared: str) -> dict:
         if name == "labctl":
             out[name]["z95"] = float(np.percentile(a["z"], 95)) if a["z"] else None
             out[name]["available_centre"] = a["centre"] / max(a["n"], 1)
+            out[name]["n_kept"] = a["centre"]
+            out[name]["n_gross_kept"] = a["gross_kept"]
+            out[name]["z95_kept"] = float(np.percentile(a["z_kept"], 95)) if a["z_kept"] else None
+            out[name]["z95_centre_kept"] = float(np.percentile(a["zc_kept"], 95)) if a["zc_kept"] else None
             out[name]["flags"] = a["flags"]
     return out
 
 
 def run(renderer: str, n_pairs: int = 100, seed: int = 32, cache_dir: str | None = None,
-        only: str | None = None) -> list[dict]:
-    """Every condition of ``renderer`` ("mitsuba" or "oracle"): rows {condition, declared, labctl, opencv}."""
+        only: str | None = None, n_eval: int | None = None) -> list[dict]:
+    """Every condition of ``renderer`` ("mitsuba" or "oracle"): rows {condition, declared, labctl, opencv}.
+    ``n_eval``: judge only the first that many of the ``n_pairs`` rendered (cached) pairs."""
     conds = mitsuba_conditions() if renderer == "mitsuba" else oracle_conditions()
     cache_dir = cache_dir or os.environ.get("LABCTL_VISION_AVAIL_CACHE")
     rows = []
@@ -242,21 +265,44 @@ def run(renderer: str, n_pairs: int = 100, seed: int = 32, cache_dir: str | None
         # the undeclared rows reuse their declared twin's images (same condition, same seed)
         twin = next((j for j, (_, c2, _) in enumerate(conds) if c2 == cond), i)
         prs = pairs(renderer, conds[twin][0], cond, n_pairs, seed + 100 * twin, cache_dir)
-        rows.append({"condition": name, "declared": declared, **evaluate(prs, declared)})
+        rows.append({"condition": name, "declared": declared, **evaluate(prs[:n_eval], declared)})
     return rows
 
 
+def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """Wilson score interval (95 % at z = 1.96) of a proportion k of n, as fractions; (0, 1) for n = 0."""
+    if n <= 0:
+        return 0.0, 1.0
+    p = k / n
+    den = 1.0 + z * z / n
+    mid = (p + z * z / (2 * n)) / den
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / den
+    return max(0.0, mid - half), min(1.0, mid + half)
+
+
+def _pct_ci(frac: float, n: int) -> str:
+    k = int(round(frac * n))
+    lo, hi = wilson(k, n)
+    return f"{100 * frac:.0f} ({100 * lo:.0f}–{100 * hi:.0f})"
+
+
 def table(rows: list[dict]) -> str:
-    """Markdown table of :func:`run`'s rows."""
-    lines = ["| condition | available labctl / OpenCV | labctl centre-only | gross trusted labctl / OpenCV"
-             " | duality R/A/W labctl; OpenCV | z95 | labctl flags |", "| --- | --- | --- | --- | --- | --- | --- |"]
+    """Markdown table of :func:`run`'s rows: shares in % with 95 % Wilson intervals; gross as counts."""
+    lines = ["| condition | pose-grade (trusted) | fit for its use (kept) | OpenCV | gross trusted / kept; OpenCV"
+             " | duality R/A/W labctl; OpenCV | normal z95 trusted / kept; centre z95 kept | labctl flags |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- |"]
     for r in rows:
         o, b = r["labctl"], r["opencv"]
+        n = o["n_images"]
         z = f"{o['z95']:.2f}" if o.get("z95") is not None else "–"
+        zk = f"{o['z95_kept']:.2f}" if o.get("z95_kept") is not None else "–"
+        zc = f"{o['z95_centre_kept']:.2f}" if o.get("z95_centre_kept") is not None else "–"
+        n_tr = int(round(o["available"] * n))
         fl = ", ".join(f"{k} {v}" for k, v in sorted(o["flags"].items(), key=lambda kv: -kv[1])[:4])
-        lines.append(f"| {r['condition']} | {100 * o['available']:.0f} / {100 * b['available']:.0f} % | "
-                     f"{100 * o.get('available_centre', math.nan):.0f} % | "
-                     f"{100 * o['gross_trusted']:.1f} / {100 * b['gross_trusted']:.1f} % | "
+        lines.append(f"| {r['condition']} | {_pct_ci(o['available'], n)} | {_pct_ci(o['available_centre'], n)} | "
+                     f"{_pct_ci(b['available'], b['n_images'])} | "
+                     f"{o['n_gross_trusted']}/{n_tr} / {o['n_gross_kept']}/{o['n_kept']}; "
+                     f"{b['n_gross_trusted']}/{int(round(b['available'] * b['n_images']))} | "
                      f"{'/'.join(map(str, o['duality_right_ambiguous_wrong']))}; "
-                     f"{'/'.join(map(str, b['duality_right_ambiguous_wrong']))} | {z} | {fl} |")
+                     f"{'/'.join(map(str, b['duality_right_ambiguous_wrong']))} | {z} / {zk}; {zc} | {fl} |")
     return "\n".join(lines)

@@ -9,6 +9,13 @@ import click
 from ._common import emit, json_option
 
 
+def _verdict(mk: dict) -> str:
+    """One marker's verdict for the pose table: trusted, kept for tracking only (``fit_for``), or suspect."""
+    if mk["trusted"]:
+        return "trusted"
+    return ("fit for tracking: " if mk["fit_for"] else "suspect: ") + ", ".join(mk["flags"])
+
+
 @click.group("vision")
 def vision_group() -> None:
     """Marker vision: detection, ellipse fit, circle pose and its duality (paper §3)."""
@@ -112,7 +119,7 @@ def vision_pose(image: Path, image2: Path | None, radius_mm: float, camera_file:
                               "{:.1f}, {:.1f}, {:.1f}".format(*c["center_mm"]),
                               "{:.3f}, {:.3f}, {:.3f}".format(*c["normal"]),
                               f"{mk['normal_sigma_deg'][j]:.2f}°",
-                              ("trusted" if mk["trusted"] else "suspect: " + ", ".join(mk["flags"])) if j == 0 else "")
+                              _verdict(mk) if j == 0 else "")
             console.print(t)
         if "duality" in result:
             d = result["duality"]

@@ -247,14 +247,20 @@ UNMODELLED_LENS_SIGMA_PX = 2.0
 # systematic error the residual does not show: a uniform offset of the rim along its normal. 1σ of it, px: this
 # share of the correction applied (its first-order model and the measured σ² are each good to ~15–30 %) ...
 BLUR_SHIFT_SIGMA_FRACTION = 0.5
-# ... plus this much per px of motion smear (the refit's axes are 0.07 px off in median at a 10 px smear)
+# ... plus this much per px of motion smear (the refit's axes are 0.07 px off in median at a 10 px smear) ...
 MOTION_OFFSET_SIGMA_PER_PX = 0.01
+# ... plus this share of the curvature bias a colour-only blur (JPEG chroma, demosaicing: not corrected) would
+# imply if it were optical: the whole of it, since the error left is somewhere between none and that bias
+UNMODELLED_BLUR_SIGMA_FRACTION = 1.0
 # a pose whose normal σ exceeds this is flagged ``uncertain_normal``: a sixth of the 3° gross error, since
 # highlights and blur add systematic errors of up to ~6 σ (measured on the degradation suite)
 MAX_TRUSTED_NORMAL_SIGMA_RAD = math.radians(0.5)
 # ... and one whose centre σ exceeds this fraction of its range ``uncertain_centre``: likewise a sixth of the
 # gross centre error (2 % of the range); an unmodelled lens scales a marker's image by ~1 % off-axis
 MAX_TRUSTED_CENTRE_SIGMA_FRACTION = 0.02 / 6.0
+# flags that leave a marker fit for tracking (its centre): an ill-defined tilt does not move the centre, and its
+# normal covariance says how ill-defined it is; every other flag (shape, blur, response, centre σ) refuses it
+TRACKING_TOLERATED_FLAGS = frozenset({"uncertain_normal"})
 
 
 @dataclass(frozen=True)
@@ -267,7 +273,9 @@ class MarkerPoses:
     (boundary-point noise σ from the fit residual, inflated by :data:`NOISE_INFLATION`);
     ``flags``: the marker's quality flags, plus ``uncertain_normal`` when a normal's σ exceeds
     :data:`MAX_TRUSTED_NORMAL_SIGMA_RAD` and ``uncertain_centre`` when a centre's σ exceeds
-    :data:`MAX_TRUSTED_CENTRE_SIGMA_FRACTION` of its range; ``trusted``: no flag."""
+    :data:`MAX_TRUSTED_CENTRE_SIGMA_FRACTION` of its range; ``trusted``: no flag. :attr:`fit_for`
+    says which uses the marker serves: a near-frontal marker (§3.2: its tilt is read from a < 1 %
+    anisotropy) is kept for tracking with its honest, large normal covariance instead of refused."""
 
     candidates: tuple[CirclePose, CirclePose]
     normal_sigma_rad: tuple[float, float]
@@ -276,12 +284,25 @@ class MarkerPoses:
     trusted: bool = True
     flags: tuple[str, ...] = ()
 
+    @property
+    def fit_for(self) -> tuple[str, ...]:
+        """The uses this marker is good enough for: ``"tracking"`` (its centre: the fixed camera's
+        Kalman filter, range, interception; every flag but :data:`TRACKING_TOLERATED_FLAGS` refuses it),
+        ``"pose"`` and ``"standard_view"`` (its normal too: trusted; the standard view also needs the
+        pair's duality resolved, §3.3). Empty: refused."""
+        if self.trusted:
+            return ("tracking", "pose", "standard_view")
+        if set(self.flags) <= TRACKING_TOLERATED_FLAGS:
+            return ("tracking",)
+        return ()
+
     def to_dict(self) -> dict:
-        """JSON-ready dict of the candidates, their normal σ (deg) and centre σ (mm), ``trusted`` and ``flags``."""
+        """JSON-ready dict of the candidates, their normal σ (deg) and centre σ (mm), ``trusted``, ``flags``
+        and ``fit_for``."""
         return {"candidates": [c.to_dict() for c in self.candidates],
                 "normal_sigma_deg": [math.degrees(s) for s in self.normal_sigma_rad],
                 "center_sigma_mm": [float(math.sqrt(max(np.trace(c), 0.0))) for c in self.center_cov],
-                "trusted": self.trusted, "flags": list(self.flags)}
+                "trusted": self.trusted, "flags": list(self.flags), "fit_for": list(self.fit_for)}
 
 
 def _lens_sigma_point(boundary, weights, K, radius: float, base, sigma_px: float, camera: CameraModel):
@@ -428,7 +449,8 @@ def marker_poses(marker: Marker, camera: CameraModel, radius: float, *,
                 ccov[j] += np.outer(dc, dc)
     q = marker.quality
     blur_sigma = 0.0 if q is None else (BLUR_SHIFT_SIGMA_FRACTION * q.blur_shift_px
-                                        + MOTION_OFFSET_SIGMA_PER_PX * q.motion_px)
+                                        + MOTION_OFFSET_SIGMA_PER_PX * q.motion_px
+                                        + UNMODELLED_BLUR_SIGMA_FRACTION * q.blur_unmodelled_px)
     if blur_sigma > 0.0:
         moved = _offset_sigma_point(boundary, weights, K, radius, blur_sigma)
         for j in range(2):

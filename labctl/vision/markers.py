@@ -190,6 +190,7 @@ class MarkerQuality:
     blur_shift_px: float = 0.0
     motion_px: float = 0.0
     edge_skew: float = 0.0
+    blur_unmodelled_px: float = 0.0
 
     @property
     def trusted(self) -> bool:
@@ -203,7 +204,8 @@ class MarkerQuality:
                 "edge_contrast": float(self.edge_contrast), "flags": list(self.flags), "trusted": self.trusted,
                 "blur_var_px2": round(float(self.blur_var_px2), 4),
                 "blur_shift_px": round(float(self.blur_shift_px), 4), "motion_px": round(float(self.motion_px), 3),
-                "edge_skew": round(float(self.edge_skew), 3)}
+                "edge_skew": round(float(self.edge_skew), 3),
+                "blur_unmodelled_px": round(float(self.blur_unmodelled_px), 4)}
 
 
 _SCAN_HALF = 4  # px: scans run 8 px across the edge (covers 2–3 px of blur), shorter on small blobs
@@ -642,6 +644,7 @@ def _analyse_contour(img8: np.ndarray, linear_crop, contour: np.ndarray, touches
     psf = _psf_cov(prof[kept], along[kept], n_fit)
     blur_var = 0.5 * float(np.trace(psf))
     optical = False
+    colour_only = False  # a blur the colour signal shows and the green channel mostly does not
     if blur_var > _MIN_CORRECTED_BLUR_PX2:
         # an optical blur (defocus, motion) widens every channel alike; JPEG's 4:2:0 chroma and demosaicing
         # widen the colour signal only, and not as a convolution of linear radiance, so the curvature model
@@ -653,6 +656,12 @@ def _analyse_contour(img8: np.ndarray, linear_crop, contour: np.ndarray, touches
         if optical and np.trace(psf_g) < np.trace(psf):
             psf = psf_g
         blur_var = 0.5 * float(np.trace(psf))
+        colour_only = not optical
+    unmodelled_px = 0.0
+    if colour_only:
+        # a colour-only blur (JPEG chroma, demosaicing) is not corrected: the curvature bias it would imply,
+        # ½κ tᵀΣt of the colour signal's Σ, is left as an error of that size (it enters the pose covariance)
+        unmodelled_px = float(np.mean(np.hypot(*_curvature_shift(ell.conic, bpts, psf).T)))
     shift_px = 0.0
     if redo is None and blur_var > _MIN_CORRECTED_BLUR_PX2 and optical:
         # the area rule reads a blurred curved edge ½κ tᵀΣt inside the true rim (0.2 % of the range on a
@@ -672,6 +681,11 @@ def _analyse_contour(img8: np.ndarray, linear_crop, contour: np.ndarray, touches
     # a blur is modelled (motion refit, or the curvature correction while first order holds: σ ≤ ¼ of the
     # minor semi-axis); one that is not, wide against the marker, smears its shape: flagged
     modelled = redo is not None or (shift_px > 0.0 and math.sqrt(blur_var) <= 0.25 * ell.axes[1])
+    if colour_only and math.sqrt(0.5 * float(np.trace(psf_g))) <= 0.25 * b:
+        # ... a colour-only blur widens the colour ramps, not the shape: what an optical smear there is, the
+        # green channel shows (luminance-like, full resolution in JPEG); within the first-order limit its
+        # bias is small and the colour signal's is in the covariance (blur_unmodelled_px): not flagged
+        blur_px = 0.0
     if blur_px > max(3.0, 0.2 * b) and not modelled:
         flags.append("blurred")
     if area_fill > 1.3 * ell.area + 2.0 * math.pi * (a + b) * 0.5:
@@ -690,7 +704,7 @@ def _analyse_contour(img8: np.ndarray, linear_crop, contour: np.ndarray, touches
         # and every edge (so the range) is biased by it
         flags.append("response_mismatch")
     quality = MarkerQuality(coverage, residual_rel, inlier_fraction, solidity, edge_contrast, tuple(flags),
-                            blur_var, shift_px, motion_px, skew)
+                            blur_var, shift_px, motion_px, skew, unmodelled_px)
     return Marker(tuple(ell.center), ell, float(ell.area), bpts, bw_, (int(bx), int(by), int(bx + bw), int(by + bh)),
                   touches, rms, quality)
 
