@@ -309,9 +309,9 @@ def test_report_names_the_gate_that_dropped_each_object(tmp_path, capsys):
 def test_failed_virtual_run_report_shows_the_fixed_camera_and_the_cause(tmp_path, capsys):
     from fakes import run_cli
 
-    lab = _lab(tmp_path, capsys, timeout_s="1.0")
+    lab = _lab(tmp_path, capsys, timeout_s="0.8")
     code, out, err = run_cli(capsys, "--lab", str(lab), "run", "--virtual", "--seed", "3")
-    assert code == 1 and "no identity within the run's 1 s" in err
+    assert code == 1 and "no identity within the run's 0.8 s" in err
     rec = sorted((lab / "runs").iterdir())[-1]
     frame = cv2.imread(str(rec / "fixed_last.png"))
     assert frame is not None and frame.shape[:2] == (480, 640)  # the whole fixed image, not the object's window
@@ -320,4 +320,4 @@ def test_failed_virtual_run_report_shows_the_fixed_camera_and_the_cause(tmp_path
     assert titles[0] == "Fixed camera, last frame" and fig.axes[0].images
     assert "not reached" not in " ".join(t.get_text() for ax in fig.axes for t in ax.texts)
     title = " ".join(fig._suptitle.get_text().split())
-    assert "FAILED in stage intercept" in title and "within the run's 1 s" in title
+    assert "FAILED in stage intercept" in title and "within the run's 0.8 s" in title

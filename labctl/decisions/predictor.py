@@ -878,7 +878,7 @@ class PredictorPlanner:
         if self.finished:
             return
         if now > self.deadline:
-            self.fail(now, f"no identity within the run's {self.cfg.run.timeout_s:.0f} s")
+            self.fail(now, f"no identity within the run's {self.cfg.run.timeout_s:g} s")
             return
         if self.stage == "wait" and self.rest_T is None and not self._asked_rest:
             # learn where the robot stands while nothing else is to be done: the first leg needs no STATUS
