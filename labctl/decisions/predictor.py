@@ -223,6 +223,8 @@ class PredictorPlanner:
         self.profile = robot.choose_profile(profile or cfg.run.profile)
         self.jerk = ruckig_limits(ctx.lab.robot, cfg.run.robot_stop_budget_s)  # what ruckig segments carry
         self.jerk_ctrl = controller_limits(ctx.lab.robot)  # the controller's own: not sent
+        if self.profile == "ruckig":  # every segment runs these: said once (1.4 SET), not on each ~0.1-s line
+            robot.segment_defaults("ruckig", self.jerk.wire(self.jerk_ctrl))
         # an arm (drivers/robot.yaml arm:): every path is checked in its joint space before it is sent, from the
         # configuration it will have (planning.arm_plan); None: a flange in the task-space box, as before
         self.arm: ArmPlanner | None = None

@@ -176,6 +176,10 @@ class Robot(Protocol):
     def choose_profile(self, wanted: str) -> str:
         """The segment profile to plan with: ``wanted`` if the controller runs it, else ``quintic``."""
         ...
+    def segment_defaults(self, profile: str, limits: dict | None = None) -> bool:
+        """Make ``profile`` under ``limits`` the session's segment defaults (dialect 1.4 ``SET``), so segments that
+        run them are shorter on the line; False where the session cannot (they keep naming them)."""
+        ...
     def poll(self) -> None:
         """Collect the asynchronous reports (``@DONE``) received so far, without waiting."""
     @property

@@ -42,7 +42,7 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-HOST_DIALECT = "1.3"  # the highest dialect version this driver speaks (1.2: ruckig; 1.3: the arm's joints)
+HOST_DIALECT = "1.4"  # the highest dialect this driver speaks (1.2: ruckig; 1.3: the arm's joints; 1.4: SET)
 ARM_REFUSALS = frozenset({30, 31, 32, 33, 34})  # 1.3: segments the controller's arm cannot fly
 
 # what a supervisor writes straight to the port in an emergency
@@ -105,6 +105,8 @@ class SerialRobot(OpenClose):
         self._busy_until = -float("inf")  # controller time at which the last accepted segment ends
         self._pending: set[int] = set()  # ids of accepted segments whose @DONE has not come yet
         self._latched: str | None = None  # the fault the host itself latched (STOP) and has not cleared
+        #: the session's segment defaults (SET, dialect 1.4): profile and its limits as sent; None: none set
+        self._defaults: tuple[str, dict[str, str]] | None = None
 
     @classmethod
     def from_config(cls, cfg: RobotConfig, **kw) -> SerialRobot:
@@ -151,7 +153,31 @@ class SerialRobot(OpenClose):
                 self.profiles = tuple(p.lower() for p in value.split(","))
             elif key == "arm" and value and self.dialect_at_least("1.3"):
                 self.arm = value
+        if self._defaults is not None:  # HELLO starts a session without them: set them again (or drop them)
+            profile, limits = self._defaults
+            self._defaults = None
+            if self.dialect_at_least("1.4") and profile in self.profiles:
+                self._set_defaults(profile, limits)
         return self.dialect
+
+    def segment_defaults(self, profile: str, limits: dict | None = None) -> bool:
+        """Make ``profile`` with ``limits`` (as :meth:`segment` takes them) the session's segment defaults
+        (``SET``, dialect 1.4), so a segment that runs them leaves ``profile=`` and its limits off the line
+        (~24 bytes, ~25 ms a segment at 9600 bps). False (nothing sent) in an older session, whose segments
+        keep naming them; set again after every HELLO (a reconnect)."""
+        profile = profile.lower()
+        if not self.dialect_at_least("1.4"):
+            return False
+        if profile not in self.profiles:
+            raise ValueError(f"the controller runs the profiles {', '.join(self.profiles)}, not {profile!r}")
+        if limits and profile != "ruckig":
+            raise ValueError("segment limits need profile='ruckig'")
+        self._set_defaults(profile, {k: fmt_num(float(v)) for k, v in (limits or {}).items()})
+        return True
+
+    def _set_defaults(self, profile: str, wire: dict[str, str]) -> None:
+        self.request("SET", f"profile={profile}", *(f"{k}={v}" for k, v in wire.items()))
+        self._defaults = (profile, wire)
 
     def dialect_at_least(self, version: str) -> bool:
         """The session speaks ``version`` (``major.minor``) or later."""
@@ -169,6 +195,7 @@ class SerialRobot(OpenClose):
                 self.done_ids.append(int(msg.fields[0]))
                 self._pending.discard(int(msg.fields[0]))
             elif msg.report == "BOOT":
+                self._defaults = None  # a restarted controller has no segment defaults: segments name their own
                 if self._commanded:  # the controller restarted: queued and running segments are lost
                     self.faults.append("boot")
                     log.warning("%s: controller restarted (%s)", self.link.name, " ".join(msg.fields))
@@ -339,10 +366,13 @@ class SerialRobot(OpenClose):
             args += [*map(float, v), *map(float, w)]
         if end_acceleration_mm_s2 is not None:
             args += [*map(float, np.asarray(end_acceleration_mm_s2, float).reshape(3))]
-        if profile is not None and profile.lower() != "quintic":
-            args.append(f"profile={profile.lower()}")
-        for key, value in (limits or {}).items():
-            args.append(f"{key}={fmt_num(float(value))}")
+        name = (profile or "quintic").lower()
+        wire = {key: fmt_num(float(value)) for key, value in (limits or {}).items()}
+        if self._defaults is not None and self._defaults == (name, wire):
+            pass  # the session's defaults (SET): the line names neither
+        elif name != "quintic" or self._defaults is not None:  # a segment off the defaults names its profile
+            args.append(f"profile={name}")
+            args += [f"{key}={value}" for key, value in wire.items()]
         self._commanded = True
         try:
             reply = self.request("SEGNOW" if replace else "SEG", *args)

@@ -195,6 +195,9 @@ class StillRobot:
     def choose_profile(self, wanted):
         return "quintic"
 
+    def segment_defaults(self, profile, limits=None):
+        return False  # an older session: segments keep naming their profile
+
     def poll(self):
         pass
 

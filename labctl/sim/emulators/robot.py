@@ -60,8 +60,8 @@ if TYPE_CHECKING:
     from ...config import RobotConfig
 
 NAME = "labctl-robot"
-DIALECT = "1.2"
-ARM_DIALECT = "1.3"  # a controller with an arm: joints in STATUS, the arm's refusals E30–E34
+DIALECT = "1.4"  # 1.4: SET, the session's segment defaults (a controller without an arm skips 1.3)
+ARM_DIALECT = "1.4"  # a controller with an arm: from 1.3 joints in STATUS, the arm's refusals E30–E34
 PROFILES = ("quintic", "ruckig")
 LIMIT_KEYS = ("vmax", "amax", "jmax", "wmax")  # a ruckig segment's own limits (1.2), at most the controller's
 PROFILES_BEFORE = {"1.0": ("quintic",), "1.1": ("quintic",)}  # what a session of an older version lists
@@ -301,6 +301,7 @@ class RobotEmulator:
         self.last_request_t = self.now
         self.fault: str | None = None
         self.session = self.dialect  # until a HELLO says otherwise: the strictest behaviour
+        self.seg_defaults: dict[str, Any] = {}  # SET (1.4): profile and limits of a segment naming no profile=
         self.last_segment_id = 0
         self.watchdog_trips = 0
         self.out = bytearray()
@@ -318,6 +319,7 @@ class RobotEmulator:
         self._rest_p, self._rest_R = p, R
         self.fault = None
         self.session = self.dialect
+        self.seg_defaults = {}
         self._line.clear()
         self._overlong = False
         self._write(f"@BOOT {self.name} {self.dialect}\n")
@@ -615,7 +617,11 @@ class RobotEmulator:
             return
         host = tuple(int(x) for x in req.args[0].split(".")) if req.args else (1, 0)
         mine = tuple(int(x) for x in self.dialect.split("."))
-        self.session = ".".join(str(x) for x in min(host, mine))
+        session = min(host, mine)
+        if session == (1, 3) and self.arm is None:  # 1.3 is the arm's: without one a 1.3 host gets 1.2's text
+            session = (1, 2)
+        self.session = ".".join(str(x) for x in session)
+        self.seg_defaults = {}  # every HELLO starts a session without segment defaults (SET, 1.4)
         fields = f"{self.name} {self.session} queue={self.queue_size}"
         if self.session != "1.0":  # the 1.0 reply ends at queue= (docs/protocols/robot.md §1)
             fields += f" profiles={','.join(self._profiles())}"
@@ -635,6 +641,46 @@ class RobotEmulator:
     def _cmd_hb(self, req: Request) -> None:
         if self._no_args(req):
             self._reply(req.seq)
+
+    def _cmd_set(self, req: Request) -> None:
+        """``SET [profile=P] [vmax= amax= jmax= wmax=]`` (1.4): the segment defaults of this session, replacing
+        the previous ones (a bare ``SET``: quintic, as before any SET); a SEG or SEGNOW that names no
+        ``profile=`` runs them. Limits only with ``profile=ruckig``, each at most the controller's (E16)."""
+        if tuple(int(x) for x in self.session.split(".")) < (1, 4):
+            self._error(req.seq, 1)  # an older session has no SET: exactly an older controller's answer
+            return
+        opts: dict[str, Any] = {}
+        for word in req.args:
+            key, eq, value = word.partition("=")
+            key = key.lower()
+            if not eq or key in opts or key not in ("profile", *LIMIT_KEYS):
+                self._error(req.seq, 2)
+                return
+            if key == "profile":
+                opts[key] = value.lower()
+                continue
+            number = parse_number(value)
+            if number is None or number <= 0:
+                self._error(req.seq, 2)
+                return
+            opts[key] = number
+        profile = opts.setdefault("profile", "quintic")
+        if profile != "ruckig" and len(opts) > 1:
+            self._error(req.seq, 2)
+            return
+        if profile not in self._profiles():
+            self._error(req.seq, 15)
+            return
+        if self._over_limits(opts):
+            self._error(req.seq, 16)
+            return
+        self.seg_defaults = opts
+        self._reply(req.seq)
+
+    def _over_limits(self, opts: dict[str, Any]) -> bool:
+        """A segment limit (vmax amax jmax wmax in ``opts``) above the controller's own (E16)."""
+        mine = {"vmax": self.v_max, "amax": self.a_max, "jmax": self.j_max, "wmax": math.degrees(self.w_max)}
+        return any(opts.get(k, 0.0) > mine[k] * (1 + REL_TOL) for k in LIMIT_KEYS)
 
     def _cmd_clear(self, req: Request) -> None:
         if self._no_args(req):
@@ -714,8 +760,11 @@ class RobotEmulator:
             if key in opts or key not in ("profile", *LIMIT_KEYS) or older:
                 return 2
             opts[key] = value.lower() if key == "profile" else value
+        default = "profile" not in opts and self.seg_defaults  # 1.4: no profile= runs the session's SET
+        if default and any(k in opts for k in LIMIT_KEYS):
+            return 2  # limits belong to a named profile or to SET
         opts.setdefault("profile", "quintic")
-        ruckig = opts["profile"] == "ruckig"
+        ruckig = (self.seg_defaults["profile"] if default else opts["profile"]) == "ruckig"
         if len(args) not in ((8, 14, 17) if ruckig else (8, 14)):
             return 2
         for key in LIMIT_KEYS:
@@ -724,6 +773,8 @@ class RobotEmulator:
                 if not ruckig or number is None or number <= 0:
                     return 2
                 opts[key] = number
+        if default:
+            opts = dict(self.seg_defaults)
         lowest = 0 if self.session == "1.0" else 1  # 1.1 reserves id 0 for HOME
         if not args[0].isdigit() or not lowest <= int(args[0]) <= 65535:
             return 2
@@ -750,8 +801,7 @@ class RobotEmulator:
         if profile not in self._profiles():
             self._error(req.seq, 15)
             return
-        mine = {"vmax": self.v_max, "amax": self.a_max, "jmax": self.j_max, "wmax": math.degrees(self.w_max)}
-        if any(opts.get(k, 0.0) > mine[k] * (1 + REL_TOL) for k in LIMIT_KEYS):
+        if self._over_limits(opts):
             self._error(req.seq, 16)
             return
         p1 = np.array(vals[0:3])
