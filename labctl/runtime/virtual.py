@@ -19,7 +19,7 @@ import numpy as np
 from ..config import Lab
 from ..decisions import messages as m
 from ..decisions.context import RunContext
-from ..decisions.predictor import PredictorPlanner
+from ..decisions.predictor import PredictorPlanner, set_segment_defaults
 from ..decisions.recognizer import Recognizer
 from ..drivers.interfaces import Frame
 from ..timebase import wire_time_s
@@ -93,6 +93,7 @@ def simulate_run(lab: Lab, ctx: RunContext, spec: TrialSpec, record=None, *, hea
     sim.open()  # opening the drivers takes virtual time (banner, queries)
     world = sim.world
     rest = sim.robot.ensure_ready()  # as the live run does when it opens the robot, before its start
+    set_segment_defaults(sim.robot, lab, spec.profile)  # as the live run does, before its start
     t0 = clock.now()
 
     record_event = record.event if record is not None else (lambda *a, **k: None)
