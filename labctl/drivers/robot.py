@@ -49,7 +49,7 @@ ARM_REFUSALS = frozenset({30, 31, 32, 33, 34})  # 1.3: segments the controller's
 STOP_LINE = (format_request(0, "STOP") + "\n").encode("ascii")
 
 #: requests that command motion: never sent again after a dropped link (the controller may have taken them)
-MOTION_COMMANDS = frozenset({"SEG", "SEGNOW", "HOME"})
+MOTION_COMMANDS = frozenset({"SEG", "SEGNOW", "HOME", "GO"})
 
 #: what the operator runs to release a latched fault (E40 watchdog, E41 STOP), once the arm is checked
 CLEAR_HINT = "check the arm, then run `labctl robot clear`"
@@ -334,8 +334,9 @@ class SerialRobot(OpenClose):
     def segment(self, T_base_flange: np.ndarray, duration_s: float, segment_id: int, *,
                 end_velocity_mm_s=None, end_omega_rad_s=None, replace: bool = False,
                 profile: str | None = None, end_acceleration_mm_s2=None,
-                limits: dict | None = None) -> tuple[float, float]:
-        """Queue (or with ``replace`` start now) a segment; returns its controller (t0, t1).
+                limits: dict | None = None, hold: bool = False) -> tuple[float, float]:
+        """Queue (or with ``replace`` start now) a segment; returns its controller (t0, t1). With ``hold``
+        (dialect 1.4, not with ``replace``) the controller keeps it unplanned until :meth:`go`: (NaN, NaN).
 
         ``profile`` (default the controller's ``quintic``) must be one HELLO listed (pick it with
         :meth:`choose_profile`); id 0 is HOME's from dialect 1.1 on, so ids are 1–65535 there. With
@@ -358,6 +359,8 @@ class SerialRobot(OpenClose):
             raise ValueError(f"segment id must be {lowest}..{MAX_SEQ}, got {segment_id}")
         if profile is not None and profile.lower() not in self.profiles:
             raise ValueError(f"the controller runs the profiles {', '.join(self.profiles)}, not {profile!r}")
+        if hold and (replace or not self.holds):
+            raise ValueError("a held segment needs dialect 1.4 and SEG (not SEGNOW)")
         rv = matrix_to_rotvec(T[:3, :3])
         args: list = [int(segment_id), *map(float, T[:3, 3]), *map(float, rv), float(duration_s)]
         if end_velocity_mm_s is not None or end_omega_rad_s is not None or end_acceleration_mm_s2 is not None:
@@ -373,19 +376,44 @@ class SerialRobot(OpenClose):
         elif name != "quintic" or self._defaults is not None:  # a segment off the defaults names its profile
             args.append(f"profile={name}")
             args += [f"{key}={value}" for key, value in wire.items()]
+        if hold:
+            args.append("hold=1")
         self._commanded = True
         try:
             reply = self.request("SEGNOW" if replace else "SEG", *args)
         except (DeviceTimeout, LinkError):
             self.emergency_stop()
             raise
+        if hold:
+            return float("nan"), float("nan")
+        return self._accepted(reply, int(segment_id), replace)
+
+    @property
+    def holds(self) -> bool:
+        """The session holds segments until :meth:`go` (dialect 1.4)."""
+        return self.dialect_at_least("1.4")
+
+    def go(self, segment_id: int) -> tuple[float, float]:
+        """Run the held segment ``segment_id`` now (``GO``, dialect 1.4): its controller (t0, t1). The line is
+        ~12 bytes, where the segment's own is ~70: what is left on the critical path once the segment waits
+        at the controller. A refusal raises as :meth:`segment`'s would (E21: nothing held by that id)."""
+        self._commanded = True
+        try:
+            reply = self.request("GO", int(segment_id))
+        except (DeviceTimeout, LinkError):
+            self.emergency_stop()
+            raise
+        return self._accepted(reply, int(segment_id), False)
+
+    def _accepted(self, reply: RobotReply, segment_id: int, replace: bool) -> tuple[float, float]:
+        """Book an accepted segment (its ``t0 t1`` reply): when the controller is busy until, and its ``@DONE``."""
         times = reply.floats(2)
         if not times:
             return float("nan"), float("nan")
         self._busy_until = times[1] if replace else max(self._busy_until, times[1])
         if replace:  # SEGNOW cut the queue and the running segment: no @DONE for those
             self._pending.clear()
-        self._pending.add(int(segment_id))
+        self._pending.add(segment_id)
         return times[0], times[1]
 
     def stop(self) -> None:

@@ -302,6 +302,7 @@ class RobotEmulator:
         self.fault: str | None = None
         self.session = self.dialect  # until a HELLO says otherwise: the strictest behaviour
         self.seg_defaults: dict[str, Any] = {}  # SET (1.4): profile and limits of a segment naming no profile=
+        self.held: tuple[int, Request] | None = None  # a SEG hold=1 (1.4): its id and request, run at GO
         self.last_segment_id = 0
         self.watchdog_trips = 0
         self.out = bytearray()
@@ -320,6 +321,7 @@ class RobotEmulator:
         self.fault = None
         self.session = self.dialect
         self.seg_defaults = {}
+        self.held = None
         self._line.clear()
         self._overlong = False
         self._write(f"@BOOT {self.name} {self.dialect}\n")
@@ -490,7 +492,8 @@ class RobotEmulator:
 
     # --- motion -----------------------------------------------------------------------------
     def _cut_at(self, t: float) -> None:
-        """Drop everything scheduled after t; the running segment ends at t (no @DONE for it)."""
+        """Drop everything scheduled after t (a held segment too); the running segment ends at t (no @DONE)."""
+        self.held = None
         kept = []
         for s in self.segments:
             if s.t0 >= t and not (s.t0 == t and s.t1 == t):
@@ -622,6 +625,7 @@ class RobotEmulator:
             session = (1, 2)
         self.session = ".".join(str(x) for x in session)
         self.seg_defaults = {}  # every HELLO starts a session without segment defaults (SET, 1.4)
+        self.held = None
         fields = f"{self.name} {self.session} queue={self.queue_size}"
         if self.session != "1.0":  # the 1.0 reply ends at queue= (docs/protocols/robot.md §1)
             fields += f" profiles={','.join(self._profiles())}"
@@ -757,7 +761,9 @@ class RobotEmulator:
             key, _, value = args.pop().partition("=")
             key = key.lower()
             older = key != "profile" and self.session in PROFILES_BEFORE  # limits are 1.2's
-            if key in opts or key not in ("profile", *LIMIT_KEYS) or older:
+            if key == "hold":  # 1.4: SEG only, hold=1
+                older = value != "1" or tuple(int(x) for x in self.session.split(".")) < (1, 4)
+            if key in opts or key not in ("profile", "hold", *LIMIT_KEYS) or older:
                 return 2
             opts[key] = value.lower() if key == "profile" else value
         default = "profile" not in opts and self.seg_defaults  # 1.4: no profile= runs the session's SET
@@ -774,7 +780,7 @@ class RobotEmulator:
                     return 2
                 opts[key] = number
         if default:
-            opts = dict(self.seg_defaults)
+            opts = {**self.seg_defaults, **({"hold": opts["hold"]} if "hold" in opts else {})}
         lowest = 0 if self.session == "1.0" else 1  # 1.1 reserves id 0 for HOME
         if not args[0].isdigit() or not lowest <= int(args[0]) <= 65535:
             return 2
@@ -792,6 +798,13 @@ class RobotEmulator:
         profile = opts["profile"]
         if self.fault:
             self._error(req.seq, self._fault_code())
+            return
+        if opts.pop("hold", None) is not None:  # 1.4: kept, not planned, until GO (a SEGNOW cannot hold)
+            if replace:
+                self._error(req.seq, 2)
+                return
+            self.held = (seg_id, Request(req.seq, req.command, tuple(a for a in req.args if a.lower() != "hold=1")))
+            self._reply(req.seq)
             return
         T = vals[6]
         # ruckig: T is the least duration, 0 = as fast as the limits allow
@@ -811,6 +824,25 @@ class RobotEmulator:
         a1 = np.array(vals[13:16]) if len(vals) == 16 else np.zeros(3)
         ruckig = (self.jerk_limits(**{k: opts.get(k) for k in LIMIT_KEYS}), a1) if profile == "ruckig" else None
         self._queue_segment(req.seq, seg_id, p1, R1, T, v1, w1, replace=replace, ruckig=ruckig)
+
+    def _cmd_go(self, req: Request) -> None:
+        """``GO id`` (1.4): run the held segment ``id`` now, as if its ``SEG`` (without ``hold=1``) arrived now:
+        queued behind what runs, checked, answered ``t0 t1`` or its refusal; E21 if none is held by that id."""
+        if tuple(int(x) for x in self.session.split(".")) < (1, 4):
+            self._error(req.seq, 1)
+            return
+        if len(req.args) != 1 or not req.args[0].isdigit():
+            self._error(req.seq, 2)
+            return
+        if self.fault:
+            self._error(req.seq, self._fault_code())
+            return
+        if self.held is None or self.held[0] != int(req.args[0]):
+            self._error(req.seq, 21)
+            return
+        held = self.held[1]
+        self.held = None
+        self._cmd_seg(Request(req.seq, held.command, held.args))
 
     def _cmd_segnow(self, req: Request) -> None:
         self._cmd_seg(req, replace=True)
