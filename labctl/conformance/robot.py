@@ -490,6 +490,7 @@ class Suite:
             ("ruckig.splice", self.r_ruckig_splice),
             ("ruckig.limits", self.r_ruckig_limits),
             ("set.defaults", self.r_set_defaults),
+            ("hold.go", self.r_hold_go),
             ("arm.joints", self.r_arm_joints),
             ("arm.reach", self.r_arm_reach),
             ("arm.joint_limit", self.r_arm_joint_limit),
@@ -1180,6 +1181,53 @@ class Suite:
         self.record(rule, not problems, "; ".join(problems)
                     or f"SET vmax {v_set:g}: {D:.0f} mm in {ref.duration:.4f} s as ruckig; profile=quintic ran "
                        "its 1 s; bare SET: quintic again (E11); E02 and E16 as documented")
+
+    def r_hold_go(self) -> None:
+        """hold.go (1.4): ``SEG … hold=1`` is answered ``ok`` without times and nothing moves (0.3 s later the
+        robot stands where it stood); ``GO id`` runs it then (``t0`` now, ``@DONE``, rests on target); a second
+        ``GO id`` is E21, ``SEGNOW … hold=1`` E02; a 1.3 or older session: GO is E01."""
+        rule = "hold.go"
+        if self.version != "1.4":
+            code, _ = self.req("GO 1")
+            self.record(rule, None if code == "E01" else False,
+                        f"a {self.version} session: GO → {code}" + ("" if code == "E01" else " (want E01)"))
+            return
+        problems = []
+        p0, rv = self._here()
+        ax, sgn, room = self._room(p0)
+        p1 = p0.copy()
+        p1[ax] += sgn * min(60.0, room / 4)
+        sid = self.new_id()
+        words = " ".join(map(_num, [*p1, *rv]))
+        ch, fh = self.req(f"SEG {sid} {words} 1 hold=1")
+        self.wait(0.3)
+        st = self.status()
+        if ch != "ok" or fh:
+            problems.append(f"SEG hold=1 → {ch} {' '.join(fh)} (want ok, no times)")
+        if st["moving"] or float(np.linalg.norm(st["p"] - p0)) > 0.01:
+            problems.append(f"moved {float(np.linalg.norm(st['p'] - p0)):.3f} mm while held")
+        cg, fg = self.req(f"GO {sid}")
+        t_go = self.status()["t"]
+        if cg != "ok" or len(fg) < 2:
+            problems.append(f"GO {sid} → {cg}")
+        else:
+            if not float(fg[0]) <= t_go + 1e-3 or t_go - float(fg[0]) > 0.1:
+                problems.append(f"GO at {t_go:.4f} s started the segment at {fg[0]}")
+            if abs(float(fg[1]) - float(fg[0]) - 1.0) > 1e-3:
+                problems.append(f"the held 1-s quintic runs {fg[0]}–{fg[1]}")
+            if not self.wait_done(sid, 3.0):
+                problems.append(f"no @DONE {sid}")
+            st = self.wait_rest()
+            if float(np.linalg.norm(st["p"] - p1)) > 0.01:
+                problems.append(f"rests {float(np.linalg.norm(st['p'] - p1)):.4f} mm from the held target")
+        c21, _ = self.req(f"GO {sid}")
+        c02, _ = self.req(f"SEGNOW {self.new_id()} {words} 1 hold=1")
+        if (c21, c02) != ("E21", "E02"):
+            problems.append(f"a second GO → {c21} (want E21), SEGNOW hold=1 → {c02} (want E02)")
+        if c02 == "ok":
+            self.recover()
+        self.record(rule, not problems, "; ".join(problems)
+                    or "held without moving for 0.3 s; GO ran it at once to its end, @DONE; E21 and E02 as documented")
 
     # --- the arm (1.3) ----------------------------------------------------------------------
     def _skip_arm(self, rule: str) -> bool:
