@@ -237,3 +237,27 @@ def test_an_older_controller_gets_no_set_and_segments_keep_naming_their_profile(
         robot.segment(T1, 0.0, 1, replace=True, profile="ruckig", limits={"vmax": 300.0})
         assert len(sent) == 1 and "profile=ruckig vmax=300" in sent[0], sent
         robot.wait_done(1, timeout_s=5)
+
+
+def test_a_held_segment_waits_for_go_and_runs_from_then():
+    with fake_robot(limits=SLOW_WATCHDOG) as dev, \
+            SerialRobot(dev.path, 115200, timeout_s=2.0, heartbeat_s=0.1) as robot:
+        assert robot.holds
+        T0 = robot.status().T_base_flange
+        T1 = T0.copy()
+        T1[1, 3] += 40.0
+        sent = _sent_lines(robot)
+        assert all(math.isnan(x) for x in robot.segment(T1, 1.0, 5, hold=True))
+        assert sent[-1].endswith("hold=1")
+        time.sleep(0.3)
+        st = robot.status()
+        assert not st.moving and np.allclose(st.T_base_flange[:3, 3], T0[:3, 3], atol=1e-3)
+        t0, t1 = robot.go(5)
+        assert st.t <= t0 and t1 - t0 == pytest.approx(1.0, abs=1e-4)  # from the GO, not from the SEG
+        robot.wait_done(5, timeout_s=5)
+        assert np.allclose(robot.status().T_base_flange[:3, 3], T1[:3, 3], atol=1e-3)
+        with pytest.raises(RobotError) as err:
+            robot.go(5)  # run once: nothing held any more
+        assert err.value.code == 21
+        with pytest.raises(ValueError):
+            robot.segment(T0, 1.0, 6, hold=True, replace=True)
