@@ -150,6 +150,12 @@ def simulate_run(lab: Lab, ctx: RunContext, spec: TrialSpec, record=None, *, hea
     while not predictor.finished:
         t_frame = clock.now() + dt if grid0 is None else max(grid0 + (n + 1) * dt, clock.now())
         wake = predictor.wake_at()
+        if wake is not None and clock.now() < cast(float, predictor.t1c) + 1e-4 < t_frame <= wake:
+            # the arrival falls before the next frame and its @DONE reaches the host after it: the controller
+            # still sends it at the arrival, so its port is read there (the line is queued when it is read)
+            clock.sleep_until(cast(float, predictor.t1c) + 1e-4)
+            sim.advance(clock.now())
+            sim.robot.poll()
         if wake is not None and clock.now() < wake < t_frame:
             # the robot's @DONE arrives between two frames: act on it then (the image is taken as soon
             # as the robot stands still), not at the next frame. The emulator sends it when it is
