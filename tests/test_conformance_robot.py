@@ -69,6 +69,26 @@ class RuckigNoBoxCheck(RobotEmulator):
         return 0 if code == 10 else code
 
 
+class GoesAtOnce(RobotEmulator):
+    """Takes ``hold=1`` but runs the segment at once, as if it were a plain SEG."""
+
+    def _parse_segment(self, req):
+        parsed = super()._parse_segment(req)
+        if not isinstance(parsed, int):
+            parsed[2].pop("hold", None)
+        return parsed
+
+
+class IgnoresSet(RobotEmulator):
+    """Answers SET ok but keeps no defaults: a segment without ``profile=`` still runs a quintic."""
+
+    def _cmd_set(self, req) -> None:
+        if tuple(int(x) for x in self.session.split(".")) < (1, 4):
+            self._error(req.seq, 1)
+            return
+        self._reply(req.seq)
+
+
 def conformance(path: str, *args: str, timeout: float = 120.0) -> subprocess.CompletedProcess:
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     cmd = [sys.executable, "-m", "labctl", "robot", "conformance", "--port", path, "--baud", "115200",
@@ -100,7 +120,7 @@ def test_reference_controller_passes_every_rule():
     assert len(rows) >= 32 and {v for r, v in rows.items() if r not in arm_rules} == {"PASS"}, res.stdout
     for rule in ("stop.ramp", "stop.refuse_outward_end", "stop.latch", "watchdog.trips", "checksum.reject",
                  "errors.arguments", "limits.path", "home.arrives", "ruckig.arrival", "ruckig.splice",
-                 "ruckig.limits"):
+                 "ruckig.limits", "set.defaults", "hold.go"):
         assert rows[rule] == "PASS"
 
 
@@ -150,6 +170,8 @@ def test_an_arm_controller_that_refuses_nothing_fails_the_arm_rules(rule):
     (NoWatchdog, ["--only", "watchdog.trips"], "watchdog.trips"),
     (LeakyStop, ["--only", "stop.refuse_outward_end"], "stop.refuse_outward_end"),
     (RuckigNoBoxCheck, ["--only", "ruckig.limits"], "ruckig.limits"),
+    (IgnoresSet, ["--only", "set.defaults"], "set.defaults"),
+    (GoesAtOnce, ["--only", "hold.go"], "hold.go"),
 ])
 def test_broken_controllers_fail_the_rule_they_break(cls, only, rule):
     with serve(cls) as dev:

@@ -29,7 +29,7 @@ def _controller():
 
 def test_a_1_2_session_with_the_arm_is_byte_for_byte_the_recorded_one():
     clk, emu = _controller()
-    assert emu.dialect == "1.3"
+    assert emu.dialect == "1.4"
     assert run_session(emu, clk, SESSION_12) == (DATA / "session_1_2.txt").read_text()
 
 

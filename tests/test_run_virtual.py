@@ -152,3 +152,22 @@ def test_a_leg_the_arm_refuses_ends_the_run_with_the_reason(lab, ctx, monkeypatc
     res = simulate_run(lab, ctx, TrialSpec("line", 8.0, None, 1))
     assert res["correct"] is False and res["identity"] is None
     assert res["failure"].startswith("the robot refused the initial1 leg: robot E34"), res["failure"]
+
+
+def test_the_held_second_leg_starts_only_after_the_first_image_s_exposure(lab, ctx, run_with_events):
+    """The second image's leg is sent held while the first leg flies (dialect 1.4) and started by GO on the first
+    image's FrameTaken: the robot stands still from the first leg's arrival until that exposure has ended
+    (the frame time, one mobile-camera frame period), and it starts within a GO line (+ one HB) after it."""
+    res, events = run_with_events(lab, ctx, TrialSpec("arc", 8.0, None, 2, profile="ruckig"))
+    assert res["correct"], res
+    held = [f for n, f in events if n == "segment_held"]
+    segs = [f for n, f in events if n == "segment"]
+    assert len(held) == 1 and not [n for n, _ in events if n == "hold_refused"]
+    first = [f for f in segs if f["kind"] == "initial1"][-1]
+    second = next(f for f in segs if f["kind"] == "initial2")
+    assert second["id"] == held[0]["id"] and held[0]["t"] < first["t1c"]  # sent while the first leg flew
+    exposed = next(f["t"] for n, f in events if n == "capture_request" and f["kind"] == "initial1")
+    exposure_end = exposed + 1.0 / lab.mobile_camera.fps
+    byte_s = 10.0 / lab.robot.baud
+    assert first["t1c"] <= exposed  # at rest when the image was exposed
+    assert exposure_end <= second["t0c"] <= exposure_end + 12 * byte_s + 0.03, (exposure_end, second["t0c"])

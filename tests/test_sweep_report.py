@@ -131,3 +131,19 @@ def test_all_correct_or_all_failed_groups_draw(tmp_path, n):
     s = summarize(trials)
     s.update({"planned": 2 * n, "interrupted": False})
     assert write_sweep_report(folder, s).is_file() and (folder / "report.png").stat().st_size > 1000
+
+
+def test_the_summary_gives_the_bound_ratio_per_trajectory_and_speed():
+    """Each trajectory × speed cell's median ``ratio_to_bound`` over its correct trials only, by hand."""
+    def trial(traj, speed, tti, bound, correct=True):
+        return {"trajectory": traj, "speed_mm_s": speed, "time_to_identity_s": tti, "lower_bound_s": bound,
+                "correct": correct, "views": 1, "stages": {"wait": 0.3}, "seed": 0}
+
+    trials = [trial("line", 4.0, 3.0, 2.5), trial("line", 4.0, 2.6, 2.0), trial("line", 4.0, 9.0, 2.0, False),
+              trial("line", 8.0, 2.4, 2.0), trial("arc", 4.0, 2.2, 2.0)]
+    by = summarize(trials)["by_trajectory"]
+    assert by["line"]["by_speed"]["4"]["ratio_to_bound_median"] == pytest.approx((1.2 + 1.3) / 2)
+    assert by["line"]["by_speed"]["4"]["success_rate"] == pytest.approx(2 / 3)
+    assert by["line"]["by_speed"]["8"]["ratio_to_bound_median"] == pytest.approx(1.2)
+    assert by["line"]["ratio_to_bound_median"] == pytest.approx(1.2)  # of 1.2, 1.3, 1.2
+    assert by["arc"]["ratio_to_bound_median"] == pytest.approx(1.1) and by["arc"]["n"] == 1

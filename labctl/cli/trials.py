@@ -148,6 +148,10 @@ def _num(value, unit: str = "") -> str:
     return "-" if value is None else f"{value:.2f}{unit}"
 
 
+def _ratio(value) -> str:
+    return "-" if value is None else f"{value:.3f}"
+
+
 def _print_trials(console, s: dict) -> None:
     from rich.table import Table
 
@@ -158,6 +162,16 @@ def _print_trials(console, s: dict) -> None:
                   _num(row["time_to_identity_s_median"], " s"), _num(row["ratio_to_lower_bound_median"]),
                   _num(row["ratio_to_quintic_bound_median"]), f"{row['views_mean']:.2f}")
     console.print(t)
+    by_traj = s.get("by_trajectory") or {}
+    if by_traj:  # the honest-bound ratio per trajectory and speed (median of the correct trials)
+        speeds = sorted({v for row in by_traj.values() for v in row.get("by_speed", {})}, key=float)
+        tt = Table("trajectory", "n", "success", *[f"× bound at {v} mm/s" for v in speeds], "× bound (all)",
+                   title="× honest bound per trajectory and speed (median)")
+        for name, row in by_traj.items():
+            tt.add_row(name, str(row["n"]), f"{100 * row['success_rate']:.1f} %",
+                       *[_ratio(row.get("by_speed", {}).get(v, {}).get("ratio_to_bound_median")) for v in speeds],
+                       _ratio(row.get("ratio_to_bound_median")))
+        console.print(tt)
     st = Table("stage", "median s", title="stage timings (pipeline order)")
     for k, v in s["stage_medians_s"].items():
         st.add_row(k, f"{v:.2f}")

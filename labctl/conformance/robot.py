@@ -1,4 +1,4 @@
-"""The robot dialect's conformance suite (docs/protocols/robot.md, dialect 1.3), run over a serial port.
+"""The robot dialect's conformance suite (docs/protocols/robot.md, dialect 1.4), run over a serial port.
 
 Written from the document, not from the reference controller: its own framing, its own checksum,
 its own quintic (a 6×6 solve) and its own stop-ramp arithmetic (dense samples), so it can judge
@@ -341,7 +341,7 @@ class Suite:
     @property
     def ruckig(self) -> bool:
         """True for a dialect 1.2 (or later) session whose controller lists the ``ruckig`` profile."""
-        return self.version in ("1.2", "1.3") and "ruckig" in self.profiles
+        return self.version in ("1.2", "1.3", "1.4") and "ruckig" in self.profiles
 
     def status(self) -> dict:
         """STATUS parsed: ``p`` (mm), rotation vector ``rv`` (rad), moving, segment id, queued, ``t`` (s), fault."""
@@ -489,6 +489,8 @@ class Suite:
             ("ruckig.arrival", self.r_ruckig_arrival),
             ("ruckig.splice", self.r_ruckig_splice),
             ("ruckig.limits", self.r_ruckig_limits),
+            ("set.defaults", self.r_set_defaults),
+            ("hold.go", self.r_hold_go),
             ("arm.joints", self.r_arm_joints),
             ("arm.reach", self.r_arm_reach),
             ("arm.joint_limit", self.r_arm_joint_limit),
@@ -499,7 +501,7 @@ class Suite:
     def hello(self) -> None:
         """Open the session (HELLO 1.2, else HELLO), read queue size, profiles and LIMITS; CannotTalk if silent."""
         self.client.drain(0.05)
-        line = self.client.request("HELLO 1.3")
+        line = self.client.request("HELLO 1.4")
         if line is None:
             line = self.client.request("HELLO")
         if line is None:
@@ -510,12 +512,13 @@ class Suite:
         self.hello_fields = (code, f)
         if code == "ok" and len(f) >= 2 and VERSION_RE.match(f[1]):
             got = tuple(map(int, f[1].split(".")))
-            self.version = "1.3" if got >= (1, 3) else "1.2" if got >= (1, 2) else "1.1" if got >= (1, 1) else "1.0"
+            self.version = ("1.4" if got >= (1, 4) else "1.3" if got >= (1, 3) else "1.2" if got >= (1, 2)
+                            else "1.1" if got >= (1, 1) else "1.0")
         for item in f[2:]:
             key, _, value = item.partition("=")
             if key == "queue" and value.isdigit():
                 self.queue = int(value)
-            elif key == "arm" and value and self.version == "1.3":
+            elif key == "arm" and value and self.version in ("1.3", "1.4"):
                 self.arm_name = value
             elif key == "profiles":
                 self.profiles = tuple(value.lower().split(","))
@@ -541,11 +544,11 @@ class Suite:
         if code != "ok" or len(f) < 2 or not VERSION_RE.match(f[1]):
             problems.append(f"reply {code} {' '.join(f)!r} is not 'ok <name> <version> …'")
         if self.v11:
-            if f[1] not in ("1.1", "1.2", "1.3"):
-                problems.append(f"session version {f[1]} after HELLO 1.3")
-            if "ruckig" in self.profiles and f[1] not in ("1.2", "1.3"):
+            if f[1] not in ("1.1", "1.2", "1.3", "1.4"):
+                problems.append(f"session version {f[1]} after HELLO 1.4")
+            if "ruckig" in self.profiles and f[1] not in ("1.2", "1.3", "1.4"):
                 problems.append(f"ruckig listed in a {f[1]} session")
-            if any(x.startswith("arm=") for x in f) and f[1] != "1.3":
+            if any(x.startswith("arm=") for x in f) and f[1] not in ("1.3", "1.4"):
                 problems.append(f"arm= listed in a {f[1]} session")
         elif code == "ok" and any(x.startswith("profiles=") for x in f):
             problems.append("profiles= in a 1.0 reply (the 1.0 text ends at queue=)")
@@ -1006,14 +1009,16 @@ class Suite:
             return True
         return False
 
-    def _ruckig_1d(self, D: float):
-        """The time-optimal jerk-limited rest-to-rest move of D mm under LIMITS' vmax, amax, jmax (ruckig, 1 DoF):
-        the document's ruckig segment along one axis (§5: the limits of the axis of travel are the full ones)."""
+    def _ruckig_1d(self, D: float, v_max: float | None = None):
+        """The time-optimal jerk-limited rest-to-rest move of D mm under LIMITS' vmax (or ``v_max``, mm/s), amax,
+        jmax (ruckig, 1 DoF): the document's ruckig segment along one axis (§5: the limits of the axis of travel
+        are the full ones)."""
         from ruckig import InputParameter, Ruckig, Trajectory
 
         inp, traj = InputParameter(1), Trajectory(1)
         inp.current_position, inp.target_position = [0.0], [D]
-        inp.max_velocity, inp.max_acceleration = [self.lim.v_max], [self.lim.a_max]
+        inp.max_velocity = [self.lim.v_max if v_max is None else v_max]
+        inp.max_acceleration = [self.lim.a_max]
         inp.max_jerk = [self.lim.j_max]
         Ruckig(1).calculate(inp, traj)
         return traj
@@ -1120,6 +1125,109 @@ class Suite:
         self.record("ruckig.limits", (c16, c10) == ("E16", "E10"),
                     f"jmax 2·LIMITS → {c16} (want E16); ends 5 mm from the wall at {abs(v[ax]):.0f} mm/s outwards "
                     f"(needs {need:.0f} mm) → {c10} (want E10)")
+
+    # --- segment defaults (1.4) -------------------------------------------------------------------
+    def r_set_defaults(self) -> None:
+        """set.defaults (1.4): ``SET profile=ruckig vmax=V`` makes a SEG that names no ``profile=`` the ruckig
+        move under vmax V (t1 − t0 as ruckig computes it); one naming ``profile=quintic`` runs a quintic of its T;
+        limits without ``profile=ruckig`` are E02, above LIMITS' E16; a bare ``SET`` is quintic again (a
+        profile-less SEG with T = 0: E11); a 1.3 or older session has no ``SET`` (E01)."""
+        rule = "set.defaults"
+        if self.version != "1.4":
+            code, _ = self.req("SET")
+            self.record(rule, None if code == "E01" else False,
+                        f"a {self.version} session: SET → {code}" + ("" if code == "E01" else " (want E01)"))
+            return
+        if self._skip_ruckig(rule):
+            return
+        problems = []
+        c02, _ = self.req(f"SET vmax={_num(0.5 * self.lim.v_max)}")
+        c16, _ = self.req(f"SET profile=ruckig vmax={_num(2 * self.lim.v_max)}")
+        if (c02, c16) != ("E02", "E16"):
+            problems.append(f"SET vmax= without a profile → {c02} (want E02), vmax 2·LIMITS → {c16} (want E16)")
+        v_set = 0.5 * self.lim.v_max
+        code, _ = self.req(f"SET profile=ruckig vmax={_num(v_set)}")
+        p0, rv = self._here()
+        ax, sgn, room = self._room(p0)
+        D = min(120.0, room / 4)
+        p1 = p0.copy()
+        p1[ax] += sgn * D
+        sid = self.new_id()
+        c1, f1 = self.req(f"SEG {sid} {' '.join(map(_num, [*p1, *rv]))} 0")
+        ref = self._ruckig_1d(D, v_set)
+        if code != "ok" or c1 != "ok":
+            problems.append(f"SET profile=ruckig vmax={_num(v_set)} → {code}, then a profile-less SEG → {c1}")
+        else:
+            took = float(f1[1]) - float(f1[0])
+            if abs(took - ref.duration) > 2e-3:
+                problems.append(f"the profile-less SEG took {took:.4f} s, ruckig at vmax {v_set:g}: "
+                                f"{ref.duration:.4f} s")
+            if not self.wait_done(sid, ref.duration + 2.0):
+                problems.append(f"no @DONE {sid}")
+        self.wait_rest()
+        sid = self.new_id()
+        cq, fq = self.req(f"SEG {sid} {' '.join(map(_num, [*p0, *rv]))} 1 profile=quintic")
+        if cq != "ok" or abs(float(fq[1]) - float(fq[0]) - 1.0) > 1e-3:
+            problems.append(f"SEG profile=quintic T=1 → {cq} {' '.join(fq)} (want a 1-s quintic)")
+        elif not self.wait_done(sid, 3.0):
+            problems.append(f"no @DONE {sid}")
+        self.wait_rest()
+        cb, _ = self.req("SET")
+        c11, _ = self.req(f"SEG {self.new_id()} {' '.join(map(_num, [*p1, *rv]))} 0")
+        if (cb, c11) != ("ok", "E11"):
+            problems.append(f"bare SET → {cb}, then a profile-less SEG with T = 0 → {c11} (want ok, E11)")
+        if c11 == "ok":
+            self.recover()
+        self.record(rule, not problems, "; ".join(problems)
+                    or f"SET vmax {v_set:g}: {D:.0f} mm in {ref.duration:.4f} s as ruckig; profile=quintic ran "
+                       "its 1 s; bare SET: quintic again (E11); E02 and E16 as documented")
+
+    def r_hold_go(self) -> None:
+        """hold.go (1.4): ``SEG … hold=1`` is answered ``ok`` without times and nothing moves (0.3 s later the
+        robot stands where it stood); ``GO id`` runs it then (``t0`` now, ``@DONE``, rests on target); a second
+        ``GO id`` is E21, ``SEGNOW … hold=1`` E02; a 1.3 or older session: GO is E01."""
+        rule = "hold.go"
+        if self.version != "1.4":
+            code, _ = self.req("GO 1")
+            self.record(rule, None if code == "E01" else False,
+                        f"a {self.version} session: GO → {code}" + ("" if code == "E01" else " (want E01)"))
+            return
+        problems = []
+        p0, rv = self._here()
+        ax, sgn, room = self._room(p0)
+        p1 = p0.copy()
+        p1[ax] += sgn * min(60.0, room / 4)
+        sid = self.new_id()
+        words = " ".join(map(_num, [*p1, *rv]))
+        ch, fh = self.req(f"SEG {sid} {words} 1 hold=1")
+        self.wait(0.3)
+        st = self.status()
+        if ch != "ok" or fh:
+            problems.append(f"SEG hold=1 → {ch} {' '.join(fh)} (want ok, no times)")
+        if st["moving"] or float(np.linalg.norm(st["p"] - p0)) > 0.01:
+            problems.append(f"moved {float(np.linalg.norm(st['p'] - p0)):.3f} mm while held")
+        cg, fg = self.req(f"GO {sid}")
+        t_go = self.status()["t"]
+        if cg != "ok" or len(fg) < 2:
+            problems.append(f"GO {sid} → {cg}")
+        else:
+            if not float(fg[0]) <= t_go + 1e-3 or t_go - float(fg[0]) > 0.1:
+                problems.append(f"GO at {t_go:.4f} s started the segment at {fg[0]}")
+            if abs(float(fg[1]) - float(fg[0]) - 1.0) > 1e-3:
+                problems.append(f"the held 1-s quintic runs {fg[0]}–{fg[1]}")
+            if not self.wait_done(sid, 3.0):
+                problems.append(f"no @DONE {sid}")
+            st = self.wait_rest()
+            if float(np.linalg.norm(st["p"] - p1)) > 0.01:
+                problems.append(f"rests {float(np.linalg.norm(st['p'] - p1)):.4f} mm from the held target")
+        c21, _ = self.req(f"GO {sid}")
+        c02, _ = self.req(f"SEGNOW {self.new_id()} {words} 1 hold=1")
+        if (c21, c02) != ("E21", "E02"):
+            problems.append(f"a second GO → {c21} (want E21), SEGNOW hold=1 → {c02} (want E02)")
+        if c02 == "ok":
+            self.recover()
+        self.record(rule, not problems, "; ".join(problems)
+                    or "held without moving for 0.3 s; GO ran it at once to its end, @DONE; E21 and E02 as documented")
 
     # --- the arm (1.3) ----------------------------------------------------------------------
     def _skip_arm(self, rule: str) -> bool:

@@ -48,10 +48,11 @@ from ..tracking.bridge import OcclusionBridge
 from ..tracking.tracker import MarkerTracker, position_from_frames
 from ..vision import detect_markers, detect_markers_windowed, red_blob_centroid
 from . import messages as m
-from .context import RunContext, marker_thresholds
+from .context import Lab, RunContext, marker_thresholds
 
 #: a robot at rest farther than this (mm) from the end of its segment did not run it to the end
 ARRIVAL_TOL_MM = 1.0
+GO_LINE_BYTES = 12  # "#<seq> GO <id>*HH\n" (dialect 1.4): what starts a held segment
 #: fixed-camera positions kept for :func:`position_from_frames` (a minute at 30 frames/s)
 TRACK_HISTORY = 1800
 #: the initial view's azimuths tried, in order, about the side facing the robot's home (deg): the nearest side
@@ -138,6 +139,31 @@ class _Scaled:
     def __call__(self, times):
         p, v, a = self.path(times)
         return self.s * p, self.s * v, self.s * a
+
+
+def _segment_line(plan: Interception):
+    """What a plan's first segment sends: (the segment, its end pose 4×4 as the line rounds it, its duration s
+    in whole ms never shorter than planned, the profile/limits keywords — ruckig: the controller re-runs it)."""
+    end = _reached(plan)[0].segments[0]
+    R_end = end.orientation(end.t1) if end.rot_coeffs is not None else cast(_RestAt, plan.target).rotation
+    T_end = _wire_pose(cast(np.ndarray, R_end), end.state(end.t1)[0])
+    kw: dict[str, Any] = {"profile": "ruckig", "limits": cast(JerkLimits, cast(RuckigTrajectory, end).limits).wire(
+        cast(RuckigTrajectory, end).base)} if isinstance(end, RuckigTrajectory) else {}
+    duration = math.ceil((end.t1 - end.t0) * 1000.0 - 1e-6) / 1000.0
+    return end, T_end, duration, kw
+
+
+def set_segment_defaults(robot: Robot, lab: Lab, profile: str | None = None) -> bool:
+    """Tell the controller once, when it is opened and before the run's clock starts, what every segment of
+    the run carries (dialect 1.4 ``SET``): the ``ruckig`` profile (``profile``, else ``run.profile``, if the
+    controller runs it) under the ``robot_stop_budget_s`` speed cap — the limits :class:`PredictorPlanner`
+    plans with. Each segment line is then ~24 bytes shorter (~25 ms at 9600 bps, on the critical path of
+    every leg); False where nothing was set (a quintic run, an older controller)."""
+    cfg = lab.config
+    if robot.choose_profile(profile or cfg.run.profile) != "ruckig":
+        return False
+    limits = ruckig_limits(lab.robot, cfg.run.robot_stop_budget_s).wire(controller_limits(lab.robot))
+    return robot.segment_defaults("ruckig", limits)
 
 
 class PredictorPlanner:
@@ -233,6 +259,10 @@ class PredictorPlanner:
         self._arm_checked: tuple[Interception, JointPath, float] | None = None  # the last plan checked, its stretch
         self.leg_q0: np.ndarray | None = None  # the arm's configuration where the leg under way started
         self.std_roll_deg, self.std_standoff_scale = 0.0, 1.0  # the standard view's roll and stand-off chosen
+        # the second image's leg, sent (SEG hold=1, dialect 1.4) while the first leg flies and run by a ~12-byte
+        # GO once the first image's exposure has ended: (plan, id, arm check, azimuth and elevation step); None: none
+        self.held: tuple[Interception, int, tuple | None, tuple[float, float]] | None = None
+        self._held_tried = False  # tried for the leg under way (once: the first leg is no longer re-planned)
 
     # -- helpers ------------------------------------------------------------------------------
     @property
@@ -288,16 +318,19 @@ class PredictorPlanner:
     def _send_segment(self, now: float, plan: Interception) -> None:
         """Command the plan's first segment; the controller splices it in from its own state on receipt,
         which is the plan's start time (now + the command's transmission time)."""
-        end = _reached(plan)[0].segments[0]
-        R_end = end.orientation(end.t1) if end.rot_coeffs is not None else cast(_RestAt, plan.target).rotation
-        T_end = _wire_pose(cast(np.ndarray, R_end), end.state(end.t1)[0])
+        end, T_end, duration, kw = _segment_line(plan)
         self.segment_id += 1
         now = self._now(now)
-        ruckig = isinstance(end, RuckigTrajectory)
-        kw: dict[str, Any] = {"profile": "ruckig", "limits": cast(JerkLimits, cast(RuckigTrajectory, end).limits).wire(
-            cast(RuckigTrajectory, end).base)} if ruckig else {}  # the controller re-runs
-        duration = math.ceil((end.t1 - end.t0) * 1000.0 - 1e-6) / 1000.0  # whole ms, never shorter than planned
         t0c, t1c = self.robot.segment(T_end, duration, self.segment_id, replace=True, **kw)
+        self._accepted(now, plan, end, T_end, t0c, t1c)
+
+    def _accepted(self, now: float, plan: Interception, end, T_end: np.ndarray, t0c: float, t1c: float,
+                  line: bool = True) -> None:
+        """The controller took the plan's first segment (``self.segment_id``), which starts at its ``t0c`` and
+        ends at ``t1c``: the motion under way from now on. ``line``: started by the segment's own line (its
+        start measures a segment line's latency), not by a held segment's ``GO``."""
+        ruckig = isinstance(end, RuckigTrajectory)
+        self.held = None  # a SEGNOW drops a held segment at the controller; a GO has run it
         # accepted (a refused splice raises, and the motion under way, its end and its leg stay as they were)
         self.T_end = T_end
         if self.arm is not None and self._arm_checked is not None and self._arm_checked[0] is plan:
@@ -314,7 +347,8 @@ class PredictorPlanner:
         shared = self.shared_clock and math.isfinite(t0c)
         self.t1c = t1c if shared and math.isfinite(t1c) else None
         if shared and 0.0 <= t0c - now < 1.0:
-            self.latency_s = 0.5 * self.latency_s + 0.5 * (t0c - now)
+            if line:
+                self.latency_s = 0.5 * self.latency_s + 0.5 * (t0c - now)
             self.plan_shift = t0c - end.t0
         else:
             self.plan_shift = 0.0
@@ -420,7 +454,12 @@ class PredictorPlanner:
         cart = rest_to_rest_times(p0, T[:3, 3], self.ctx.limits.v_max, self.ctx.limits.a_max)[0]
         return max(cart, self.arm.joint_time_s(q0, T))
 
-    def _start_move(self, now: float, kind: m.CaptureKind, plan: Interception) -> None:
+    def _start_move(self, now: float, kind: m.CaptureKind, plan: Interception,
+                    started: tuple[int, float, float] | None = None) -> None:
+        """Fly ``plan`` as the leg to the ``kind`` view: send it, or with ``started`` (segment id, t0c, t1c) a held
+        segment the controller has just started (:meth:`_go_held`)."""
+        if kind == "initial1":
+            self._held_tried = False  # a new first leg: its second may be held again
         traj, t_hit = _reached(plan)
         seg0 = traj.segments[0]
         p0, v0, a0 = traj.state(seg0.t0)  # the state the plan starts from: where the leg begins
@@ -434,11 +473,16 @@ class PredictorPlanner:
         _, quintic = rest_to_rest_times(p0, traj.state(t_hit)[0],
                                         self.ctx.lab.robot.v_max_mm_s, self.ctx.lab.robot.a_max_mm_s2)
         self.min_quintic_s += quintic
-        try:
-            self._send_segment(now, plan)
-        except MotionRefused as exc:  # the arm cannot fly the leg: the run ends with the reason, nothing moved
-            self.fail(now, f"the robot refused the {kind} leg: {exc}")
-            return
+        if started is not None:
+            self.segment_id = started[0]
+            end, T_end, _, _ = _segment_line(plan)
+            self._accepted(self._now(now), plan, end, T_end, started[1], started[2], line=False)
+        else:
+            try:
+                self._send_segment(now, plan)
+            except MotionRefused as exc:  # the arm cannot fly the leg: the run ends with the reason, nothing moved
+                self.fail(now, f"the robot refused the {kind} leg: {exc}")
+                return
         self.log("plan", t=now, kind=kind, t_hit=plan.t_hit)
         horizon = np.linspace(now, max(t_hit, now + 1.0), 12)
         self.log("predict", t=now, path=self._marker_path()(horizon)[0])
@@ -492,6 +536,64 @@ class PredictorPlanner:
                 last = plan.reason
         self.fail(now, f"initial viewing point unreachable: {last}")
         return False
+
+    def _hold_second_leg(self, now: float) -> None:
+        """Once the first leg is no longer re-planned (``replan_until_s`` before its arrival), plan the second
+        image's leg from the first's commanded end and send it held (``SEG … hold=1``, dialect 1.4): its ~70
+        bytes cross the line while the first leg flies, and after the first image only a ~12-byte ``GO`` does
+        (:meth:`_go_held`). The robot still moves only once that image's exposure has ended: GO is sent on
+        its ``FrameTaken``. Planned for the start the GO will give it (arrival, ``@DONE``, the exposure, GO)."""
+        if self.held is not None or self._held_tried or self.plan_kind != "initial1" or self.T_end is None \
+                or not self.robot.holds or _t_hit(self.plan) - now >= self.cfg.run.replan_until_s:
+            return
+        self._held_tried = True
+        baud, fps = self.ctx.lab.robot.baud, float(self.ctx.lab.mobile_camera.fps or self.cfg.run.fps)
+        t0 = (_t_hit(self.plan) + self.plan_shift + wire_time_s(16, baud) + 1.0 / fps
+              + wire_time_s(GO_LINE_BYTES, baud))
+        T = self.T_end
+        state, R = (T[:3, 3].copy(), np.zeros(3), np.zeros(3)), T[:3, :3].copy()
+        before = (self.azimuth_deg, self.elevation_step_deg)
+        self._step_for_second_image()
+        assert self.azimuth_deg is not None  # chosen on entering intercept
+        stepped, plan, az = (self.azimuth_deg, self.elevation_step_deg), None, self.azimuth_deg
+        for margin in (True, False):  # as _plan_initial tries them
+            for delta in INITIAL_AZIMUTH_STEPS_DEG:
+                plan = self._plan_from(t0, state, R, self._initial_view_target(stepped[0] + delta, margin))
+                if plan.reachable and self.arm is not None:
+                    plan = self._arm_fit(plan, t0, state, R, self._initial_view_target(stepped[0] + delta, margin))
+                if plan.reachable:
+                    az = stepped[0] + delta
+                    break
+            if plan is not None and plan.reachable:
+                break
+        self.azimuth_deg, self.elevation_step_deg = before  # nothing changes until the GO
+        if plan is None or not plan.reachable:
+            return
+        end, T_end, duration, kw = _segment_line(plan)
+        try:
+            self.robot.segment(T_end, duration, self.segment_id + 1, hold=True, **kw)
+        except DeviceError as exc:  # refused (E02, E1x): the second leg is sent after the image, as before
+            self.log("hold_refused", t=now, error=str(exc))
+            return
+        self.held = (plan, self.segment_id + 1, self._arm_checked, (az, stepped[1]))
+        self.log("segment_held", t=now, id=self.segment_id + 1, p=T_end[:3, 3], t_start=t0)
+
+    def _go_held(self, now: float) -> bool:
+        """Start the held second leg (``GO``) after the first image's exposure; False if none is held or the
+        controller refused it (the caller plans the leg afresh, as without a held one)."""
+        held, self.held = self.held, None
+        if held is None:
+            return False
+        plan, sid, arm_checked, (az, elevation) = held
+        try:
+            t0c, t1c = self.robot.go(sid)
+        except DeviceError as exc:  # E21 (dropped), a latched fault, the arm: plan it afresh from where it is
+            self.log("hold_refused", t=now, error=str(exc))
+            return False
+        self.azimuth_deg, self.elevation_step_deg = az, elevation
+        self._arm_checked = arm_checked
+        self._start_move(now, "initial2", plan, started=(sid, t0c, t1c))
+        return True
 
     def _replan(self, now: float) -> None:
         """Re-plan the unexecuted motion with the newest prediction (paper §4.3)."""
@@ -827,9 +929,10 @@ class PredictorPlanner:
         if isinstance(msg, m.FrameTaken):
             self.t_requested[msg.view_id] = msg.t  # the image's own time
         if isinstance(msg, m.FrameTaken) and msg.view_id == self.pending and self.plan_kind == "initial1":
-            self.pending = None
-            self._step_for_second_image()
-            self._plan_initial(now, "initial2")
+            self.pending = None  # the exposure has ended: the robot may move
+            if not self._go_held(now):
+                self._step_for_second_image()
+                self._plan_initial(now, "initial2")
         elif isinstance(msg, m.MarkerPose) and msg.view_id == self.pending:
             self.pending = None
             self.log("pose_received", t=now, center_w=msg.center_w, normal_w=msg.normal_w, ambiguous=msg.ambiguous,
@@ -898,6 +1001,7 @@ class PredictorPlanner:
         if self.stage in ("intercept", "initial", "standard") and self.pending is None and self.plan is not None:
             if now < _t_hit(self.plan) + self.plan_shift:
                 self._replan(now)
+                self._hold_second_leg(now)
                 return
             T_flange = self._arrived(now)
             if T_flange is None:

@@ -168,13 +168,25 @@ class Robot(Protocol):
                 end_velocity_mm_s: np.ndarray | None = None, end_omega_rad_s: np.ndarray | None = None,
                 replace: bool = False, profile: str | None = None,
                 end_acceleration_mm_s2: np.ndarray | None = None,
-                limits: dict | None = None) -> tuple[float, float]:
+                limits: dict | None = None, hold: bool = False) -> tuple[float, float]:
         """Queue (``replace``: start now, dropping the queue) a timed task-space segment ending at
         ``T_base_flange``, with the controller's ``quintic`` or (dialect 1.2) ``ruckig`` ``profile`` under
-        its own ``limits``; returns its (t0, t1) on the controller's clock, s (NaN when it does not say)."""
+        its own ``limits``; returns its (t0, t1) on the controller's clock, s (NaN when it does not say).
+        ``hold`` (dialect 1.4, :attr:`holds`): kept at the controller, unplanned, until :meth:`go`."""
+        ...
+    @property
+    def holds(self) -> bool:
+        """The controller keeps a segment sent with ``hold`` until :meth:`go` (dialect 1.4)."""
+        ...
+    def go(self, segment_id: int) -> tuple[float, float]:
+        """Run the held segment now; its (t0, t1) on the controller's clock, s."""
         ...
     def choose_profile(self, wanted: str) -> str:
         """The segment profile to plan with: ``wanted`` if the controller runs it, else ``quintic``."""
+        ...
+    def segment_defaults(self, profile: str, limits: dict | None = None) -> bool:
+        """Make ``profile`` under ``limits`` the session's segment defaults (dialect 1.4 ``SET``), so segments that
+        run them are shorter on the line; False where the session cannot (they keep naming them)."""
         ...
     def poll(self) -> None:
         """Collect the asynchronous reports (``@DONE``) received so far, without waiting."""

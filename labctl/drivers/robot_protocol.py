@@ -20,7 +20,7 @@ ERROR_CODES = {
     10: "outside the workspace (path or stop)", 11: "bad duration", 12: "too fast (linear speed limit)",
     13: "acceleration limit exceeded", 14: "too fast (angular speed limit)", 15: "profile not supported",
     16: "jerk limit above the controller's", 17: "no jerk-limited trajectory to that state",
-    20: "segment queue full",
+    20: "segment queue full", 21: "no such held segment",
     30: "outside the arm's reach", 31: "a joint would pass its limit", 32: "too close to a singularity of the arm",
     33: "needs a configuration change of the arm", 34: "too fast for a joint (joint speed or acceleration limit)",
     40: "stopped by the watchdog: send CLEAR", 41: "stopped: send CLEAR",

@@ -345,6 +345,16 @@ def _median(values: Iterable) -> float | None:
     return statistics.median(values) if values else None
 
 
+def _cell(rs: list[dict]) -> dict:
+    """One trajectory's (or trajectory × speed cell's) trials: n, success, median time to identity (s) and
+    median ``ratio_to_bound`` (time to identity over the honest bound) of the correct ones."""
+    ok = [r for r in rs if r["correct"]]
+    return {"n": len(rs), "success_rate": len(ok) / len(rs) if rs else 0.0,
+            "time_to_identity_s_median": _median([r["time_to_identity_s"] for r in ok]),
+            "ratio_to_bound_median": _median([r["time_to_identity_s"] / r["lower_bound_s"] for r in ok
+                                              if r.get("lower_bound_s")])}
+
+
 def summarize(results: list[dict]) -> dict:
     """Success, time to identity and stage medians per speed; failures with their records."""
     by_speed = []
@@ -382,9 +392,9 @@ def summarize(results: list[dict]) -> dict:
         "ratio_to_lower_bound_median": _median([r["time_to_identity_s"] / r["lower_bound_s"] for r in ok_all
                                                 if r.get("lower_bound_s")]),
     }
-    by_traj = {t: {"n": len(rs), "success_rate": sum(r["correct"] for r in rs) / len(rs),
-                   "time_to_identity_s_median": _median([r["time_to_identity_s"] for r in rs if r["correct"]]),
-                   "wait_s_median": _median([r["stages"].get("wait") for r in rs if r["correct"]])}
+    by_traj = {t: {**_cell(rs), "wait_s_median": _median([r["stages"].get("wait") for r in rs if r["correct"]]),
+                   "by_speed": {f"{v:g}": _cell([r for r in rs if r["speed_mm_s"] == v])
+                                for v in sorted({r["speed_mm_s"] for r in rs})}}
                for t in sorted({r["trajectory"] for r in results if r.get("trajectory") is not None})
                for rs in [[r for r in results if r.get("trajectory") == t]]}
     return {

@@ -250,6 +250,12 @@ _EVENTS = (
                "q_end_deg": _f("array<number>[6]", "the arm's configuration at the segment's end, deg")}),
     EventSpec("predict", "the object's predicted path from now to the horizon",
               {"t": T, "path": _f("array<number?>[*,*]", "[[x, y], ...] mm, table plane W")}),
+    EventSpec("segment_held", "the second image's leg sent held (SEG hold=1, dialect 1.4): it runs at GO, after the "
+              "first image's exposure",
+              {"t": T, "id": _f("integer", "segment id"), "p": _f(POSE3, "flange target position, mm W"),
+               "t_start": _f("number", "the start it was planned for, s (arrival, @DONE, exposure, GO)")}),
+    EventSpec("hold_refused", "the controller refused a held segment or its GO; the leg is planned after the image",
+              {"t": T, "error": _f("string")}),
     EventSpec("replan_refused", "a re-plan was refused by the controller or the safety checks; the old plan stands",
               {"t": T, "error": _f("string")}),
     EventSpec("standard_view_unreachable", "no safe path to the standard view of the chosen marker",

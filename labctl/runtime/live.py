@@ -567,6 +567,9 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
                 dev.open()
             robot_rest = robot.ensure_ready()
             check_robot_limits(robot, lab)  # before anything moves: the plans must be ones it accepts
+            from ..decisions.predictor import set_segment_defaults
+
+            set_segment_defaults(robot, lab)  # dialect 1.4: once, before the run's clock starts
             robot_ok.set()
             marks["robot_and_camera_ready"] = time.time()
         finally:

@@ -19,7 +19,7 @@ import numpy as np
 from ..config import Lab
 from ..decisions import messages as m
 from ..decisions.context import RunContext
-from ..decisions.predictor import PredictorPlanner
+from ..decisions.predictor import PredictorPlanner, set_segment_defaults
 from ..decisions.recognizer import Recognizer
 from ..drivers.interfaces import Frame
 from ..timebase import wire_time_s
@@ -93,6 +93,7 @@ def simulate_run(lab: Lab, ctx: RunContext, spec: TrialSpec, record=None, *, hea
     sim.open()  # opening the drivers takes virtual time (banner, queries)
     world = sim.world
     rest = sim.robot.ensure_ready()  # as the live run does when it opens the robot, before its start
+    set_segment_defaults(sim.robot, lab, spec.profile)  # as the live run does, before its start
     t0 = clock.now()
 
     record_event = record.event if record is not None else (lambda *a, **k: None)
@@ -149,6 +150,12 @@ def simulate_run(lab: Lab, ctx: RunContext, spec: TrialSpec, record=None, *, hea
     while not predictor.finished:
         t_frame = clock.now() + dt if grid0 is None else max(grid0 + (n + 1) * dt, clock.now())
         wake = predictor.wake_at()
+        if wake is not None and clock.now() < cast(float, predictor.t1c) + 1e-4 < t_frame <= wake:
+            # the arrival falls before the next frame and its @DONE reaches the host after it: the controller
+            # still sends it at the arrival, so its port is read there (the line is queued when it is read)
+            clock.sleep_until(cast(float, predictor.t1c) + 1e-4)
+            sim.advance(clock.now())
+            sim.robot.poll()
         if wake is not None and clock.now() < wake < t_frame:
             # the robot's @DONE arrives between two frames: act on it then (the image is taken as soon
             # as the robot stands still), not at the next frame. The emulator sends it when it is

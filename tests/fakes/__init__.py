@@ -195,6 +195,14 @@ class StillRobot:
     def choose_profile(self, wanted):
         return "quintic"
 
+    def segment_defaults(self, profile, limits=None):
+        return False  # an older session: segments keep naming their profile
+
+    holds = False  # an older session: no held segments
+
+    def go(self, segment_id):
+        raise AssertionError("no segment is held by a controller that holds none")
+
     def poll(self):
         pass
 

@@ -60,8 +60,8 @@ if TYPE_CHECKING:
     from ...config import RobotConfig
 
 NAME = "labctl-robot"
-DIALECT = "1.2"
-ARM_DIALECT = "1.3"  # a controller with an arm: joints in STATUS, the arm's refusals E30–E34
+DIALECT = "1.4"  # 1.4: SET, the session's segment defaults (a controller without an arm skips 1.3)
+ARM_DIALECT = "1.4"  # a controller with an arm: from 1.3 joints in STATUS, the arm's refusals E30–E34
 PROFILES = ("quintic", "ruckig")
 LIMIT_KEYS = ("vmax", "amax", "jmax", "wmax")  # a ruckig segment's own limits (1.2), at most the controller's
 PROFILES_BEFORE = {"1.0": ("quintic",), "1.1": ("quintic",)}  # what a session of an older version lists
@@ -303,6 +303,8 @@ class RobotEmulator:
         self.last_request_t = self.now
         self.fault: str | None = None
         self.session = self.dialect  # until a HELLO says otherwise: the strictest behaviour
+        self.seg_defaults: dict[str, Any] = {}  # SET (1.4): profile and limits of a segment naming no profile=
+        self.held: tuple[int, Request] | None = None  # a SEG hold=1 (1.4): its id and request, run at GO
         self.last_segment_id = 0
         self.watchdog_trips = 0
         self.out = bytearray()
@@ -320,6 +322,8 @@ class RobotEmulator:
         self._rest_p, self._rest_R = p, R
         self.fault = None
         self.session = self.dialect
+        self.seg_defaults = {}
+        self.held = None
         self._line.clear()
         self._overlong = False
         self._write(f"@BOOT {self.name} {self.dialect}\n")
@@ -509,7 +513,8 @@ class RobotEmulator:
 
     # --- motion -----------------------------------------------------------------------------
     def _cut_at(self, t: float) -> None:
-        """Drop everything scheduled after t; the running segment ends at t (no @DONE for it)."""
+        """Drop everything scheduled after t (a held segment too); the running segment ends at t (no @DONE)."""
+        self.held = None
         kept = []
         for s in self.segments:
             if s.t0 >= t and not (s.t0 == t and s.t1 == t):
@@ -636,7 +641,12 @@ class RobotEmulator:
             return
         host = tuple(int(x) for x in req.args[0].split(".")) if req.args else (1, 0)
         mine = tuple(int(x) for x in self.dialect.split("."))
-        self.session = ".".join(str(x) for x in min(host, mine))
+        session = min(host, mine)
+        if session == (1, 3) and self.arm is None:  # 1.3 is the arm's: without one a 1.3 host gets 1.2's text
+            session = (1, 2)
+        self.session = ".".join(str(x) for x in session)
+        self.seg_defaults = {}  # every HELLO starts a session without segment defaults (SET, 1.4)
+        self.held = None
         fields = f"{self.name} {self.session} queue={self.queue_size}"
         if self.session != "1.0":  # the 1.0 reply ends at queue= (docs/protocols/robot.md §1)
             fields += f" profiles={','.join(self._profiles())}"
@@ -656,6 +666,46 @@ class RobotEmulator:
     def _cmd_hb(self, req: Request) -> None:
         if self._no_args(req):
             self._reply(req.seq)
+
+    def _cmd_set(self, req: Request) -> None:
+        """``SET [profile=P] [vmax= amax= jmax= wmax=]`` (1.4): the segment defaults of this session, replacing
+        the previous ones (a bare ``SET``: quintic, as before any SET); a SEG or SEGNOW that names no
+        ``profile=`` runs them. Limits only with ``profile=ruckig``, each at most the controller's (E16)."""
+        if tuple(int(x) for x in self.session.split(".")) < (1, 4):
+            self._error(req.seq, 1)  # an older session has no SET: exactly an older controller's answer
+            return
+        opts: dict[str, Any] = {}
+        for word in req.args:
+            key, eq, value = word.partition("=")
+            key = key.lower()
+            if not eq or key in opts or key not in ("profile", *LIMIT_KEYS):
+                self._error(req.seq, 2)
+                return
+            if key == "profile":
+                opts[key] = value.lower()
+                continue
+            number = parse_number(value)
+            if number is None or number <= 0:
+                self._error(req.seq, 2)
+                return
+            opts[key] = number
+        profile = opts.setdefault("profile", "quintic")
+        if profile != "ruckig" and len(opts) > 1:
+            self._error(req.seq, 2)
+            return
+        if profile not in self._profiles():
+            self._error(req.seq, 15)
+            return
+        if self._over_limits(opts):
+            self._error(req.seq, 16)
+            return
+        self.seg_defaults = opts
+        self._reply(req.seq)
+
+    def _over_limits(self, opts: dict[str, Any]) -> bool:
+        """A segment limit (vmax amax jmax wmax in ``opts``) above the controller's own (E16)."""
+        mine = {"vmax": self.v_max, "amax": self.a_max, "jmax": self.j_max, "wmax": math.degrees(self.w_max)}
+        return any(opts.get(k, 0.0) > mine[k] * (1 + REL_TOL) for k in LIMIT_KEYS)
 
     def _cmd_clear(self, req: Request) -> None:
         if self._no_args(req):
@@ -732,11 +782,16 @@ class RobotEmulator:
             key, _, value = args.pop().partition("=")
             key = key.lower()
             older = key != "profile" and self.session in PROFILES_BEFORE  # limits are 1.2's
-            if key in opts or key not in ("profile", *LIMIT_KEYS) or older:
+            if key == "hold":  # 1.4: SEG only, hold=1
+                older = value != "1" or tuple(int(x) for x in self.session.split(".")) < (1, 4)
+            if key in opts or key not in ("profile", "hold", *LIMIT_KEYS) or older:
                 return 2
             opts[key] = value.lower() if key == "profile" else value
+        default = "profile" not in opts and self.seg_defaults  # 1.4: no profile= runs the session's SET
+        if default and any(k in opts for k in LIMIT_KEYS):
+            return 2  # limits belong to a named profile or to SET
         opts.setdefault("profile", "quintic")
-        ruckig = opts["profile"] == "ruckig"
+        ruckig = (self.seg_defaults["profile"] if default else opts["profile"]) == "ruckig"
         if len(args) not in ((8, 14, 17) if ruckig else (8, 14)):
             return 2
         for key in LIMIT_KEYS:
@@ -745,6 +800,8 @@ class RobotEmulator:
                 if not ruckig or number is None or number <= 0:
                     return 2
                 opts[key] = number
+        if default:
+            opts = {**self.seg_defaults, **({"hold": opts["hold"]} if "hold" in opts else {})}
         lowest = 0 if self.session == "1.0" else 1  # 1.1 reserves id 0 for HOME
         if not args[0].isdigit() or not lowest <= int(args[0]) <= 65535:
             return 2
@@ -763,6 +820,13 @@ class RobotEmulator:
         if self.fault:
             self._error(req.seq, self._fault_code())
             return
+        if opts.pop("hold", None) is not None:  # 1.4: kept, not planned, until GO (a SEGNOW cannot hold)
+            if replace:
+                self._error(req.seq, 2)
+                return
+            self.held = (seg_id, Request(req.seq, req.command, tuple(a for a in req.args if a.lower() != "hold=1")))
+            self._reply(req.seq)
+            return
         T = vals[6]
         # ruckig: T is the least duration, 0 = as fast as the limits allow
         if not ((0.0 <= T if profile == "ruckig" else 0.0 < T) and T <= MAX_DURATION_S):
@@ -771,8 +835,7 @@ class RobotEmulator:
         if profile not in self._profiles():
             self._error(req.seq, 15)
             return
-        mine = {"vmax": self.v_max, "amax": self.a_max, "jmax": self.j_max, "wmax": math.degrees(self.w_max)}
-        if any(opts.get(k, 0.0) > mine[k] * (1 + REL_TOL) for k in LIMIT_KEYS):
+        if self._over_limits(opts):
             self._error(req.seq, 16)
             return
         p1 = np.array(vals[0:3])
@@ -782,6 +845,25 @@ class RobotEmulator:
         a1 = np.array(vals[13:16]) if len(vals) == 16 else np.zeros(3)
         ruckig = (self.jerk_limits(**{k: opts.get(k) for k in LIMIT_KEYS}), a1) if profile == "ruckig" else None
         self._queue_segment(req.seq, seg_id, p1, R1, T, v1, w1, replace=replace, ruckig=ruckig)
+
+    def _cmd_go(self, req: Request) -> None:
+        """``GO id`` (1.4): run the held segment ``id`` now, as if its ``SEG`` (without ``hold=1``) arrived now:
+        queued behind what runs, checked, answered ``t0 t1`` or its refusal; E21 if none is held by that id."""
+        if tuple(int(x) for x in self.session.split(".")) < (1, 4):
+            self._error(req.seq, 1)
+            return
+        if len(req.args) != 1 or not req.args[0].isdigit():
+            self._error(req.seq, 2)
+            return
+        if self.fault:
+            self._error(req.seq, self._fault_code())
+            return
+        if self.held is None or self.held[0] != int(req.args[0]):
+            self._error(req.seq, 21)
+            return
+        held = self.held[1]
+        self.held = None
+        self._cmd_seg(Request(req.seq, held.command, held.args))
 
     def _cmd_segnow(self, req: Request) -> None:
         self._cmd_seg(req, replace=True)
