@@ -116,6 +116,11 @@ SLOW = {
     "tests/test_grbl_firmware.py::test_a_test_that_meets_a_wedged_simulator_runs_again_on_a_new_one":
         "21 s; the harness",
     "tests/test_grbl_firmware.py::test_a_silent_simulator_names_the_silent_side_and_is_restarted": "14 s; the harness",
+    "tests/test_grbl_firmware.py::test_interrupt_stops_the_table[1-move]": "9 s; [15-move], the group SIGHUP",
+    "tests/test_grbl_firmware.py::test_critical_alarm_status_never_resets_and_homing_times_out": "14 s; alarm 3",
+    "tests/test_grbl_firmware.py::test_a_stop_waits_out_a_silent_link_and_confirms": "10 s; the brief drop",
+    "tests/test_robot_arm_served.py::test_each_refusal_kind_gets_its_code_before_moving":
+        "15 s; each arm rule's broken controller, the served STATUS joints",
     "tests/test_conformance_robot.py::test_reference_controller_with_the_arm_passes_every_rule_including_the_arms":
         "36 s; every rule without the arm, and each arm rule's broken controller",
     "tests/test_robot_arm_served.py::test_without_a_margin_passing_the_wrist_singularity_needs_a_configuration_change":
