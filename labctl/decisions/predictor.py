@@ -457,7 +457,7 @@ class PredictorPlanner:
     def _start_move(self, now: float, kind: m.CaptureKind, plan: Interception,
                     started: tuple[int, float, float] | None = None) -> None:
         """Fly ``plan`` as the leg to the ``kind`` view: send it, or with ``started`` (segment id, t0c, t1c) a held
-        segment the controller has just started (:meth:`_go_held`)."""
+        segment the controller has just started (:meth:`_go_held`; ``now`` then is when its ``GO`` was sent)."""
         if kind == "initial1":
             self._held_tried = False  # a new first leg: its second may be held again
         traj, t_hit = _reached(plan)
@@ -476,7 +476,7 @@ class PredictorPlanner:
         if started is not None:
             self.segment_id = started[0]
             end, T_end, _, _ = _segment_line(plan)
-            self._accepted(self._now(now), plan, end, T_end, started[1], started[2], line=False)
+            self._accepted(now, plan, end, T_end, started[1], started[2], line=False)
         else:
             try:
                 self._send_segment(now, plan)
@@ -585,6 +585,7 @@ class PredictorPlanner:
         if held is None:
             return False
         plan, sid, arm_checked, (az, elevation) = held
+        sent = self._now(now)  # as for a segment line: the plan is re-timed from when GO left, not its reply
         try:
             t0c, t1c = self.robot.go(sid)
         except DeviceError as exc:  # E21 (dropped), a latched fault, the arm: plan it afresh from where it is
@@ -592,7 +593,7 @@ class PredictorPlanner:
             return False
         self.azimuth_deg, self.elevation_step_deg = az, elevation
         self._arm_checked = arm_checked
-        self._start_move(now, "initial2", plan, started=(sid, t0c, t1c))
+        self._start_move(sent, "initial2", plan, started=(sid, t0c, t1c))
         return True
 
     def _replan(self, now: float) -> None:
