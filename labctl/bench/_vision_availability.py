@@ -35,6 +35,7 @@ from typing import Any
 
 import numpy as np
 
+from ..records.sweep_report import wilson_interval
 from . import _vision_oracle as oracle
 from ._vision_suite import GROSS_CENTRE_PCT, GROSS_NORMAL_DEG, _angle_deg, _errors, _labctl_camera
 
@@ -269,20 +270,9 @@ def run(renderer: str, n_pairs: int = 100, seed: int = 32, cache_dir: str | None
     return rows
 
 
-def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
-    """Wilson score interval (95 % at z = 1.96) of a proportion k of n, as fractions; (0, 1) for n = 0."""
-    if n <= 0:
-        return 0.0, 1.0
-    p = k / n
-    den = 1.0 + z * z / n
-    mid = (p + z * z / (2 * n)) / den
-    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / den
-    return max(0.0, mid - half), min(1.0, mid + half)
-
-
 def _pct_ci(frac: float, n: int) -> str:
     k = int(round(frac * n))
-    lo, hi = wilson(k, n)
+    lo, hi = wilson_interval(k, n)
     return f"{100 * frac:.0f} ({100 * lo:.0f}–{100 * hi:.0f})"
 
 

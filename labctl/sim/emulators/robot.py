@@ -693,14 +693,18 @@ class RobotEmulator:
         if profile != "ruckig" and len(opts) > 1:
             self._error(req.seq, 2)
             return
-        if profile not in self._profiles():
-            self._error(req.seq, 15)
-            return
-        if self._over_limits(opts):
-            self._error(req.seq, 16)
+        if code := self._profile_refusal(profile, opts):
+            self._error(req.seq, code)
             return
         self.seg_defaults = opts
         self._reply(req.seq)
+
+    def _profile_refusal(self, profile: str, opts: dict[str, Any]) -> int:
+        """0, or the error a segment's (or ``SET``'s) profile and limits get: E15 a profile this dialect has
+        not, E16 limits above the controller's own."""
+        if profile not in self._profiles():
+            return 15
+        return 16 if self._over_limits(opts) else 0
 
     def _over_limits(self, opts: dict[str, Any]) -> bool:
         """A segment limit (vmax amax jmax wmax in ``opts``) above the controller's own (E16)."""
@@ -832,11 +836,8 @@ class RobotEmulator:
         if not ((0.0 <= T if profile == "ruckig" else 0.0 < T) and T <= MAX_DURATION_S):
             self._error(req.seq, 11)
             return
-        if profile not in self._profiles():
-            self._error(req.seq, 15)
-            return
-        if self._over_limits(opts):
-            self._error(req.seq, 16)
+        if code := self._profile_refusal(profile, opts):
+            self._error(req.seq, code)
             return
         p1 = np.array(vals[0:3])
         R1 = rotvec_to_matrix(np.array(vals[3:6]))
