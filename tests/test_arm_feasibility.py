@@ -99,6 +99,22 @@ def test_feasibility_command(sweep, capsys):
     assert len(res["per_trial"]) == 1 and 0 < max(res["per_trial"][0]["speed_ratio"]) <= 1.0
 
 
+def test_feasibility_defaults_to_the_labs_mount(sweep, capsys):
+    """Without ``--base`` the arm stands where the lab's robot.yaml mounts it (the runs were flown there),
+    not at the arm file's own default."""
+    from labctl.config import load_lab
+
+    lab_root, trials = sweep
+    mount = load_lab(lab_root).robot.arm_base_xyz_mm
+    assert mount is not None
+    code, out, err = run_cli(capsys, "--lab", str(lab_root), "--json", "robot", "feasibility", str(trials),
+                             "--arm", str(UR10E))
+    assert code == 0, err
+    res = json.loads(out)
+    assert res["base_xyz_mm"] == [float(v) for v in mount]
+    assert res["followed_pct"] == 100.0 and res["within_speeds_pct"] == 100.0
+
+
 @pytest.mark.parametrize("args, message", [
     (["--base", "0,1"], "--base: expected three numbers"),
     (["--base", "0,a,1"], "--base: expected three numbers"),

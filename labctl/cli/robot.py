@@ -122,9 +122,10 @@ def _arm(arm_file: str | Path, base: str | None, base_rpy: str | None):
 @click.argument("runs_dir", type=click.Path(file_okay=False, path_type=Path))
 @click.option("--arm", "arm_file", required=True, type=click.Path(dir_okay=False, path_type=Path),
               help="Arm data file (e.g. drivers/arms/ur10e.yaml).")
-@click.option("--base", default=None, metavar="X,Y,Z", help="The arm's base in the world, mm (default: the file's).")
+@click.option("--base", default=None, metavar="X,Y,Z",
+              help="The arm's base in the world, mm (default: the lab's mount in robot.yaml, else the file's).")
 @click.option("--base-rpy", default=None, metavar="R,P,Y",
-              help="The base's roll, pitch, yaw, degrees (default: the file's).")
+              help="The base's roll, pitch, yaw, degrees (default: the lab's mount, else the file's).")
 @json_option
 def feasibility_cmd(runs_dir: Path, arm_file: Path, base: str | None, base_rpy: str | None) -> None:
     """Could this arm have flown these runs? Every record's commanded motion, followed in joint space.
@@ -135,8 +136,13 @@ def feasibility_cmd(runs_dir: Path, arm_file: Path, base: str | None, base_rpy: 
     within its joint speeds."""
     from ..experiments.arm_feasibility import feasibility
 
+    lab = get_ctx().lab()
+    mount = lab.robot  # the runs were flown with the arm where the lab mounts it, not where the file's default puts it
+    base = base if base is not None or mount.arm_base_xyz_mm is None else ",".join(map(str, mount.arm_base_xyz_mm))
+    if base_rpy is None and mount.arm_base_rpy_deg is not None:
+        base_rpy = ",".join(map(str, mount.arm_base_rpy_deg))
     arm = _arm(arm_file, base, base_rpy)
-    res = feasibility(runs_dir, arm, get_ctx().lab())
+    res = feasibility(runs_dir, arm, lab)
     if get_ctx().json:
         emit(res)
         return
