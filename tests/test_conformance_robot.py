@@ -79,6 +79,15 @@ class GoesAtOnce(RobotEmulator):
         return parsed
 
 
+class KeepsHeldAfterStop(RobotEmulator):
+    """Stops as it should but keeps a held segment through STOP and CLEAR: a later GO would run it."""
+
+    def _cmd_stop(self, req) -> None:
+        held = self.held
+        super()._cmd_stop(req)
+        self.held = held
+
+
 class IgnoresSet(RobotEmulator):
     """Answers SET ok but keeps no defaults: a segment without ``profile=`` still runs a quintic."""
 
@@ -172,6 +181,7 @@ def test_an_arm_controller_that_refuses_nothing_fails_the_arm_rules(rule):
     (RuckigNoBoxCheck, ["--only", "ruckig.limits"], "ruckig.limits"),
     (IgnoresSet, ["--only", "set.defaults"], "set.defaults"),
     (GoesAtOnce, ["--only", "hold.go"], "hold.go"),
+    (KeepsHeldAfterStop, ["--only", "hold.go"], "hold.go"),
 ])
 def test_broken_controllers_fail_the_rule_they_break(cls, only, rule):
     with serve(cls) as dev:

@@ -1185,7 +1185,8 @@ class Suite:
     def r_hold_go(self) -> None:
         """hold.go (1.4): ``SEG … hold=1`` is answered ``ok`` without times and nothing moves (0.3 s later the
         robot stands where it stood); ``GO id`` runs it then (``t0`` now, ``@DONE``, rests on target); a second
-        ``GO id`` is E21, ``SEGNOW … hold=1`` E02; a 1.3 or older session: GO is E01."""
+        ``GO id`` is E21, ``SEGNOW … hold=1`` E02, and so is a ``GO`` after ``STOP`` and ``CLEAR`` (STOP drops
+        what is held); a 1.3 or older session: GO is E01."""
         rule = "hold.go"
         if self.version != "1.4":
             code, _ = self.req("GO 1")
@@ -1226,8 +1227,17 @@ class Suite:
             problems.append(f"a second GO → {c21} (want E21), SEGNOW hold=1 → {c02} (want E02)")
         if c02 == "ok":
             self.recover()
+        sid = self.new_id()  # STOP drops what is held: a GO after STOP and CLEAR finds nothing to run
+        ch, _ = self.req(f"SEG {sid} {words} 1 hold=1")
+        self.req("STOP")
+        self.req("CLEAR")
+        c21, _ = self.req(f"GO {sid}")
+        if ch == "ok" and c21 != "E21":
+            problems.append(f"GO {sid} after STOP and CLEAR → {c21} (want E21: STOP drops a held segment)")
+            self.recover()
         self.record(rule, not problems, "; ".join(problems)
-                    or "held without moving for 0.3 s; GO ran it at once to its end, @DONE; E21 and E02 as documented")
+                    or "held without moving for 0.3 s; GO ran it at once to its end, @DONE; E21 and E02 as "
+                       "documented; STOP dropped a held segment")
 
     # --- the arm (1.3) ----------------------------------------------------------------------
     def _skip_arm(self, rule: str) -> bool:
