@@ -10,6 +10,8 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 pytest.importorskip("pinocchio")
 
@@ -21,6 +23,7 @@ from labctl.planning.interception import Interception  # noqa: E402
 from labctl.planning.limits import planning_limits  # noqa: E402
 from labctl.planning.quintic import QuinticSegment, Trajectory  # noqa: E402
 from labctl.planning.ruckig_interception import plan_interception_ruckig, plan_ruckig_arriving  # noqa: E402
+from labctl.planning.ruckig_profile import JerkLimits  # noqa: E402
 from labctl.planning.tti_bound import Leg, identity_bound, leg_min_time  # noqa: E402
 from labctl.workspace import sample_lab_path  # noqa: E402
 
@@ -101,7 +104,8 @@ def test_a_plan_at_ratio_1_3_is_stretched_by_exactly_1_3_and_the_result_keeps_wi
     assert first.ok and first.ratio == pytest.approx(1.3, rel=1e-9)
     asked: list[float] = []
 
-    def plan_at(T):
+    def plan_at(T, slow):
+        assert slow == 1.0  # only the speeds bind
         asked.append(T)
         return plan_ruckig_arriving(state, 0.0, G, T, limits, R0=A[:3, :3])
 
@@ -127,7 +131,7 @@ def test_a_plan_within_the_joint_speeds_is_sent_as_planned(lab, arm):
                                     10.0, R0=A[:3, :3])
     planner = ArmPlanner(arm)
     fit = fit_plan(plan, 0.0, lambda p: planner.check(p.trajectory, 0.0, p.t_hit, q0),
-                   lambda T: pytest.fail("re-planned a feasible plan"))
+                   lambda T, slow: pytest.fail("re-planned a feasible plan"))
     assert fit.plan is plan and fit.stretch == 1.0 and fit.path.ratio < 1.0
 
 
@@ -146,7 +150,7 @@ def test_a_straight_path_over_the_base_axis_is_refused_and_the_closed_form_agree
     path = planner.check(traj, 0.0, 4.0, q0)
     assert not path.ok and path.reason in ("unreachable", "configuration", "singularity")
     fit = fit_plan(Interception(4.0, traj, None, "ok", _Still(B[:3, 3], B[:3, :3])), 0.0,
-                   lambda p: planner.check(p.trajectory, 0.0, p.t_hit, q0), lambda T: pytest.fail("stretched"))
+                   lambda p: planner.check(p.trajectory, 0.0, p.t_hit, q0), lambda T, slow: pytest.fail("stretched"))
     assert not fit.plan.reachable and fit.plan.code.startswith("arm_")
 
 
@@ -230,3 +234,59 @@ def test_the_bound_rises_when_the_joints_bind():
     # a long Cartesian leg with little joint motion keeps its Cartesian bound
     far = Leg("initial1", (0.0, 0.0, 500.0), (800.0, 0.0, 500.0), q0=(0.0,) * 6, q1=(0.01,) + (0.0,) * 5)
     assert leg_min_time(far, 500.0, 3000.0, qd_max=qd) == leg_min_time(far, 500.0, 3000.0)
+
+
+# --- joint accelerations ------------------------------------------------------------------------------
+def _omega(R0, R1, h):
+    """ω (rad/s, world axes) of a rotation going from R0 to R1 in h seconds: vee(log(R1·R0ᵀ)) / h."""
+    from labctl.planning.rotation import log_so3
+    return log_so3(R1 @ R0.T) / h
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.floats(-1.0, 1.0), min_size=18, max_size=18))
+def test_joint_accelerations_agree_with_the_published_kinematics(lab, arm, x):
+    """q̈ = J⁻¹·([a; α] − J̇q̇) (ArmModel.jacobian, .drift) against the task-space acceleration of a joint motion
+    q(t) = q0 + q̇0·t + ½q̈0·t², differentiated numerically through the hand-written UR10e chain (tests/arm_dh.py)."""
+    from arm_dh import sample_mount, ur10e_fk
+
+    x = np.asarray(x)
+    q0 = arm.home + np.array([0.4, 0.4, 0.4, 0.6, 0.6, 0.6]) * x[:6]  # near home: away from the singularities
+    qd0, qdd0 = 1.5 * x[6:12], 20.0 * x[12:]  # rad/s, rad/s²: a joint's speed and the controller's 26 rad/s² scale
+    mount = sample_mount()
+    h = 1e-3
+    T = [ur10e_fk(q0 + qd0 * t + 0.5 * qdd0 * t * t, mount) for t in (-2 * h, -h, 0.0, h, 2 * h)]
+    a = (T[3][:3, 3] - 2 * T[2][:3, 3] + T[1][:3, 3]) / h ** 2
+    alpha = (_omega(T[2][:3, :3], T[4][:3, :3], 2 * h) - _omega(T[0][:3, :3], T[2][:3, :3], 2 * h)) / (2 * h)
+    qdd = np.linalg.solve(arm.jacobian(q0), np.concatenate([a, alpha]) - arm.drift(q0, qd0))
+    assert np.allclose(qdd, qdd0, atol=0.02 + 0.002 * np.abs(qdd0).max()), (qdd, qdd0)
+
+
+def test_a_leg_within_the_joint_speeds_but_over_an_acceleration_is_slowed_until_the_controller_takes_it(lab, arm):
+    """The reference controller (sim.emulators.arm_servo) refuses with E34 a leg whose joint accelerations it does
+    not allow, though every joint speed is within its limit; the planner, told the controller's accelerations,
+    slows the leg by √ of its acceleration ratio, and the controller then takes it."""
+    from labctl.sim.emulators.arm_servo import E_JOINT_RATE
+    from labctl.sim.lab import arm_servo
+
+    limits = planning_limits(lab.robot)
+    A, B = _down([900.0, 300.0, 700.0]), _down([650.0, 450.0, 650.0])
+    q0 = ArmPlanner(arm).configuration_at(A)
+    state = (A[:3, 3], np.zeros(3), np.zeros(3))
+    G = _Still(B[:3, 3], B[:3, :3])
+    plan = plan_interception_ruckig(state, 0.0, G, limits, 10.0, R0=A[:3, :3])
+    probe = ArmPlanner(arm, ArmCheckSettings(qdd_max=(1.0,) * 6)).check(plan.trajectory, 0.0, plan.t_hit, q0)
+    assert probe.ok and probe.ratios.max() < 0.9  # the speeds alone pass it
+    need = probe.accel_ratios * 0.95  # each joint's peak acceleration, rad/s²
+    qdd_max = tuple(float(v) for v in np.maximum(need / 1.5, 1.0))  # the controller allows 1/1.5 of what it asks
+    servo = arm_servo(lab)
+    servo = type(servo)(servo.model, dataclasses.replace(servo.policy, qdd_max=np.asarray(qdd_max)))
+    ts, poses = _sampled(plan.trajectory, 0.0, plan.t_hit)
+    assert servo.check(ts, np.array(poses), q0)[0] == E_JOINT_RATE
+    planner = ArmPlanner(arm, ArmCheckSettings(qdd_max=qdd_max))
+    fit = fit_plan(plan, 0.0, lambda p: planner.check(p.trajectory, 0.0, p.t_hit, q0),
+                   lambda T, slow: plan_ruckig_arriving(state, 0.0, G, T, limits, R0=A[:3, :3],
+                                                        jerk=JerkLimits.from_limits(limits).slowed(slow)))
+    assert fit.plan.reachable and fit.stretch > 1.1 and fit.path is not None and fit.path.ratio <= 1.0
+    ts, poses = _sampled(fit.plan.trajectory, 0.0, fit.plan.t_hit)
+    assert servo.check(ts, np.array(poses), q0)[0] == 0

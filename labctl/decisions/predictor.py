@@ -253,7 +253,8 @@ class PredictorPlanner:
         # configuration it will have (planning.arm_plan); None: a flange in the task-space box, as before
         self.arm: ArmPlanner | None = None
         if ctx.lab.arm is not None:
-            self.arm = ArmPlanner(ArmModel.from_config(ctx.lab.arm), ArmCheckSettings.from_run(cfg.run))
+            self.arm = ArmPlanner(ArmModel.from_config(ctx.lab.arm),
+                                  ArmCheckSettings.from_run(cfg.run, ctx.lab.robot))
         self.arm_q: np.ndarray | None = None  # the arm's configuration at rest (rest_T), once known
         self.arm_path: JointPath | None = None  # the segment under way as the arm flies it (the plan's time line)
         self._arm_checked: tuple[Interception, JointPath, float] | None = None  # the last plan checked, its stretch
@@ -382,10 +383,12 @@ class PredictorPlanner:
             return plan
         return self._arm_fit(plan, t0, state, R, target)
 
-    def _plan_from(self, t0: float, state, R, target, duration: float | None = None) -> Interception:
+    def _plan_from(self, t0: float, state, R, target, duration: float | None = None,
+                   slow: float = 1.0) -> Interception:
         """The earliest arrival on ``target`` from ``state`` (p, v, a) and rotation ``R`` at ``t0``; with
-        ``duration`` (s), the arrival at ``t0 + duration`` (a stretched segment). Ruckig if the controller
-        runs it, else (or if ruckig finds none) the paper's quintic."""
+        ``duration`` (s), the arrival at ``t0 + duration`` (a stretched segment), its ruckig acceleration and
+        jerk limits time-scaled by ``slow`` (the arm's joint accelerations bind). Ruckig if the controller
+        runs it, else (or if ruckig finds none) the paper's quintic (whose accelerations fall with T²)."""
         horizon = self.cfg.run.plan_horizon_s
         if self.profile == "ruckig":
             traj = self.plan.trajectory if self.plan is not None else None
@@ -394,7 +397,8 @@ class PredictorPlanner:
                 plan = plan_interception_ruckig(state, t0, target, self.ctx.limits, horizon, R0=R, w0=w,
                                                 jerk=self.jerk, base=self.jerk_ctrl)
             else:
-                plan = plan_ruckig_arriving(state, t0, target, duration, self.ctx.limits, R0=R, w0=w, jerk=self.jerk,
+                jerk = self.jerk if slow == 1.0 else self.jerk.slowed(slow)
+                plan = plan_ruckig_arriving(state, t0, target, duration, self.ctx.limits, R0=R, w0=w, jerk=jerk,
                                             base=self.jerk_ctrl)
             if plan.reachable:
                 return plan
@@ -436,7 +440,7 @@ class PredictorPlanner:
             return Interception(None, None, "the arm has no configuration at the start pose", "arm_unreachable",
                                 target)
         fit = fit_plan(plan, t0, lambda p: arm.check(_reached(p)[0], t0, _t_hit(p), q0),
-                       lambda T: self._plan_from(t0, state, R, target, duration=T))
+                       lambda T, slow: self._plan_from(t0, state, R, target, duration=T, slow=slow))
         if fit.plan.reachable and fit.path is not None:
             self._arm_checked = (fit.plan, fit.path, fit.stretch)
         return fit.plan

@@ -144,6 +144,16 @@ class ArmModel:
         q = np.asarray(q, float)
         return pin.computeFrameJacobian(self._model, self._data, q, self._tool, pin.LOCAL_WORLD_ALIGNED)
 
+    def drift(self, q, qd) -> np.ndarray:
+        """J̇(q, q̇)·q̇: the commanded frame's acceleration [a (mm/s²); α (rad/s²)], world-aligned, at joint rates
+        ``qd`` (rad/s) with no joint acceleration (Pinocchio's classical acceleration), so that
+        q̈ = J⁻¹·([a; α] − drift) for a path's own acceleration."""
+        pin = self._pin
+        q, qd = np.asarray(q, float), np.asarray(qd, float)
+        pin.forwardKinematics(self._model, self._data, q, qd, np.zeros(6))
+        acc = pin.getFrameClassicalAcceleration(self._model, self._data, self._tool, pin.LOCAL_WORLD_ALIGNED)
+        return np.concatenate([acc.linear, acc.angular])
+
     # --- singularities ----------------------------------------------------------------------
     def manipulability(self, q) -> float:
         """Yoshikawa's index √det(J·Jᵀ) with the linear rows in metres: 0 at a singularity."""

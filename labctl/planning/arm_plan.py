@@ -9,9 +9,15 @@ the previous sample), then checks every sample
 * reachable and within the joint limits, with no change of configuration branch (``follow``'s own checks);
 * away from the singularities by the settings' margins (:meth:`ArmModel.singularity_margins`);
 * each joint's speed within ``speed_fraction`` of its limit: the exact joint rates q̇ = J(q)⁻¹·[v; ω] of the
-  trajectory's own velocity and angular velocity at each sample (no finite-difference underestimate).
+  trajectory's own velocity and angular velocity at each sample (no finite-difference underestimate);
+* with the controller's joint accelerations known (``qdd_max``), each joint's acceleration within the same
+  fraction of it: q̈ = J⁻¹·([a; α] − J̇q̇), the path's own acceleration less the drift of the joint rates
+  (:meth:`ArmModel.drift`). A controller that checks accelerations (the reference's E34) refuses a path the
+  speeds alone would pass: a 50 mm/s run asked joint 3 for 1.12–1.3× its 1500 °/s² (docs/notes/robot.md).
 
-The peak joint-speed ratio ``r`` over the path is what the planner slows a segment by (its duration × r).
+The ratio ``r`` over the path, the larger of the peak joint-speed ratio and the square root of the peak
+acceleration ratio (a path slowed by r has its rates divided by r and its accelerations by about r²), is what
+the planner slows a segment by (its duration × r).
 Numbers in, numbers out: no clocks or devices.
 """
 
@@ -34,20 +40,23 @@ from .ruckig_interception import RuckigTrajectory
 @dataclass(frozen=True)
 class ArmCheckSettings:
     """How a path is checked in joint space (lab.yaml ``run.arm_*``): sample step (s), the share of each
-    joint's speed limit a plan may use, and the singularity margins (shoulder mm; elbow |sin q3|; wrist
-    |sin q5|)."""
+    joint's speed (and acceleration) limit a plan may use, the singularity margins (shoulder mm; elbow |sin q3|;
+    wrist |sin q5|), and the controller's joint accelerations (rad/s², 6; None: not checked)."""
 
     dt_s: float = 0.02
     speed_fraction: float = 0.95
     shoulder_margin_mm: float = 50.0
     elbow_margin: float = 0.05
     wrist_margin: float = 0.05
+    qdd_max: tuple[float, ...] | None = None
 
     @classmethod
-    def from_run(cls, run) -> ArmCheckSettings:
-        """From a :class:`labctl.config.lab.RunConfig`'s ``arm_*`` settings."""
+    def from_run(cls, run, robot=None) -> ArmCheckSettings:
+        """From a :class:`labctl.config.lab.RunConfig`'s ``arm_*`` settings, and the joint accelerations the
+        lab's robot controller allows (``drivers/robot.yaml`` ``arm_joint_accel_deg_s2``) if ``robot`` is given."""
+        qdd = None if robot is None else tuple(math.radians(float(a)) for a in robot.arm_joint_accel_deg_s2)
         return cls(run.arm_check_dt_s, run.arm_speed_fraction, run.arm_shoulder_margin_mm, run.arm_elbow_margin,
-                   run.arm_wrist_margin)
+                   run.arm_wrist_margin, qdd)
 
 
 @dataclass
@@ -55,8 +64,9 @@ class JointPath:
     """A trajectory as the arm flies it: sample times ``t`` (s, the plan's time line), configurations ``qs``
     (N×6 rad), and the verdict. ``ok``: followable within the limits and margins (its speed may still be
     over: see ``ratio``); ``reason``: ``unreachable``, ``joint_limit``, ``configuration`` or ``singularity``;
-    ``ratio``: the peak over joints and samples of |q̇_i| / (speed_fraction · q̇max_i) — above 1 the segment
-    must be slowed by it; ``ratios``: each joint's peak."""
+    ``ratios``: each joint's peak |q̇_i| / (speed_fraction · q̇max_i) over the samples; ``accel_ratios``: each
+    joint's peak |q̈_i| / (speed_fraction · q̈max_i) (zeros when accelerations are not checked); ``ratio``: the
+    factor the segment must be slowed by, max(max ratios, √max accel_ratios) — above 1 it is too fast."""
 
     t: np.ndarray
     qs: np.ndarray
@@ -64,10 +74,11 @@ class JointPath:
     reason: str | None = None
     ratio: float = 0.0
     ratios: np.ndarray = field(default_factory=lambda: np.zeros(6))
+    accel_ratios: np.ndarray = field(default_factory=lambda: np.zeros(6))
 
     @property
     def feasible(self) -> bool:
-        """Followable and within every joint's speed."""
+        """Followable and within every joint's speed (and acceleration, where checked)."""
         return self.ok and self.ratio <= 1.0
 
     def q_at(self, t: float) -> np.ndarray:
@@ -97,6 +108,25 @@ def _sample(traj: Trajectory | RuckigTrajectory, t) -> tuple[np.ndarray, np.ndar
     if w is not None:
         twist[3:] = w
     return make_T(R, p), twist
+
+
+#: a joint whose sampled acceleration reaches this share of its limit is refined between samples (the samples
+#: see ≥ 0.87 of the peak, so below it the refined peak stays under the limit) ...
+ACCEL_REFINE_FROM = 0.6
+#: ... at this many steps an interval (4 ms at the 20-ms samples: the reference controller's own check step)
+ACCEL_SUBSTEPS = 5
+#: the step (s) of the central difference that gives a path's acceleration [a; α] from its twist: far below the
+#: ~10 ms over which a jerk-limited segment's acceleration changes, far above the twist's round-off
+_RATE_STEP_S = 1e-4
+
+
+def _twist_rate(traj: Trajectory | RuckigTrajectory, t: float, t0: float, t1: float) -> np.ndarray:
+    """The time derivative of ``traj``'s twist at ``t`` (s): [a (mm/s²); α (rad/s²)], world axes, by a central
+    difference inside [t0, t1] (one-sided at its ends, so that what lies outside the leg does not enter)."""
+    lo, hi = max(t - _RATE_STEP_S, t0), min(t + _RATE_STEP_S, t1)
+    if hi <= lo:
+        return np.zeros(6)
+    return (_sample(traj, hi)[1] - _sample(traj, lo)[1]) / (hi - lo)
 
 
 class ArmPlanner:
@@ -146,7 +176,7 @@ class ArmPlanner:
         branch = model.configuration(q)
         seed = q
         qs = np.zeros((len(ts), 6))
-        peak = np.zeros(6)
+        qds, qdds = np.zeros((len(ts), 6)), np.zeros((len(ts), 6))
         for k, t in enumerate(ts):  # each sample evaluated when reached: a path refused early costs no more
             T, tw = _sample(traj, t)
             res = model.ik(T, seed)
@@ -160,17 +190,43 @@ class ArmPlanner:
                 reason = "singularity"
             if reason is None:
                 try:
-                    qd = np.linalg.solve(model.jacobian(res.q), tw)
+                    J = model.jacobian(res.q)
+                    qd = np.linalg.solve(J, tw)
                 except np.linalg.LinAlgError:
                     reason = "singularity"
             if reason is not None:
                 return JointPath(ts[:k], qs[:k] if k else q[None], False, reason)
             q = qs[k] = res.q
-            peak = np.maximum(peak, np.abs(qd))
+            qds[k] = qd
+            if s.qdd_max is not None:
+                qdds[k] = np.linalg.solve(J, _twist_rate(traj, t, t0, t1) - model.drift(q, qd))
             if k + 1 < len(ts):
                 seed = q + qd * (ts[k + 1] - ts[k])
-        ratios = peak / (s.speed_fraction * model.qd_max)
-        return JointPath(ts, qs, True, None, float(ratios.max()), ratios)
+        ratios = np.abs(qds).max(axis=0) / (s.speed_fraction * model.qd_max)
+        accel = np.zeros(6) if s.qdd_max is None else self._accel_ratios(traj, ts, qs, qds, qdds, t0, t1)
+        return JointPath(ts, qs, True, None, max(float(ratios.max()), math.sqrt(float(accel.max()))), ratios, accel)
+
+    def _accel_ratios(self, traj, ts, qs, qds, qdds, t0: float, t1: float) -> np.ndarray:
+        """Each joint's peak |q̈_i| / (speed_fraction · q̈max_i) over the path. The samples' own accelerations,
+        refined where they come near the limit: round each joint's two largest samples, every
+        ``dt_s / ACCEL_SUBSTEPS`` with q from the sample's rates (q + q̇·δ, ~1e-4 rad off over 20 ms), since a
+        jerk-limited peak falls between samples (the 20-ms samples saw 0.87 of the 2-ms peak on a 0.4-s leg)."""
+        model, s = self.model, self.settings
+        limit = s.speed_fraction * np.asarray(s.qdd_max, float)
+        coarse = np.abs(qdds) / limit
+        peak = coarse.max(axis=0)
+        centres = {int(k) for i in np.flatnonzero(peak >= ACCEL_REFINE_FROM) for k in np.argsort(coarse[:, i])[-2:]}
+        for k in sorted(centres):
+            for j in (k - 1, k):  # the intervals either side of sample k
+                if j < 0 or j + 1 >= len(ts):
+                    continue
+                for t in np.linspace(ts[j], ts[j + 1], ACCEL_SUBSTEPS + 1)[1:-1]:
+                    qa = qs[j] + qds[j] * (t - ts[j])
+                    J = model.jacobian(qa)
+                    qd = np.linalg.solve(J, _sample(traj, t)[1])
+                    qdd = np.linalg.solve(J, _twist_rate(traj, t, t0, t1) - model.drift(qa, qd))
+                    peak = np.maximum(peak, np.abs(qdd) / limit)
+        return peak
 
     def joint_time_s(self, q0, T_w_F) -> float:
         """Least time (s) the joints need from ``q0`` to the configuration nearest it at ``T_w_F`` (IK from
@@ -254,14 +310,16 @@ class ArmFit:
 
 
 def fit_plan(plan: Interception, t0: float, check: Callable[[Interception], JointPath],
-             plan_at: Callable[[float], Interception], tries: int = STRETCH_TRIES) -> ArmFit:
+             plan_at: Callable[[float, float], Interception], tries: int = STRETCH_TRIES) -> ArmFit:
     """``plan`` (starting at ``t0``, s) made flyable by the arm: ``check`` follows a plan in joint space; a path
-    whose peak joint-speed ratio r exceeds 1 is re-planned by ``plan_at(T)`` to last exactly r times as long
-    (T = r · (t_hit − t0)) and checked again, up to ``tries`` times; one that is not followable (out of reach, a
-    joint limit, a singularity margin, a change of configuration) comes back unreachable with ``arm_<reason>``,
-    so the caller chooses another view."""
+    whose ratio r (peak joint speed, or the square root of peak joint acceleration, against its share of the
+    limit) exceeds 1 is re-planned by ``plan_at(T, slow)`` to last exactly r times as long (T = r · (t_hit − t0))
+    — where the accelerations bind, with its acceleration and jerk limits time-scaled by ``slow`` (the product of
+    those square roots so far; :meth:`~labctl.planning.ruckig_profile.JerkLimits.slowed`) — and checked again,
+    up to ``tries`` times; one that is not followable (out of reach, a joint limit, a singularity margin, a
+    change of configuration) comes back unreachable with ``arm_<reason>``, so the caller chooses another view."""
     G = plan.target
-    stretch = 1.0
+    stretch, slow = 1.0, 1.0
     for _ in range(tries):
         assert plan.t_hit is not None and plan.trajectory is not None  # only reachable plans are checked
         path = check(plan)
@@ -271,7 +329,8 @@ def fit_plan(plan: Interception, t0: float, check: Callable[[Interception], Join
         if path.ratio <= 1.0:
             return ArmFit(plan, path, stretch)
         stretch *= path.ratio
-        plan = plan_at((plan.t_hit - t0) * path.ratio)
+        slow *= max(math.sqrt(float(path.accel_ratios.max())), 1.0)
+        plan = plan_at((plan.t_hit - t0) * path.ratio, slow)
         if not plan.reachable:
             return ArmFit(plan, None, stretch)
     return ArmFit(Interception(None, None, "the arm's joints stay over speed on the slowed path", "arm_speed", G),

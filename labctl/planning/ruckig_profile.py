@@ -39,7 +39,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Protocol
 
 import numpy as np
@@ -89,6 +89,12 @@ class JerkLimits:
                    float(alpha_max if alpha_max is not None else ANGULAR_STOP_PER_S * limits.w_max),
                    np.asarray(limits.box_min, float), np.asarray(limits.box_max, float),
                    float(a_stop if a_stop is not None else limits.a_stop))
+
+    def slowed(self, r: float) -> JerkLimits:
+        """The limits of this segment's motion time-scaled by ``r`` ≥ 1 (a/r², j/r³; speeds unchanged, they
+        are caps): what slows a segment's accelerations by r² where stretching its duration alone need not
+        (a longer ruckig segment may still accelerate at the limit, then cruise slower)."""
+        return replace(self, a_max=self.a_max / r ** 2, j_max=self.j_max / r ** 3)
 
     def _values(self) -> dict[str, float]:
         return {"vmax": self.v_max, "amax": self.a_max, "jmax": self.j_max, "wmax": math.degrees(self.w_max)}
