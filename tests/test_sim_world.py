@@ -438,3 +438,24 @@ def test_live_sim_lab_fixed_camera_serves_the_object_window_the_tracker_reads(la
             got = sorted(tuple(np.round(mk.centroid, 6)) for mk in detect_markers(frame.image, refine=False))
             want = sorted(tuple(np.round(mk.centroid, 6)) for mk in detect_markers(full, refine=False))
             assert got == want and got
+
+
+def test_sim_lab_serves_its_ports_before_it_builds_the_world(lab):
+    # a live run's table and robot connect while the simulated lab reads its object and builds the world:
+    # on_ports comes with both emulators on their ptys and no world yet; a scene given as a function is made after
+    seen, made = [], []
+
+    def on_ports(sim):
+        seen.append((sim.world, sorted(sim.endpoints()), sim.grbl is not None, sim.robot_emu is not None))
+
+    def scene():
+        made.append(len(seen))
+        return Scene.test_block(lab)
+
+    sim = SimLab.build(lab, RealClock(), ports="pty", scene=scene, on_ports=on_ports)
+    try:
+        assert seen == [(None, ["robot", "table"], True, True)] and made == [1]
+        assert sim.world is not None and set(sim.cameras) == {"fixed", "mobile"}
+        assert all(Path(p).exists() for p in sim.endpoints().values())
+    finally:
+        sim.close()
