@@ -125,6 +125,48 @@ def test_save_image_and_finish_are_atomic_files(tmp_path):
     assert not [q for q in rec.path.iterdir() if q.name.startswith(".")]  # no temp files left behind
 
 
+def test_image_writer_writes_what_save_image_writes_in_order_and_waits_on_close(tmp_path):
+    # the live recognizer's images go to disk in a thread: the same files, byte for byte, as the direct
+    # write (decoded by OpenCV's reader, not the writer), each from the array as it was when queued
+    import cv2
+
+    rng = np.random.default_rng(5)
+    direct, threaded = RunRecord.create(tmp_path / "a"), RunRecord.create(tmp_path / "b")
+    writer = threaded.image_writer()
+    images = {f"view_{k}": rng.integers(0, 256, (48, 64, 3), dtype=np.uint8) for k in range(1, 6)}
+    images["silhouette_1"] = rng.random((48, 64)) > 0.5
+    for name, img in images.items():
+        direct.save_image(name, img)
+        writer.save(name, img)
+        if img.dtype == np.uint8:
+            img[:] = 0  # the caller reuses its array: the queued copy is what was given
+    writer.close()
+    assert writer.written == len(images) and writer.error is None
+    for name in images:
+        a, b = (direct.path / f"{name}.png").read_bytes(), (threaded.path / f"{name}.png").read_bytes()
+        assert a == b
+        assert cv2.imread(str(threaded.path / f"{name}.png"), cv2.IMREAD_UNCHANGED).any()
+    assert not [q for q in threaded.path.iterdir() if q.name.startswith(".")]
+    with pytest.raises(RecordError):  # closed: nothing is queued that no thread will write
+        writer.save("late", images["view_1"])
+
+
+def test_image_writer_refuses_bad_images_at_once_and_reports_a_lost_write_on_close(tmp_path):
+    rec = RunRecord.create(tmp_path)
+    writer = rec.image_writer()
+    for bad_name in ("../escape", "a/b", ""):
+        with pytest.raises(RecordError):
+            writer.save(bad_name, np.zeros((4, 4), np.uint8))
+    with pytest.raises(RecordError):
+        writer.save("f", np.zeros((4, 4), np.float32))
+    (rec.path / "taken.png").mkdir()  # a directory where the image goes: its write fails in the thread
+    writer.save("taken", np.zeros((4, 4), np.uint8))
+    writer.save("fine", np.zeros((4, 4), np.uint8))
+    with pytest.raises(RecordError, match="taken.png"):
+        writer.close()
+    assert (rec.path / "fine.png").is_file()  # one failed write does not stop the others
+
+
 def test_read_events_skips_a_torn_last_line_unless_strict(tmp_path):
     rec = RunRecord.create(tmp_path, checked=False)
     rec.event("a")

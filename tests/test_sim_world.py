@@ -410,3 +410,52 @@ def test_object_window_holds_every_red_pixel_of_the_full_frame(lab, block):
         assert xs.min() >= x0 and xs.max() < x1 and ys.min() >= y0 and ys.max() < y1
     with pytest.raises(WorldError):
         world.render("fixed", 0.0, window="everything")
+
+
+def test_live_sim_lab_fixed_camera_serves_the_object_window_the_tracker_reads(lab):
+    # labctl run's simulated lab renders the fixed camera as the virtual run does (the object's window, no
+    # anti-aliasing, flat table grey outside): inside the window the frame is the whole frame rendered
+    # independently with the same noise, and the tracker's marker centroids are the whole frame's
+    from labctl.runtime.simlab import LiveSimLab, ServedLab
+    from labctl.vision import detect_markers
+
+    assert ServedLab.fixed_object_window is False  # the served lab stands in for real cameras: whole frames
+    with LiveSimLab(lab, {"seed": 4, "trajectory": "line", "speed_mm_s": 8.0}) as live:
+        cam = live.sim.cameras["fixed"]
+        assert (cam.window, cam.supersample) == ("object", 1)
+        world = live.world
+        for seq in (0, 45, 90):
+            frame = cam.render_frame(seq)
+            t = cam.frame_time(seq)
+            full = world.render("fixed", t, np.random.default_rng([cam.seed, 1, seq]), supersample=1).image
+            x0, y0, x1, y1 = world.object_window("fixed", [(world.T_w_c("fixed", t), world.meshes_at(t))])
+            assert x1 - x0 > 20 and y1 - y0 > 20
+            assert np.array_equal(frame.image[y0:y1, x0:x1], full[y0:y1, x0:x1])
+            outside = np.ones(full.shape[:2], bool)
+            outside[y0:y1, x0:x1] = False
+            assert len(np.unique(frame.image[outside].reshape(-1, 3), axis=0)) < len(
+                np.unique(full[outside].reshape(-1, 3), axis=0))  # no texture there: nothing a tracker reads
+            got = sorted(tuple(np.round(mk.centroid, 6)) for mk in detect_markers(frame.image, refine=False))
+            want = sorted(tuple(np.round(mk.centroid, 6)) for mk in detect_markers(full, refine=False))
+            assert got == want and got
+
+
+def test_sim_lab_serves_its_ports_before_it_builds_the_world(lab):
+    # a live run's table and robot connect while the simulated lab reads its object and builds the world:
+    # on_ports comes with both emulators on their ptys and no world yet; a scene given as a function is made after
+    seen, made = [], []
+
+    def on_ports(sim):
+        seen.append((sim.world, sorted(sim.endpoints()), sim.grbl is not None, sim.robot_emu is not None))
+
+    def scene():
+        made.append(len(seen))
+        return Scene.test_block(lab)
+
+    sim = SimLab.build(lab, RealClock(), ports="pty", scene=scene, on_ports=on_ports)
+    try:
+        assert seen == [(None, ["robot", "table"], True, True)] and made == [1]
+        assert sim.world is not None and set(sim.cameras) == {"fixed", "mobile"}
+        assert all(Path(p).exists() for p in sim.endpoints().values())
+    finally:
+        sim.close()

@@ -76,6 +76,22 @@ def test_the_table_texture_from_the_cache_is_the_drawn_one_bit_for_bit(cache):
     assert not np.array_equal(render._draw_table_grey(seed + 1), drawn)  # the seed is in the key, and matters
 
 
+def test_the_noise_bank_from_the_cache_is_the_drawn_one_bit_for_bit(cache):
+    # the sensor noise every frame takes a window of: from the disk on a second start, the same bytes as drawn
+    render._noise_bank.cache_clear()
+    miss = render._noise_bank(48, 64, 2.5)
+    render._noise_bank.cache_clear()
+    hit = render._noise_bank(48, 64, 2.5)  # from the disk
+    render._noise_bank.cache_clear()
+    drawn = render._draw_noise_bank(48, 64, 2.5)  # the oracle: the drawing code, no cache
+    for a, b, c in zip(miss, hit, drawn):
+        assert a.dtype == b.dtype == c.dtype == np.uint8 and np.array_equal(a, c) and np.array_equal(b, c)
+    assert hit[0].shape == (48 + render._NOISE_MARGIN, 64 + render._NOISE_MARGIN, 3) and hit[0].any()
+    other = render._noise_bank(48, 64, 5.0)  # sigma is in the key, and matters
+    assert not np.array_equal(other[0], hit[0]) and np.array_equal(other[0], render._draw_noise_bank(48, 64, 5.0)[0])
+    render._noise_bank.cache_clear()
+
+
 def test_pixel_rays_from_the_cache_are_the_computed_ones_and_another_camera_is_another_entry(cache):
     cam = CameraModel(f=8.0, kappa1=2e-3, sx=1.0, cx=33.0, cy=23.0, dx=0.01, dy=0.01, ncx=64, nfx=64,
                       width=64, height=48)

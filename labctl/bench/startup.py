@@ -9,7 +9,9 @@ process started (its start time from /proc, not the bench's clock), the last one
 *Warm*: the page cache holds the interpreter, the packages and the lab (every run after the first).
 *Cold*: the first run after ``sync; echo 3 > /proc/sys/vm/drop_caches`` — only as root; elsewhere it is
 reported as not measurable rather than guessed. Byte-code caches (``__pycache__``) stay as they are in
-both: a user's installed labctl has them.
+both: a user's installed labctl has them. The runs do not inherit ``PYTHONDONTWRITEBYTECODE`` (a development
+environment may set it): without it every process of every run compiled labctl's sources again, which no
+installed labctl does; the first (unmeasured or cold) run writes them, as Python does for any user.
 
 *Against a base tree*: with ``$LABCTL_BENCH_BASE`` set to another checkout (the commit before a change),
 both trees are timed in the same bench, run by run alternating (the order swapped every round, one lab
@@ -50,6 +52,7 @@ BASE_ENV = "LABCTL_BENCH_BASE"  # another checkout to time beside this one, run 
 
 def _env(tree: Path | None, cache_dir: Path | None = None) -> dict:
     env = dict(os.environ)
+    env.pop("PYTHONDONTWRITEBYTECODE", None)  # byte-code as an installed labctl has it (module docstring)
     if tree is not None:  # time another checkout (e.g. the commit before a change) with the same bench
         env["PYTHONPATH"] = str(tree)
     if cache_dir is not None:  # the simulated lab's disk cache (labctl.fsutil.cache_root)

@@ -48,7 +48,7 @@ from ..tracking.bridge import OcclusionBridge
 from ..tracking.tracker import MarkerTracker, position_from_frames
 from ..vision import detect_markers, detect_markers_windowed, red_blob_centroid
 from . import messages as m
-from .context import Lab, RunContext, marker_thresholds
+from .context import RunContext, marker_thresholds
 
 #: a robot at rest farther than this (mm) from the end of its segment did not run it to the end
 ARRIVAL_TOL_MM = 1.0
@@ -151,19 +151,6 @@ def _segment_line(plan: Interception):
         cast(RuckigTrajectory, end).base)} if isinstance(end, RuckigTrajectory) else {}
     duration = math.ceil((end.t1 - end.t0) * 1000.0 - 1e-6) / 1000.0
     return end, T_end, duration, kw
-
-
-def set_segment_defaults(robot: Robot, lab: Lab, profile: str | None = None) -> bool:
-    """Tell the controller once, when it is opened and before the run's clock starts, what every segment of
-    the run carries (dialect 1.4 ``SET``): the ``ruckig`` profile (``profile``, else ``run.profile``, if the
-    controller runs it) under the ``robot_stop_budget_s`` speed cap — the limits :class:`PredictorPlanner`
-    plans with. Each segment line is then ~24 bytes shorter (~25 ms at 9600 bps, on the critical path of
-    every leg); False where nothing was set (a quintic run, an older controller)."""
-    cfg = lab.config
-    if robot.choose_profile(profile or cfg.run.profile) != "ruckig":
-        return False
-    limits = ruckig_limits(lab.robot, cfg.run.robot_stop_budget_s).wire(controller_limits(lab.robot))
-    return robot.segment_defaults("ruckig", limits)
 
 
 class PredictorPlanner:

@@ -47,8 +47,8 @@ from ..errors import LabctlError
 from ..fsutil import atomic_write_bytes, atomic_write_text
 from .events import EventSchemaError, problem, spec
 
-__all__ = ["RecordError", "RunRecord", "RunData", "read_events", "load_run", "to_jsonable", "EVENTS", "META",
-           "RESULT"]
+__all__ = ["RecordError", "RunRecord", "ImageWriter", "RunData", "read_events", "load_run", "to_jsonable", "EVENTS",
+           "META", "RESULT"]
 
 EVENTS = "events.jsonl"
 META = "meta.json"
@@ -268,8 +268,11 @@ class RunRecord:
         Encoded in memory and written through a temporary file + ``os.replace``, so a reader never
         sees half a PNG.
         """
-        import cv2
+        fname, img = self._checked_image(name, image)
+        return self._write_png(fname, img)
 
+    def _checked_image(self, name: str, image: np.ndarray) -> tuple[str, np.ndarray]:
+        """The PNG file name and the array to encode; RecordError for a bad name, dtype or shape."""
         fname = name if name.lower().endswith(".png") else f"{name}.png"
         if not _NAME_OK.match(fname):
             raise RecordError(f"image name {name!r} must be a plain file name")
@@ -280,12 +283,21 @@ class RunRecord:
             raise RecordError(f"image {fname}: dtype {img.dtype} (need uint8, uint16 or bool)")
         if not (img.ndim == 2 or (img.ndim == 3 and img.shape[2] in (1, 3, 4))) or img.size == 0:
             raise RecordError(f"image {fname}: shape {img.shape} is not an image")
+        return fname, img
+
+    def _write_png(self, fname: str, img: np.ndarray) -> Path:
+        import cv2
+
         ok, buf = cv2.imencode(".png", np.ascontiguousarray(img))
         if not ok:
             raise RecordError(f"image {fname}: PNG encoding failed")
         path = self.path / fname
         atomic_write_bytes(path, buf.tobytes())
         return path
+
+    def image_writer(self) -> ImageWriter:
+        """A writer that saves this record's images in a thread (:class:`ImageWriter`)."""
+        return ImageWriter(self)
 
     def finish(self, result: dict) -> Path:
         """Write ``result.json`` atomically (numpy values converted); return its path."""
@@ -328,6 +340,68 @@ class RunRecord:
 
     def __repr__(self) -> str:
         return f"RunRecord({str(self.path)!r})"
+
+
+class ImageWriter:
+    """A record's images encoded and written by one thread, in the order given, so that a live worker's reply
+    does not wait for a PNG encode and an fsync (10–110 ms each on a shared machine; docs/notes/run.md,
+    "2026-12-02 (c)"). :meth:`save` checks the name and the array at once (the same :class:`RecordError` as
+    :meth:`RunRecord.save_image`) and keeps a copy; :meth:`close` — on every way out of the worker — waits
+    until every queued image is on disk and raises the first write error, if any. Each file is written
+    atomically as by :meth:`RunRecord.save_image`, with the same bytes."""
+
+    def __init__(self, record: RunRecord):
+        self.record = record
+        self._queue: list[tuple[str, np.ndarray]] = []
+        self._cv = threading.Condition()
+        self._closing = False
+        self._thread: threading.Thread | None = None
+        self.error: str | None = None
+        self.written = 0
+
+    def save(self, name: str, image: np.ndarray) -> None:
+        """Queue ``image`` as PNG ``name`` (a copy: the caller may reuse its array)."""
+        fname, img = self.record._checked_image(name, image)
+        with self._cv:
+            if self._closing:
+                raise RecordError(f"image {fname}: the record's image writer is closed")
+            self._queue.append((fname, np.array(img, copy=True)))
+            if self._thread is None:
+                self._thread = threading.Thread(target=self._loop, name="record-images", daemon=True)
+                self._thread.start()
+            self._cv.notify()
+
+    def _loop(self) -> None:
+        while True:
+            with self._cv:
+                while not self._queue and not self._closing:
+                    self._cv.wait()
+                if not self._queue:
+                    return
+                fname, img = self._queue[0]
+            try:
+                self.record._write_png(fname, img)
+                self.written += 1
+            except (OSError, RecordError) as exc:
+                self.error = self.error or f"image {fname}: {exc}"
+            with self._cv:
+                self._queue.pop(0)
+                self._cv.notify_all()
+
+    def close(self, timeout_s: float = 30.0) -> None:
+        """Write what is queued (waits up to ``timeout_s``), then stop; RecordError if an image was not written."""
+        with self._cv:
+            self._closing = True
+            self._cv.notify_all()
+            thread = self._thread
+        if thread is not None and thread is not threading.current_thread():
+            thread.join(timeout=timeout_s)
+        with self._cv:
+            left = [f for f, _ in self._queue]
+        if left:
+            self.error = self.error or f"{len(left)} image(s) not written within {timeout_s:g} s: {', '.join(left)}"
+        if self.error:
+            raise RecordError(self.error)
 
 
 # ---- reading --------------------------------------------------------------------------------------

@@ -127,11 +127,13 @@ class WorkerArgs:
     shared_clock: bool = False
 
 
-def _endpoints(args: WorkerArgs, ctl, timeout_s: float = 60.0) -> WorkerArgs:
+def _endpoints(args: WorkerArgs, ctl, timeout_s: float = 60.0, ports_first: bool = False) -> WorkerArgs:
     """``args`` with the simulated lab's ports, frame server and clock origin filled in, once the
     supervisor sends them (``("endpoints", dict)`` on the control pipe); unchanged if they came with
     ``args``. A worker forked early loads its lab, calibration and library while the simulated lab
-    starts, and opens no device before this returns."""
+    starts, and opens no device before this returns. ``ports_first``: the devices' ports and the origin
+    alone (``("ports", dict)``, sent while the lab still builds its world) will do; ``await_endpoints``
+    stays set, and a second call waits for the rest (the frame server)."""
     if not args.await_endpoints:
         return args
     deadline = time.monotonic() + timeout_s
@@ -145,11 +147,11 @@ def _endpoints(args: WorkerArgs, ctl, timeout_s: float = 60.0) -> WorkerArgs:
             msg = conn.recv()
         except (EOFError, OSError):
             raise PeerLost("the supervisor is gone (control pipe closed)") from None
-        if msg and msg[0] == "endpoints":
+        if msg and (msg[0] == "endpoints" or (ports_first and msg[0] == "ports")):
             ep = msg[1]
             return dataclasses.replace(args, table_port=ep.get("table"), robot_port=ep.get("robot"),
                                        frame_server=ep.get("frame_server"), origin=ep["origin"],
-                                       await_endpoints=False, shared_clock=True)
+                                       await_endpoints=msg[0] != "endpoints", shared_clock=True)
     raise PeerLost(f"the simulated lab's ports did not come within {timeout_s:g} s")
 
 
@@ -526,9 +528,8 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
         ctx_job = starting.submit(load_context)
         link = open_link(hl, "predictor", local_end=link_end, authkey=_authkey(args, lab),
                          on_refused=lambda line: log("link_refused", line=line))
-        args = _endpoints(args, ctl)
+        args = _endpoints(args, ctl, ports_first=True)  # the table's and the robot's ports may come first
         run_clock = RealClock(origin=args.origin)
-        log("run_clock", role="predictor", origin=args.origin)  # the origin every ``t`` of the record is on
         marks["endpoints"] = time.time()
         # the sim lab's ports when it serves them, else the driver files' (None keeps the file's port);
         # no table to drive when the parts move by something else (--trajectory external)
@@ -540,7 +541,6 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
             tcfg = dataclasses.replace(tcfg, reset_on_open=False)
         table = None if external else GrblTable.from_config(tcfg, port=args.table_port)
         robot = SerialRobot.from_config(lab.robot, port=args.robot_port)
-        camera = _fixed_camera(args, lab)
 
         robot_checked, robot_ok = threading.Event(), threading.Event()
 
@@ -563,14 +563,20 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
         # keep-alive while opening: nothing moves yet, and the two threads must not share a port.
         table_job = starting.submit(table_ready) if table is not None else None
         try:
-            for dev in (robot, camera):
-                dev.open()
+            robot.open()
             robot_rest = robot.ensure_ready()
             check_robot_limits(robot, lab)  # before anything moves: the plans must be ones it accepts
-            from ..decisions.predictor import set_segment_defaults
+            from ..decisions.segment_defaults import set_segment_defaults  # light: not the planner's import
 
             set_segment_defaults(robot, lab)  # dialect 1.4: once, before the run's clock starts
-            robot_ok.set()
+            marks["robot_ready"] = time.time()
+            args = _endpoints(args, ctl)  # the frame server: the simulated lab is ready
+            # the origin every ``t`` of the record is on; logged once the lab is ready, as before the ports came
+            # early, so that the record still opens with both workers' ``worker_started``
+            log("run_clock", role="predictor", origin=args.origin)
+            camera = _fixed_camera(args, lab)
+            camera.open()
+            robot_ok.set()  # the table goes to its start only now, as before: robot checked, lab ready
             marks["robot_and_camera_ready"] = time.time()
         finally:
             robot_checked.set()
@@ -710,7 +716,9 @@ def recognizer_main(args: WorkerArgs, link_end, control) -> int:
     hl = lab.host_link
     record = _open_record(args)
     log = record.event if record is not None else (lambda *a, **k: None)
-    save = record.save_image if record is not None else None
+    # the images go to disk in a thread: a reply does not wait for a PNG encode and an fsync
+    images = record.image_writer() if record is not None else None
+    save = images.save if images is not None else None
     log("worker_started", role="recognizer", pid=os.getpid())
     _log_to_record(record, "recognizer")
     camera = link = None
@@ -757,6 +765,12 @@ def recognizer_main(args: WorkerArgs, link_end, control) -> int:
     finally:
         _release(log, "recognizer", reason, stop={}, close=(camera,), link=link, tell_peer=code != 0,
                  t=run_clock.now())
+        if images is not None:
+            try:
+                images.close()
+            except Exception as exc:  # the run's images are the record's: a lost one is said, never silent
+                with contextlib.suppress(Exception):
+                    log("worker_error", role="recognizer", error=f"record: {exc}", traceback="")
         if code != 0:
             ctl.send("error", reason, report_code)
         if record is not None:
@@ -825,6 +839,7 @@ def sim_server_main(lab_root: str, spec: dict, conn, run_dir: str | None = None)
     try:
         served = LiveSimLab(load_lab(lab_root), spec)
         served.warm_on_enter = False  # the first renders overlap the workers' device connections
+        served.on_ports = lambda ports: conn.send(("ports", ports))  # the devices connect while the world is built
         with served as sim:
             conn.send(("ready", sim.endpoints()))
             sim.warm_up()
@@ -868,6 +883,20 @@ def sim_server_main(lab_root: str, spec: dict, conn, run_dir: str | None = None)
     finally:
         if record is not None:
             record.close()
+
+
+def _sim_says(conn, kinds: tuple[str, ...] = ("ports", "ready"), timeout_s: float = 60.0) -> tuple[str, dict]:
+    """The simulated lab's next start-up message, ``("ports", …)`` or ``("ready", …)`` (its endpoints); WorkerDied
+    when it reports an error, sends something else or says nothing for ``timeout_s``."""
+    if not conn.poll(timeout_s):
+        raise WorkerDied(f"the simulated lab did not start within {timeout_s:g} s")
+    try:
+        kind, payload = conn.recv()
+    except (EOFError, OSError):
+        raise WorkerDied("the simulated lab exited while starting") from None
+    if kind not in kinds:
+        raise WorkerDied(str(payload))
+    return kind, payload
 
 
 def _ask(conn, request: str, timeout_s: float = 5.0):
@@ -1001,20 +1030,25 @@ class LiveRun:
                     with contextlib.suppress(Exception):
                         end.close()
             marks["workers_forked"] = time.time()
+            kind = None
             if sim_conn is not None:
-                if not sim_conn.poll(60):
-                    raise WorkerDied("the simulated lab did not start within 60 s")
-                kind, payload = sim_conn.recv()
-                if kind != "ready":
-                    raise WorkerDied(str(payload))
-                endpoints = payload
-                origin = endpoints["origin"]
-                marks["sim_lab_ready"] = time.time()
+                # first the devices' ports (the emulators serve them before the world is built), then "ready"
+                kind, payload = _sim_says(sim_conn)
+                endpoints, origin = payload, payload["origin"]
+                marks["sim_lab_ports" if kind == "ports" else "sim_lab_ready"] = time.time()
             from .stopping import open_stop_lines
 
+            # the stop lines are open before any worker hears of a port
             self._stop_fds = open_stop_lines(lab, endpoints)
             stack.callback(self._close_stop_lines)
             try:
+                if kind == "ports":
+                    # the predictor connects the table and the robot while the simulated lab builds its world; it
+                    # opens its camera, and moves the table, only once the lab is ready
+                    controls["predictor"].send(("ports", endpoints))
+                    kind, payload = _sim_says(sim_conn, ("ready",))
+                    endpoints, origin = payload, payload["origin"]
+                    marks["sim_lab_ready"] = time.time()
                 if sim_conn is not None:
                     for conn in controls.values():
                         conn.send(("endpoints", endpoints))

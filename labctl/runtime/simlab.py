@@ -17,6 +17,7 @@ import contextlib
 import os
 import shutil
 import time
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -117,11 +118,21 @@ class LiveSimLab:
     #: server sets this False and calls :meth:`warm_up` once it has said ready, so the first renders
     #: overlap the workers' device connections instead of delaying them
     warm_on_enter = True
+    #: the fixed camera renders only the object's footprint, without anti-aliasing, the rest of the frame flat
+    #: table grey, as the virtual runtime renders it: the predictor's marker tracker reads only the red markers,
+    #: all on the object, and a whole anti-aliased frame with the arm in view cost 7–50 ms of the lab's CPU per
+    #: frame against ~2 ms (docs/notes/run.md, "2026-12-02 (c)"). The served lab, which stands in for real
+    #: cameras, renders whole frames
+    fixed_object_window = True
 
     def __init__(self, lab: Lab, spec: dict):
         self.lab, self.spec = lab, spec
         self._stack = contextlib.ExitStack()
         self._cams: dict = {}
+        #: called with the devices' ports and the clock's origin (:meth:`endpoints` without the frame server) as
+        #: soon as the emulators serve them, before the world and the cameras are built: a live run's table and
+        #: robot connect at 9600 bps meanwhile
+        self.on_ports: Callable[[dict], None] | None = None
 
     def __enter__(self) -> LiveSimLab:
         from ..sim.camera import FrameServer
@@ -143,18 +154,27 @@ class LiveSimLab:
 
         lab = self.lab
         rng = np.random.default_rng(self.spec.get("seed", 0))
-        self.object_name, obj, placement = _sim_object(lab, self.spec, rng)
-        self.obj, self.placement = obj, placement
+
+        def scene():  # after the ports are out: the library read and the object's mesh overlap the connections
+            self.object_name, obj, placement = _sim_object(lab, self.spec, rng)
+            self.obj, self.placement = obj, placement
+            return self._scene(obj, placement)
+
         start = self.spec.get("table_start_mm") or trajectory_program(
             self.spec["trajectory"], self.spec["speed_mm_s"], lab)[0]
         self.origin = time.monotonic()
         clock = RealClock(origin=self.origin)
-        self.sim = sim = SimLab.build(lab, clock, ports=self._ports(), scene=self._scene(obj, placement),
+        on_ports = self.on_ports
+        self.sim = sim = SimLab.build(lab, clock, ports=self._ports(), scene=scene,
                                       seed=int(self.spec.get("seed", 0)), baud=self.spec.get("baud"),
-                                      table_start_mm=start, fps=self.spec.get("fps"))
+                                      table_start_mm=start, fps=self.spec.get("fps"),
+                                      on_ports=None if on_ports is None else
+                                      (lambda s: on_ports({**s.endpoints(), "origin": self.origin})))
         self._stack.callback(sim.close)
         self.grbl, self.robot_emu, self.world = sim.grbl, sim.robot_emu, sim.world
         cams = dict(sim.cameras)
+        if self.fixed_object_window and "fixed" in cams:
+            cams["fixed"].window, cams["fixed"].supersample = "object", 1
         for cam in cams.values():
             cam.open()
         self._cams = dict(cams)
@@ -219,6 +239,8 @@ class ServedLab(LiveSimLab):
     With ``tcp``, ``/control/link`` (:meth:`set_link`) stops and restarts a device's bridge as
     ser2net is stopped and restarted (a link dropped mid-run).
     """
+
+    fixed_object_window = False  # real cameras' stand-ins: whole frames, as a person watching the stream expects
 
     def __init__(self, lab: Lab, spec: dict):
         super().__init__(lab, spec)

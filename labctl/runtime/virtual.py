@@ -19,8 +19,9 @@ import numpy as np
 from ..config import Lab
 from ..decisions import messages as m
 from ..decisions.context import RunContext
-from ..decisions.predictor import PredictorPlanner, set_segment_defaults
+from ..decisions.predictor import PredictorPlanner
 from ..decisions.recognizer import Recognizer
+from ..decisions.segment_defaults import set_segment_defaults
 from ..drivers.interfaces import Frame
 from ..timebase import wire_time_s
 

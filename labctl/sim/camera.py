@@ -34,7 +34,7 @@ class SimCamera(OpenClose):
     """A camera of the simulated world (``role`` ``fixed`` or ``mobile``) on ``clock``."""
 
     def __init__(self, world: SimWorld, role: str, clock, *, fps: float = 30.0, seed: int = 0,
-                 truth: bool = False):
+                 truth: bool = False, window: str | None = None, supersample: int | None = None):
         if role not in CAMERA_ROLES:
             raise WorldError(f"unknown camera role {role!r}; expected one of {CAMERA_ROLES}")
         if not (math.isfinite(fps) and fps > 0):
@@ -43,6 +43,9 @@ class SimCamera(OpenClose):
         self.fps = float(fps)
         self.seed = int(seed)
         self.truth = truth
+        # what each frame renders (:meth:`SimWorld.render`): ``window="object"`` with ``supersample=1`` is the
+        # object's footprint without anti-aliasing, the rest flat table grey — all a marker tracker reads
+        self.window, self.supersample = window, supersample
         self._open = False
         self._last_seq: int | None = None
         self._lock = threading.Lock()
@@ -65,7 +68,7 @@ class SimCamera(OpenClose):
         """Frame ``seq`` (exposed at ``seq / fps``), independent of the camera's state."""
         t = self.frame_time(seq)
         rng = np.random.default_rng([self.seed, _ROLE_CODE[self.role], int(seq)])
-        res = self.world.render(self.role, t, rng, truth=self.truth)
+        res = self.world.render(self.role, t, rng, truth=self.truth, window=self.window, supersample=self.supersample)
         self.frames_rendered += 1
         meta: dict[str, Any] = {"camera": self.role}
         if self.truth:

@@ -103,10 +103,11 @@ class SimLab:
         self._stack = contextlib.ExitStack()
 
     @classmethod
-    def build(cls, lab, clock, *, ports: Ports = "inproc", scene: Scene | None = None,
+    def build(cls, lab, clock, *, ports: Ports = "inproc", scene: Scene | Callable[[], Scene] | None = None,
               devices: Sequence[str] = DEVICES, seed: int = 0, baud: int | None = None,
               table_start_mm: Sequence[float] | None = None, robot_start: Literal["camera", "controller"] = "camera",
-              fps: float | None = None, truth: bool = False) -> SimLab:
+              fps: float | None = None, truth: bool = False,
+              on_ports: Callable[[SimLab], None] | None = None) -> SimLab:
         """Assemble the simulated lab of ``lab`` (its driver files' sim fields) on ``clock``.
 
         ``ports``: the drivers on in-process ports (``inproc``), or the emulators served on ptys
@@ -118,6 +119,9 @@ class SimLab:
         centre (:func:`~labctl.sim.world.home_flange_pose`), ``controller`` leaves the controller at its
         own home. ``fps`` overrides both cameras' rates; ``seed`` is the frames' noise; ``truth`` makes
         the cameras return ground truth with each frame. Nothing is opened or started but the ports.
+        ``on_ports(sim)`` is called once the emulators serve their ports, before the world is built (a live run's
+        clients connect meanwhile); ``scene`` may then be a function that makes it (the object read from the
+        library after the ports are out).
         """
         from .camera import SimCamera
         from .emulators.grbl import GrblEmulator
@@ -138,6 +142,10 @@ class SimLab:
                 pose = home_flange_pose(lab) if robot_start == "camera" else None
                 sim.robot_emu = RobotEmulator(clock.now, lab.robot, start_pose=pose, arm=arm_servo(lab))
             sim._connect(ports, baud)
+            if on_ports is not None:
+                on_ports(sim)
+            if callable(scene):
+                scene = scene()
             if scene is not None:
                 sim._make_world(scene)
                 for role in CAMERAS:
