@@ -47,7 +47,8 @@ def _recognizer(found_per_image):
     lab = SimpleNamespace(config=SimpleNamespace(marker=SimpleNamespace(radius_mm=8.0),
                                                  run=SimpleNamespace(ambiguity_threshold=None)),
                           table=None, mobile_camera=SimpleNamespace(marker_hue_deg=(-15.0, 15.0),
-                                                                    marker_min_saturation=0.45, response="linear"))
+                                                                    marker_min_saturation=0.45, response="linear"),
+                          response_declared=lambda role: True)
     ctx = SimpleNamespace(lab=lab, mobile_camera=SimpleNamespace(width=640, height=480))
     rec = Recognizer(ctx, grab=lambda: None, log=lambda *a, **k: None)
     images = iter(found_per_image)

@@ -26,6 +26,9 @@ def devices_cmd() -> int:
             style = "green" if r["ok"] else "red"
             t.add_row(r["role"], r["kind"], r["where"], str(r["identity"] or "-"), f"[{style}]{r['verdict']}[/]")
         console.print(t)
+        for r in rows:
+            if r.get("response"):
+                console.print(f"{r['role']}: {r['response']}", highlight=False)
 
     emit({"devices": rows, "ok": all(r["ok"] for r in rows)}, human)
     return 0 if all(r["ok"] for r in rows) else 3

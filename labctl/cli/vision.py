@@ -148,6 +148,11 @@ def _set_yaml_keys(text: str, values: dict) -> str:
             if pat.match(line):
                 comment = line[line.index(" #") + 1:] if " #" in line else ""
                 lines[i] = f"{key}: {val}" + (f"  {comment}" if comment else "")
+                # a block value (an indented mapping or a `- ` list) continues on the next lines: replaced too
+                j = i + 1
+                while j < len(lines) and lines[j].strip() and (lines[j][0] in " \t" or lines[j].startswith("- ")):
+                    j += 1
+                del lines[i + 1:j]
                 break
         else:
             lines.append(f"{key}: {val}")
@@ -205,5 +210,111 @@ def vision_learn_color(image: Path, role: str, nominal: float, dry_run: bool) ->
         console.print(f"markers found with it: {result['markers_found']} ({result['trusted']} trusted); "
                       f"with the old window: {result['markers_found_before']}")
         console.print(f"written to {path}" if result["written"] else "dry run: driver file unchanged")
+
+    emit(result, human)
+
+
+def _numbers(text: str | None, what: str) -> list[float] | None:
+    """A comma-separated list of numbers from the command line (None stays None); UserInputError otherwise."""
+    from ..errors import UserInputError
+
+    if text is None:
+        return None
+    try:
+        return [float(v) for v in text.replace(" ", "").split(",") if v]
+    except ValueError:
+        raise UserInputError(f"{what}: expected numbers separated by commas, got {text!r}") from None
+
+
+def _exif_exposure_s(path: Path) -> float | None:
+    """The exposure time (s) an image's EXIF records (tag 33434 ExposureTime), or None."""
+    try:
+        from PIL import Image
+    except ImportError:  # Pillow comes with matplotlib; without it the times come from --times
+        return None
+    try:
+        with Image.open(path) as im:
+            exif = im.getexif()
+            value = exif.get_ifd(0x8769).get(33434) or exif.get(33434)
+    except (OSError, ValueError):
+        return None
+    try:
+        return float(value) if value is not None else None
+    except (TypeError, ValueError, ZeroDivisionError):
+        return None
+
+
+@vision_group.command("learn-response")
+@click.argument("images", nargs=-1, required=True, type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.option("--camera", "role", type=click.Choice(["fixed", "mobile"]), required=True,
+              help="Whose driver file gets the response (fixed_camera or mobile_camera).")
+@click.option("--times", "times", default=None,
+              help="Exposure series: each image's exposure time, s, comma-separated (default: the images' EXIF).")
+@click.option("--wedge", "wedge", default=None,
+              help="Step wedge: one image; the wedge's box x0,y0,x1,y1 (px), patches in order along its long side.")
+@click.option("--reflectances", default=None, help="Step wedge: each patch's reflectance, comma-separated, in order.")
+@click.option("--dry-run", is_flag=True, help="Measure and print what would be written; leave the driver file.")
+@json_option
+def vision_learn_response(images: tuple[Path, ...], role: str, times: str | None, wedge: str | None,
+                          reflectances: str | None, dry_run: bool) -> None:
+    """Measure the camera's response from IMAGES and write it into its driver file (``response:``, with
+    ``response_source: learned``): frames of one static scene at different exposure times (gain and white
+    balance fixed), or one image of a printed grey step wedge (--wedge, --reflectances)."""
+    from ..errors import UserInputError
+    from ..fsutil import atomic_write_text
+    from ..vision.response_learn import ResponseLearnError, learn_from_exposures, learn_from_wedge, wedge_codes
+    from ._common import get_ctx
+
+    lab = get_ctx().lab()
+    key = f"{role}_camera"
+    path = lab.driver_paths[key]
+    refl = _numbers(reflectances, "--reflectances")
+    try:
+        if wedge is not None or refl is not None:
+            box = _numbers(wedge, "--wedge")
+            if box is None or len(box) != 4 or refl is None:
+                raise UserInputError("a step wedge needs --wedge x0,y0,x1,y1 and --reflectances r1,r2,…")
+            if len(images) != 1:
+                raise UserInputError(f"a step wedge is measured in one image, got {len(images)}")
+            codes = wedge_codes(_read_image(images[0]), (int(box[0]), int(box[1]), int(box[2]), int(box[3])),
+                                len(refl))
+            learned = learn_from_wedge(codes, refl)
+            source = {"wedge_codes": [round(float(c), 1) for c in codes], "reflectances": refl}
+        else:
+            t = _numbers(times, "--times")
+            if t is None:
+                exif = [_exif_exposure_s(p) for p in images]
+                missing = [str(p) for p, v in zip(images, exif) if v is None]
+                if missing:
+                    raise UserInputError(f"{missing[0]}: no exposure time in its EXIF; pass --times t1,t2,… (s)")
+                t = [float(v) for v in exif if v is not None]
+            learned = learn_from_exposures([_read_image(p) for p in images], t)
+            source = {"exposure_times_s": t}
+    except ResponseLearnError as exc:
+        raise UserInputError(f"learn-response: {exc}") from None
+    spec = learned.spec
+    value = spec if isinstance(spec, str) else "[" + ", ".join(f"{v:.6g}" for v in spec) + "]"
+    result = {"images": [str(p) for p in images], "driver_file": str(path), "method": learned.method,
+              "response": spec, "gamma": learned.gamma, "max_deviation": round(learned.error, 5),
+              "codes": list(learned.codes), **source, "written": False}
+    if not dry_run:
+        text = path.read_text(encoding="utf-8")
+        # response_source: learned makes the lab count it as declared (pose is no longer conservative)
+        atomic_write_text(path, _set_yaml_keys(text, {"response": value if isinstance(spec, list) or spec in
+                                                      ("linear", "srgb") else f'"{spec}"',
+                                                      "response_source": "learned"}))
+        result["written"] = True
+    nxt = "labctl devices  (checks the response against a frame of each camera)"
+    result["next"] = nxt
+
+    def human(console):
+        name = spec if isinstance(spec, str) else "a 256-entry LUT (no power law within tolerance)"
+        console.print(f"camera response ({learned.method}, codes {learned.codes[0]}…{learned.codes[1]}): {name}"
+                      + (f", within {learned.error:.3f} of the measured curve" if isinstance(spec, str) else ""),
+                      highlight=False)
+        console.print(f"written to {path} (response, response_source: learned)" if result["written"]
+                      else f"dry run: would write `response: {value if isinstance(spec, str) else name}` and "
+                           f"`response_source: learned` to {path}", highlight=False)
+        console.print(f"next: {nxt}", highlight=False)
 
     emit(result, human)

@@ -142,6 +142,9 @@ class CameraConfig:
     marker_min_saturation: Fraction = 0.45
     # the camera's response (labctl.vision.response): linear | srgb | "gamma G" | G | 256-entry LUT
     response: str | float | list[float] = "linear"
+    # who stated it: declared (the lab measured or knows it), learned (`labctl vision learn-response` wrote it);
+    # null: nobody did — a `linear` left so counts as undeclared and pose stays conservative (docs/notes/vision.md)
+    response_source: Literal["declared", "learned"] | None = None
     lens: LensConfig = field(default_factory=LensConfig)
     # sim: the fixed camera's true pose (eye and look-at target, W frame)
     eye_w_mm: tuple[float, float, float] | None = None

@@ -251,7 +251,8 @@ class SimCameraConfig:
     ``preset`` picks a combination (``realistic``: shadows 0.8, specular 0.12 at shininess 60,
     texture 1.5, Bayer bilinear, JPEG 80); any field set here overrides the preset's. The
     response curve is each camera's own ``response:`` in its driver file (what vision linearises
-    with), so the two always agree. Off by default: frames exactly as without this section.
+    with), so the two agree, unless ``response`` gives the simulated sensor its own (to stage a camera
+    file that is wrong). Off by default: frames exactly as without this section.
     """
 
     preset: Literal["none", "realistic"] = "none"
@@ -261,11 +262,24 @@ class SimCameraConfig:
     texture: Annotated[float, Range(ge=0, le=4)] | None = None  # table texture contrast (1: as drawn)
     bayer: Literal["none", "bilinear", "vng", "ea"] | None = None  # RGGB mosaic + OpenCV demosaicing
     jpeg_quality: Annotated[int, Range(ge=0, le=100)] | None = None  # 0: no JPEG (null: the preset's)
+    defocus_px: Annotated[float, Range(ge=0, le=8)] | None = None  # lens blur disc radius, px (0: in focus)
+    # the simulated sensor's own encoding when it is not what the driver files say (a lab whose camera file is
+    # wrong, e.g. a gamma camera left at `response: linear`); null: the driver file's, so the two agree
+    response: str | float | list[float] | None = None
+
+    def validate(self):
+        """The sensor's own ``response``, when given, is a curve a camera driver file could name."""
+        if self.response is None:
+            return None
+        from .devices import CameraConfig
+
+        problem = CameraConfig(response=self.response).validate()
+        return None if problem is None else ("response", problem[1])
 
     def settings(self) -> dict:
         """The effective settings: the preset's, overridden by the fields given here (plain values)."""
         base = dict(SIM_PRESET_SETTINGS.get(self.preset, {}))
-        for name in ("shadows", "specular", "shininess", "texture", "bayer", "jpeg_quality"):
+        for name in ("shadows", "specular", "shininess", "texture", "bayer", "jpeg_quality", "defocus_px"):
             value = getattr(self, name)
             if value is not None:
                 base[name] = value
@@ -399,6 +413,20 @@ class Lab:
                 return (f"{cam} is real ({k[cam]}) but the {' and '.join(fake)} it watches "
                         f"{'is' if len(fake) == 1 else 'are'} simulated: it would never see it move")
         return None
+
+    def response_declared(self, role: str) -> bool:
+        """Whether the camera ``role``'s response is known: its driver file says who stated it
+        (``response_source``: declared or learned), or names a curve other than the default ``linear``,
+        or it is a simulated camera that renders with its file's response (lab.yaml ``sim.camera.response``
+        unset). A ``linear`` nobody stated is undeclared: pose then uses a conservative covariance."""
+        cfg = getattr(self, role if role.endswith("_camera") else f"{role}_camera")
+        if cfg.response_source is not None:
+            return True
+        r = cfg.response
+        if not (isinstance(r, str) and r.strip().lower() == "linear") and not (
+                isinstance(r, int | float) and not isinstance(r, bool) and float(r) == 1.0):
+            return True
+        return cfg.kind == "sim" and self.config.sim.camera.response is None
 
 
 def user_data_dir() -> Path:

@@ -128,6 +128,7 @@ class Recognizer:
         self.z_table = float(ctx.lab.table.origin_w_mm[2]) if ctx.lab.table is not None else 0.0
         self.threshold = ctx.lab.config.run.ambiguity_threshold or DEFAULT_THRESHOLD
         self.first: list | None = None  # (marker, (pose, pose) in W) of the first image, preferred first
+        self._response_seen: list[int] = [0, 0, 0]  # markers, mismatched, refused: the last capture's check
         self.resolved_normals: list[np.ndarray] = []
         self.remaining: list[str] | None = None
         self.totals: dict[str, float] = {}  # each candidate's score summed over the matched standard views
@@ -136,8 +137,12 @@ class Recognizer:
         self.n_initial_seen = 0  # initial images in which the object's markers were seen
         self.saw_top_marker = False  # did any initial image show a marker facing up?
         cam_cfg = ctx.lab.mobile_camera
-        # frames are linearised by the camera's declared response before any sub-pixel work
+        # frames are linearised by the camera's declared response before any sub-pixel work; a response nobody
+        # declared (lab.response_declared) makes pose conservative: a marker not fit for pose is refused
+        self.response_declared = ctx.lab.response_declared("mobile_camera")
         self.detect_kw: dict[str, Any] = dict(thresholds=marker_thresholds(cam_cfg), response=cam_cfg.response)
+        if not self.response_declared:  # (the default stays out of the arguments: detect_markers' own is True)
+            self.detect_kw["response_declared"] = False
 
     def handle(self, msg: m.Message) -> list[m.Message]:
         """Answer one message from the predictor: a capture request is taken, posed or matched; anything else gets no
@@ -163,6 +168,10 @@ class Recognizer:
         # when more novel than every trusted marker or none is trusted, else spares (measured in realistic-camera
         # trials, docs/notes/vision.md); the noise-aware duality test and the standard view's check still guard
         every = detect_markers(frame.image, include_suspect=True, **self.detect_kw)
+        # the camera response check of this capture (docs/notes/vision.md): markers whose edges lean as another
+        # response's would, and those an undeclared response's conservative covariance refused for pose
+        self._response_seen = [len(every), sum("response_mismatch" in mk.quality.flags for mk in every
+                                                if mk.quality is not None), 0]
         for mk in (mk for mk in every
                    if mk.trusted or (mk.quality is not None and set(mk.quality.flags) <= _LAST_RESORT_FLAGS)):
             best = None
@@ -180,6 +189,10 @@ class Recognizer:
                 off = _height_misfit(float(poses[0].center[2]), self.z_table)
                 if best is None or off < best[0] - 1e-9:
                     best = (off, poses)
+            if best is not None and not self.response_declared and best[1].camera_poses is not None \
+                    and "pose" not in best[1].camera_poses.fit_for:
+                self._response_seen[2] += 1  # its pose could be gross under the response nobody declared
+                continue
             if best is not None and (mk.trusted or best[1].sigma_rad <= _LAST_RESORT_MAX_SIGMA_RAD):
                 out.append((mk, best[1]))
         return out
@@ -217,6 +230,10 @@ class Recognizer:
 
     def _initial(self, msg: m.CaptureRequest, frame: Frame, T_w_c2: np.ndarray) -> list[m.Message]:
         found = self._candidates(frame, T_w_c2)
+        n_markers, n_mismatch, n_refused = self._response_seen
+        if n_mismatch or not self.response_declared:
+            self.log("response_check", t=frame.t, view_id=msg.view_id, declared=self.response_declared,
+                     markers=n_markers, mismatched=n_mismatch, refused=n_refused)
         if found:
             self.n_initial_seen += 1
             self.saw_top_marker = self.saw_top_marker or self._sees_top_marker(frame, T_w_c2)

@@ -297,6 +297,13 @@ _EVENTS = (
     # -- the recognizer (Host 2: mobile camera, marker poses, silhouette matching)
     EventSpec("no_marker", "no marker in a mobile-camera image",
               {"t": T, "view_id": VIEW_ID, "kind": _f("string")}),
+    EventSpec("response_check", "the camera response check of an initial image (written when the mobile camera's "
+              "response is undeclared or a marker's edges lean as another response's would: "
+              "`labctl vision learn-response` measures it)",
+              {"t": T, "view_id": VIEW_ID, "declared": _f("boolean", "lab.response_declared: stated or learned"),
+               "markers": _f("integer", "markers found (suspects included)"),
+               "mismatched": _f("integer", "markers flagged response_mismatch"),
+               "refused": _f("integer", "markers refused for pose by the undeclared response's covariance")}),
     EventSpec("marker_candidates", "the markers of the first initial image; the preferred one's two poses",
               {"t": T, "view_id": VIEW_ID, "ellipse": _f("object", "vision.ellipse.Ellipse.to_dict()"),
                "candidates": _f("array<object>", "the circle's two pose candidates (to_dict)"),

@@ -56,6 +56,7 @@ NOT_REACHED = "not reached"
 _STD = re.compile(r"^standard_(\d+)$")
 TRACK, PREDICT, ROBOT, MARKER_POSE, MATCH = (spec(n) for n in ("track", "predict", "robot", "marker_pose", "match"))
 STAGE, FAILURE, PRIOR, REFUTED = (spec(n) for n in ("stage", "failure", "tracking_prior", "refuted"))
+RESPONSE = spec("response_check")
 FIXED_LAST = "fixed_last"  # a failed run's last fixed-camera frame (the runtimes save it)
 MARKER_POSE_SHOWN = ("center_w", "normal_w", "resolved", "margin_deg")  # the pose's summary, in this order
 for _k in MARKER_POSE_SHOWN:
@@ -536,6 +537,25 @@ def _nr(what: str = NOT_REACHED) -> str:
     return f'<p class="nr">{html.escape(what)}</p>'
 
 
+def response_line(run: RunData) -> str | None:
+    """The camera response in one line, from the run's ``response_check`` events (None when there are none:
+    the mobile camera's response was declared and no marker leaned as another response's would)."""
+    checks = run.of(RESPONSE.name)
+    if not checks:
+        return None
+    seen = sum(int(RESPONSE.valid(e, "markers") or 0) for e in checks)
+    bad = sum(int(RESPONSE.valid(e, "mismatched") or 0) for e in checks)
+    refused = sum(int(RESPONSE.valid(e, "refused") or 0) for e in checks)
+    undeclared = any(RESPONSE.valid(e, "declared") is False for e in checks)
+    parts = []
+    if bad:
+        parts.append(f"{bad} of {seen} markers in {len(checks)} images look encoded with another response than the "
+                     "mobile camera's driver file says")
+    if undeclared:
+        parts.append(f"the response is undeclared, so pose was conservative ({refused} of {seen} markers refused)")
+    return "camera response: " + "; ".join(parts) + " — run `labctl vision learn-response`"
+
+
 def _summary(run: RunData) -> str:
     """The result in words: the verdict, time to identity against its bound, views, where it failed."""
     res = run.result
@@ -555,6 +575,8 @@ def _summary(run: RunData) -> str:
     fails = run.of(FAILURE.name)
     if fails and FAILURE.valid(fails[-1], "stage"):
         items.append(f"<li>failed in stage {esc(str(FAILURE.valid(fails[-1], 'stage')))}</li>")
+    if (said := response_line(run)) is not None:
+        items.append(f"<li>{esc(said)}</li>")
     fields = _kv_table({k: v for k, v in res.items() if k not in ("stages",)})
     return (f"<ul>{''.join(items)}</ul><details><summary>every result field (result.json)</summary>{fields}"
             f"<h3>Run</h3>{_kv_table(run.meta)}</details>")

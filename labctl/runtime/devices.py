@@ -208,6 +208,7 @@ def check_device(role: str, lab) -> dict:
             out["identity"] = f"{info.get('kind')} {info.get('width', frame.image.shape[1])}×" \
                               f"{info.get('height', frame.image.shape[0])}"
             out["status"] = {"frame": list(frame.image.shape), "t": frame.t, "seq": frame.seq}
+            out["response"] = response_check(frame.image, lab, role)
         out["ok"] = True
         out["verdict"] = "OK" + (" (simulated: checked against an in-process emulator)" if kind == "sim"
                                  and role in ("table", "robot") else " (simulated)" if kind == "sim" else "")
@@ -223,6 +224,33 @@ def check_device(role: str, lab) -> dict:
                 pass
     out["seconds"] = round(time.perf_counter() - t0, 3)
     return out
+
+
+def response_check(image, lab, role: str) -> str | None:
+    """One line on the camera ``role``'s response, from one frame, or None when there is nothing to say.
+
+    The frame's markers (the driver file's colour window and response) are detected; when some carry
+    ``response_mismatch`` (their blurred edges lean as a frame encoded with another response does,
+    docs/notes/vision.md) the line says so and names ``labctl vision learn-response``. A response nobody
+    declared is said to be undeclared (pose is then conservative), "not checked" with no marker in view.
+    A declared response with no leaning marker (or none in view) says nothing."""
+    from ..decisions.context import marker_thresholds
+    from ..vision import find_markers
+
+    cfg = getattr(lab, role)
+    declared = lab.response_declared(role)
+    markers = find_markers(image, thresholds=marker_thresholds(cfg), response=cfg.response,
+                           response_declared=declared).markers
+    bad = sum(m.quality is not None and "response_mismatch" in m.quality.flags for m in markers)
+    resp = cfg.response if isinstance(cfg.response, str | int | float) else "a LUT"
+    learn = f"run `labctl vision learn-response --camera {role.removesuffix('_camera')} …`"
+    if bad:
+        return (f"{bad} of {len(markers)} markers look encoded with another response than `response: {resp}` "
+                f"in {lab.driver_paths.get(role, role)}: {learn}")
+    if not declared:
+        return (f"response undeclared (`{resp}` by default; pose is conservative): "
+                + ("not checked (no marker in view); " if not markers else "") + f"{learn} or declare it")
+    return None
 
 
 def check_devices(lab) -> list[dict]:

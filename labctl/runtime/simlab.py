@@ -461,6 +461,10 @@ def write_served_lab(lab: Lab, out, served: ServedLab, *, force: bool = False):
         for role in ("fixed_camera", "mobile_camera"):
             cfg = dataclasses.replace(getattr(lab, role), kind="stream", url=ep[role], timestamps="header",
                                       eye_w_mm=None, target_w_mm=None)
+            if cfg.response_source is None and lab.response_declared(role):
+                # the served frames are rendered with this response: the stream's file states it (else a stream
+                # camera left at `linear` would count as undeclared and pose would turn conservative)
+                cfg = dataclasses.replace(cfg, response_source="declared")
             if served.spec.get("fps"):
                 cfg = dataclasses.replace(cfg, fps=float(served.spec["fps"]))
             d = dataclasses.asdict(cfg)

@@ -20,6 +20,7 @@ All functions are pure (numpy in, numpy out); units mm and grey levels.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, cast
 
@@ -59,7 +60,9 @@ class CameraEffects:
     ``specular`` Blinn-Phong strength (fraction of
     full scale at n·h = 1) and ``shininess`` its exponent; ``texture`` table texture contrast (1:
     the default breadboard); ``bayer`` demosaicing (None, ``bilinear``, ``vng``, ``ea``);
-    ``jpeg_quality`` 1–100 or None.
+    ``jpeg_quality`` 1–100 or None; ``defocus_px`` a lens out of focus, the blur disc's radius (px; 0: in
+    focus), a pillbox on the linear frame before the mosaic (after the sensor noise: a simplification that
+    smooths the noise a little).
     """
 
     response: Response | str | float | list[float] | None = None
@@ -69,6 +72,7 @@ class CameraEffects:
     texture: float = 1.0
     bayer: str | None = None
     jpeg_quality: int | None = None
+    defocus_px: float = 0.0
     _enc: np.ndarray | None = field(default=None, repr=False, compare=False)
 
     def __post_init__(self):
@@ -84,6 +88,8 @@ class CameraEffects:
             raise EffectsError(f"bayer must be one of {sorted(BAYER_CODES)} or null, got {self.bayer!r}")
         if self.jpeg_quality is not None and not 1 <= int(self.jpeg_quality) <= 100:
             raise EffectsError(f"jpeg_quality must be within 1–100, got {self.jpeg_quality}")
+        if not (np.isfinite(self.defocus_px) and 0.0 <= self.defocus_px <= 8.0):
+            raise EffectsError(f"defocus_px must be within 0–8, got {self.defocus_px}")
         r = self.response
         if r is not None and not isinstance(r, Response):
             r = parse_response(r)
@@ -95,12 +101,12 @@ class CameraEffects:
     def any(self) -> bool:
         """True when any effect is on (else the renderer takes its plain path, bit-identical)."""
         return bool(self._enc is not None or self.shadows > 0 or self.specular > 0 or self.texture != 1.0
-                    or self.bayer or self.jpeg_quality)
+                    or self.bayer or self.jpeg_quality or self.defocus_px > 0)
 
     @property
     def needs_neighbourhood(self) -> bool:
         """Effects whose output pixel depends on its neighbours (a window must be rendered larger)."""
-        return bool(self.bayer or self.jpeg_quality)
+        return bool(self.bayer or self.jpeg_quality or self.defocus_px > 0)
 
     @property
     def encode_lut(self) -> np.ndarray | None:
@@ -237,10 +243,24 @@ def bayer_mosaic(image: np.ndarray) -> np.ndarray:
     return raw
 
 
+def pillbox_kernel(radius_px: float, supersample: int = 8) -> np.ndarray:
+    """A defocused lens's point-spread function: a uniform disc of ``radius_px``, each tap its pixel's
+    covered area (``supersample``² sub-samples), normalised to sum 1 (float32, (2⌈r⌉+1)²)."""
+    r = float(radius_px)
+    n = int(math.ceil(r))
+    sub = (np.arange(supersample) + 0.5) / supersample - 0.5
+    ax = (np.arange(-n, n + 1)[:, None] + sub[None, :]).ravel()
+    inside = (ax[:, None] ** 2 + ax[None, :] ** 2 <= r * r).astype(np.float64)
+    k = inside.reshape(2 * n + 1, supersample, 2 * n + 1, supersample).sum(axis=(1, 3))
+    return (k / k.sum()).astype(np.float32)
+
+
 def camera_pipeline(image: np.ndarray, fx: CameraEffects) -> np.ndarray:
     """Noisy linear BGR uint8 frame → what the camera delivers: Bayer mosaic and demosaic (in the
     linear domain, as a camera's ISP does), the response curve, then JPEG encode/decode."""
     out = image
+    if fx.defocus_px > 0:
+        out = cv2.filter2D(out, -1, pillbox_kernel(fx.defocus_px), borderType=cv2.BORDER_REFLECT)
     if fx.bayer:
         out = cv2.cvtColor(bayer_mosaic(out), BAYER_CODES[fx.bayer])
     if fx.encode_lut is not None:
@@ -269,7 +289,9 @@ def expand_window(window: tuple[int, int, int, int], width: int, height: int) ->
 def effects_from_lab(lab: Lab, camera_cfg: CameraConfig) -> CameraEffects | None:
     """The effects of a simulated camera: lab.yaml's ``sim.camera`` settings (preset + overrides,
     :class:`labctl.config.lab.SimCameraConfig`) and the camera driver file's ``response``
-    (the curve vision linearises with). None when nothing is on."""
+    (the curve vision linearises with), unless ``sim.camera.response`` gives the simulated sensor another
+    one (a lab whose driver file is wrong). None when nothing is on."""
     settings = lab.config.sim.camera.settings()
-    fx = CameraEffects(response=camera_cfg.response, **settings)
+    sensor = lab.config.sim.camera.response
+    fx = CameraEffects(response=camera_cfg.response if sensor is None else sensor, **settings)
     return fx if fx.any else None

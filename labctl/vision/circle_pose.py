@@ -252,6 +252,11 @@ MOTION_OFFSET_SIGMA_PER_PX = 0.01
 # ... plus this share of the curvature bias a colour-only blur (JPEG chroma, demosaicing: not corrected) would
 # imply if it were optical: the whole of it, since the error left is somewhere between none and that bias
 UNMODELLED_BLUR_SIGMA_FRACTION = 1.0
+# ... plus this share of the rim's move were an undeclared (read as linear) camera gamma-encoded instead
+# (``MarkerQuality.response_unknown_px``): the whole of it, the error left being between none and that move; it
+# adds to the other rim offsets (they are not independent of it: one offset, the sum), so until the response is
+# declared or learned a marker whose pose that move could make gross comes out ``uncertain_*``: not fit for pose
+RESPONSE_UNKNOWN_SIGMA_FRACTION = 1.0
 # a pose whose normal σ exceeds this is flagged ``uncertain_normal``: a sixth of the 3° gross error, since
 # highlights and blur add systematic errors of up to ~6 σ (measured on the degradation suite)
 MAX_TRUSTED_NORMAL_SIGMA_RAD = math.radians(0.5)
@@ -450,7 +455,8 @@ def marker_poses(marker: Marker, camera: CameraModel, radius: float, *,
     q = marker.quality
     blur_sigma = 0.0 if q is None else (BLUR_SHIFT_SIGMA_FRACTION * q.blur_shift_px
                                         + MOTION_OFFSET_SIGMA_PER_PX * q.motion_px
-                                        + UNMODELLED_BLUR_SIGMA_FRACTION * q.blur_unmodelled_px)
+                                        + UNMODELLED_BLUR_SIGMA_FRACTION * q.blur_unmodelled_px
+                                        + RESPONSE_UNKNOWN_SIGMA_FRACTION * q.response_unknown_px)
     if blur_sigma > 0.0:
         moved = _offset_sigma_point(boundary, weights, K, radius, blur_sigma)
         for j in range(2):

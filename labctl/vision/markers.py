@@ -178,7 +178,11 @@ class MarkerQuality:
     modelled this way is no flag; it widens the pose covariance instead (``marker_poses``).
     ``edge_skew``: median skewness of the edge spread (:func:`_edge_skew`); on a blurred edge a
     lean above :data:`RESPONSE_SKEW_LIMIT` raises ``response_mismatch`` (the frame is not encoded
-    as the camera's declared response says: declare or learn it)."""
+    as the camera's declared response says: declare or learn it). ``response_unknown_px``: for a camera
+    whose response nobody declared (read as linear by default), how far the rim would move were the frame
+    gamma 2.2-encoded instead (:data:`UNDECLARED_ALTERNATIVE_GAMMA`: the mean change of the edge along its
+    normal, px); it enters the pose covariance (``marker_poses``), so pose stays conservative until the
+    response is declared or learned (0 for a declared response)."""
 
     arc_coverage: float
     residual_rel: float
@@ -191,6 +195,7 @@ class MarkerQuality:
     motion_px: float = 0.0
     edge_skew: float = 0.0
     blur_unmodelled_px: float = 0.0
+    response_unknown_px: float = 0.0
 
     @property
     def trusted(self) -> bool:
@@ -205,7 +210,8 @@ class MarkerQuality:
                 "blur_var_px2": round(float(self.blur_var_px2), 4),
                 "blur_shift_px": round(float(self.blur_shift_px), 4), "motion_px": round(float(self.motion_px), 3),
                 "edge_skew": round(float(self.edge_skew), 3),
-                "blur_unmodelled_px": round(float(self.blur_unmodelled_px), 4)}
+                "blur_unmodelled_px": round(float(self.blur_unmodelled_px), 4),
+                "response_unknown_px": round(float(self.response_unknown_px), 4)}
 
 
 _SCAN_HALF = 4  # px: scans run 8 px across the edge (covers 2–3 px of blur), shorter on small blobs
@@ -305,6 +311,9 @@ _SKEW_MIN_BLUR_PX2 = 0.5
 # Only a frame read as linear (the default a lab may have kept) is tested: the sim's realistic-camera frames
 # (sRGB declared, JPEG 80, Bayer) lean +0.11 with their right response, so a declared curve is believed
 RESPONSE_SKEW_LIMIT = 0.13
+# a camera whose response nobody declared is read as linear; the rim is also measured as if the frame were encoded
+# with this gamma (the common encoding: sRGB is within a few % of it), and the difference is carried as an error
+UNDECLARED_ALTERNATIVE_GAMMA = 2.2
 # blur below this (px², a pillbox radius of ~0.9 px) is left uncorrected: its curvature bias is
 # under 0.01 px on any marker that passes the size gates
 _MIN_CORRECTED_BLUR_PX2 = 0.2
@@ -467,10 +476,12 @@ class _Reject(Exception):
 
 
 def _analyse_contour(img8: np.ndarray, linear_crop, contour: np.ndarray, touches: bool,
-                     min_axis_ratio: float, max_residual_rel: float, check_response: bool = False) -> Marker:
+                     min_axis_ratio: float, max_residual_rel: float, check_response: bool = False,
+                     response_unknown: bool = False) -> Marker:
     """Sub-pixel boundary, robust fit and quality of one hole-filled colour blob (its external
     ``contour`` in image pixels), paper §3.1. Works on a crop around the blob. ``check_response``:
-    test the edges for a response other than the (linear) one they were read with."""
+    test the edges for a response other than the (linear) one they were read with; ``response_unknown``:
+    nobody declared that (linear) response, so measure how far the rim moves under the alternative one."""
     H, W = img8.shape[:2]
     bx, by, bw, bh = cv2.boundingRect(contour)
     x0, y0 = max(bx - _PAD, 0), max(by - _PAD, 0)
@@ -566,6 +577,7 @@ def _analyse_contour(img8: np.ndarray, linear_crop, contour: np.ndarray, touches
         off, kept2, local = _edge_offsets(prof, k0, contrast)
         kept &= kept2
     kept &= np.abs(off - 0.5) < 2.0
+    scan_at = (seeds, normals, half, shift if np.any(shift) else None)  # the final scans (the response's error)
     step = np.where(row[:, None], np.stack([sgn, 0 * sgn], 1), np.stack([0 * sgn, sgn], 1))
     edge = seeds + off[:, None] * step
     # one point per scan line: 8-connected contours can put two seeds on one row or column
@@ -695,18 +707,42 @@ def _analyse_contour(img8: np.ndarray, linear_crop, contour: np.ndarray, touches
         # the lean is read on the green channel (the marker dark, the surround bright): JPEG's chroma, which
         # the colour signal carries, was filtered in encoded values and leans by itself; luminance was not
         # over the short scans (8 px), centred on each edge found: longer ones add the noise of their tails
+        # ... oriented so that the side brighter in green is the one a gamma stretches (a red marker is usually
+        # darker in green than its surround; on a dark part it is brighter, and the lean then changes sign)
         half_s = min(half, _SCAN_HALF)
         centre_s = np.clip(np.rint(off - 0.5).astype(np.int64), -_SCAN_HALF_MAX, _SCAN_HALF_MAX)
-        _, _, _, gprof = _scans(-lin[..., 1], seeds, normals, half_s, centre_s)
-        skew = _edge_skew(gprof[kept])
+        polarity = -1.0 if ci[1] <= co[1] else 1.0
+        _, _, _, gprof = _scans(polarity * lin[..., 1], seeds, normals, half_s, centre_s)
+        skew = -polarity * _edge_skew(gprof[kept])
     if skew > RESPONSE_SKEW_LIMIT:
         # the edges lean as a gamma-encoded frame linearised as linear does: the declared response is wrong,
         # and every edge (so the range) is biased by it
         flags.append("response_mismatch")
+    unknown_px = _response_unknown_px(lin, d, ci, co, scan_at, k0, off, kept) if response_unknown else 0.0
     quality = MarkerQuality(coverage, residual_rel, inlier_fraction, solidity, edge_contrast, tuple(flags),
-                            blur_var, shift_px, motion_px, skew, unmodelled_px)
+                            blur_var, shift_px, motion_px, skew, unmodelled_px, unknown_px)
     return Marker(tuple(ell.center), ell, float(ell.area), bpts, bw_, (int(bx), int(by), int(bx + bw), int(by + bh)),
                   touches, rms, quality)
+
+
+def _response_unknown_px(lin, d, ci, co, scan_at, k0, off, kept) -> float:
+    """How far (px, along the edge normal, mean over the rim's scans) the area-rule edge moves when the crop
+    ``lin``, read as linear, is read as :data:`UNDECLARED_ALTERNATIVE_GAMMA`-encoded instead: the final scans
+    (``scan_at``: seeds, normals, half-length, shift) of the same colour signal ``d``, each profile normalised
+    by its own plateaus. This is the error the rim carries if the undeclared camera encodes so."""
+    g = UNDECLARED_ALTERNATIVE_GAMMA
+    contrast = float((np.power(np.clip(ci, 0.0, None), g) - np.power(np.clip(co, 0.0, None), g)) @ d)
+    if not contrast > 1e-4:
+        return 0.0
+    alt = cv2.transform(np.power(np.clip(lin, 0.0, None), np.float32(g)).astype(np.float32), d.reshape(1, 3))
+    seeds, normals, half, shift = scan_at
+    _, _, k0_alt, prof = _scans(alt, seeds, normals, half, shift)
+    off_alt, kept_alt = _edge_offsets(prof, k0_alt, contrast)[:2]
+    both = kept & kept_alt
+    if np.count_nonzero(both) < 8:
+        return 0.0
+    along = np.maximum(np.abs(normals[both, 0]), np.abs(normals[both, 1]))
+    return float(abs(np.mean((off_alt[both] - off[both]) * along)))
 
 
 def _half_level_offsets(prof: np.ndarray, k0: np.ndarray, near: np.ndarray, reach: np.ndarray, contrast: float):
@@ -946,7 +982,8 @@ def why_no_marker(image_bgr, *, thresholds: MarkerThresholds = RED, min_area_px:
 
 def find_markers(image_bgr, *, thresholds: MarkerThresholds = RED, window=None, min_area_px: int = 12,
                  keep_border: bool = False, max_fit_rms_px: float = 1.5, max_markers: int = 32, response="linear",
-                 min_axis_ratio: float = 0.2, max_residual_rel: float = 0.12) -> MarkerSearch:
+                 min_axis_ratio: float = 0.2, max_residual_rel: float = 0.12,
+                 response_declared: bool = True) -> MarkerSearch:
     """Find circular markers of the configured colour in a BGR image, with each one's quality
     and, when none is found, the reason (paper §3.1 and §4.1's marker thresholding).
 
@@ -957,7 +994,10 @@ def find_markers(image_bgr, *, thresholds: MarkerThresholds = RED, window=None, 
        ``min_area_px``, cut by the image (unless ``keep_border``) or by ``window``
        (x0, y0, x1, y1) are skipped.
     3. **Linearise** each blob's crop by the camera's ``response`` (:mod:`.response`:
-       ``linear``, ``srgb``, ``gamma G`` or a LUT), so pixel values are linear in coverage.
+       ``linear``, ``srgb``, ``gamma G`` or a LUT), so pixel values are linear in coverage. A linear
+       response nobody declared (``response_declared=False``: the driver file's default) is also tried as
+       gamma 2.2; the rim's change is each marker's ``quality.response_unknown_px``, an error in its pose
+       covariance.
     4. **Sub-pixel edge** along the outward normal at every contour pixel: a colour signal blind
        to the background's own colour direction, each profile normalised by its *own* inside and
        outside plateaus, the edge by the area rule (twice, the second window centred on the
@@ -1021,7 +1061,7 @@ def find_markers(image_bgr, *, thresholds: MarkerThresholds = RED, window=None, 
                 continue
             try:
                 mk = _analyse_contour(img, linear_crop, c, at_image_edge, min_axis_ratio, max_residual_rel,
-                                      resp.is_linear)
+                                      resp.is_linear, resp.is_linear and not response_declared)
                 if not mk.fit_rms_px <= max_fit_rms_px:
                     raise _Reject(f"boundary residual {mk.fit_rms_px:.2f} px > {max_fit_rms_px:g} px")
             except _Reject as exc:
@@ -1087,7 +1127,7 @@ def _merge_searches(found, rejected, found2, rejected2):
 
 def detect_markers(image_bgr, *, thresholds: MarkerThresholds = RED, window=None, min_area_px: int = 12,
                    keep_border: bool = False, max_fit_rms_px: float = 1.5, max_markers: int = 32, refine: bool = True,
-                   response="linear", include_suspect: bool = False) -> list[Marker]:
+                   response="linear", include_suspect: bool = False, response_declared: bool = True) -> list[Marker]:
     """The trusted markers of :func:`find_markers` (sorted by decreasing area, possibly empty);
     with ``include_suspect`` also those carrying a quality flag (partial, rough, …), and with
     ``keep_border`` those cut by the image edge (flagged ``border``).
@@ -1099,7 +1139,8 @@ def detect_markers(image_bgr, *, thresholds: MarkerThresholds = RED, window=None
     if refine:
         every = find_markers(image_bgr, thresholds=thresholds, window=window, min_area_px=min_area_px,
                              keep_border=keep_border,
-                             max_fit_rms_px=max_fit_rms_px, max_markers=max_markers, response=response).markers
+                             max_fit_rms_px=max_fit_rms_px, max_markers=max_markers, response=response,
+                             response_declared=response_declared).markers
         if include_suspect:
             return every
         return [m for m in every if m.trusted
