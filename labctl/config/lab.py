@@ -205,6 +205,16 @@ class RunConfig:
     replan_until_s: NonNegative = 0.4  # ... and not in the last this-many seconds before arrival
     # an initial view that already holds the marker in its central half is not re-aimed to arrive later
     initial_view_hold: bool = True
+    # a view's image is requested at the controller's promised arrival (the SEG/SEGNOW/GO reply's t1, dialect
+    # §5), not when its @DONE has crossed the line (~12 ms at 9600 bps plus the tick that reads it); nothing
+    # derived from the image is used until that @DONE arrives, and an image whose @DONE does not come within
+    # the grace is discarded and the arrival checked with STATUS as before (docs/notes/planning.md
+    # "2026-12-02 (c)"). false: the image waits for the @DONE
+    image_at_arrival: bool = True
+    # for a controller on its own clock, the arrival is mapped to the host's as (its reply read) + (t1 − t0):
+    # never early, since the controller replies after it starts; this margin covers the two clocks' rates
+    # (100 ppm of a ≤ 10-s leg: 1 ms) and the host's time stamp of the reply (1 ms)
+    arrival_clock_margin_s: NonNegative = 0.002
     # a live run that drives the table gives up early, with the cause, instead of waiting out timeout_s
     # (labctl.runtime.early_end; --trajectory external waits, a part may come at any time):
     # no fixed-camera marker for no_marker_s while waiting: the sample lab's programs start the object in the

@@ -157,11 +157,11 @@ def simulate_run(lab: Lab, ctx: RunContext, spec: TrialSpec, record=None, *, hea
             sim.advance(clock.now())
             sim.robot.poll()
         if wake is not None and clock.now() < wake < t_frame:
-            # the robot's @DONE arrives between two frames: act on it then (the image is taken as soon
-            # as the robot stands still), not at the next frame. The emulator sends it when it is
+            # the robot's arrival (run.image_at_arrival: its image is requested then) or its @DONE falls between
+            # two frames: act on it then, not at the next frame. The emulator sends the @DONE when it is
             # advanced past the arrival, so it is advanced to the arrival first (+0.1 ms: the reply
             # gives the arrival to 1 µs, rounded either way).
-            clock.sleep_until(cast(float, predictor.t1c) + 1e-4)  # set: an arrival is awaited
+            clock.sleep_until(min(cast(float, predictor.t1c) + 1e-4, wake))  # set: an arrival is awaited
             sim.advance(clock.now())
             sim.robot.poll()
             clock.sleep_until(wake)
@@ -179,7 +179,8 @@ def simulate_run(lab: Lab, ctx: RunContext, spec: TrialSpec, record=None, *, hea
             n = newest
         sim.advance(t)
         progress.pump(t)
-        if t >= next_beat:  # both workers' heartbeats, carried like the real ones
+        # both workers' heartbeats, carried like the real ones (the robot's waits for an arrival within its round trip)
+        if t >= next_beat and not predictor.heartbeat_can_wait(t):
             for role in ("predictor", "recognizer"):
                 meter.carry(m.Heartbeat(role=role, seq=fixed_seq % 65536, t=t))
             sim.robot.heartbeat()
