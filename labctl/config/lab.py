@@ -151,8 +151,9 @@ class TrackingConfig:
     commit_min_updates: PositiveInt = 3  # ... and never from fewer filter updates than this
     # ... or sooner, once the 3-sigma error at commit_horizon_s is this small: 40 mm still fits the central half
     # of the mobile camera's view at the initial distance (viewing_distance_with_margin), and the plan is
-    # re-planned as the filter converges (10 mm waited ~0.25 s longer for nothing measurable)
-    commit_margin_mm: Positive = 40.0
+    # re-planned as the filter converges (10 mm waited ~0.25 s longer for nothing measurable). null: no gate,
+    # the interception starts at commit_min_updates and the re-plans (run.replan_every_s) bring the aim in
+    commit_margin_mm: Positive | None = 40.0
     # about the first leg's duration: ~0.6 s flown + ~0.1 s for its command at 9600 bps with ruckig segments;
     # the margin it gives also widens the initial view (viewing_distance_with_margin)
     commit_horizon_s: Positive = 0.8

@@ -522,9 +522,10 @@ class PredictorPlanner:
     def _ready_to_commit(self, now: float) -> bool:
         """Plan once the prediction is good enough for the interception, or after ``min_track_s``."""
         assert self.t_first_seen is not None  # tracking
-        if now - self.t_first_seen >= self.cfg.tracking.min_track_s:
+        gate = self.cfg.tracking.commit_margin_mm
+        if gate is None or now - self.t_first_seen >= self.cfg.tracking.min_track_s:
             return True
-        return self._commit_margin_mm() <= self.cfg.tracking.commit_margin_mm
+        return self._commit_margin_mm() <= gate
 
     def _choose_azimuth(self) -> float:
         """Initial viewing side: from the marker towards the robot's home (shortest reach); for an arm, of the
