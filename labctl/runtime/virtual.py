@@ -179,12 +179,6 @@ def simulate_run(lab: Lab, ctx: RunContext, spec: TrialSpec, record=None, *, hea
             n = newest
         sim.advance(t)
         progress.pump(t)
-        # both workers' heartbeats, carried like the real ones (the robot's waits for an arrival within its round trip)
-        if t >= next_beat and not predictor.heartbeat_can_wait(t):
-            for role in ("predictor", "recognizer"):
-                meter.carry(m.Heartbeat(role=role, seq=fixed_seq % 65536, t=t))
-            sim.robot.heartbeat()
-            next_beat = t + heartbeat_s
         frames = []
         for tk in times:
             # the tracker reads only the red markers, all on the object: render its footprint only
@@ -198,6 +192,15 @@ def simulate_run(lab: Lab, ctx: RunContext, spec: TrialSpec, record=None, *, hea
         if grid0 is None and predictor.t_first_seen is not None:
             grid0, n = predictor.t_first_seen, 0
         deliver()
+        # both workers' heartbeats, carried like the real ones, after the frame's decisions as the live loop sends
+        # them (before them, a beat due on the first sighting held the first leg's command ~20 ms); the robot's
+        # waits for an arrival within its round trip
+        now = clock.now()
+        if now >= next_beat and not predictor.finished and not predictor.heartbeat_can_wait(now):
+            for role in ("predictor", "recognizer"):
+                meter.carry(m.Heartbeat(role=role, seq=fixed_seq % 65536, t=now))
+            sim.robot.heartbeat()
+            next_beat = now + heartbeat_s
         if t - t0 > ctx.lab.config.run.timeout_s + 5:
             predictor.fail(t, "virtual run exceeded its time-out")
     t_end = clock.now()
