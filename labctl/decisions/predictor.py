@@ -802,17 +802,22 @@ class PredictorPlanner:
             return self.t_arrive
         return self.t1c + wire_time_s(16, self.ctx.lab.robot.baud)
 
-    def heartbeat_can_wait(self, now: float) -> bool:
-        """Should a robot heartbeat due at ``now`` (s) wait? True when the arrival the planner acts on
-        (:meth:`wake_at`, or live the promised arrival :attr:`t_arrive`) falls within the heartbeat's round trip
-        (~25 ms at 9600 bps), which would block the loop past it and hold up that view's image. The beat then goes
-        out on the loop's next pass, at most a round trip and a frame later: far inside the controller's watchdog
-        (``watchdog_s`` 0.5 s against ``heartbeat_s`` 0.2 s in the sample lab)."""
-        t = self.wake_at()
-        if t is None and self.t_arrive is not None and self.provisional is None and self.pending is None \
-                and self.plan is not None and not self.finished:
-            t = self.t_arrive
-        return t is not None and now < t <= now + wire_time_s(HB_ROUND_TRIP_BYTES, self.ctx.lab.robot.baud)
+    def heartbeat_can_wait(self, now: float, late_s: float) -> bool:
+        """Should a robot heartbeat due ``late_s`` (s) ago wait at ``now`` (s)? True when the image the planner
+        requests at the promised arrival (:attr:`t_arrive`; without ``run.image_at_arrival``, the ``@DONE``'s
+        :meth:`wake_at`) falls within the heartbeat's round trip (~25 ms at 9600 bps), which would block the loop
+        past it and hold up that view's image; never once the beat is a quarter of the watchdog's slack late
+        (``watchdog_s − heartbeat_s``: 75 ms in the sample lab), so the controller hears from the host well inside
+        its watchdog."""
+        robot = self.ctx.lab.robot
+        rt = wire_time_s(HB_ROUND_TRIP_BYTES, robot.baud)
+        if late_s >= 0.25 * (robot.watchdog_s - robot.heartbeat_s) or self.finished:
+            return False
+        if self.cfg.run.image_at_arrival:
+            t = self.t_arrive if self.provisional is None and self.pending is None and self.plan is not None else None
+        else:
+            t = self.wake_at()
+        return t is not None and now < t <= now + rt
 
     @property
     def _done_grace_s(self) -> float:

@@ -196,7 +196,7 @@ def simulate_run(lab: Lab, ctx: RunContext, spec: TrialSpec, record=None, *, hea
         # them (before them, a beat due on the first sighting held the first leg's command ~20 ms); the robot's
         # waits for an arrival within its round trip
         now = clock.now()
-        if now >= next_beat and not predictor.finished and not predictor.heartbeat_can_wait(now):
+        if now >= next_beat and not predictor.finished and not predictor.heartbeat_can_wait(now, now - next_beat):
             for role in ("predictor", "recognizer"):
                 meter.carry(m.Heartbeat(role=role, seq=fixed_seq % 65536, t=now))
             sim.robot.heartbeat()
