@@ -242,3 +242,17 @@ def test_an_arrival_on_the_controller_s_own_clock_is_never_mapped_early(ctx, off
     assert t_start + 0.8 <= t <= t_start + 0.8 + 0.026 + ctx.lab.config.run.arrival_clock_margin_s + 1e-9
     shared = PredictorPlanner(ctx, StubRobot(np.eye(4)), lambda msg: None, lambda *a, **k: None, shared_clock=True)
     assert shared._arrival_on_run_clock(t_start, t_start + 0.8, t_reply) == pytest.approx(t_start + 0.8 + 1e-4)
+
+
+def test_a_heartbeat_waits_for_an_arrival_within_its_round_trip_but_never_long(ctx):
+    """A robot heartbeat due just before the promised arrival would block the loop past it (~25 ms at 9600 bps):
+    it waits for the image request, but only while it is less than a quarter of the watchdog's slack late."""
+    robot = StubRobot(make_T(np.eye(3), [100.0, 200.0, 900.0]))
+    p, _ = _promised(ctx, robot, t_arrive=5.0)
+    rt = 24 * 10.0 / ctx.lab.robot.baud
+    slack = ctx.lab.robot.watchdog_s - ctx.lab.robot.heartbeat_s
+    assert p.heartbeat_can_wait(5.0 - 0.5 * rt, 0.0)
+    assert not p.heartbeat_can_wait(5.0 - 2.0 * rt, 0.0)  # the arrival is beyond the beat's round trip
+    assert not p.heartbeat_can_wait(5.0 - 0.5 * rt, 0.25 * slack)  # already late: it goes now
+    p.tick(5.0)  # the image is requested: nothing to wait for any more
+    assert p.provisional is not None and not p.heartbeat_can_wait(5.0, 0.0)
