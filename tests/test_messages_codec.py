@@ -14,6 +14,7 @@ from labctl.decisions import messages as m
 from labctl.decisions.messages import (
     Ambiguous,
     CaptureRequest,
+    Discard,
     Failure,
     FrameTaken,
     Heartbeat,
@@ -65,6 +66,7 @@ messages = st.one_of(
     st.builds(Ambiguous, ids, st.one_of(st.none(), st.integers(0, 254))),
     st.builds(Failure, u8, short_text),
     st.builds(Stop, short_text),
+    st.builds(Discard, u16),
 )
 
 
@@ -155,6 +157,8 @@ def test_nan_on_the_wire_is_rejected():
         lambda: Ambiguous((1, 2), 255),
         lambda: Failure(1, "x" * (m.MAX_TEXT_BYTES + 1)),
         lambda: Stop(42),
+        lambda: Discard(70000),
+        lambda: Discard(-1),
     ],
 )
 def test_bad_fields_raise_message_error(build):
@@ -168,6 +172,7 @@ def test_sizes_fit_the_9600_bps_budget():
     assert size_of(Heartbeat("predictor", 1, 0.0)) == 14
     assert size_of(CaptureRequest(1, "initial1", 0.0, (0, 0, 0), (0, 0, 0))) == 36
     assert size_of(StandardViewRequest(2, 1)) == 4
+    assert size_of(Discard(2)) == 3
     assert size_of(Identity(5, 0.9, 7, (5, 3))) == 1 + 8 + 1 + 4
     assert size_of(Failure.short(m.FailureCode.MARKER_LOST, "é" * 200)) <= 3 + m.MAX_TEXT_BYTES
 

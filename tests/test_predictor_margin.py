@@ -115,7 +115,8 @@ def test_a_steady_marker_is_committed_to_after_three_frames_with_the_first_legs_
 
     def planner(horizon_s):
         cfg = ctx.lab.config
-        cfg = dataclasses.replace(cfg, tracking=dataclasses.replace(cfg.tracking, commit_horizon_s=horizon_s))
+        cfg = dataclasses.replace(cfg, tracking=dataclasses.replace(cfg.tracking, commit_horizon_s=horizon_s,
+                                                                    commit_margin_mm=40.0))
         run_ctx = dataclasses.replace(ctx, lab=dataclasses.replace(ctx.lab, config=cfg))
         p = PredictorPlanner(run_ctx, SegmentRobot(home_flange_pose(ctx.lab)), lambda msg: None,
                              lambda *a, **k: None)
@@ -126,3 +127,24 @@ def test_a_steady_marker_is_committed_to_after_three_frames_with_the_first_legs_
     assert ctx.lab.config.tracking.commit_horizon_s <= 1.0
     assert planner(ctx.lab.config.tracking.commit_horizon_s)._ready_to_commit(2.0 / 30.0)
     assert not planner(1.5)._ready_to_commit(2.0 / 30.0)
+
+
+def test_without_a_commit_gate_the_interception_starts_on_the_first_fix(ctx):
+    """``tracking.commit_margin_mm: null`` (the sample lab, issue 33): the plan starts at ``commit_min_updates``
+    fixes however uncertain the prediction, and the re-plans bring the aim in; with the 40-mm gate one fix is not
+    enough (its velocity is the prior's)."""
+    import dataclasses
+
+    def planner(gate):
+        cfg = ctx.lab.config
+        cfg = dataclasses.replace(cfg, tracking=dataclasses.replace(cfg.tracking, commit_margin_mm=gate))
+        run_ctx = dataclasses.replace(ctx, lab=dataclasses.replace(ctx.lab, config=cfg))
+        p = PredictorPlanner(run_ctx, SegmentRobot(home_flange_pose(ctx.lab)), lambda msg: None,
+                             lambda *a, **k: None)
+        _track(p, 0.0, 0.0, (150.0, 200.0), (8.0, 0.0))  # one frame
+        p.t_first_seen = 0.0
+        return p
+
+    assert ctx.lab.config.tracking.commit_margin_mm is None and ctx.lab.config.tracking.commit_min_updates == 1
+    assert planner(None)._ready_to_commit(0.0)
+    assert not planner(40.0)._ready_to_commit(0.0)

@@ -231,8 +231,11 @@ def test_realistic_run_falls_back_to_a_suspect_marker_when_the_trusted_one_is_am
     # and third viewpoints arrive seconds earlier, from where the side marker is not seen and the run ends
     # "still ambiguous after 3 standard views"; docs/notes/planning.md, "Ninth round")
     cfg["run"]["initial_view_hold"] = False
-    # (and the commit horizon it was found with: 0.8 s commits two frames sooner, from other viewpoints)
+    # (and the commit horizon it was found with: 0.8 s commits two frames sooner, from other viewpoints; and its
+    # 40-mm commit gate over at least 3 fixes: the sample lab starts on the first fix since issue 33)
     cfg.setdefault("tracking", {})["commit_horizon_s"] = 1.5
+    cfg["tracking"]["commit_margin_mm"] = 40.0
+    cfg["tracking"]["commit_min_updates"] = 3
     (root / "lab.yaml").write_text(yaml.safe_dump(cfg))
     robot = yaml.safe_load((root / "drivers" / "robot.yaml").read_text())
     robot["a_max_mm_s2"] = 1500.0

@@ -88,3 +88,36 @@ def test_a_marker_whose_views_disagree_is_reported_last():
     # 3° of bend against σ 0.2° per view: z ≈ 10, far past the check's 4 σ; the duality is still decided
     normals, a, b2 = _run(3.0)
     assert len(normals) == 2 and np.allclose(normals[0], a, atol=1e-4) and np.allclose(normals[1], b2, atol=1e-4)
+
+
+def test_a_discarded_image_leaves_the_recognizer_as_before_it():
+    """An image requested at the robot's promised arrival whose @DONE never came is discarded (m.Discard): the
+    recognizer forgets the marker it took from it, so the retaken image is a first image again."""
+    a_true, a_false = _unit((0.1, 0.2, -1.0)), _unit((0.6, -0.3, -1.0))
+    found = [(_marker(320, 240), _poses((0, 0, 500), a_true, a_false))]
+    moved = [(_marker(340, 240), _poses((20, 0, 500), a_true, _unit((-0.5, 0.4, -1.0))))]
+    rec = _recognizer([found, found, moved])
+    frames = iter(Frame(np.zeros((480, 640, 3), np.uint8), t, k) for k, t in enumerate((0.0, 1.0, 2.0, 3.0)))
+    rec.grab = lambda: next(frames)
+    req = lambda v, kind, t: m.CaptureRequest(view_id=v, kind=kind, t_capture=t, position=(0, 0, 0),  # noqa: E731
+                                              rotvec=(0, 0, 0))
+    assert [type(r) for r in rec.handle(req(1, "initial1", 0.0))] == [m.FrameTaken]
+    assert rec.first is not None and rec.n_initial_seen == 1
+    assert rec.handle(m.Discard(view_id=2)) == [] and rec.first is not None  # not the last image: nothing undone
+    rec.handle(req(2, "initial1", 1.0))
+    assert rec.handle(m.Discard(view_id=2)) == [] and rec.n_initial_seen == 1 and rec.first is not None
+    rec.handle(req(3, "initial2", 2.0))  # paired with view 1's marker: one pose resolved
+    assert rec.resolved_normals
+    rec.handle(m.Discard(view_id=3))
+    assert rec.resolved_normals == [] and rec.first is not None and rec.n_initial_seen == 1
+
+
+def test_a_capture_skips_frames_exposed_before_its_request():
+    """A free-running camera's latest frame may be older than the request (the robot still moving then): the
+    recognizer takes the first frame stamped at or after ``t_capture``."""
+    rec = _recognizer([[]])
+    frames = iter(Frame(np.zeros((480, 640, 3), np.uint8), t, k) for k, t in enumerate((0.97, 0.999, 1.0, 1.03)))
+    rec.grab = lambda: next(frames)
+    assert rec._grab_after(1.0).t == 1.0
+    rec.grab = lambda: Frame(np.zeros((480, 640, 3), np.uint8), 0.5, 1)  # a camera that never catches up
+    assert rec._grab_after(1.0).t == 0.5  # at most MAX_STALE_GRABS skipped: no endless wait

@@ -151,8 +151,9 @@ class TrackingConfig:
     commit_min_updates: PositiveInt = 3  # ... and never from fewer filter updates than this
     # ... or sooner, once the 3-sigma error at commit_horizon_s is this small: 40 mm still fits the central half
     # of the mobile camera's view at the initial distance (viewing_distance_with_margin), and the plan is
-    # re-planned as the filter converges (10 mm waited ~0.25 s longer for nothing measurable)
-    commit_margin_mm: Positive = 40.0
+    # re-planned as the filter converges (10 mm waited ~0.25 s longer for nothing measurable). null: no gate,
+    # the interception starts at commit_min_updates and the re-plans (run.replan_every_s) bring the aim in
+    commit_margin_mm: Positive | None = 40.0
     # about the first leg's duration: ~0.6 s flown + ~0.1 s for its command at 9600 bps with ruckig segments;
     # the margin it gives also widens the initial view (viewing_distance_with_margin)
     commit_horizon_s: Positive = 0.8
@@ -205,6 +206,16 @@ class RunConfig:
     replan_until_s: NonNegative = 0.4  # ... and not in the last this-many seconds before arrival
     # an initial view that already holds the marker in its central half is not re-aimed to arrive later
     initial_view_hold: bool = True
+    # a view's image is requested at the controller's promised arrival (the SEG/SEGNOW/GO reply's t1, dialect
+    # §5), not when its @DONE has crossed the line (~12 ms at 9600 bps plus the tick that reads it); nothing
+    # derived from the image is used until that @DONE arrives, and an image whose @DONE does not come within
+    # the grace is discarded and the arrival checked with STATUS as before (docs/notes/planning.md
+    # "2026-12-02 (c)"). false: the image waits for the @DONE
+    image_at_arrival: bool = True
+    # for a controller on its own clock, the arrival is mapped to the host's as (its reply read) + (t1 − t0):
+    # never early, since the controller replies after it starts; this margin covers the two clocks' rates
+    # (100 ppm of a ≤ 10-s leg: 1 ms) and the host's time stamp of the reply (1 ms)
+    arrival_clock_margin_s: NonNegative = 0.002
     # a live run that drives the table gives up early, with the cause, instead of waiting out timeout_s
     # (labctl.runtime.early_end; --trajectory external waits, a part may come at any time):
     # no fixed-camera marker for no_marker_s while waiting: the sample lab's programs start the object in the

@@ -30,7 +30,7 @@ from ..errors import LabctlError
 
 __all__ = [
     "MessageError", "Message", "Hello", "Heartbeat", "CaptureRequest", "FrameTaken", "MarkerPose",
-    "StandardViewRequest", "Identity", "Ambiguous", "Failure", "Stop", "MESSAGE_TYPES", "ROLES",
+    "StandardViewRequest", "Identity", "Ambiguous", "Failure", "Stop", "Discard", "MESSAGE_TYPES", "ROLES",
     "CAPTURE_KINDS", "FailureCode", "MAX_TEXT_BYTES", "MAX_CANDIDATES", "encode", "decode", "size_of",
 ]
 
@@ -510,13 +510,37 @@ class Stop(_Msg):
         return cls(_unpack_text(body, "Stop"))
 
 
+@dataclass(frozen=True)
+class Discard(_Msg):
+    """Host 1 -> Host 2: forget the image of ``view_id`` and everything it changed (its arrival was not confirmed).
+
+    An image is requested at the robot controller's promised arrival, before its ``@DONE`` has crossed the line;
+    if that ``@DONE`` does not come, the image may show a robot that had not arrived, so the recognizer goes
+    back to its state before that request (docs/notes/planning.md "2026-12-02 (c)")."""
+
+    view_id: int
+
+    TAG: ClassVar[int] = 11
+    _FMT: ClassVar[struct.Struct] = struct.Struct("<H")
+
+    def __post_init__(self):
+        _set(self, "view_id", _uint("view_id", self.view_id, 16))
+
+    def _pack(self):
+        return self._FMT.pack(self.view_id)
+
+    @classmethod
+    def _unpack(cls, body):
+        return cls(*_unpack_exact(cls._FMT, body, "Discard"))
+
+
 Message = (Hello | Heartbeat | CaptureRequest | FrameTaken | MarkerPose | StandardViewRequest | Identity
-           | Ambiguous | Failure | Stop)
+           | Ambiguous | Failure | Stop | Discard)
 
 MESSAGE_TYPES: dict[int, type[_Msg]] = {
     cls.TAG: cls
     for cls in (Hello, Heartbeat, CaptureRequest, FrameTaken, MarkerPose, StandardViewRequest, Identity,
-                Ambiguous, Failure, Stop)
+                Ambiguous, Failure, Stop, Discard)
 }
 
 

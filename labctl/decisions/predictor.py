@@ -52,7 +52,11 @@ from .context import RunContext, marker_thresholds
 
 #: a robot at rest farther than this (mm) from the end of its segment did not run it to the end
 ARRIVAL_TOL_MM = 1.0
+#: after a controller's arrival time on the run's own clock (s): its replies give times to 1 µs, rounded either way
+SHARED_CLOCK_MARGIN_S = 1e-4
 GO_LINE_BYTES = 12  # "#<seq> GO <id>*HH\n" (dialect 1.4): what starts a held segment
+#: a robot heartbeat's round trip on the line: "#<seq> HB*HH\n" and its "$<seq> ok*HH\n" (~11 bytes each)
+HB_ROUND_TRIP_BYTES = 24
 #: fixed-camera positions kept for :func:`position_from_frames` (a minute at 30 frames/s)
 TRACK_HISTORY = 1800
 #: the initial view's azimuths tried, in order, about the side facing the robot's home (deg): the nearest side
@@ -232,6 +236,12 @@ class PredictorPlanner:
         if rest is not None and not rest.moving:  # the status read when the robot was opened: no STATUS later
             self.rest_T = np.asarray(rest.T_base_flange, dtype=float).copy()
         self.t1c: float | None = None  # the controller's arrival time of the segment under way (its clock)
+        # ... on the run's clock, never early (:meth:`_accepted`): when its view's image may be taken
+        self.t_arrive: float | None = None
+        # the image requested at that promised arrival before the segment's @DONE came: (segment id, view id,
+        # t_capture), and the recognizer's replies to it, held until the @DONE confirms it (run.image_at_arrival)
+        self.provisional: tuple[int, int, float] | None = None
+        self._held_replies: list[m.Message] = []
         # the segment profile (run.profile): ruckig only if the controller lists it (dialect 1.2)
         self.profile = robot.choose_profile(profile or cfg.run.profile)
         self.jerk = ruckig_limits(ctx.lab.robot, cfg.run.robot_stop_budget_s)  # what ruckig segments carry
@@ -310,13 +320,14 @@ class PredictorPlanner:
         self.segment_id += 1
         now = self._now(now)
         t0c, t1c = self.robot.segment(T_end, duration, self.segment_id, replace=True, **kw)
-        self._accepted(now, plan, end, T_end, t0c, t1c)
+        self._accepted(now, plan, end, T_end, t0c, t1c, t_reply=self._now(now))
 
     def _accepted(self, now: float, plan: Interception, end, T_end: np.ndarray, t0c: float, t1c: float,
-                  line: bool = True) -> None:
+                  line: bool = True, t_reply: float | None = None) -> None:
         """The controller took the plan's first segment (``self.segment_id``), which starts at its ``t0c`` and
         ends at ``t1c``: the motion under way from now on. ``line``: started by the segment's own line (its
-        start measures a segment line's latency), not by a held segment's ``GO``."""
+        start measures a segment line's latency), not by a held segment's ``GO``. ``t_reply``: when its reply
+        had been read (s, run clock; default ``now``)."""
         ruckig = isinstance(end, RuckigTrajectory)
         self.held = None  # a SEGNOW drops a held segment at the controller; a GO has run it
         # accepted (a refused splice raises, and the motion under way, its end and its leg stay as they were)
@@ -334,6 +345,7 @@ class PredictorPlanner:
         # offset taken for latency would start every re-plan that much later, and the run never arrives.
         shared = self.shared_clock and math.isfinite(t0c)
         self.t1c = t1c if shared and math.isfinite(t1c) else None
+        self.t_arrive = self._arrival_on_run_clock(t0c, t1c, now if t_reply is None else t_reply)
         if shared and 0.0 <= t0c - now < 1.0:
             if line:
                 self.latency_s = 0.5 * self.latency_s + 0.5 * (t0c - now)
@@ -342,6 +354,20 @@ class PredictorPlanner:
             self.plan_shift = 0.0
         self.log("segment", t=now, id=self.segment_id, kind=self.plan_kind, t_end=end.t1, t0c=t0c, t1c=t1c,
                  p=T_end[:3, 3], rotvec=matrix_to_rotvec(T_end[:3, :3]))
+
+    def _arrival_on_run_clock(self, t0c: float, t1c: float, t_reply: float) -> float | None:
+        """When (s, run clock) the segment the controller started at ``t0c`` and promised to end at ``t1c`` (its
+        clock) stands at its end, never early; None without ``run.image_at_arrival`` or the two times.
+
+        On the run's own clock (the simulated lab) that is ``t1c`` and a margin for the reply's µs rounding
+        (:data:`SHARED_CLOCK_MARGIN_S`). A controller on its own clock is mapped through its reply: it starts a
+        segment (SEGNOW, or GO at rest) before it answers, so the reply read at ``t_reply`` plus the segment's own
+        duration is at or after the arrival; ``run.arrival_clock_margin_s`` covers the clocks' rates."""
+        if not self.cfg.run.image_at_arrival or not (math.isfinite(t0c) and math.isfinite(t1c)):
+            return None
+        if self.shared_clock:
+            return t1c + SHARED_CLOCK_MARGIN_S
+        return t_reply + (t1c - t0c) + self.cfg.run.arrival_clock_margin_s
 
     # -- planning ----------------------------------------------------------------------------
     def _initial_view_target(self, azimuth_deg: float, margin: bool = True):
@@ -446,9 +472,10 @@ class PredictorPlanner:
         return max(cart, self.arm.joint_time_s(q0, T))
 
     def _start_move(self, now: float, kind: m.CaptureKind, plan: Interception,
-                    started: tuple[int, float, float] | None = None) -> None:
-        """Fly ``plan`` as the leg to the ``kind`` view: send it, or with ``started`` (segment id, t0c, t1c) a held
-        segment the controller has just started (:meth:`_go_held`; ``now`` then is when its ``GO`` was sent)."""
+                    started: tuple[int, float, float, float] | None = None) -> None:
+        """Fly ``plan`` as the leg to the ``kind`` view: send it, or with ``started`` (segment id, t0c, t1c, when the
+        reply was read) a held segment the controller has just started (:meth:`_go_held`; ``now`` then is when its
+        ``GO`` was sent)."""
         if kind == "initial1":
             self._held_tried = False  # a new first leg: its second may be held again
         traj, t_hit = _reached(plan)
@@ -467,7 +494,7 @@ class PredictorPlanner:
         if started is not None:
             self.segment_id = started[0]
             end, T_end, _, _ = _segment_line(plan)
-            self._accepted(now, plan, end, T_end, started[1], started[2], line=False)
+            self._accepted(now, plan, end, T_end, started[1], started[2], line=False, t_reply=started[3])
         else:
             try:
                 self._send_segment(now, plan)
@@ -486,9 +513,10 @@ class PredictorPlanner:
     def _ready_to_commit(self, now: float) -> bool:
         """Plan once the prediction is good enough for the interception, or after ``min_track_s``."""
         assert self.t_first_seen is not None  # tracking
-        if now - self.t_first_seen >= self.cfg.tracking.min_track_s:
+        gate = self.cfg.tracking.commit_margin_mm
+        if gate is None or now - self.t_first_seen >= self.cfg.tracking.min_track_s:
             return True
-        return self._commit_margin_mm() <= self.cfg.tracking.commit_margin_mm
+        return self._commit_margin_mm() <= gate
 
     def _choose_azimuth(self) -> float:
         """Initial viewing side: from the marker towards the robot's home (shortest reach); for an arm, of the
@@ -539,8 +567,11 @@ class PredictorPlanner:
             return
         self._held_tried = True
         baud, fps = self.ctx.lab.robot.baud, float(self.ctx.lab.mobile_camera.fps or self.cfg.run.fps)
-        t0 = (_t_hit(self.plan) + self.plan_shift + wire_time_s(16, baud) + 1.0 / fps
-              + wire_time_s(GO_LINE_BYTES, baud))
+        # the GO leaves once the exposure has ended and the @DONE has come: the image waits for the @DONE, or
+        # (run.image_at_arrival) is exposed from the arrival while the @DONE crosses the line
+        after = max(1.0 / fps, wire_time_s(16, baud)) if self.cfg.run.image_at_arrival \
+            else wire_time_s(16, baud) + 1.0 / fps
+        t0 = _t_hit(self.plan) + self.plan_shift + after + wire_time_s(GO_LINE_BYTES, baud)
         T = self.T_end
         state, R = (T[:3, 3].copy(), np.zeros(3), np.zeros(3)), T[:3, :3].copy()
         before = (self.azimuth_deg, self.elevation_step_deg)
@@ -584,7 +615,7 @@ class PredictorPlanner:
             return False
         self.azimuth_deg, self.elevation_step_deg = az, elevation
         self._arm_checked = arm_checked
-        self._start_move(sent, "initial2", plan, started=(sid, t0c, t1c))
+        self._start_move(sent, "initial2", plan, started=(sid, t0c, t1c, self._now(sent)))
         return True
 
     def _replan(self, now: float) -> None:
@@ -724,7 +755,16 @@ class PredictorPlanner:
             # @DONE leaves the controller at the arrival and is ~10 bytes on the line: wait for it a few
             # frames rather than ask STATUS (a ~0.1 s round trip at 9600 bps that holds up the image)
             if now < _t_hit(self.plan) + self.plan_shift + self._done_grace_s:
+                if self.provisional is None and self.t_arrive is not None and now >= self.t_arrive \
+                        and self.cfg.run.image_at_arrival:
+                    # the controller promised to stand at the end pose from t_arrive: the image is taken from then,
+                    # and used once the @DONE says the segment ran to its end (docs/protocols/robot.md §5, §10)
+                    kind = self.plan_kind
+                    assert kind is not None  # set with the plan
+                    view = self._request_capture(self.t_arrive, kind, self.T_end, provisional=True)
+                    self.provisional = (self.segment_id, view, self.t_arrive)
                 return None
+        self._discard_provisional(now, "no @DONE within the grace")
         st = self.robot.status()
         latched = self.robot.latched
         if latched:  # its watchdog or a STOP cut the move: an image from where it stood would be a wrong view
@@ -741,13 +781,34 @@ class PredictorPlanner:
         return self.rest_T
 
     def wake_at(self) -> float | None:
-        """When (s, the runtime's clock, if it is the controller's as in the simulated lab) the ``@DONE`` of
-        the segment under way reaches the host: the controller's arrival time plus the line's bytes (~12; 16 allowed).
-        A runtime that ticks the planner then, not only at the next fixed-camera frame, takes the image
-        as soon as the robot stands still. None when no arrival is awaited."""
+        """When (s, the runtime's clock, if it is the controller's as in the simulated lab) the planner acts on the
+        segment under way's arrival: at the arrival itself, where its image is requested then
+        (``run.image_at_arrival``, :attr:`t_arrive`), else (or once requested) when its ``@DONE`` reaches the host:
+        the controller's arrival time plus the line's bytes (~12; 16 allowed). A runtime that ticks the planner
+        then, not only at the next fixed-camera frame, takes the image as soon as the robot stands still. None
+        when no arrival is awaited."""
         if self.finished or self.plan is None or self.pending is not None or self.t1c is None:
             return None
+        if self.provisional is None and self.t_arrive is not None:
+            return self.t_arrive
         return self.t1c + wire_time_s(16, self.ctx.lab.robot.baud)
+
+    def heartbeat_can_wait(self, now: float, late_s: float) -> bool:
+        """Should a robot heartbeat due ``late_s`` (s) ago wait at ``now`` (s)? True when the image the planner
+        requests at the promised arrival (:attr:`t_arrive`; without ``run.image_at_arrival``, the ``@DONE``'s
+        :meth:`wake_at`) falls within the heartbeat's round trip (~25 ms at 9600 bps), which would block the loop
+        past it and hold up that view's image; never once the beat is a quarter of the watchdog's slack late
+        (``watchdog_s − heartbeat_s``: 75 ms in the sample lab), so the controller hears from the host well inside
+        its watchdog."""
+        robot = self.ctx.lab.robot
+        rt = wire_time_s(HB_ROUND_TRIP_BYTES, robot.baud)
+        if late_s >= 0.25 * (robot.watchdog_s - robot.heartbeat_s) or self.finished:
+            return False
+        if self.cfg.run.image_at_arrival:
+            t = self.t_arrive if self.provisional is None and self.pending is None and self.plan is not None else None
+        else:
+            t = self.wake_at()
+        return t is not None and now < t <= now + rt
 
     @property
     def _done_grace_s(self) -> float:
@@ -769,16 +830,20 @@ class PredictorPlanner:
         self.leg_start = None
 
     # -- capture ---------------------------------------------------------------------------------
-    def _request_capture(self, now: float, kind: m.CaptureKind, T_w_f: np.ndarray) -> None:
-        """Ask the recognizer for an image now; the camera pose comes from the robot's reported flange."""
+    def _request_capture(self, now: float, kind: m.CaptureKind, T_w_f: np.ndarray, provisional: bool = False) -> int:
+        """Ask the recognizer for an image exposed from ``now`` on (s); the camera pose comes from the robot's
+        reported flange (``provisional``: the commanded end pose, at the promised arrival, not yet confirmed by
+        ``@DONE``: nothing waits on its replies until it is, :meth:`_at_view`). Returns its view id."""
         T_w_c2 = T_w_f @ self.ctx.T_f_c2
         self.view_id += 1
         self.n_images += 1
-        self.pending = self.view_id
+        if not provisional:
+            self.pending = self.view_id
         self.t_requested[self.view_id] = now
         self.send(m.CaptureRequest(view_id=self.view_id, kind=kind, t_capture=now,
                                    position=tuple(T_w_c2[:3, 3]), rotvec=tuple(matrix_to_rotvec(T_w_c2[:3, :3]))))
-        self.log("capture_request", t=now, view_id=self.view_id, kind=kind, T_w_c2=T_w_c2)
+        self.log("capture_request", t=now, view_id=self.view_id, kind=kind, T_w_c2=T_w_c2, provisional=provisional)
+        return self.view_id
 
     def _use_pose(self, msg: m.MarkerPose, now: float, spare: bool = False) -> bool:
         """Go for the standard view of this resolved marker (``spare``: one resolved from earlier images, not
@@ -918,6 +983,13 @@ class PredictorPlanner:
         moves the state machine on."""
         if self.finished:
             return
+        if self.provisional is not None:
+            # replies to an image whose arrival the @DONE has not confirmed yet: held until it does (the robot
+            # stays put, no pose or identity is used); the @DONE may have come meanwhile
+            self._held_replies.append(msg)
+            if self.stage in ("intercept", "initial", "standard") and self.pending is None and self.plan is not None:
+                self._at_view(now)
+            return
         if isinstance(msg, m.FrameTaken):
             self.t_requested[msg.view_id] = msg.t  # the image's own time
         if isinstance(msg, m.FrameTaken) and msg.view_id == self.pending and self.plan_kind == "initial1":
@@ -991,34 +1063,65 @@ class PredictorPlanner:
             self.t_robot_log = now
             self.log("robot", t=now, p=self._flange_state(now)[0][0], planned=True)
         if self.stage in ("intercept", "initial", "standard") and self.pending is None and self.plan is not None:
-            if now < _t_hit(self.plan) + self.plan_shift:
+            if now < _t_hit(self.plan) + self.plan_shift and self.provisional is None:
                 self._replan(now)
                 self._hold_second_leg(now)
                 return
-            T_flange = self._arrived(now)
-            if T_flange is None:
+            self._at_view(now)
+            if self.pending is None:
                 return
-            p = T_flange[:3, 3]
-            self.robot_path.append((now, p.tolist()))
-            self.log("robot", t=now, p=p)
-            kind = self.plan_kind
-            assert kind is not None  # set with the plan
-            if self.arm is not None:  # at rest where its segment ended: the configuration it followed there
-                seed = self.arm_path.q_end if self.arm_path is not None else self._arm_rest_q()
-                res = self.arm.model.ik(T_flange, seed) if seed is not None else None
-                self.arm_q = res.q if res is not None and res.ok else seed
-                self.arm_path = None
-            self._end_leg(T_flange)
-            self.plan = None
-            if kind == "standard":
-                self.views_used += 1
-                self._enter("match", now)
-            else:
-                self._enter("initial", now)
-            self._request_capture(now, kind, T_flange)  # robot base = world
         wait_s = self.cfg.run.recognizer_timeout_s
         if self.pending is not None and now - self.stage_times.started[self.stage] > wait_s:
             self.fail(now, f"the recognizer did not answer within {wait_s:g} s (stage {self.stage})")
+
+    def _at_view(self, now: float) -> None:
+        """Once the robot stands at the end of its leg: close the leg and take (or adopt) the view's image."""
+        T_flange = self._arrived(now)
+        if T_flange is None:
+            return
+        prov, self.provisional = self.provisional, None
+        t = prov[2] if prov is not None else now  # the image's request: at the promised arrival, or now
+        p = T_flange[:3, 3]
+        self.robot_path.append((t, p.tolist()))
+        self.log("robot", t=t, p=p)
+        kind = self.plan_kind
+        assert kind is not None  # set with the plan
+        if self.arm is not None:  # at rest where its segment ended: the configuration it followed there
+            seed = self.arm_path.q_end if self.arm_path is not None else self._arm_rest_q()
+            res = self.arm.model.ik(T_flange, seed) if seed is not None else None
+            self.arm_q = res.q if res is not None and res.ok else seed
+            self.arm_path = None
+        self._end_leg(T_flange)
+        self.plan = None
+        if kind == "standard":
+            self.views_used += 1
+            self._enter("match", t)
+        else:
+            self._enter("initial", t)
+        if prov is None:
+            self._request_capture(now, kind, T_flange)  # robot base = world
+            return
+        # the @DONE confirms the image taken at the promised arrival: its replies are used from now on
+        self.pending = prov[1]
+        self.log("capture_confirmed", t=now, view_id=prov[1])
+        replies, self._held_replies = self._held_replies, []
+        for msg in replies:
+            self.on_message(msg, now)
+
+    def _discard_provisional(self, now: float, why: str) -> None:
+        """Forget the image requested at the promised arrival (no @DONE came): the recognizer goes back to its
+        state before it (``Discard``), its replies are dropped, and it does not count as an image."""
+        prov, self.provisional = self.provisional, None
+        if prov is None:
+            return
+        self.n_images -= 1
+        self.t_requested.pop(prov[1], None)
+        self.send(m.Discard(view_id=prov[1]))
+        self.log("capture_discarded", t=now, view_id=prov[1], reason=why)
+        kept = [msg for msg in self._held_replies if getattr(msg, "view_id", prov[1]) != prov[1]]
+        self._held_replies = []
+        for msg in kept:
+            self.on_message(msg, now)
 
     # -- result ------------------------------------------------------------------------------------
     def result(self, now: float) -> dict:

@@ -49,6 +49,9 @@ STANDARD_VIEW_MAX_OFFSET_FRAC = 0.15
 #: along the marker's normal the marker's image is a circle: a smaller minor/major axis ratio is an oblique view
 #: (cos 32°), whose silhouette is not the standard view's
 STANDARD_VIEW_MIN_AXIS_RATIO = 0.85
+#: older frames a capture skips to reach one stamped at or after its request (a free-running camera's latest frame
+#: is at most a period old; a few more for a stream's jitter)
+MAX_STALE_GRABS = 3
 
 
 def _mid(poses) -> np.ndarray:
@@ -143,18 +146,46 @@ class Recognizer:
         self.detect_kw: dict[str, Any] = dict(thresholds=marker_thresholds(cam_cfg), response=cam_cfg.response)
         if not self.response_declared:  # (the default stays out of the arguments: detect_markers' own is True)
             self.detect_kw["response_declared"] = False
+        # (view id, the state before its image): what a Discard of that view goes back to
+        self._before: tuple[int, dict[str, Any]] | None = None
+
+    def _state(self) -> dict[str, Any]:
+        """What an image changes (copies): the first image's markers, resolved normals, candidates and totals."""
+        return {"first": self.first, "resolved_normals": list(self.resolved_normals),
+                "remaining": None if self.remaining is None else list(self.remaining), "totals": dict(self.totals),
+                "n_matched": self.n_matched, "n_standard": self.n_standard, "n_initial_seen": self.n_initial_seen,
+                "saw_top_marker": self.saw_top_marker}
 
     def handle(self, msg: m.Message) -> list[m.Message]:
-        """Answer one message from the predictor: a capture request is taken, posed or matched; anything else gets no
-        answer."""
+        """Answer one message from the predictor: a capture request is taken, posed or matched; a ``Discard`` of the
+        last one undoes what its image changed; anything else gets no answer."""
+        if isinstance(msg, m.Discard):
+            if self._before is not None and self._before[0] == msg.view_id:
+                for name, value in self._before[1].items():
+                    setattr(self, name, value)
+            self._before = None
+            return []
         if not isinstance(msg, m.CaptureRequest):
             return []
-        frame = self.grab()
+        self._before = (msg.view_id, self._state())
+        frame = self._grab_after(msg.t_capture)
         self.save_image(f"view_{msg.view_id}", frame.image)  # raw, for `labctl replay`
         T_w_c2 = make_T(rotvec_to_matrix(msg.rotvec), msg.position)
         if msg.kind == "standard":
             return [self._standard(msg, frame)]
         return self._initial(msg, frame, T_w_c2)
+
+    def _grab_after(self, t_capture: float) -> Frame:
+        """The camera's first frame stamped at or after ``t_capture`` (s): from then on the robot stands still. A
+        free-running camera's latest frame can be up to a frame period older than the request (the simulated
+        lab's live cameras, a V4L2 stream); a triggered one (the virtual runtime's) is exposed on request. At most
+        :data:`MAX_STALE_GRABS` older frames are skipped."""
+        frame = self.grab()
+        for _ in range(MAX_STALE_GRABS):
+            if frame.t >= t_capture:
+                break
+            frame = self.grab()
+        return frame
 
     # -- marker pose (paper §3.1–3.3) -------------------------------------------------------------
     def _candidates(self, frame: Frame, T_w_c2: np.ndarray):

@@ -24,6 +24,7 @@ from ..records import load_run
 from ..records.events import spec
 
 CAPTURE = spec("capture_request")
+DISCARDED = spec("capture_discarded")
 
 
 def _image_for(run_dir: Path, view_id: int):
@@ -38,7 +39,9 @@ def replay_run(lab: Lab, run_dir: Path | str) -> dict:
     """Feed the recorded capture requests and images to a new recognizer; compare identities."""
     run_dir = Path(run_dir)
     run = load_run(run_dir)
-    requests = run.of(CAPTURE.name)
+    discarded = {int(DISCARDED.get(e, "view_id")) for e in run.of(DISCARDED.name)}
+    # an image no @DONE confirmed was forgotten by the recognizer (Discard): it is not fed again
+    requests = [e for e in run.of(CAPTURE.name) if int(CAPTURE.get(e, "view_id")) not in discarded]
     if not requests:
         raise UserInputError(f"{run_dir}: no capture requests recorded (the run ended before any image)")
     ctx = RunContext.load(lab)

@@ -262,7 +262,14 @@ _EVENTS = (
               {"t": T, "reason": _f("string?"), "code": _f("string")}),
     EventSpec("capture_request", "the predictor asks the recognizer to take a mobile-camera image",
               {"t": T, "view_id": VIEW_ID, "kind": _f("string", "initial1, initial2 or standard"),
-               "T_w_c2": _f("array<number>[4,4]", "the mobile camera's pose, mm W")}),
+               "T_w_c2": _f("array<number>[4,4]", "the mobile camera's pose, mm W"),
+               "provisional": _opt("boolean", "true: requested at the controller's promised arrival, used only once "
+                                   "its @DONE confirms it (capture_confirmed / capture_discarded)")}),
+    EventSpec("capture_confirmed", "the @DONE of the segment came: the image requested at its arrival is used",
+              {"t": T, "view_id": VIEW_ID}),
+    EventSpec("capture_discarded", "no @DONE confirmed the image requested at the promised arrival: the recognizer "
+              "forgets it (Discard) and the arrival is checked with STATUS",
+              {"t": T, "view_id": VIEW_ID, "reason": _f("string")}),
     EventSpec("track", "a fixed-camera sighting of the object, filtered",
               {"t": T, "x": _f("number", "Kalman estimate, mm table plane W"), "y": _f("number", "mm"),
                "px": _f("array<number>[2]", "marker centroid in the fixed image, px")}),

@@ -643,7 +643,8 @@ def predictor_main(args: WorkerArgs, link_end, control) -> int:
             if not hello:  # the first message starts the peer's dead_after_s clock: only once the loop runs
                 link.send(m.Hello(role="predictor", pid=os.getpid()))
                 hello = alive["hello"] = True
-            if now - t_beat >= lab.robot.heartbeat_s:
+            due = now - t_beat - lab.robot.heartbeat_s  # s since the beat was due (>= 0: due)
+            if due >= 0.0 and not planner.heartbeat_can_wait(now, due):
                 robot.heartbeat()
                 link.send(m.Heartbeat(role="predictor", seq=int(now * 10) % 65536, t=now))
                 t_beat = now

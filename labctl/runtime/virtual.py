@@ -158,11 +158,11 @@ def simulate_run(lab: Lab, ctx: RunContext, spec: TrialSpec, record=None, *, hea
             sim.advance(clock.now())
             sim.robot.poll()
         if wake is not None and clock.now() < wake < t_frame:
-            # the robot's @DONE arrives between two frames: act on it then (the image is taken as soon
-            # as the robot stands still), not at the next frame. The emulator sends it when it is
+            # the robot's arrival (run.image_at_arrival: its image is requested then) or its @DONE falls between
+            # two frames: act on it then, not at the next frame. The emulator sends the @DONE when it is
             # advanced past the arrival, so it is advanced to the arrival first (+0.1 ms: the reply
             # gives the arrival to 1 µs, rounded either way).
-            clock.sleep_until(cast(float, predictor.t1c) + 1e-4)  # set: an arrival is awaited
+            clock.sleep_until(min(cast(float, predictor.t1c) + 1e-4, wake))  # set: an arrival is awaited
             sim.advance(clock.now())
             sim.robot.poll()
             clock.sleep_until(wake)
@@ -180,11 +180,6 @@ def simulate_run(lab: Lab, ctx: RunContext, spec: TrialSpec, record=None, *, hea
             n = newest
         sim.advance(t)
         progress.pump(t)
-        if t >= next_beat:  # both workers' heartbeats, carried like the real ones
-            for role in ("predictor", "recognizer"):
-                meter.carry(m.Heartbeat(role=role, seq=fixed_seq % 65536, t=t))
-            sim.robot.heartbeat()
-            next_beat = t + heartbeat_s
         frames = []
         for tk in times:
             # the tracker reads only the red markers, all on the object: render its footprint only
@@ -198,6 +193,15 @@ def simulate_run(lab: Lab, ctx: RunContext, spec: TrialSpec, record=None, *, hea
         if grid0 is None and predictor.t_first_seen is not None:
             grid0, n = predictor.t_first_seen, 0
         deliver()
+        # both workers' heartbeats, carried like the real ones, after the frame's decisions as the live loop sends
+        # them (before them, a beat due on the first sighting held the first leg's command ~20 ms); the robot's
+        # waits for an arrival within its round trip
+        now = clock.now()
+        if now >= next_beat and not predictor.finished and not predictor.heartbeat_can_wait(now, now - next_beat):
+            for role in ("predictor", "recognizer"):
+                meter.carry(m.Heartbeat(role=role, seq=fixed_seq % 65536, t=now))
+            sim.robot.heartbeat()
+            next_beat = now + heartbeat_s
         if t - t0 > ctx.lab.config.run.timeout_s + 5:
             predictor.fail(t, "virtual run exceeded its time-out")
     t_end = clock.now()
