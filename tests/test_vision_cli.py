@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 import pytest
 import yaml
+from cli_run import run_cli
 
 from labctl.bench.synthetic_images import issue_camera, render_disc
 from labctl.cli import main
@@ -38,14 +39,7 @@ def scene(tmp_path):
     return tmp_path, c1, c2, n
 
 
-def _run(capsys, *args):
-    code = 0
-    try:
-        main(list(args))
-    except SystemExit as exc:
-        code = exc.code or 0
-    out = capsys.readouterr()
-    return code, out.out, out.err
+_run = run_cli
 
 
 def test_one_image_json(scene, capsys, monkeypatch):

@@ -15,6 +15,7 @@ import cv2
 import numpy as np
 import pytest
 import yaml
+from cli_run import run_cli
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -144,14 +145,7 @@ def test_bad_inputs_say_why():
 
 # ---- the CLI: the driver file -----------------------------------------------------------------------------------
 
-def _run(capsys, *args):
-    code = 0
-    try:
-        main(list(args))
-    except SystemExit as exc:
-        code = exc.code or 0
-    out = capsys.readouterr()
-    return code, out.out, out.err
+_run = run_cli
 
 
 def test_learn_response_writes_the_driver_file(tmp_path, capsys):
