@@ -1122,7 +1122,9 @@ class PredictorPlanner:
         self.t_requested.pop(prov[1], None)
         self.send(m.Discard(view_id=prov[1]))
         self.log("capture_discarded", t=now, view_id=prov[1], reason=why)
-        kept = [msg for msg in self._held_replies if getattr(msg, "view_id", prov[1]) != prov[1]]
+        # an Identity, Ambiguous or Failure names no view: it answers the one pending, the discarded image
+        kept = [msg for msg in self._held_replies
+                if isinstance(msg, m.FrameTaken | m.MarkerPose) and msg.view_id != prov[1]]
         self._held_replies = []
         for msg in kept:
             self.on_message(msg, now)
